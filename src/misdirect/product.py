@@ -1,0 +1,68 @@
+"""The product Markov chain of a POMDP and its controller under an alteration (paper, Def. 4).
+
+Product state ``(s, n)``: world state ``s``, memory node ``n``. The robot receives
+``o = α(O(s))``, plays ``γ(n, o)``, moves its memory to ``δ(n, o)`` and the world draws
+``s' ~ P(s, γ(n, o), ·)``; so ``(s, n) -> (s', δ(n, o))`` with probability ``P(s, γ(n, o), s')``.
+
+The construction is vectorised: the full ``|S|·|N|`` chain is one fancy-indexing of the stacked
+transition matrix, then restricted to the states reachable from ``(s0, n0)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from misdirect.model import Alteration, Problem, reachable_from
+
+
+@dataclass(frozen=True, eq=False)
+class ProductChain:
+    """A Markov chain over reachable ``(world state, memory node)`` pairs."""
+
+    world_state: np.ndarray  # (Q,) world state of each product state
+    node: np.ndarray  # (Q,) memory node of each product state
+    matrix: sp.csr_matrix  # (Q, Q) row-stochastic
+    initial: int  # index of (s0, n0)
+
+    @property
+    def n_states(self) -> int:
+        return int(self.world_state.size)
+
+    @property
+    def n_transitions(self) -> int:
+        return int(self.matrix.nnz)
+
+
+def full_product_matrix(problem: Problem, alteration: Alteration) -> sp.csr_matrix:
+    """Transition matrix over all ``|S|·|N|`` pairs, product index ``s * |N| + n``."""
+    pomdp, controller = problem.pomdp, problem.controller
+    n_states, n_nodes = pomdp.n_states, controller.n_nodes
+    received = alteration[pomdp.observation_of]  # (S,) observation the robot gets in s
+    world = np.repeat(np.arange(n_states), n_nodes)
+    node = np.tile(np.arange(n_nodes), n_states)
+    action = controller.action[node, received[world]]
+    next_node = controller.update[node, received[world]]
+
+    rows = pomdp.transitions[action * n_states + world]  # one world row per product state
+    entry_row = np.repeat(np.arange(world.size), np.diff(rows.indptr))
+    columns = rows.indices.astype(np.int64) * n_nodes + next_node[entry_row]
+    size = n_states * n_nodes
+    return sp.csr_matrix((rows.data, columns, rows.indptr), shape=(size, size))
+
+
+def build_product(problem: Problem, alteration: Alteration) -> ProductChain:
+    """The product chain restricted to states reachable from ``(s0, n0)``."""
+    n_nodes = problem.controller.n_nodes
+    full = full_product_matrix(problem, alteration)
+    start = problem.pomdp.initial_state * n_nodes + problem.controller.initial_node
+    keep = np.flatnonzero(reachable_from(full, np.array([start])))
+    matrix = full[keep][:, keep].tocsr()
+    return ProductChain(
+        world_state=keep // n_nodes,
+        node=keep % n_nodes,
+        matrix=matrix,
+        initial=int(np.searchsorted(keep, start)),
+    )

@@ -1,0 +1,91 @@
+"""Exact reachability analysis of a finite Markov chain (Baier & Katoen, ch. 10).
+
+Graph precomputation first (states that cannot reach the target get 0, states that reach it
+almost surely get 1), then one sparse LU solve on the remaining states. Removing the
+probability-0 states is what makes the answer the *least* fixed point (SPEC §1) and the
+linear system non-singular.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from misdirect.model import reachable_from
+
+
+def _without_rows(matrix: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
+    """Copy of ``matrix`` with the out-edges of the masked rows removed."""
+    kept = (sp.diags((~rows).astype(np.float64)) @ matrix).tocsr()
+    kept.eliminate_zeros()
+    return kept
+
+
+def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of states reaching ``target`` with probability exactly 0 and exactly 1."""
+    backward = matrix.T.tocsr()
+    prob0 = ~reachable_from(backward, np.flatnonzero(target))
+    # A state misses the target with positive probability iff it can reach a prob-0 state
+    # along a path that does not pass through the target.
+    can_miss = reachable_from(_without_rows(matrix, target).T.tocsr(), np.flatnonzero(prob0))
+    return prob0, ~can_miss
+
+
+def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+    """Solve ``(I - a) x = b`` (or its transpose) by sparse LU."""
+    n = a.shape[0]
+    system = (sp.identity(n, format="csc") - a).tocsc()
+    return splu(system).solve(b, trans="T" if transpose else "N")
+
+
+def reach_probabilities(matrix: sp.csr_matrix, target: np.ndarray) -> np.ndarray:
+    """Probability of ever reaching ``target`` from every state (least fixed point)."""
+    prob0, prob1 = prob0_prob1(matrix, target)
+    values = prob1.astype(np.float64)
+    maybe = np.flatnonzero(~prob0 & ~prob1)
+    if maybe.size:
+        rows = matrix[maybe]
+        b = np.asarray(rows[:, np.flatnonzero(prob1)].sum(axis=1)).ravel()
+        values[maybe] = _solve(rows[:, maybe], b)
+    return np.clip(values, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Occupation:
+    """Where a run from one state goes: expected visits and first terminal state entered.
+
+    ``visits[q]``: expected number of steps spent in transient state ``q`` before the run enters
+    a terminal state or a trapped region. ``entered[q]``: probability that the first
+    non-transient state the run enters is ``q`` (terminal or trapped). Trapped states are those
+    from which no terminal state is reachable.
+    """
+
+    visits: np.ndarray
+    entered: np.ndarray
+    transient: np.ndarray  # mask
+    trapped: np.ndarray  # mask
+
+
+def occupation(matrix: sp.csr_matrix, terminal: np.ndarray, initial: int) -> Occupation:
+    """Expected visits and first-entry distribution from ``initial`` (one transposed LU solve)."""
+    n = matrix.shape[0]
+    can_reach = reachable_from(matrix.T.tocsr(), np.flatnonzero(terminal))
+    transient = can_reach & ~terminal
+    trapped = ~can_reach
+    visits = np.zeros(n)
+    entered = np.zeros(n)
+    if not transient[initial]:
+        entered[initial] = 1.0
+        return Occupation(visits, entered, transient, trapped)
+    inner = np.flatnonzero(transient)
+    rows = matrix[inner]
+    start = np.zeros(inner.size)
+    start[np.searchsorted(inner, initial)] = 1.0
+    y = np.maximum(_solve(rows[:, inner], start, transpose=True), 0.0)
+    visits[inner] = y
+    entered = np.asarray(rows.T @ y).ravel()
+    entered[inner] = 0.0
+    return Occupation(visits, entered, transient, trapped)

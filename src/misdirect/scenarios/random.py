@@ -1,0 +1,95 @@
+"""Seeded random problems that exercise every corner the exact solvers must get right.
+
+Each model has an absorbing non-decoy ``goal`` (where the Bellman equalities of the paper's MILP
+admit spurious solutions), states whose action self-loops (the chain can cycle forever without
+reaching anything), observations shared across states, an observation only the controller knows,
+random costs with forbidden pairs and sometimes a protected observation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from misdirect.model import Controller, CostModel, Pomdp, Problem
+
+
+def random_problem(
+    seed: int,
+    *,
+    states: int = 6,
+    actions: int = 2,
+    observations: int = 4,
+    nodes: int = 2,
+    budget: float | None = None,
+) -> Problem:
+    """A random OSA_DGM instance; the same ``seed`` always gives the same problem."""
+    rng = np.random.default_rng(seed)
+    core = [f"s{i}" for i in range(states)]
+    names = (*core, "goal", "decoy")
+    goal, decoy_state = states, states + 1
+    n_s = len(names)
+
+    act, src, dst, prob = [], [], [], []
+    for s in range(states):
+        for a in range(actions):
+            if rng.random() < 0.2:  # a self-loop: the controller can get stuck here forever
+                targets, weights = np.array([s]), np.array([1])
+            else:
+                targets = rng.choice(n_s, size=rng.integers(1, 4), replace=False)
+                weights = rng.integers(1, 10, size=targets.size)
+            act += [a] * targets.size
+            src += [s] * targets.size
+            dst += targets.tolist()
+            prob += (weights / weights.sum()).tolist()
+
+    obs_names = tuple(f"o{i}" for i in range(observations)) + ("ghost",)  # ghost: emitted by none
+    observation_of = rng.integers(0, observations, size=n_s)
+    absorbing = np.zeros(n_s, dtype=bool)
+    absorbing[[goal, decoy_state]] = True
+    pomdp = Pomdp.from_triplets(
+        states=names,
+        actions=tuple(f"a{i}" for i in range(actions)),
+        observations=obs_names,
+        initial_state=0,
+        observation_of=observation_of,
+        action=np.array(act),
+        source=np.array(src),
+        target=np.array(dst),
+        probability=np.array(prob),
+        absorbing=absorbing,
+    )
+    n_obs = len(obs_names)
+    controller = Controller(
+        nodes=tuple(f"n{i}" for i in range(nodes)),
+        initial_node=0,
+        action=rng.integers(0, actions, size=(nodes, n_obs)),
+        update=rng.integers(0, nodes, size=(nodes, n_obs)),
+    )
+    pairs: dict[tuple[int, int], float] = {}
+    for o in range(n_obs):
+        for t in range(n_obs):
+            if o != t:
+                roll = rng.random()
+                if roll < 0.2:
+                    pairs[o, t] = np.inf
+                elif roll < 0.45:
+                    pairs[o, t] = float(rng.choice([0.5, 1.0, 2.0, 3.0]))
+    protected = frozenset({int(rng.integers(0, n_obs))}) if rng.random() < 0.3 else frozenset()
+    cost = CostModel(
+        n_observations=n_obs,
+        default=float(rng.choice([1.0, 2.0])),
+        pairs=pairs,
+        protected=protected,
+    )
+    decoy = np.zeros(n_s, dtype=bool)
+    decoy[decoy_state] = True
+    if rng.random() < 0.3:  # sometimes a non-absorbing decoy state as well
+        decoy[int(rng.integers(1, states))] = True
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=cost,
+        decoy=decoy,
+        budget=float(rng.integers(0, 5)) if budget is None else float(budget),
+        name=f"random model (seed {seed})",
+    )

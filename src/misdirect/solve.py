@@ -1,0 +1,163 @@
+"""Front door of the solvers: pick one, run it, and re-check every answer exactly.
+
+Whatever the method, the probability reported for an alteration is the evaluator's, computed
+from the product chain of that alteration; the solver's own number is kept only to detect
+disagreement (SPEC §2: a solver can be wrong, the chain cannot).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from misdirect.errors import ProblemError
+from misdirect.evaluate import decoy_probability
+from misdirect.model import Alteration, Problem
+from misdirect.solvers.base import ProgressCallback, Solver
+from misdirect.solvers.exhaustive import ExhaustiveSolver
+
+SOLVERS: dict[str, type] = {"exhaustive": ExhaustiveSolver}
+MISMATCH_TOLERANCE = 1e-6
+
+
+def get_solver(method: str, **options: Any) -> Solver:
+    try:
+        return SOLVERS[method](**options)
+    except KeyError:
+        raise ProblemError(
+            f"unknown method {method!r} (choose from {', '.join(SOLVERS)})", field="--method"
+        ) from None
+
+
+@dataclass(frozen=True)
+class BudgetResult:
+    """The verified answer for one budget."""
+
+    budget: float
+    status: str
+    probability: float  # exact value of `alteration`
+    alteration: dict[str, str]
+    cost: float
+    upper_bound: float | None
+    solver_probability: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "budget": self.budget,
+            "status": self.status,
+            "probability": self.probability,
+            "alteration": self.alteration,
+            "cost": self.cost,
+            "upper_bound": self.upper_bound,
+        }
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    """Answer for the largest budget asked for, plus the curve over every budget solved."""
+
+    problem: str
+    method: str
+    status: str
+    probability: float
+    alteration: dict[str, str]
+    cost: float
+    budget: float
+    baseline_probability: float
+    upper_bound: float | None
+    time_s: float
+    curve: list[BudgetResult]
+    stats: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    alteration_array: Alteration | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "problem": self.problem,
+            "status": self.status,
+            "probability": self.probability,
+            "alteration": self.alteration,
+            "cost": self.cost,
+            "budget": self.budget,
+            "baseline_probability": self.baseline_probability,
+            "upper_bound": self.upper_bound,
+            "method": self.method,
+            "time_s": self.time_s,
+            "curve": [point.to_dict() for point in self.curve],
+            "stats": self.stats,
+            "warnings": self.warnings,
+        }
+
+
+def default_budgets(budget: float) -> list[float]:
+    """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
+    whole = [float(b) for b in range(int(math.floor(budget + 1e-9)) + 1)]
+    return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
+
+
+def solve(
+    problem: Problem,
+    *,
+    method: str = "exhaustive",
+    budgets: Sequence[float] | None = None,
+    progress: ProgressCallback | None = None,
+    **options: Any,
+) -> SolveResult:
+    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), verified exactly."""
+    solver = get_solver(method, **options)
+    if budgets is None:
+        budgets = default_budgets(problem.budget) if solver.curve_is_free else [problem.budget]
+    budgets = sorted({float(b) for b in budgets})
+    for b in budgets:
+        if not math.isfinite(b) or b < 0:
+            raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
+    started = time.perf_counter()
+    solutions = solver.solve(problem, budgets, progress=progress)
+    elapsed = time.perf_counter() - started
+
+    curve, warnings = [], []
+    for solution in solutions:
+        alpha = np.asarray(solution.alteration, dtype=np.int64)
+        problem.check_alteration(alpha, source=f"{solver.name} solver")
+        exact = decoy_probability(problem, alpha)
+        cost = problem.alteration_cost(alpha)
+        if abs(exact - solution.claimed_probability) > MISMATCH_TOLERANCE:
+            warnings.append(
+                f"budget {solution.budget:g}: the {solver.name} solver claimed "
+                f"{solution.claimed_probability:.9f} but the chain gives {exact:.9f}"
+            )
+        if cost > solution.budget + 1e-9:
+            warnings.append(f"budget {solution.budget:g}: returned alteration costs {cost:g}")
+        curve.append(
+            BudgetResult(
+                budget=solution.budget,
+                status=solution.status,
+                probability=exact,
+                alteration=problem.changed_observations(alpha),
+                cost=cost,
+                upper_bound=solution.upper_bound,
+                solver_probability=solution.claimed_probability,
+            )
+        )
+    final, final_solution = curve[-1], solutions[-1]
+    return SolveResult(
+        problem=problem.name,
+        method=solver.name,
+        status=final.status,
+        probability=final.probability,
+        alteration=final.alteration,
+        cost=final.cost,
+        budget=final.budget,
+        baseline_probability=decoy_probability(problem, problem.identity()),
+        upper_bound=final.upper_bound,
+        time_s=elapsed,
+        curve=curve,
+        stats=final_solution.stats,
+        warnings=warnings,
+        alteration_array=np.asarray(final_solution.alteration, dtype=np.int64),
+    )
