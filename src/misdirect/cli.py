@@ -1,1 +1,426 @@
-def main(): pass
+"""Command-line interface: a thin layer that parses options, calls the library, formats results.
+
+Every command takes ``--json`` and then prints exactly one JSON object on stdout. Bad input of
+any kind exits with code 2 and one line naming the file (or option), the field and the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Callable
+from enum import Enum
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from misdirect import __version__
+from misdirect.errors import MisdirectError, ProblemError
+from misdirect.evaluate import evaluate as evaluate_alteration
+from misdirect.model import Problem
+from misdirect.problem_file import json_schema, load_problem, write_problem
+from misdirect.scenarios import knapsack, paper_grid, random_problem
+from misdirect.solve import SOLVERS, SolveResult, solve as solve_problem
+
+app = typer.Typer(
+    name="misdirect",
+    help="Optimal sensor deception: which sensor readings to alter, within a budget, so that a "
+    "robot driven by a finite-state controller ends up in a decoy state.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True)
+app.add_typer(scenario_app, name="scenario")
+
+out = Console()
+err = Console(stderr=True)
+INPUT_ERROR = 2
+
+
+class Scenario(str, Enum):
+    paper_grid = "paper-grid"
+    knapsack = "knapsack"
+    random = "random"
+
+
+# -- shared options -----------------------------------------------------------------------------
+
+JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON object to stdout.")]
+FileArgument = Annotated[
+    Path | None, typer.Argument(help="Problem file (misdirect/v1, YAML or JSON).", show_default=False)
+]
+ScenarioOption = Annotated[
+    Scenario | None, typer.Option(help="Use a generated problem instead of FILE.")
+]
+SizeOption = Annotated[int, typer.Option(help="Grid size n (paper-grid).")]
+WeightsOption = Annotated[str | None, typer.Option(help="Item weights, e.g. 1,2,3 (knapsack).")]
+ValuesOption = Annotated[str | None, typer.Option(help="Item values, e.g. 20,30,40 (knapsack).")]
+CapacityOption = Annotated[float | None, typer.Option(help="Knapsack capacity = budget.")]
+SeedOption = Annotated[int, typer.Option(help="Seed (random scenario).")]
+
+
+def _numbers(text: str | None, option: str) -> list[float]:
+    if text is None:
+        raise ProblemError("is required for the knapsack scenario", field=option)
+    try:
+        return [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ProblemError(f"expected comma-separated numbers, got {text!r}", field=option) from None
+
+
+def _scenario_problem(
+    scenario: Scenario,
+    size: int,
+    weights: str | None,
+    values: str | None,
+    capacity: float | None,
+    seed: int,
+) -> Problem:
+    if scenario is Scenario.paper_grid:
+        return paper_grid(size)
+    if scenario is Scenario.knapsack:
+        if capacity is None:
+            raise ProblemError("is required for the knapsack scenario", field="--capacity")
+        return knapsack(_numbers(weights, "--weights"), _numbers(values, "--values"), capacity)
+    return random_problem(seed)
+
+
+def _load_input(
+    file: Path | None,
+    scenario: Scenario | None,
+    size: int,
+    weights: str | None,
+    values: str | None,
+    capacity: float | None,
+    seed: int,
+) -> Problem:
+    if (file is None) == (scenario is None):
+        raise ProblemError("give either a problem FILE or --scenario (exactly one)")
+    if file is not None:
+        return load_problem(file)
+    return _scenario_problem(scenario, size, weights, values, capacity, seed)
+
+
+def _parse_alter(pairs: list[str]) -> dict[str, str]:
+    changes: dict[str, str] = {}
+    for pair in pairs:
+        original, sep, received = pair.partition("=")
+        if not sep or not original.strip() or not received.strip():
+            raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
+        if original.strip() in changes:
+            raise ProblemError(f"{original.strip()!r} is altered twice", field="--alter")
+        changes[original.strip()] = received.strip()
+    return changes
+
+
+def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None:
+    """``--budget 4``, ``--budget 0..7`` (every whole budget in the range) or ``--budgets 0,1,2``."""
+    if budget is not None and budgets is not None:
+        raise ProblemError("give --budget or --budgets, not both", field="--budgets")
+    try:
+        if budgets is not None:
+            parsed = [float(b) for b in budgets.split(",") if b.strip()]
+        elif budget is not None and ".." in budget:
+            low, high = (int(part) for part in budget.split("..", 1))
+            parsed = [float(b) for b in range(low, high + 1)]
+        elif budget is not None:
+            parsed = [float(budget)]
+        else:
+            return None
+    except ValueError:
+        option = "--budgets" if budgets is not None else "--budget"
+        raise ProblemError(
+            "expected a number, a range like 0..7, or a list like 0,1,2", field=option
+        ) from None
+    if not parsed or any(not math.isfinite(b) or b < 0 for b in parsed):
+        raise ProblemError("budgets must be non-negative numbers", field="--budget")
+    return parsed
+
+
+def _print_json(payload: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(payload, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
+    """Turn library errors into exit code 2 and one readable line, never a traceback."""
+
+    @wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> None:
+        as_json = kwargs.get("as_json", False)
+        try:
+            command(*args, **kwargs)
+        except ProblemError as error:
+            _fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
+        except MisdirectError as error:
+            _fail(str(error), 1, as_json)
+        except Exception as error:  # a bug: keep the traceback behind an opt-in
+            if os.environ.get("MISDIRECT_DEBUG"):
+                raise
+            _fail(
+                f"internal error: {type(error).__name__}: {error} "
+                "(set MISDIRECT_DEBUG=1 for the traceback)",
+                1,
+                as_json,
+            )
+
+    return wrapper
+
+
+def _fail(message: str, code: int, as_json: bool, **context: Any) -> None:
+    if as_json:
+        _print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
+    err.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def _fmt_alteration(alteration: dict[str, str]) -> str:
+    return ", ".join(f"{o} → {t}" for o, t in alteration.items()) or "none"
+
+
+# -- commands -----------------------------------------------------------------------------------
+
+
+@app.command()
+@handle_errors
+def evaluate(
+    file: FileArgument = None,
+    alter: Annotated[
+        list[str] | None,
+        typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+    ] = None,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Exact probability of reaching the decoy under one alteration (none by default)."""
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    result = evaluate_alteration(problem, alpha)
+    baseline = (
+        result.probability
+        if not result.alteration
+        else evaluate_alteration(problem, problem.identity()).probability
+    )
+    payload = {"problem": problem.name, **result.to_dict(), "baseline_probability": baseline}
+    if as_json:
+        _print_json(payload)
+        return
+    table = Table(title=problem.name or None, show_header=False, box=None)
+    table.add_row("alteration", _fmt_alteration(result.alteration))
+    budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
+    table.add_row("cost", f"{result.cost:g}{budget_note}")
+    table.add_row("Pr(reach decoy)", f"[bold]{result.probability:.6f}[/]")
+    table.add_row("without alteration", f"{baseline:.6f}")
+    for state, probability in result.outcomes.items():
+        table.add_row(f"  first hits {state}", f"{probability:.6f}")
+    if result.never_absorbed > 0:
+        table.add_row("  never absorbed", f"{result.never_absorbed:.6f}")
+    table.add_row("product chain", f"{result.product_states:,} states, "
+                  f"{result.product_transitions:,} transitions ({result.time_s:.3f} s)")
+    out.print(table)
+
+
+@app.command()
+@handle_errors
+def solve(
+    file: FileArgument = None,
+    budget: Annotated[
+        str | None,
+        typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
+    ] = None,
+    budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
+    method: Annotated[
+        str, typer.Option(help=f"Solver: {', '.join(SOLVERS)}.")
+    ] = "exhaustive",
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Optimal alteration within the budget, with the best value for every smaller budget."""
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    requested = parse_budgets(budget, budgets)
+    if requested is not None:
+        problem = problem.with_budget(max(requested))
+        if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
+            requested = None
+    with _progress(enabled=not as_json) as progress:
+        result = solve_problem(problem, method=method, budgets=requested, progress=progress)
+    if as_json:
+        _print_json(result.to_dict())
+    else:
+        _print_solve(result)
+    if result.warnings:
+        for warning in result.warnings:
+            err.print(f"[bold red]warning:[/] {warning}", highlight=False)
+        raise typer.Exit(1)
+
+
+class _progress:
+    """A progress bar on stderr for long searches; silent for short ones and under --json."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled and err.is_terminal
+        self.bar: Progress | None = None
+        self.task: Any = None
+
+    def __enter__(self) -> Callable[[int, int], None] | None:
+        if not self.enabled:
+            return None
+        self.bar = Progress(
+            TextColumn("searching"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+            TimeRemainingColumn(), console=err, transient=True,
+        )
+        self.bar.start()
+        return self.update
+
+    def update(self, done: int, total: int) -> None:
+        assert self.bar is not None
+        if self.task is None:
+            self.task = self.bar.add_task("search", total=total)
+        self.bar.update(self.task, completed=done)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def _print_solve(result: SolveResult) -> None:
+    title = f"{result.problem} — " if result.problem else ""
+    table = Table(title=f"{title}optimal alterations ({result.method})")
+    table.add_column("budget", justify="right")
+    table.add_column("max Pr(reach decoy)", justify="right")
+    table.add_column("optimal alteration")
+    table.add_column("cost", justify="right")
+    table.add_column("status")
+    for point in result.curve:
+        table.add_row(
+            f"{point.budget:g}",
+            f"{point.probability:.6f}",
+            _fmt_alteration(point.alteration),
+            f"{point.cost:g}",
+            point.status,
+        )
+    out.print(table)
+    out.print(
+        f"without alteration: {result.baseline_probability:.6f}   "
+        f"solved in {result.time_s:.2f} s   "
+        + "   ".join(f"{k}: {v}" for k, v in result.stats.items() if isinstance(v, int)),
+        highlight=False,
+    )
+
+
+OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
+
+
+def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
+    write_problem(problem, output)
+    if as_json:
+        _print_json({"written": str(output), "problem": problem.name,
+                     "states": problem.pomdp.n_states})
+    else:
+        err.print(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
+
+
+@scenario_app.command("paper-grid")
+@handle_errors
+def scenario_paper_grid(
+    output: OutputOption,
+    size: Annotated[int, typer.Option(help="Grid size n ≥ 5.")] = 5,
+    budget: Annotated[float, typer.Option(help="Budget written into the file.")] = 4,
+    as_json: JsonOption = False,
+) -> None:
+    """The paper's n x n grid world (SPEC §3)."""
+    _write_scenario(paper_grid(size, budget=budget), output, as_json)
+
+
+@scenario_app.command("knapsack")
+@handle_errors
+def scenario_knapsack(
+    output: OutputOption,
+    weights: Annotated[str, typer.Option(help="Item weights, e.g. 1,2,3,4,5.")],
+    values: Annotated[str, typer.Option(help="Item values, e.g. 20,30,40,50,60.")],
+    capacity: Annotated[float, typer.Option(help="Knapsack capacity (the budget).")],
+    as_json: JsonOption = False,
+) -> None:
+    """The knapsack reduction of the NP-hardness proof (SPEC §4)."""
+    problem = knapsack(_numbers(weights, "--weights"), _numbers(values, "--values"), capacity)
+    _write_scenario(problem, output, as_json)
+
+
+@scenario_app.command("random")
+@handle_errors
+def scenario_random(
+    output: OutputOption,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    states: Annotated[int, typer.Option(help="Number of non-absorbing states.")] = 6,
+    actions: Annotated[int, typer.Option(help="Number of actions.")] = 2,
+    observations: Annotated[int, typer.Option(help="Number of observations.")] = 4,
+    nodes: Annotated[int, typer.Option(help="Controller memory nodes.")] = 2,
+    as_json: JsonOption = False,
+) -> None:
+    """A seeded random model with traps, absorbing non-decoy states and forbidden pairs."""
+    for option, value in (("--states", states), ("--actions", actions),
+                          ("--observations", observations), ("--nodes", nodes)):
+        if value < 1:
+            raise ProblemError(f"must be at least 1, got {value}", field=option)
+    problem = random_problem(
+        seed, states=states, actions=actions, observations=observations, nodes=nodes
+    )
+    _write_scenario(problem, output, as_json)
+
+
+@app.command()
+@handle_errors
+def schema(
+    output: Annotated[Path | None, typer.Option("--output", "-o", help="Write to a file.")] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Print the JSON Schema of the problem file format."""
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if output is None:
+        sys.stdout.write(text)
+    else:
+        output.write_text(text, encoding="utf-8")
+        if as_json:
+            _print_json({"written": str(output)})
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"misdirect {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show version.")
+    ] = False,
+) -> None:
+    """misdirect: optimal sensor deception for POMDP robots with finite-state controllers."""
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,498 @@
+"""Problem file format ``misdirect/v1`` (YAML or JSON): schema, loading and writing.
+
+Loading has two stages. The pydantic schema checks shape and types (so a typo in a field name
+or a NaN probability is caught with its location); :func:`compile_problem` then resolves names,
+checks that distributions sum to 1 and that the controller covers every (node, observation),
+and produces the array model. Every failure is a :class:`ProblemError` naming file and field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+
+from misdirect.errors import ProblemError
+from misdirect.model import Controller, CostModel, Pomdp, Problem
+
+FORMAT = "misdirect/v1"
+WILDCARD = "*"
+SUM_TOLERANCE = 1e-9
+
+
+def _name(value: Any) -> Any:
+    """Names are strings; YAML turns ``1`` into an int, which we accept, and ``yes`` into a bool,
+    which we refuse with a hint (quote it)."""
+    if isinstance(value, bool) or value is None:
+        raise ValueError(f"a name must be a string; YAML read {value!r} (quote it)")
+    if isinstance(value, int):
+        return str(value)
+    return value
+
+
+def _number(value: Any) -> Any:
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got {value!r}")
+    if isinstance(value, float) and math.isnan(value):
+        raise ValueError("expected a number, got NaN")
+    return value
+
+
+def _cost(value: Any) -> Any:
+    if isinstance(value, str) and value.strip().lower() in {"forbidden", "inf", "infinity"}:
+        return math.inf
+    return _number(value)
+
+
+Name = Annotated[str, BeforeValidator(_name), Field(min_length=1)]
+Probability = Annotated[float, BeforeValidator(_number), Field(ge=0.0, le=1.0)]
+Budget = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
+Cost = Annotated[
+    float,
+    BeforeValidator(_cost),
+    Field(ge=0.0, description='non-negative number; "forbidden" (or .inf) forbids the pair'),
+]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PomdpSpec(_Strict):
+    """World: states, actions, observation of each state and transition probabilities."""
+
+    states: list[Name] = Field(min_length=1)
+    actions: list[Name] = Field(min_length=1)
+    initial: Name
+    observe: dict[Name, Name] = Field(description="state -> observation it emits")
+    observations: list[Name] | None = Field(
+        default=None,
+        description="all observations, in order; only needed to declare observations that no "
+        "state emits (the controller may still react to them, so they are alteration targets)",
+    )
+    transitions: list[tuple[Name, Name, Name, Probability]] = Field(
+        default_factory=list, description="[state, action, next_state, probability]"
+    )
+    absorbing: list[Name] = Field(
+        default_factory=list, description="states with a self-loop under every action"
+    )
+
+
+class RuleSpec(_Strict):
+    node: Name
+    obs: Name
+    action: Name
+    next: Name
+
+
+class ControllerSpec(_Strict):
+    """Finite-state controller as rules; the first rule matching (node, observation) wins."""
+
+    nodes: list[Name] = Field(min_length=1)
+    initial: Name
+    rules: list[RuleSpec] = Field(min_length=1)
+
+
+class CostSpec(_Strict):
+    default: Cost = Field(default=1.0, description="cost of o -> o' for o != o'")
+    pairs: dict[Name, dict[Name, Cost]] = Field(
+        default_factory=dict, description="overrides: {o: {o': cost}}"
+    )
+    forbidden: list[tuple[Name, Name]] = Field(
+        default_factory=list, description='[o, o\'] pairs never allowed; "*" matches any'
+    )
+    protected: list[Name] = Field(
+        default_factory=list, description="observations that cannot be altered at all"
+    )
+
+
+class DeceptionSpec(_Strict):
+    decoy: list[Name] = Field(min_length=1)
+    budget: Budget = 0.0
+    cost: CostSpec = Field(default_factory=CostSpec)
+
+
+class ProblemFileV1(_Strict):
+    """A misdirect problem: POMDP, controller, and what the attacker may do."""
+
+    format: Literal["misdirect/v1"]
+    name: str = ""
+    description: str | None = None
+    pomdp: PomdpSpec
+    controller: ControllerSpec
+    deception: DeceptionSpec
+
+
+# -- reading ------------------------------------------------------------------------------------
+
+
+def _location(loc: tuple[Any, ...]) -> str:
+    text = ""
+    for part in loc:
+        if isinstance(part, int):
+            text += f"[{part}]"
+        else:
+            text += f".{part}" if text else str(part)
+    return text
+
+
+def _read_document(path: Path) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ProblemError("file not found", source=str(path)) from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise ProblemError(f"cannot read file ({error})", source=str(path)) from None
+    if path.suffix.lower() == ".json":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as error:
+            raise ProblemError(
+                f"invalid JSON: {error.msg}",
+                source=str(path),
+                field=f"line {error.lineno}, column {error.colno}",
+            ) from None
+    try:
+        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else None
+        reason = getattr(error, "problem", None) or str(error)
+        raise ProblemError(f"invalid YAML: {reason}", source=str(path), field=where) from None
+
+
+def parse_spec(document: Any) -> ProblemFileV1:
+    """Validate the document's shape; the first schema error becomes a ProblemError."""
+    if not isinstance(document, dict):
+        raise ProblemError("the file must contain a mapping with format, pomdp, controller, ...")
+    if document.get("format") != FORMAT:
+        raise ProblemError(
+            f"expected format: {FORMAT}, got {document.get('format')!r}", field="format"
+        )
+    try:
+        return ProblemFileV1.model_validate(document)
+    except ValidationError as error:
+        first = error.errors()[0]
+        more = error.error_count() - 1
+        reason = first["msg"] + (f" (and {more} more problem{'s' * (more > 1)})" if more else "")
+        if first["type"] == "extra_forbidden":
+            reason = "unknown field (check the spelling)"
+        raise ProblemError(reason, field=_location(first["loc"])) from None
+
+
+def load_problem(path: str | Path) -> Problem:
+    """Read and check a problem file (YAML or JSON)."""
+    path = Path(path)
+    try:
+        return compile_problem(parse_spec(_read_document(path)), source=str(path))
+    except ProblemError as error:
+        raise error.located(str(path)) from None
+
+
+def _index(names: list[str], field: str) -> dict[str, int]:
+    index: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if name in index:
+            raise ProblemError(f"duplicate name {name!r}", field=f"{field}[{i}]")
+        index[name] = i
+    return index
+
+
+def _lookup(index: dict[str, int], name: str, kind: str, field: str) -> int:
+    try:
+        return index[name]
+    except KeyError:
+        known = ", ".join(list(index)[:8]) + (", …" if len(index) > 8 else "")
+        raise ProblemError(f"unknown {kind} {name!r} (known: {known})", field=field) from None
+
+
+def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
+    """Resolve names and check consistency; returns the array model."""
+    pomdp = _compile_pomdp(spec.pomdp)
+    controller = _compile_controller(spec.controller, pomdp)
+    obs_index = {name: i for i, name in enumerate(pomdp.observations)}
+    state_index = {name: i for i, name in enumerate(pomdp.states)}
+    decoy = np.zeros(pomdp.n_states, dtype=bool)
+    for i, name in enumerate(spec.deception.decoy):
+        decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=_compile_cost(spec.deception.cost, obs_index),
+        decoy=decoy,
+        budget=spec.deception.budget,
+        name=spec.name,
+        source=source,
+    )
+
+
+def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
+    states = _index(spec.states, "pomdp.states")
+    actions = _index(spec.actions, "pomdp.actions")
+    initial = _lookup(states, spec.initial, "state", "pomdp.initial")
+    for name in spec.observe:
+        _lookup(states, name, "state", f"pomdp.observe.{name}")
+    missing = [s for s in spec.states if s not in spec.observe]
+    if missing:
+        raise ProblemError(f"state {missing[0]!r} has no observation", field="pomdp.observe")
+
+    emitted = list(dict.fromkeys(spec.observe[s] for s in spec.states))
+    if spec.observations is None:
+        observations = emitted
+    else:
+        observations = spec.observations
+        declared = _index(observations, "pomdp.observations")
+        for name in emitted:
+            if name not in declared:
+                raise ProblemError(
+                    f"observation {name!r} is emitted by a state but not declared",
+                    field="pomdp.observations",
+                )
+    obs_index = {name: i for i, name in enumerate(observations)}
+    observation_of = np.array([obs_index[spec.observe[s]] for s in spec.states], dtype=np.int64)
+
+    absorbing = np.zeros(len(states), dtype=bool)
+    for i, name in enumerate(spec.absorbing):
+        absorbing[_lookup(states, name, "state", f"pomdp.absorbing[{i}]")] = True
+
+    n_t = len(spec.transitions)
+    source = np.empty(n_t, dtype=np.int64)
+    action = np.empty(n_t, dtype=np.int64)
+    target = np.empty(n_t, dtype=np.int64)
+    probability = np.empty(n_t)
+    for i, (s, a, t, p) in enumerate(spec.transitions):
+        field = f"pomdp.transitions[{i}]"
+        source[i] = _lookup(states, s, "state", field)
+        action[i] = _lookup(actions, a, "action", field)
+        target[i] = _lookup(states, t, "state", field)
+        probability[i] = p
+        if absorbing[source[i]]:
+            raise ProblemError(
+                f"state {s!r} is absorbing (self-loop under every action); "
+                "remove its transitions or take it out of pomdp.absorbing",
+                field=field,
+            )
+    n_s, n_a = len(states), len(actions)
+    keys = (source * n_a + action) * n_s + target
+    unique, first, counts = np.unique(keys, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        dup = int(np.flatnonzero(keys == unique[counts > 1][0])[1])
+        raise ProblemError(
+            "the same (state, action, next_state) is listed twice",
+            field=f"pomdp.transitions[{dup}]",
+        )
+    sums = np.bincount(source * n_a + action, weights=probability, minlength=n_s * n_a)
+    bad = np.flatnonzero((np.abs(sums - 1.0) > SUM_TOLERANCE) & ~np.repeat(absorbing, n_a))
+    if bad.size:
+        s, a = divmod(int(bad[0]), n_a)
+        pair = f"({spec.states[s]!r}, {spec.actions[a]!r})"
+        reason = (
+            f"no transitions for {pair}: list them, or mark {spec.states[s]!r} absorbing"
+            if sums[bad[0]] == 0
+            else f"probabilities of {pair} sum to {sums[bad[0]]:.12g}, not 1"
+        )
+        raise ProblemError(reason, field="pomdp.transitions")
+    return Pomdp.from_triplets(
+        states=tuple(spec.states),
+        actions=tuple(spec.actions),
+        observations=tuple(observations),
+        initial_state=initial,
+        observation_of=observation_of,
+        action=action,
+        source=source,
+        target=target,
+        probability=probability,
+        absorbing=absorbing,
+    )
+
+
+def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
+    nodes = _index(spec.nodes, "controller.nodes")
+    initial = _lookup(nodes, spec.initial, "node", "controller.initial")
+    actions = {name: i for i, name in enumerate(pomdp.actions)}
+    observations = {name: i for i, name in enumerate(pomdp.observations)}
+    shape = (len(nodes), pomdp.n_observations)
+    action = np.full(shape, -1, dtype=np.int64)
+    update = np.full(shape, -1, dtype=np.int64)
+    compiled = []
+    for i, rule in enumerate(spec.rules):
+        field = f"controller.rules[{i}]"
+        node = slice(None) if rule.node == WILDCARD else _lookup(nodes, rule.node, "node", field)
+        obs = (
+            slice(None)
+            if rule.obs == WILDCARD
+            else _lookup(observations, rule.obs, "observation", field)
+        )
+        compiled.append(
+            (
+                node,
+                obs,
+                _lookup(actions, rule.action, "action", field),
+                _lookup(nodes, rule.next, "node", field),
+            )
+        )
+    for node, obs, act, nxt in reversed(compiled):  # earlier rules overwrite later ones
+        action[node, obs] = act
+        update[node, obs] = nxt
+    uncovered = np.argwhere(action < 0)
+    if uncovered.size:
+        n, o = uncovered[0]
+        raise ProblemError(
+            f"no rule covers node {spec.nodes[n]!r} with observation "
+            f"{pomdp.observations[o]!r} (add a rule, or a catch-all with node/obs \"*\")",
+            field="controller.rules",
+        )
+    return Controller(nodes=tuple(spec.nodes), initial_node=initial, action=action, update=update)
+
+
+def _compile_cost(spec: CostSpec, observations: dict[str, int]) -> CostModel:
+    pairs: dict[tuple[int, int], float] = {}
+    for source_name, targets in spec.pairs.items():
+        o = _lookup(observations, source_name, "observation", f"deception.cost.pairs.{source_name}")
+        for target_name, cost in targets.items():
+            field = f"deception.cost.pairs.{source_name}.{target_name}"
+            pairs[o, _lookup(observations, target_name, "observation", field)] = cost
+    everything = list(observations.values())
+    for i, (source_name, target_name) in enumerate(spec.forbidden):
+        field = f"deception.cost.forbidden[{i}]"
+        sources = (
+            everything
+            if source_name == WILDCARD
+            else [_lookup(observations, source_name, "observation", field)]
+        )
+        targets = (
+            everything
+            if target_name == WILDCARD
+            else [_lookup(observations, target_name, "observation", field)]
+        )
+        for o in sources:
+            for t in targets:
+                if o != t:
+                    pairs[o, t] = math.inf  # forbidding wins over any listed cost
+    protected = frozenset(
+        _lookup(observations, name, "observation", f"deception.cost.protected[{i}]")
+        for i, name in enumerate(spec.protected)
+    )
+    return CostModel(
+        n_observations=len(observations), default=spec.default, pairs=pairs, protected=protected
+    )
+
+
+# -- writing ------------------------------------------------------------------------------------
+
+
+def problem_to_document(problem: Problem) -> dict[str, Any]:
+    """The explicit ``misdirect/v1`` document of ``problem`` (loads back to the same model)."""
+    pomdp, controller = problem.pomdp, problem.controller
+    states, actions, obs, nodes = pomdp.states, pomdp.actions, pomdp.observations, controller.nodes
+    coo = pomdp.transitions.tocoo()
+    act, src = np.divmod(coo.row, pomdp.n_states)
+    keep = ~pomdp.absorbing[src]
+    order = np.lexsort((coo.col[keep], act[keep], src[keep]))
+    transitions = [
+        [states[s], actions[a], states[t], float(p)]
+        for s, a, t, p in zip(
+            src[keep][order], act[keep][order], coo.col[keep][order], coo.data[keep][order],
+            strict=True,
+        )
+    ]
+    rules = []
+    for o in range(pomdp.n_observations):
+        column = zip(controller.action[:, o], controller.update[:, o], strict=True)
+        distinct = set(column)
+        if len(distinct) == 1:
+            a, n = distinct.pop()
+            rules.append({"node": WILDCARD, "obs": obs[o], "action": actions[a], "next": nodes[n]})
+            continue
+        for node in range(controller.n_nodes):
+            rules.append(
+                {
+                    "node": nodes[node],
+                    "obs": obs[o],
+                    "action": actions[controller.action[node, o]],
+                    "next": nodes[controller.update[node, o]],
+                }
+            )
+    cost = problem.cost
+    pairs: dict[str, dict[str, float]] = {}
+    forbidden = []
+    for (o, t), value in sorted(cost.pairs.items()):
+        if math.isinf(value):
+            forbidden.append([obs[o], obs[t]])
+        else:
+            pairs.setdefault(obs[o], {})[obs[t]] = value
+    emitted = set(pomdp.observation_of.tolist())
+    document: dict[str, Any] = {
+        "format": FORMAT,
+        "name": problem.name,
+        "pomdp": {
+            "states": list(states),
+            "actions": list(actions),
+            "initial": states[pomdp.initial_state],
+            "observe": {states[s]: obs[o] for s, o in enumerate(pomdp.observation_of)},
+            **(
+                {"observations": list(obs)}
+                if len(emitted) < pomdp.n_observations
+                or [obs[o] for o in dict.fromkeys(pomdp.observation_of.tolist())] != list(obs)
+                else {}
+            ),
+            "transitions": transitions,
+            "absorbing": [states[s] for s in np.flatnonzero(pomdp.absorbing)],
+        },
+        "controller": {"nodes": list(nodes), "initial": nodes[controller.initial_node],
+                       "rules": rules},
+        "deception": {
+            "decoy": [states[s] for s in np.flatnonzero(problem.decoy)],
+            "budget": problem.budget,
+            "cost": {
+                "default": "forbidden" if math.isinf(cost.default) else cost.default,
+                "pairs": pairs,
+                "forbidden": forbidden,
+                "protected": [obs[o] for o in sorted(cost.protected)],
+            },
+        },
+    }
+    return document
+
+
+class _FlowListDumper(getattr(yaml, "CSafeDumper", yaml.SafeDumper)):  # type: ignore[misc]
+    """Short lists of scalars (transitions, forbidden pairs) on one line, as people write them."""
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
+    flow = all(not isinstance(item, list | dict) for item in data) and len(data) <= 8
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+
+def _represent_dict(dumper: yaml.SafeDumper, data: dict) -> yaml.Node:
+    flow = all(not isinstance(v, list | dict) for v in data.values()) and len(data) <= 4
+    return dumper.represent_mapping("tag:yaml.org,2002:map", data.items(), flow_style=flow)
+
+
+_FlowListDumper.add_representer(list, _represent_list)
+_FlowListDumper.add_representer(dict, _represent_dict)
+
+
+def write_problem(problem: Problem, path: str | Path) -> None:
+    """Write ``problem`` as YAML, or JSON when the file name ends in ``.json``."""
+    path = Path(path)
+    document = problem_to_document(problem)
+    if path.suffix.lower() == ".json":
+        path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+    else:
+        text = yaml.dump(document, Dumper=_FlowListDumper, sort_keys=False, width=100,
+                         allow_unicode=True)
+        path.write_text(text, encoding="utf-8")
+
+
+def json_schema() -> dict[str, Any]:
+    """JSON Schema of the v1 format (published as ``docs/problem-format.schema.json``)."""
+    schema = ProblemFileV1.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["$id"] = "https://misdirect.dev/schema/problem-v1.json"
+    return schema

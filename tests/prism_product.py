@@ -1,0 +1,54 @@
+"""PRISM encoding of (POMDP, controller, alteration) for Storm to build the product itself.
+
+Two modules synchronise on action labels: ``world`` owns the state ``s`` and moves it with
+``P(s, a, ·)``; ``controller`` owns the node ``n`` and, reading the observation the altered
+sensor shows in ``s``, enables exactly one action label and updates ``n``. Storm's parallel
+composition is therefore an independent construction of the product chain. Probabilities are
+written as exact fractions where they are ratios of small integers, so Storm can check the
+model in exact rational arithmetic.
+"""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+
+from misdirect.model import Problem
+
+
+def _any(var: str, values) -> str:
+    return "(" + " | ".join(f"{var}={int(v)}" for v in values) + ")"
+
+
+def _exact(p: float) -> str:
+    fraction = Fraction(p).limit_denominator(10_000)
+    return str(fraction) if abs(float(fraction) - p) < 1e-15 else repr(float(p))
+
+
+def prism_product(problem: Problem, alteration: np.ndarray) -> str:
+    pomdp, ctrl = problem.pomdp, problem.controller
+    received = alteration[pomdp.observation_of]  # observation the robot gets in each state
+    lines = ["dtmc", "module world", f"  s : [0..{pomdp.n_states - 1}] init {pomdp.initial_state};"]
+    for s in range(pomdp.n_states):
+        for a in range(pomdp.n_actions):
+            if pomdp.absorbing[s]:
+                lines.append(f"  [act{a}] s={s} -> 1:(s'={s});")
+                continue
+            row = pomdp.transition_matrix(a)[s]
+            branches = " + ".join(
+                f"{_exact(p)}:(s'={t})" for t, p in zip(row.indices, row.data, strict=True)
+            )
+            lines.append(f"  [act{a}] s={s} -> {branches};")
+    lines += ["endmodule", "module controller",
+              f"  n : [0..{ctrl.n_nodes - 1}] init {ctrl.initial_node};"]
+    # Every label must be in the controller's alphabet, or the world would fire it on its own.
+    lines += [f"  [act{a}] false -> true;" for a in range(pomdp.n_actions)]
+    for n in range(ctrl.n_nodes):
+        behaviour = np.stack([ctrl.action[n, received], ctrl.update[n, received]], axis=1)
+        for a, nxt in np.unique(behaviour, axis=0):
+            states = np.flatnonzero((behaviour[:, 0] == a) & (behaviour[:, 1] == nxt))
+            lines.append(f"  [act{a}] n={n} & {_any('s', states)} -> 1:(n'={nxt});")
+    lines.append("endmodule")
+    lines.append(f'label "decoy" = {_any("s", np.flatnonzero(problem.decoy))};')
+    return "\n".join(lines) + "\n"
