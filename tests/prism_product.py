@@ -40,8 +40,11 @@ def prism_product(problem: Problem, alteration: np.ndarray) -> str:
                 f"{_exact(p)}:(s'={t})" for t, p in zip(row.indices, row.data, strict=True)
             )
             lines.append(f"  [act{a}] s={s} -> {branches};")
-    lines += ["endmodule", "module controller",
-              f"  n : [0..{ctrl.n_nodes - 1}] init {ctrl.initial_node};"]
+    lines += [
+        "endmodule",
+        "module controller",
+        f"  n : [0..{ctrl.n_nodes - 1}] init {ctrl.initial_node};",
+    ]
     # Every label must be in the controller's alphabet, or the world would fire it on its own.
     lines += [f"  [act{a}] false -> true;" for a in range(pomdp.n_actions)]
     for n in range(ctrl.n_nodes):

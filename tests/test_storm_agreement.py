@@ -36,7 +36,9 @@ def test_random_chains_agree_with_storm(tmp_path):
     rng = np.random.default_rng(2024)
     checked, nontrivial = 0, 0
     for seed in range(60):
-        problem = random_problem(seed, states=int(rng.integers(3, 9)), nodes=int(rng.integers(1, 4)))
+        problem = random_problem(
+            seed, states=int(rng.integers(3, 9)), nodes=int(rng.integers(1, 4))
+        )
         alpha = random_allowed_alteration(problem, rng)
         ours = decoy_probability(problem, alpha)
         theirs = storm_probability(tmp_path, problem, alpha)

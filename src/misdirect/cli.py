@@ -11,7 +11,7 @@ import math
 import os
 import sys
 from collections.abc import Callable
-from enum import Enum
+from enum import StrEnum
 from functools import wraps
 from pathlib import Path
 from typing import Annotated, Any
@@ -27,7 +27,8 @@ from misdirect.evaluate import evaluate as evaluate_alteration
 from misdirect.model import Problem
 from misdirect.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem
-from misdirect.solve import SOLVERS, SolveResult, solve as solve_problem
+from misdirect.solve import SOLVERS, SolveResult
+from misdirect.solve import solve as solve_problem
 
 app = typer.Typer(
     name="misdirect",
@@ -45,7 +46,7 @@ err = Console(stderr=True)
 INPUT_ERROR = 2
 
 
-class Scenario(str, Enum):
+class Scenario(StrEnum):
     paper_grid = "paper-grid"
     knapsack = "knapsack"
     random = "random"
@@ -55,7 +56,8 @@ class Scenario(str, Enum):
 
 JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON object to stdout.")]
 FileArgument = Annotated[
-    Path | None, typer.Argument(help="Problem file (misdirect/v1, YAML or JSON).", show_default=False)
+    Path | None,
+    typer.Argument(help="Problem file (misdirect/v1, YAML or JSON).", show_default=False),
 ]
 ScenarioOption = Annotated[
     Scenario | None, typer.Option(help="Use a generated problem instead of FILE.")
@@ -73,7 +75,9 @@ def _numbers(text: str | None, option: str) -> list[float]:
     try:
         return [float(part) for part in text.split(",") if part.strip()]
     except ValueError:
-        raise ProblemError(f"expected comma-separated numbers, got {text!r}", field=option) from None
+        raise ProblemError(
+            f"expected comma-separated numbers, got {text!r}", field=option
+        ) from None
 
 
 def _scenario_problem(
@@ -122,7 +126,7 @@ def _parse_alter(pairs: list[str]) -> dict[str, str]:
 
 
 def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None:
-    """``--budget 4``, ``--budget 0..7`` (every whole budget in the range) or ``--budgets 0,1,2``."""
+    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``."""
     if budget is not None and budgets is not None:
         raise ProblemError("give --budget or --budgets, not both", field="--budgets")
     try:
@@ -233,8 +237,11 @@ def evaluate(
         table.add_row(f"  first hits {state}", f"{probability:.6f}")
     if result.never_absorbed > 0:
         table.add_row("  never absorbed", f"{result.never_absorbed:.6f}")
-    table.add_row("product chain", f"{result.product_states:,} states, "
-                  f"{result.product_transitions:,} transitions ({result.time_s:.3f} s)")
+    table.add_row(
+        "product chain",
+        f"{result.product_states:,} states, "
+        f"{result.product_transitions:,} transitions ({result.time_s:.3f} s)",
+    )
     out.print(table)
 
 
@@ -247,9 +254,7 @@ def solve(
         typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
     ] = None,
     budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
-    method: Annotated[
-        str, typer.Option(help=f"Solver: {', '.join(SOLVERS)}.")
-    ] = "exhaustive",
+    method: Annotated[str, typer.Option(help=f"Solver: {', '.join(SOLVERS)}.")] = "exhaustive",
     scenario: ScenarioOption = None,
     size: SizeOption = 5,
     weights: WeightsOption = None,
@@ -265,7 +270,7 @@ def solve(
         problem = problem.with_budget(max(requested))
         if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
             requested = None
-    with _progress(enabled=not as_json) as progress:
+    with _ProgressBar(enabled=not as_json) as progress:
         result = solve_problem(problem, method=method, budgets=requested, progress=progress)
     if as_json:
         _print_json(result.to_dict())
@@ -277,7 +282,7 @@ def solve(
         raise typer.Exit(1)
 
 
-class _progress:
+class _ProgressBar:
     """A progress bar on stderr for long searches; silent for short ones and under --json."""
 
     def __init__(self, enabled: bool):
@@ -289,8 +294,12 @@ class _progress:
         if not self.enabled:
             return None
         self.bar = Progress(
-            TextColumn("searching"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-            TimeRemainingColumn(), console=err, transient=True,
+            TextColumn("searching"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            TimeRemainingColumn(),
+            console=err,
+            transient=True,
         )
         self.bar.start()
         return self.update
@@ -337,8 +346,9 @@ OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to writ
 def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
     write_problem(problem, output)
     if as_json:
-        _print_json({"written": str(output), "problem": problem.name,
-                     "states": problem.pomdp.n_states})
+        _print_json(
+            {"written": str(output), "problem": problem.name, "states": problem.pomdp.n_states}
+        )
     else:
         err.print(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
 
@@ -381,8 +391,12 @@ def scenario_random(
     as_json: JsonOption = False,
 ) -> None:
     """A seeded random model with traps, absorbing non-decoy states and forbidden pairs."""
-    for option, value in (("--states", states), ("--actions", actions),
-                          ("--observations", observations), ("--nodes", nodes)):
+    for option, value in (
+        ("--states", states),
+        ("--actions", actions),
+        ("--observations", observations),
+        ("--nodes", nodes),
+    ):
         if value < 1:
             raise ProblemError(f"must be at least 1, got {value}", field=option)
     problem = random_problem(

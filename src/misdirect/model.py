@@ -114,7 +114,10 @@ class Pomdp:
 
 @dataclass(frozen=True, eq=False)
 class Controller:
-    """Deterministic finite-state controller: ``action[n, o] = γ(n, o)``, ``update[n, o] = δ(n, o)``."""
+    """Deterministic finite-state controller.
+
+    ``action[n, o] = γ(n, o)`` and ``update[n, o] = δ(n, o)``.
+    """
 
     nodes: tuple[str, ...]
     initial_node: int
@@ -214,8 +217,9 @@ class Problem:
         for original, received in changes.items():
             for name in (original, received):
                 if name not in index:
+                    known = _preview(self.pomdp.observations)
                     raise ProblemError(
-                        f"unknown observation {name!r} (known: {_preview(self.pomdp.observations)})",
+                        f"unknown observation {name!r} (known: {known})",
                         source=source,
                         field=f"{original}={received}",
                     )

@@ -279,7 +279,7 @@ def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
             )
     n_s, n_a = len(states), len(actions)
     keys = (source * n_a + action) * n_s + target
-    unique, first, counts = np.unique(keys, return_index=True, return_counts=True)
+    unique, _first, counts = np.unique(keys, return_index=True, return_counts=True)
     if (counts > 1).any():
         dup = int(np.flatnonzero(keys == unique[counts > 1][0])[1])
         raise ProblemError(
@@ -344,7 +344,7 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
         n, o = uncovered[0]
         raise ProblemError(
             f"no rule covers node {spec.nodes[n]!r} with observation "
-            f"{pomdp.observations[o]!r} (add a rule, or a catch-all with node/obs \"*\")",
+            f'{pomdp.observations[o]!r} (add a rule, or a catch-all with node/obs "*")',
             field="controller.rules",
         )
     return Controller(nodes=tuple(spec.nodes), initial_node=initial, action=action, update=update)
@@ -397,7 +397,10 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
     transitions = [
         [states[s], actions[a], states[t], float(p)]
         for s, a, t, p in zip(
-            src[keep][order], act[keep][order], coo.col[keep][order], coo.data[keep][order],
+            src[keep][order],
+            act[keep][order],
+            coo.col[keep][order],
+            coo.data[keep][order],
             strict=True,
         )
     ]
@@ -444,8 +447,11 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             "transitions": transitions,
             "absorbing": [states[s] for s in np.flatnonzero(pomdp.absorbing)],
         },
-        "controller": {"nodes": list(nodes), "initial": nodes[controller.initial_node],
-                       "rules": rules},
+        "controller": {
+            "nodes": list(nodes),
+            "initial": nodes[controller.initial_node],
+            "rules": rules,
+        },
         "deception": {
             "decoy": [states[s] for s in np.flatnonzero(problem.decoy)],
             "budget": problem.budget,
@@ -485,8 +491,9 @@ def write_problem(problem: Problem, path: str | Path) -> None:
     if path.suffix.lower() == ".json":
         path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
     else:
-        text = yaml.dump(document, Dumper=_FlowListDumper, sort_keys=False, width=100,
-                         allow_unicode=True)
+        text = yaml.dump(
+            document, Dumper=_FlowListDumper, sort_keys=False, width=100, allow_unicode=True
+        )
         path.write_text(text, encoding="utf-8")
 
 

@@ -50,8 +50,9 @@ def simulate(
     # number to the within-row running sums makes one sorted key array for all rows.
     row_of_entry = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
     running = np.cumsum(matrix.data)
-    running -= np.repeat(np.concatenate([[0.0], running[matrix.indptr[1:-1] - 1]]),
-                         np.diff(matrix.indptr))
+    running -= np.repeat(
+        np.concatenate([[0.0], running[matrix.indptr[1:-1] - 1]]), np.diff(matrix.indptr)
+    )
     keys = row_of_entry + running
 
     state = np.full(runs, pomdp.initial_state)

@@ -96,7 +96,7 @@ class SolveResult:
 
 def default_budgets(budget: float) -> list[float]:
     """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
-    whole = [float(b) for b in range(int(math.floor(budget + 1e-9)) + 1)]
+    whole = [float(b) for b in range(math.floor(budget + 1e-9) + 1)]
     return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
 
 

@@ -42,7 +42,7 @@ def random_problem(
             dst += targets.tolist()
             prob += (weights / weights.sum()).tolist()
 
-    obs_names = tuple(f"o{i}" for i in range(observations)) + ("ghost",)  # ghost: emitted by none
+    obs_names = (*(f"o{i}" for i in range(observations)), "ghost")  # ghost: emitted by none
     observation_of = rng.integers(0, observations, size=n_s)
     absorbing = np.zeros(n_s, dtype=bool)
     absorbing[[goal, decoy_state]] = True

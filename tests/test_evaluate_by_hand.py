@@ -1,0 +1,164 @@
+"""Evaluator values worked out by hand on models small enough to follow on paper."""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from misdirect import evaluate, load_problem, solve
+from misdirect.scenarios import paper_grid
+from misdirect.simulate import simulate
+
+
+def write(tmp_path, text, name="p.yaml"):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+TRAP = """
+    format: misdirect/v1
+    pomdp:
+      states: [start, loop, exit, goal, decoy]
+      actions: [stay, go]
+      initial: start
+      observe: {start: o0, loop: o1, exit: o2, goal: g, decoy: g}
+      transitions:
+        - [start, stay, loop, 0.6]
+        - [start, stay, exit, 0.4]
+        - [start, go, loop, 0.6]
+        - [start, go, exit, 0.4]
+        - [loop, stay, loop, 1.0]
+        - [loop, go, decoy, 0.5]
+        - [loop, go, goal, 0.5]
+        - [exit, stay, decoy, 0.25]
+        - [exit, stay, goal, 0.75]
+        - [exit, go, goal, 1.0]
+      absorbing: [goal, decoy]
+    controller:
+      nodes: [m]
+      initial: m
+      rules:
+        - {node: "*", obs: o2, action: stay, next: m}
+        - {node: "*", obs: o0, action: go, next: m}
+        - {node: "*", obs: "*", action: stay, next: m}
+    deception:
+      decoy: [decoy]
+      budget: 1
+"""
+
+
+def test_trap_cycle_gets_zero_not_a_spurious_fixed_point(tmp_path):
+    """In `loop` the robot stays forever: x_loop = x_loop admits any value, the least is 0.
+
+    Unaltered: 0.6 * 0 (trapped) + 0.4 * 0.25 (exit, stay) = 0.1; 60 % never absorbed.
+    """
+    problem = load_problem(write(tmp_path, TRAP))
+    report = evaluate(problem)
+    assert report.probability == pytest.approx(0.1, abs=1e-12)
+    assert report.never_absorbed == pytest.approx(0.6, abs=1e-12)
+    assert report.outcomes == pytest.approx({"goal": 0.3, "decoy": 0.1}, abs=1e-12)
+
+
+def test_trap_cycle_altered_out(tmp_path):
+    """o1 -> o0 makes the robot `go` in `loop`: 0.6 * 0.5 + 0.4 * 0.25 = 0.4.
+    o2 -> o0 makes it `go` at `exit`: 0.4 * 0 = 0 extra, worse. Optimum at budget 1: 0.4."""
+    problem = load_problem(write(tmp_path, TRAP))
+    assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.4)
+    result = solve(problem, method="exhaustive")
+    assert result.probability == pytest.approx(0.4, abs=1e-12)
+    assert result.alteration == {"o1": "o0"}  # o1 -> o2 keeps `stay`; o2 -> o0 is worse
+
+
+def test_issue_example_by_hand(tmp_path):
+    """s0 -a-> s1|s2 (1/2 each); in s1 the robot sees o1, plays a, goes to goal; in s2 it sees
+    o2 with node n0, plays a, falls in trap: 1/2. Altering o1 -> o0 keeps a at s1: still 1/2."""
+    from pathlib import Path
+
+    problem = load_problem(Path(__file__).parents[1] / "examples" / "tiny.yaml")
+    assert evaluate(problem).probability == pytest.approx(0.5, abs=1e-15)
+    assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.5)
+
+
+def test_first_step_of_grid_by_hand():
+    """From (0,0) under E: 0.8 to (1,0), 0.2 to (0,1) (the only orthogonal cell inside)."""
+    pomdp = paper_grid(5).pomdp
+    east = pomdp.transition_matrix(pomdp.actions.index("E"))
+    row = dict(zip((pomdp.states[i] for i in east[0].indices), east[0].data, strict=True))
+    assert row == pytest.approx({"(1,0)": 0.8, "(0,1)": 0.2})
+    north = pomdp.transition_matrix(pomdp.actions.index("N"))
+    middle = pomdp.states.index("(2,1)")
+    row = dict(
+        zip((pomdp.states[i] for i in north[middle].indices), north[middle].data, strict=True)
+    )
+    assert row == pytest.approx({"(2,2)": 0.8, "(1,1)": 0.1, "(3,1)": 0.1})
+    # (4,3) under E: the intended move would leave the grid, so the robot stays with 0.8;
+    # both orthogonal cells (4,4) and (4,2) are inside.
+    top_right = pomdp.states.index("(4,3)")
+    east_row = east[top_right]
+    got = dict(zip((pomdp.states[i] for i in east_row.indices), east_row.data, strict=True))
+    assert got == pytest.approx({"(4,3)": 0.8, "(4,4)": 0.1, "(4,2)": 0.1})
+
+
+def test_sensor_layout_n5_matches_paper_figure():
+    problem = paper_grid(5)
+    pomdp = problem.pomdp
+    by_obs = {}
+    for s, o in enumerate(pomdp.observation_of):
+        by_obs.setdefault(pomdp.observations[o], set()).add(pomdp.states[s])
+    assert by_obs["o0"] == {"(0,0)"}
+    assert by_obs["o1"] == {"(2,0)", "(2,1)"}
+    assert by_obs["o2"] == {"(0,2)", "(1,2)"}
+    assert by_obs["o3"] == {"(4,0)", "(4,1)"}
+    assert by_obs["o4"] == {"(0,4)", "(1,4)"}
+    assert by_obs["o5"] == {"(4,3)"}
+    assert by_obs["o6"] == {"(3,4)"}
+    assert len(by_obs["b"]) == 25 - 11
+    assert [pomdp.states[s] for s in np.flatnonzero(problem.decoy)] == ["(2,2)"]
+    assert {pomdp.states[s] for s in np.flatnonzero(pomdp.absorbing)} == {"(2,2)", "(4,4)"}
+
+
+@pytest.mark.parametrize("n", [5, 6, 7, 8, 11, 45])
+def test_scaled_grid_is_stochastic_and_sensors_keep_their_sizes(n):
+    problem = paper_grid(n)
+    sums = np.asarray(problem.pomdp.transitions.sum(axis=1)).ravel()
+    assert np.allclose(sums, 1.0, atol=1e-12)
+    counts = np.bincount(problem.pomdp.observation_of, minlength=8)
+    assert counts[:7].tolist() == [1, 2, 2, 2, 2, 1, 1]
+
+
+@pytest.mark.parametrize(
+    ("changes", "seed"), [({}, 1), ({"o1": "o3"}, 2), ({"o1": "o5", "o2": "o0"}, 3)]
+)
+def test_monte_carlo_agrees_with_exact_value(changes, seed):
+    """The simulator walks the POMDP and controller directly, without the product chain."""
+    problem = paper_grid(5)
+    alpha = problem.alteration(changes)
+    exact = evaluate(problem, alpha).probability
+    sim = simulate(problem, alpha, runs=100_000, seed=seed)
+    low, high = sim.confidence_interval(z=3.29)  # 99.9 %: a seeded run, far from the edge
+    assert sim.unfinished == 0
+    assert low <= exact <= high
+
+
+def test_expected_visits_two_ways():
+    """Expected visits per cell from the LU solve against a Monte-Carlo-free power series:
+    visits = Σ_k e0ᵀ A^k over the transient block, summed to convergence."""
+    from misdirect.product import build_product
+
+    problem = paper_grid(5)
+    alpha = problem.alteration({"o1": "o3"})
+    report = evaluate(problem, alpha)
+    chain = build_product(problem, alpha)
+    stop = problem.decoy[chain.world_state] | problem.pomdp.absorbing[chain.world_state]
+    a = chain.matrix.toarray()
+    a[stop] = 0.0  # runs end there
+    a[:, stop] = 0.0
+    vector = np.zeros(chain.n_states)
+    vector[chain.initial] = 1.0
+    total = np.zeros(chain.n_states)
+    for _ in range(5000):
+        total += vector
+        vector = vector @ a
+    per_cell = np.bincount(chain.world_state, weights=total, minlength=problem.pomdp.n_states)
+    assert np.allclose(report.expected_visits, per_cell, atol=1e-9)
