@@ -1,6 +1,6 @@
 """Evaluator values worked out by hand on models small enough to follow on paper."""
 
-import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,61 +9,25 @@ from misdirect import evaluate, load_problem, solve
 from misdirect.scenarios import paper_grid
 from misdirect.simulate import simulate
 
-
-def write(tmp_path, text, name="p.yaml"):
-    path = tmp_path / name
-    path.write_text(textwrap.dedent(text))
-    return path
+EXAMPLES = Path(__file__).parents[1] / "examples"
 
 
-TRAP = """
-    format: misdirect/v1
-    pomdp:
-      states: [start, loop, exit, goal, decoy]
-      actions: [stay, go]
-      initial: start
-      observe: {start: o0, loop: o1, exit: o2, goal: g, decoy: g}
-      transitions:
-        - [start, stay, loop, 0.6]
-        - [start, stay, exit, 0.4]
-        - [start, go, loop, 0.6]
-        - [start, go, exit, 0.4]
-        - [loop, stay, loop, 1.0]
-        - [loop, go, decoy, 0.5]
-        - [loop, go, goal, 0.5]
-        - [exit, stay, decoy, 0.25]
-        - [exit, stay, goal, 0.75]
-        - [exit, go, goal, 1.0]
-      absorbing: [goal, decoy]
-    controller:
-      nodes: [m]
-      initial: m
-      rules:
-        - {node: "*", obs: o2, action: stay, next: m}
-        - {node: "*", obs: o0, action: go, next: m}
-        - {node: "*", obs: "*", action: stay, next: m}
-    deception:
-      decoy: [decoy]
-      budget: 1
-"""
-
-
-def test_trap_cycle_gets_zero_not_a_spurious_fixed_point(tmp_path):
+def test_trap_cycle_gets_zero_not_a_spurious_fixed_point():
     """In `loop` the robot stays forever: x_loop = x_loop admits any value, the least is 0.
 
     Unaltered: 0.6 * 0 (trapped) + 0.4 * 0.25 (exit, stay) = 0.1; 60 % never absorbed.
     """
-    problem = load_problem(write(tmp_path, TRAP))
+    problem = load_problem(EXAMPLES / "trap.yaml")
     report = evaluate(problem)
     assert report.probability == pytest.approx(0.1, abs=1e-12)
     assert report.never_absorbed == pytest.approx(0.6, abs=1e-12)
     assert report.outcomes == pytest.approx({"goal": 0.3, "decoy": 0.1}, abs=1e-12)
 
 
-def test_trap_cycle_altered_out(tmp_path):
+def test_trap_cycle_altered_out():
     """o1 -> o0 makes the robot `go` in `loop`: 0.6 * 0.5 + 0.4 * 0.25 = 0.4.
     o2 -> o0 makes it `go` at `exit`: 0.4 * 0 = 0 extra, worse. Optimum at budget 1: 0.4."""
-    problem = load_problem(write(tmp_path, TRAP))
+    problem = load_problem(EXAMPLES / "trap.yaml")
     assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.4)
     result = solve(problem, method="exhaustive")
     assert result.probability == pytest.approx(0.4, abs=1e-12)
@@ -73,9 +37,7 @@ def test_trap_cycle_altered_out(tmp_path):
 def test_issue_example_by_hand(tmp_path):
     """s0 -a-> s1|s2 (1/2 each); in s1 the robot sees o1, plays a, goes to goal; in s2 it sees
     o2 with node n0, plays a, falls in trap: 1/2. Altering o1 -> o0 keeps a at s1: still 1/2."""
-    from pathlib import Path
-
-    problem = load_problem(Path(__file__).parents[1] / "examples" / "tiny.yaml")
+    problem = load_problem(EXAMPLES / "tiny.yaml")
     assert evaluate(problem).probability == pytest.approx(0.5, abs=1e-15)
     assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.5)
 

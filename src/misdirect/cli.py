@@ -332,10 +332,15 @@ def _print_solve(result: SolveResult) -> None:
             point.status,
         )
     out.print(table)
+    counts = [f"{k.replace('_', ' ')} {v:,}" for k, v in result.stats.items() if isinstance(v, int)]
     out.print(
-        f"without alteration: {result.baseline_probability:.6f}   "
-        f"solved in {result.time_s:.2f} s   "
-        + "   ".join(f"{k}: {v}" for k, v in result.stats.items() if isinstance(v, int)),
+        " · ".join(
+            [
+                f"without alteration {result.baseline_probability:.6f}",
+                f"{result.time_s:.2f} s",
+                *counts,
+            ]
+        ),
         highlight=False,
     )
 

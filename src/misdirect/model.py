@@ -16,6 +16,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order
 
 from misdirect.errors import ProblemError
 
@@ -268,8 +269,6 @@ class Problem:
 
 def reachable_from(graph: sp.csr_matrix, sources: np.ndarray) -> np.ndarray:
     """Boolean mask of nodes reachable from any of ``sources`` (BFS with a virtual super-source)."""
-    from scipy.sparse.csgraph import breadth_first_order
-
     n = graph.shape[0]
     sources = np.asarray(sources, dtype=np.int32)
     mask = np.zeros(n, dtype=bool)
