@@ -23,6 +23,7 @@ from rich.table import Table
 
 from misdirect import __version__
 from misdirect.errors import MisdirectError, ProblemError
+from misdirect.evaluate import decoy_probability
 from misdirect.evaluate import evaluate as evaluate_alteration
 from misdirect.model import Problem
 from misdirect.problem_file import json_schema, load_problem, write_problem
@@ -129,6 +130,7 @@ def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None
     """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``."""
     if budget is not None and budgets is not None:
         raise ProblemError("give --budget or --budgets, not both", field="--budgets")
+    option = "--budgets" if budgets is not None else "--budget"
     try:
         if budgets is not None:
             parsed = [float(b) for b in budgets.split(",") if b.strip()]
@@ -140,12 +142,11 @@ def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None
         else:
             return None
     except ValueError:
-        option = "--budgets" if budgets is not None else "--budget"
         raise ProblemError(
             "expected a number, a range like 0..7, or a list like 0,1,2", field=option
         ) from None
     if not parsed or any(not math.isfinite(b) or b < 0 for b in parsed):
-        raise ProblemError("budgets must be non-negative numbers", field="--budget")
+        raise ProblemError("budgets must be non-negative numbers", field=option)
     return parsed
 
 
@@ -221,7 +222,7 @@ def evaluate(
     baseline = (
         result.probability
         if not result.alteration
-        else evaluate_alteration(problem, problem.identity()).probability
+        else decoy_probability(problem, problem.identity())
     )
     payload = {"problem": problem.name, **result.to_dict(), "baseline_probability": baseline}
     if as_json:

@@ -279,7 +279,7 @@ def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
             )
     n_s, n_a = len(states), len(actions)
     keys = (source * n_a + action) * n_s + target
-    unique, _first, counts = np.unique(keys, return_index=True, return_counts=True)
+    unique, counts = np.unique(keys, return_counts=True)
     if (counts > 1).any():
         dup = int(np.flatnonzero(keys == unique[counts > 1][0])[1])
         raise ProblemError(
@@ -429,7 +429,8 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             forbidden.append([obs[o], obs[t]])
         else:
             pairs.setdefault(obs[o], {})[obs[t]] = value
-    emitted = set(pomdp.observation_of.tolist())
+    # `observations` is only needed when it is not "emitted ones, in order of first appearance"
+    emitted_in_order = [obs[o] for o in dict.fromkeys(pomdp.observation_of.tolist())]
     document: dict[str, Any] = {
         "format": FORMAT,
         "name": problem.name,
@@ -438,12 +439,7 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             "actions": list(actions),
             "initial": states[pomdp.initial_state],
             "observe": {states[s]: obs[o] for s, o in enumerate(pomdp.observation_of)},
-            **(
-                {"observations": list(obs)}
-                if len(emitted) < pomdp.n_observations
-                or [obs[o] for o in dict.fromkeys(pomdp.observation_of.tolist())] != list(obs)
-                else {}
-            ),
+            **({"observations": list(obs)} if emitted_in_order != list(obs) else {}),
             "transitions": transitions,
             "absorbing": [states[s] for s in np.flatnonzero(pomdp.absorbing)],
         },
