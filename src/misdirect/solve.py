@@ -20,8 +20,9 @@ from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
 from misdirect.solvers.base import ProgressCallback, Solver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
+from misdirect.solvers.milp import MilpSolver
 
-SOLVERS: dict[str, type] = {"exhaustive": ExhaustiveSolver}
+SOLVERS: dict[str, type] = {"exhaustive": ExhaustiveSolver, "milp": MilpSolver}
 MISMATCH_TOLERANCE = 1e-6
 
 
@@ -44,7 +45,15 @@ class BudgetResult:
     alteration: dict[str, str]
     cost: float
     upper_bound: float | None
-    solver_probability: float
+    solver_probability: float | None  # None when the solver stopped without an incumbent
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def gap(self) -> float | None:
+        """Proven distance to the optimum, in probability (0 when solved to optimality)."""
+        if self.upper_bound is None:
+            return None
+        return max(self.upper_bound - self.probability, 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -54,6 +63,8 @@ class BudgetResult:
             "alteration": self.alteration,
             "cost": self.cost,
             "upper_bound": self.upper_bound,
+            "gap": self.gap,
+            "stats": self.stats,
         }
 
 
@@ -126,25 +137,30 @@ def solve(
         problem.check_alteration(alpha, source=f"{solver.name} solver")
         exact = decoy_probability(problem, alpha)
         cost = problem.alteration_cost(alpha)
-        if abs(exact - solution.claimed_probability) > MISMATCH_TOLERANCE:
+        status = solution.status
+        claimed = solution.claimed_probability
+        if claimed is not None and abs(exact - claimed) > MISMATCH_TOLERANCE:
+            status = "unverified"
             warnings.append(
                 f"budget {solution.budget:g}: the {solver.name} solver claimed "
-                f"{solution.claimed_probability:.9f} but the chain gives {exact:.9f}"
+                f"{claimed:.9f} but the chain gives {exact:.9f}; the answer is not optimal "
+                "as far as anyone can tell"
             )
         if cost > solution.budget + 1e-9:
             warnings.append(f"budget {solution.budget:g}: returned alteration costs {cost:g}")
         curve.append(
             BudgetResult(
                 budget=solution.budget,
-                status=solution.status,
+                status=status,
                 probability=exact,
                 alteration=problem.changed_observations(alpha),
                 cost=cost,
                 upper_bound=solution.upper_bound,
-                solver_probability=solution.claimed_probability,
+                solver_probability=claimed,
+                stats=solution.stats,
             )
         )
-    final, final_solution = curve[-1], solutions[-1]
+    final = curve[-1]
     return SolveResult(
         problem=problem.name,
         method=solver.name,
@@ -157,7 +173,7 @@ def solve(
         upper_bound=final.upper_bound,
         time_s=elapsed,
         curve=curve,
-        stats=final_solution.stats,
+        stats=final.stats,
         warnings=warnings,
-        alteration_array=np.asarray(final_solution.alteration, dtype=np.int64),
+        alteration_array=np.asarray(solutions[-1].alteration, dtype=np.int64),
     )

@@ -1,0 +1,219 @@
+"""The product of POMDP and controller with the attacker's choice left open (a product MDP).
+
+In product state ``(s, n)`` the robot receives ``α(O(s))``, and the attacker's candidates for
+``O(s)`` (one per behaviour class, :mod:`misdirect.alterations`) decide the robot's action and
+next memory node. Different candidates often make the robot do the same thing *at this node*;
+those share one **group** ``(s, n, action, next node)``. A group is a choice of this MDP, and the
+options that select it are recorded so a MILP can switch its Bellman row on and off.
+
+The MDP over-approximates the attacker: it lets every product state choose independently,
+whereas an alteration makes one choice per observation. It is used for what holds under *every*
+alteration (which states can never reach the decoy, which can cycle forever), never for values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from misdirect.alterations import AlterationSpace
+from misdirect.model import Alteration, Problem, reachable_from
+
+
+@dataclass(frozen=True)
+class Options:
+    """Flat list of the attacker's binary options: option ``k`` sends ``observation[k]`` to
+    ``target[k]`` at ``cost[k]``. Option 0 of each observation is "leave it unaltered"."""
+
+    observation: np.ndarray
+    target: np.ndarray
+    cost: np.ndarray
+
+    @classmethod
+    def from_space(cls, space: AlterationSpace) -> Options:
+        if not space.choices:
+            empty = np.zeros(0, dtype=np.int64)
+            return cls(empty, empty, np.zeros(0))
+        return cls(
+            observation=np.concatenate(
+                [np.full(c.size, c.observation, dtype=np.int64) for c in space.choices]
+            ),
+            target=np.concatenate([c.targets for c in space.choices]).astype(np.int64),
+            cost=np.concatenate([c.costs for c in space.choices]).astype(np.float64),
+        )
+
+    @property
+    def size(self) -> int:
+        return int(self.observation.size)
+
+    def decode(self, problem: Problem, chosen: np.ndarray) -> Alteration:
+        """Alteration from a 0/1 (or near 0/1) vector over the options."""
+        alpha = problem.identity()
+        picked = np.flatnonzero(np.asarray(chosen) > 0.5)
+        alpha[self.observation[picked]] = self.target[picked]
+        return alpha
+
+    def encode(self, alteration: Alteration) -> np.ndarray:
+        """0/1 vector over the options selecting ``alteration`` (which must lie in the space)."""
+        return (alteration[self.observation] == self.target).astype(np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class ChoiceProduct:
+    """Product MDP over reachable ``(s, n)``; groups are its choices."""
+
+    world_state: np.ndarray  # (Q,)
+    node: np.ndarray  # (Q,)
+    initial: int
+    target: np.ndarray  # (Q,) bool, world state is a decoy
+    options: Options
+    group_state: np.ndarray  # (G,) product state owning each group, sorted
+    group_options: sp.csr_matrix  # (G, K) 1 where option k makes the state take this group
+    transitions: sp.csr_matrix  # (G, Q) P(group -> q')
+
+    @property
+    def n_states(self) -> int:
+        return int(self.world_state.size)
+
+    @property
+    def n_groups(self) -> int:
+        return int(self.group_state.size)
+
+    @property
+    def groups_per_state(self) -> np.ndarray:
+        return np.bincount(self.group_state, minlength=self.n_states)
+
+    def union_graph(self) -> sp.csr_matrix:
+        """``q -> q'`` whenever some group of ``q`` can move to ``q'``."""
+        owner = sp.csr_matrix(
+            (np.ones(self.n_groups), (self.group_state, np.arange(self.n_groups))),
+            shape=(self.n_states, self.n_groups),
+        )
+        graph = (owner @ (self.transitions != 0).astype(np.float64)).tocsr()
+        graph.data[:] = 1.0
+        return graph
+
+    def can_reach_target(self) -> np.ndarray:
+        """States from which *some* alteration (indeed some MDP scheduler) reaches the decoy."""
+        return reachable_from(self.union_graph().T.tocsr(), np.flatnonzero(self.target))
+
+    def selected_groups(self, alteration: Alteration) -> np.ndarray:
+        """One group per state: the one the alteration selects (the matrix rows of its chain)."""
+        chosen = self.options.encode(alteration)
+        hits = np.asarray(self.group_options @ chosen).ravel() > 0.5
+        single = self.groups_per_state[self.group_state] == 1
+        picked = np.flatnonzero(hits | single)
+        return picked[np.unique(self.group_state[picked], return_index=True)[1]]
+
+
+def build_choice_product(
+    problem: Problem, space: AlterationSpace, *, reachable_only: bool = True
+) -> ChoiceProduct:
+    """Vectorised construction; ``reachable_only`` keeps states reachable from ``(s0, n0)``."""
+    pomdp, controller = problem.pomdp, problem.controller
+    n_s, n_n, n_o = pomdp.n_states, controller.n_nodes, pomdp.n_observations
+    options = Options.from_space(space)
+
+    # candidates per observation: the options of relevant ones, "itself" for the rest
+    has_options = np.zeros(n_o, dtype=bool)
+    has_options[options.observation] = True
+    fixed = np.flatnonzero(~has_options)
+    cand_obs = np.concatenate([options.observation, fixed])
+    cand_target = np.concatenate([options.target, fixed])
+    cand_option = np.concatenate([np.arange(options.size), np.full(fixed.size, -1)])
+    order = np.argsort(cand_obs, kind="stable")
+    cand_obs, cand_target, cand_option = cand_obs[order], cand_target[order], cand_option[order]
+    cand_count = np.bincount(cand_obs, minlength=n_o)
+    cand_start = np.concatenate([[0], np.cumsum(cand_count)[:-1]])
+
+    # expand every (s, n) into its candidates
+    pair_obs = np.repeat(pomdp.observation_of, n_n)
+    counts = cand_count[pair_obs]
+    pair = np.repeat(np.arange(n_s * n_n), counts)
+    within = np.arange(pair.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    cand = cand_start[pair_obs[pair]] + within
+    node = pair % n_n
+    action = controller.action[node, cand_target[cand]]
+    next_node = controller.update[node, cand_target[cand]]
+
+    # one group per distinct (pair, action, next node)
+    keys = np.stack([pair, action, next_node], axis=1)
+    unique_keys, group_of = np.unique(keys, axis=0, return_inverse=True)
+    group_of = group_of.reshape(-1)
+    g_pair, g_action, g_next = unique_keys.T
+    n_groups = g_pair.size
+    with_option = cand_option[cand] >= 0
+    group_options = sp.csr_matrix(
+        (np.ones(int(with_option.sum())), (group_of[with_option], cand_option[cand][with_option])),
+        shape=(n_groups, options.size),
+    )
+    g_world = g_pair // n_n
+    rows = pomdp.transitions[g_action * n_s + g_world]
+    entry_group = np.repeat(np.arange(n_groups), np.diff(rows.indptr))
+    columns = rows.indices.astype(np.int64) * n_n + g_next[entry_group]
+    transitions = sp.csr_matrix((rows.data, columns, rows.indptr), shape=(n_groups, n_s * n_n))
+
+    start = pomdp.initial_state * n_n + controller.initial_node
+    if reachable_only:
+        owner = sp.csr_matrix(
+            (np.ones(n_groups), (g_pair, np.arange(n_groups))), shape=(n_s * n_n, n_groups)
+        )
+        graph = (owner @ (transitions != 0).astype(np.float64)).tocsr()
+        keep = np.flatnonzero(reachable_from(graph, np.array([start])))
+    else:
+        keep = np.arange(n_s * n_n)
+    renumber = np.full(n_s * n_n, -1)
+    renumber[keep] = np.arange(keep.size)
+    kept_groups = np.flatnonzero(renumber[g_pair] >= 0)
+    return ChoiceProduct(
+        world_state=keep // n_n,
+        node=keep % n_n,
+        initial=int(renumber[start]),
+        target=problem.decoy[keep // n_n],
+        options=options,
+        group_state=renumber[g_pair[kept_groups]],
+        group_options=group_options[kept_groups],
+        transitions=transitions[kept_groups][:, keep].tocsr(),
+    )
+
+
+def end_component_states(
+    group_state: np.ndarray, transitions: sp.csr_matrix, candidates: np.ndarray
+) -> np.ndarray:
+    """States of the MDP (restricted to ``candidates``) that lie in some end component.
+
+    An end component is a set of states with a choice each that keeps the run inside and lets
+    it visit all of them forever. These are exactly the states where a chain can cycle without
+    ever leaving, so the only ones where a maximised Bellman inequality can overshoot (SPEC §2).
+    Classic refinement: drop choices that leave the set or their strongly connected component,
+    drop states left without choices, repeat until stable.
+    """
+    n_states = candidates.size
+    structure = (transitions != 0).astype(np.int32).tocsr()
+    entry_group = np.repeat(np.arange(group_state.size), np.diff(structure.indptr))
+    states = candidates.copy()
+    alive = states[group_state].copy()
+    while True:
+        before = int(alive.sum())
+        alive &= states[group_state]
+        alive &= np.asarray(structure @ (~states).astype(np.int32)).ravel() == 0
+        kept = alive[entry_group]
+        graph = sp.csr_matrix(
+            (
+                np.ones(int(kept.sum()), dtype=np.int8),
+                (group_state[entry_group[kept]], structure.indices[kept]),
+            ),
+            shape=(n_states, n_states),
+        )
+        _, label = connected_components(graph, directed=True, connection="strong")
+        crossing = label[structure.indices] != label[group_state[entry_group]]
+        alive[entry_group[crossing]] = False
+        remaining = np.zeros(n_states, dtype=bool)
+        remaining[group_state[alive]] = True
+        remaining &= states
+        if int(alive.sum()) == before and np.array_equal(remaining, states):
+            return states
+        states = remaining

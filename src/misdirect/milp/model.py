@@ -1,0 +1,137 @@
+"""A solver-neutral MILP: one sparse constraint matrix with row and column bounds.
+
+Formulations build this once with numpy/scipy; backends hand it to a solver in bulk. Keeping
+the model as plain arrays is what lets the same formulation go to HiGHS, Gurobi, SCIP or an
+MPS/LP file without a per-row Python loop anywhere.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from misdirect.model import Alteration
+
+
+@dataclass(eq=False)
+class MilpModel:
+    """``maximise objective·x + offset`` s.t. ``row_lower ≤ A x ≤ row_upper``, column bounds."""
+
+    formulation: str
+    objective: np.ndarray
+    offset: float
+    matrix: sp.csr_matrix
+    row_lower: np.ndarray
+    row_upper: np.ndarray
+    col_lower: np.ndarray
+    col_upper: np.ndarray
+    integer: np.ndarray  # bool per column
+    budget_row: int
+    column_blocks: dict[str, slice]
+    row_blocks: dict[str, slice]
+    decode: Callable[[np.ndarray], Alteration]  # column values -> alteration
+    start_for: Callable[[Alteration], tuple[np.ndarray, np.ndarray]]  # alteration -> (cols, vals)
+    sound: bool = True  # does the optimum equal the true optimum (and the bound bound it)?
+    build_time_s: float = 0.0
+    notes: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_columns(self) -> int:
+        return int(self.objective.size)
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.row_lower.size)
+
+    def set_budget(self, budget: float) -> None:
+        self.row_upper[self.budget_row] = budget
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "formulation": self.formulation,
+            "variables": self.n_columns,
+            "binaries": int(self.integer.sum()),
+            "rows": self.n_rows,
+            "nonzeros": int(self.matrix.nnz),
+            "build_time_s": self.build_time_s,
+            "variables_by_block": {k: s.stop - s.start for k, s in self.column_blocks.items()},
+            "rows_by_block": {k: s.stop - s.start for k, s in self.row_blocks.items()},
+            **self.notes,
+        }
+
+
+class ModelBuilder:
+    """Collects column blocks and row blocks as COO triplets, then assembles one CSR matrix."""
+
+    def __init__(self) -> None:
+        self._col_parts: list[tuple[str, int, float, float, bool]] = []
+        self._n_cols = 0
+        self._row_parts: list[tuple[str, int]] = []
+        self._n_rows = 0
+        self._entries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._lower: list[np.ndarray] = []
+        self._upper: list[np.ndarray] = []
+        self.column_blocks: dict[str, slice] = {}
+        self.row_blocks: dict[str, slice] = {}
+
+    def columns(
+        self, name: str, count: int, lower: float, upper: float, *, integer: bool = False
+    ) -> int:
+        """Add ``count`` columns; returns the index of the first."""
+        first = self._n_cols
+        self._col_parts.append((name, int(count), lower, upper, integer))
+        self.column_blocks[name] = slice(first, first + int(count))
+        self._n_cols += int(count)
+        return first
+
+    def rows(
+        self,
+        name: str,
+        count: int,
+        entries: tuple[np.ndarray, np.ndarray, np.ndarray],
+        lower: np.ndarray | float,
+        upper: np.ndarray | float,
+    ) -> int:
+        """Add ``count`` rows; ``entries`` are (row within block, column, coefficient)."""
+        first = self._n_rows
+        row, col, val = (np.asarray(a) for a in entries)
+        self._entries.append(
+            (row.astype(np.int64) + first, col.astype(np.int64), val.astype(np.float64))
+        )
+        self._lower.append(np.broadcast_to(np.asarray(lower, dtype=np.float64), (count,)))
+        self._upper.append(np.broadcast_to(np.asarray(upper, dtype=np.float64), (count,)))
+        self.row_blocks[name] = slice(first, first + int(count))
+        self._n_rows += int(count)
+        return first
+
+    @property
+    def n_columns(self) -> int:
+        return self._n_cols
+
+    def build(self, *, objective: np.ndarray, **fields: Any) -> MilpModel:
+        """Assemble the CSR matrix and bounds into a :class:`MilpModel`."""
+        if self._entries:
+            rows, cols, vals = (np.concatenate(part) for part in zip(*self._entries, strict=True))
+        else:
+            rows = cols = np.zeros(0, dtype=np.int64)
+            vals = np.zeros(0)
+        matrix = sp.csr_matrix((vals, (rows, cols)), shape=(self._n_rows, self._n_cols))
+        matrix.sum_duplicates()
+        matrix.eliminate_zeros()
+        parts = self._col_parts
+        return MilpModel(
+            objective=objective,
+            matrix=matrix,
+            row_lower=np.concatenate(self._lower) if self._lower else np.zeros(0),
+            row_upper=np.concatenate(self._upper) if self._upper else np.zeros(0),
+            col_lower=np.concatenate([np.full(n, lo, dtype=np.float64) for _, n, lo, _, _ in parts]),
+            col_upper=np.concatenate([np.full(n, up, dtype=np.float64) for _, n, _, up, _ in parts]),
+            integer=np.concatenate([np.full(n, i, dtype=bool) for _, n, _, _, i in parts]),
+            column_blocks=dict(self.column_blocks),
+            row_blocks=dict(self.row_blocks),
+            **fields,
+        )
