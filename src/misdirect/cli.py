@@ -25,6 +25,8 @@ from misdirect import __version__
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.evaluate import evaluate as evaluate_alteration
+from misdirect.milp.backends import BACKENDS, write_model
+from misdirect.solvers.milp import FORMULATIONS, build_formulation
 from misdirect.model import Problem
 from misdirect.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem
@@ -68,6 +70,13 @@ WeightsOption = Annotated[str | None, typer.Option(help="Item weights, e.g. 1,2,
 ValuesOption = Annotated[str | None, typer.Option(help="Item values, e.g. 20,30,40 (knapsack).")]
 CapacityOption = Annotated[float | None, typer.Option(help="Knapsack capacity = budget.")]
 SeedOption = Annotated[int, typer.Option(help="Seed (random scenario).")]
+FormulationOption = Annotated[
+    str,
+    typer.Option(
+        help=f"MILP formulation: {', '.join(FORMULATIONS)} (paper* are the paper's, kept as a "
+        "baseline; they are not exact)."
+    ),
+]
 
 
 def _numbers(text: str | None, option: str) -> list[float]:
@@ -172,6 +181,8 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
             _fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
         except MisdirectError as error:
             _fail(str(error), 1, as_json)
+        except (typer.Exit, typer.Abort):
+            raise
         except Exception as error:  # a bug: keep the traceback behind an opt-in
             if os.environ.get("MISDIRECT_DEBUG"):
                 raise
@@ -255,7 +266,25 @@ def solve(
         typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
     ] = None,
     budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
-    method: Annotated[str, typer.Option(help=f"Solver: {', '.join(SOLVERS)}.")] = "exhaustive",
+    method: Annotated[str, typer.Option(help=f"Method: {', '.join(SOLVERS)}.")] = "milp",
+    solver: Annotated[
+        str | None, typer.Option(help=f"MILP backend: {', '.join(BACKENDS)} (default highs).")
+    ] = None,
+    formulation: Annotated[
+        str | None,
+        typer.Option(
+            help=f"MILP formulation: {', '.join(FORMULATIONS)} (default compact; the paper "
+            "formulations are baselines and not exact)."
+        ),
+    ] = None,
+    time_limit: Annotated[
+        float | None, typer.Option(help="MILP: seconds per budget; then report the incumbent.")
+    ] = None,
+    threads: Annotated[int | None, typer.Option(help="MILP: solver threads.")] = None,
+    mip_gap: Annotated[
+        float | None, typer.Option(help="MILP: relative gap to stop at (default 1e-9).")
+    ] = None,
+    verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
     scenario: ScenarioOption = None,
     size: SizeOption = 5,
     weights: WeightsOption = None,
@@ -271,8 +300,22 @@ def solve(
         problem = problem.with_budget(max(requested))
         if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
             requested = None
+    milp_options = {
+        "solver": solver,
+        "formulation": formulation,
+        "time_limit": time_limit,
+        "threads": threads,
+        "mip_gap": mip_gap,
+        "verbose": verbose or None,
+    }
+    given = {k: v for k, v in milp_options.items() if v is not None}
+    if method != "milp" and given:
+        option = "--" + next(iter(given)).replace("_", "-")
+        raise ProblemError(f"only applies to --method milp (got --method {method})", field=option)
     with _ProgressBar(enabled=not as_json) as progress:
-        result = solve_problem(problem, method=method, budgets=requested, progress=progress)
+        result = solve_problem(
+            problem, method=method, budgets=requested, progress=progress, **given
+        )
     if as_json:
         _print_json(result.to_dict())
     else:
@@ -319,31 +362,42 @@ class _ProgressBar:
 def _print_solve(result: SolveResult) -> None:
     title = f"{result.problem} — " if result.problem else ""
     table = Table(title=f"{title}optimal alterations ({result.method})")
+    bounded = any(point.status != "optimal" for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column("max Pr(reach decoy)", justify="right")
+    if bounded:
+        table.add_column("upper bound", justify="right")
     table.add_column("optimal alteration")
     table.add_column("cost", justify="right")
     table.add_column("status")
     for point in result.curve:
+        bound = [] if not bounded else [
+            "—" if point.upper_bound is None else f"{point.upper_bound:.6f}"
+        ]
         table.add_row(
             f"{point.budget:g}",
             f"{point.probability:.6f}",
+            *bound,
             _fmt_alteration(point.alteration),
             f"{point.cost:g}",
             point.status,
         )
     out.print(table)
-    counts = [f"{k.replace('_', ' ')} {v:,}" for k, v in result.stats.items() if isinstance(v, int)]
-    out.print(
-        " · ".join(
-            [
-                f"without alteration {result.baseline_probability:.6f}",
-                f"{result.time_s:.2f} s",
-                *counts,
-            ]
-        ),
-        highlight=False,
-    )
+    parts = [f"without alteration {result.baseline_probability:.6f}", f"{result.time_s:.2f} s"]
+    stats = result.stats
+    if "formulation" in stats:  # a MILP
+        nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
+        solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)
+        parts += [
+            f"{stats['formulation']} MILP on {stats['solver']}: {stats['variables']:,} variables "
+            f"({stats['binaries']:,} binary), {stats['rows']:,} rows, "
+            f"{stats['nonzeros']:,} non-zeros",
+            f"built in {stats['build_time_s']:.2f} s, solved in {solving:.2f} s, "
+            f"{nodes:,} nodes",
+        ]
+    else:
+        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in stats.items() if isinstance(v, int)]
+    out.print(" · ".join(parts), highlight=False)
 
 
 OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
@@ -409,6 +463,42 @@ def scenario_random(
         seed, states=states, actions=actions, observations=observations, nodes=nodes
     )
     _write_scenario(problem, output, as_json)
+
+
+@app.command("export-milp")
+@handle_errors
+def export_milp(
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Model file to write (.mps or .lp).")
+    ],
+    file: FileArgument = None,
+    formulation: FormulationOption = "compact",
+    budget: Annotated[
+        float | None, typer.Option(help="Budget in the budget row (default: the file's).")
+    ] = None,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the MILP as MPS or LP for any other solver (columns c0, c1, …; maximise)."""
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    if budget is not None and (not math.isfinite(budget) or budget < 0):
+        raise ProblemError("must be a non-negative number", field="--budget")
+    model = build_formulation(problem, formulation, budget)
+    write_model(model, output)
+    stats = {"written": str(output), **model.stats()}
+    if as_json:
+        _print_json(stats)
+    else:
+        err.print(
+            f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
+            f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
+            f"{model.matrix.nnz:,} non-zeros"
+        )
 
 
 @app.command()

@@ -1,8 +1,9 @@
 """MILP backends: HiGHS (default, embedded), Gurobi and SCIP (optional extras).
 
 Each backend takes a :class:`MilpModel` in bulk (HiGHS ``passModel`` with the CSC arrays,
-Gurobi ``addMVar``/``addMConstr``, SCIP by reading the MPS file HiGHS writes), keeps it
-loaded so a budget curve only changes one row bound, and accepts a start solution.
+Gurobi ``addMVar``/``addMConstr``, SCIP by reading the MPS file HiGHS writes). Along a budget
+curve the model is built once and only the budget row's bound changes between solves; each
+solve accepts a start solution (the previous optimum).
 """
 
 from __future__ import annotations
@@ -50,6 +51,10 @@ class Backend(Protocol):
 
 
 class HighsBackend:
+    """HiGHS through highspy. A fresh ``Highs`` instance per solve: passing the arrays again
+    costs milliseconds, and re-running one instance after a bound change crashed highspy 1.15
+    (segmentation fault) on the 45x45 grid."""
+
     name = "highs"
 
     def __init__(self, options: SolverOptions):
@@ -57,21 +62,28 @@ class HighsBackend:
 
         self._highspy = highspy
         self.options = options
-        self.highs = highspy.Highs()
-        self.highs.setOptionValue("output_flag", bool(options.verbose))
+        self.model: MilpModel | None = None
+        self.highs = self._fresh()
+
+    def _fresh(self) -> Any:
+        options = self.options
+        highs = self._highspy.Highs()
+        highs.setOptionValue("output_flag", bool(options.verbose))
         if options.time_limit is not None:
-            self.highs.setOptionValue("time_limit", float(options.time_limit))
+            highs.setOptionValue("time_limit", float(options.time_limit))
         if options.threads is not None:
-            self.highs.setOptionValue("threads", int(options.threads))
-        self.highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
-        self.highs.setOptionValue("mip_abs_gap", min(1e-9, float(options.mip_gap)))
-        self.highs.setOptionValue("mip_feasibility_tolerance", 1e-9)
-        self.highs.setOptionValue("primal_feasibility_tolerance", 1e-9)
-        self.offset = 0.0
+            highs.setOptionValue("threads", int(options.threads))
+        highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
+        highs.setOptionValue("mip_abs_gap", min(1e-9, float(options.mip_gap)))
+        highs.setOptionValue("mip_feasibility_tolerance", 1e-9)
+        highs.setOptionValue("primal_feasibility_tolerance", 1e-9)
+        return highs
 
     def load(self, model: MilpModel) -> None:
+        self.model = model
+
+    def _pass(self, model: MilpModel) -> None:
         matrix = model.matrix.tocsc()
-        self.offset = model.offset
         status = self.highs.passModel(
             model.n_columns,
             model.n_rows,
@@ -93,14 +105,19 @@ class HighsBackend:
             raise SolverError("HiGHS rejected the model (passModel failed)")
 
     def set_row_upper(self, row: int, value: float) -> None:
-        lower = self.highs.getLp().row_lower_[row]
-        self.highs.changeRowBounds(int(row), float(lower), float(value))
+        assert self.model is not None
+        self.model.row_upper[row] = value
 
     def write(self, path: Path) -> None:
+        assert self.model is not None
+        self._pass(self.model)
         self.highs.writeModel(str(path))
 
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
         hs = self._highspy
+        if self.model is not None:
+            self.highs = self._fresh()
+            self._pass(self.model)
         if start is not None:
             columns, values = start
             self.highs.setSolution(
@@ -111,7 +128,8 @@ class HighsBackend:
         elapsed = time.perf_counter() - began
         model_status = self.highs.getModelStatus()
         if model_status == hs.HighsModelStatus.kModelEmpty:  # nothing to choose: the offset
-            return BackendResult("optimal", np.zeros(0), self.offset, self.offset, 0, elapsed)
+            offset = self.model.offset if self.model is not None else 0.0
+            return BackendResult("optimal", np.zeros(0), offset, offset, 0, elapsed)
         info = self.highs.getInfo()
         has_incumbent = info.primal_solution_status == 2  # kSolutionStatusFeasible
         values = np.asarray(self.highs.getSolution().col_value) if has_incumbent else None
