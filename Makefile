@@ -18,6 +18,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+bench: $(STAMP)
+	$(BIN)/python benchmarks/milp_scaling.py --out benchmarks/results
+
 lint: $(STAMP)
 	$(BIN)/ruff check src tests
 

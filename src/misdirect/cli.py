@@ -18,6 +18,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -26,12 +27,12 @@ from misdirect.errors import MisdirectError, ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.evaluate import evaluate as evaluate_alteration
 from misdirect.milp.backends import BACKENDS, write_model
-from misdirect.solvers.milp import FORMULATIONS, build_formulation
 from misdirect.model import Problem
 from misdirect.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solve import SOLVERS, SolveResult
 from misdirect.solve import solve as solve_problem
+from misdirect.solvers.milp import FORMULATIONS, build_formulation
 
 app = typer.Typer(
     name="misdirect",
@@ -199,12 +200,12 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
 def _fail(message: str, code: int, as_json: bool, **context: Any) -> None:
     if as_json:
         _print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
-    err.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
 def _fmt_alteration(alteration: dict[str, str]) -> str:
-    return ", ".join(f"{o} → {t}" for o, t in alteration.items()) or "none"
+    return escape(", ".join(f"{o} → {t}" for o, t in alteration.items()) or "none")
 
 
 # -- commands -----------------------------------------------------------------------------------
@@ -239,14 +240,14 @@ def evaluate(
     if as_json:
         _print_json(payload)
         return
-    table = Table(title=problem.name or None, show_header=False, box=None)
+    table = Table(title=escape(problem.name) or None, show_header=False, box=None)
     table.add_row("alteration", _fmt_alteration(result.alteration))
     budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
     table.add_row("cost", f"{result.cost:g}{budget_note}")
     table.add_row("Pr(reach decoy)", f"[bold]{result.probability:.6f}[/]")
     table.add_row("without alteration", f"{baseline:.6f}")
     for state, probability in result.outcomes.items():
-        table.add_row(f"  first hits {state}", f"{probability:.6f}")
+        table.add_row(f"  first hits {escape(state)}", f"{probability:.6f}")
     if result.never_absorbed > 0:
         table.add_row("  never absorbed", f"{result.never_absorbed:.6f}")
     table.add_row(
@@ -322,7 +323,7 @@ def solve(
         _print_solve(result)
     if result.warnings:
         for warning in result.warnings:
-            err.print(f"[bold red]warning:[/] {warning}", highlight=False)
+            err.print(f"[bold red]warning:[/] {escape(warning)}", highlight=False)
         raise typer.Exit(1)
 
 
@@ -361,7 +362,7 @@ class _ProgressBar:
 
 def _print_solve(result: SolveResult) -> None:
     title = f"{result.problem} — " if result.problem else ""
-    table = Table(title=f"{title}optimal alterations ({result.method})")
+    table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
     bounded = any(point.status != "optimal" for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column("max Pr(reach decoy)", justify="right")
@@ -371,9 +372,11 @@ def _print_solve(result: SolveResult) -> None:
     table.add_column("cost", justify="right")
     table.add_column("status")
     for point in result.curve:
-        bound = [] if not bounded else [
-            "—" if point.upper_bound is None else f"{point.upper_bound:.6f}"
-        ]
+        bound = (
+            []
+            if not bounded
+            else ["—" if point.upper_bound is None else f"{point.upper_bound:.6f}"]
+        )
         table.add_row(
             f"{point.budget:g}",
             f"{point.probability:.6f}",
@@ -392,12 +395,11 @@ def _print_solve(result: SolveResult) -> None:
             f"{stats['formulation']} MILP on {stats['solver']}: {stats['variables']:,} variables "
             f"({stats['binaries']:,} binary), {stats['rows']:,} rows, "
             f"{stats['nonzeros']:,} non-zeros",
-            f"built in {stats['build_time_s']:.2f} s, solved in {solving:.2f} s, "
-            f"{nodes:,} nodes",
+            f"built in {stats['build_time_s']:.2f} s, solved in {solving:.2f} s, {nodes:,} nodes",
         ]
     else:
         parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in stats.items() if isinstance(v, int)]
-    out.print(" · ".join(parts), highlight=False)
+    out.print(escape(" · ".join(parts)), highlight=False)
 
 
 OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
@@ -410,7 +412,7 @@ def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
             {"written": str(output), "problem": problem.name, "states": problem.pomdp.n_states}
         )
     else:
-        err.print(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
+        err.print(escape(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)"))
 
 
 @scenario_app.command("paper-grid")

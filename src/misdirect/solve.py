@@ -97,6 +97,7 @@ class SolveResult:
             "budget": self.budget,
             "baseline_probability": self.baseline_probability,
             "upper_bound": self.upper_bound,
+            "gap": self.curve[-1].gap,
             "method": self.method,
             "time_s": self.time_s,
             "curve": [point.to_dict() for point in self.curve],
@@ -114,7 +115,7 @@ def default_budgets(budget: float) -> list[float]:
 def solve(
     problem: Problem,
     *,
-    method: str = "exhaustive",
+    method: str = "milp",
     budgets: Sequence[float] | None = None,
     progress: ProgressCallback | None = None,
     **options: Any,

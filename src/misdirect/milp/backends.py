@@ -186,7 +186,10 @@ class GurobiBackend:
             vtype = np.where(model.integer, gp.GRB.BINARY, gp.GRB.CONTINUOUS)
             vtype[model.integer & (model.col_upper > 1)] = gp.GRB.INTEGER
             self.vars = m.addMVar(
-                model.n_columns, lb=model.col_lower, ub=model.col_upper, vtype=vtype,
+                model.n_columns,
+                lb=model.col_lower,
+                ub=model.col_upper,
+                vtype=vtype,
                 obj=model.objective,
             )
             m.ObjCon = model.offset
@@ -285,8 +288,13 @@ class ScipBackend:
         scip.optimize()
         elapsed = time.perf_counter() - began
         raw = scip.getStatus()
-        status = {"optimal": "optimal", "timelimit": "time_limit", "userinterrupt": "time_limit",
-                  "infeasible": "infeasible", "gaplimit": "optimal"}.get(raw, "error")
+        status = {
+            "optimal": "optimal",
+            "timelimit": "time_limit",
+            "userinterrupt": "time_limit",
+            "infeasible": "infeasible",
+            "gaplimit": "optimal",
+        }.get(raw, "error")
         has = scip.getNSols() > 0
         best = scip.getBestSol() if has else None
         values = np.array([scip.getSolVal(best, v) for v in variables]) if has else None

@@ -128,8 +128,12 @@ class ModelBuilder:
             matrix=matrix,
             row_lower=np.concatenate(self._lower) if self._lower else np.zeros(0),
             row_upper=np.concatenate(self._upper) if self._upper else np.zeros(0),
-            col_lower=np.concatenate([np.full(n, lo, dtype=np.float64) for _, n, lo, _, _ in parts]),
-            col_upper=np.concatenate([np.full(n, up, dtype=np.float64) for _, n, _, up, _ in parts]),
+            col_lower=np.concatenate(
+                [np.full(n, lo, dtype=np.float64) for _, n, lo, _, _ in parts]
+            ),
+            col_upper=np.concatenate(
+                [np.full(n, up, dtype=np.float64) for _, n, _, up, _ in parts]
+            ),
             integer=np.concatenate([np.full(n, i, dtype=bool) for _, n, _, _, i in parts]),
             column_blocks=dict(self.column_blocks),
             row_blocks=dict(self.row_blocks),

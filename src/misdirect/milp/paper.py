@@ -76,8 +76,10 @@ def build_paper(
     )
 
     # z rows: one per (s, n, o), decoy or Bellman
-    s, n, o = (a.ravel() for a in np.meshgrid(np.arange(n_s), np.arange(n_n), np.arange(n_o),
-                                             indexing="ij"))
+    s, n, o = (
+        a.ravel()
+        for a in np.meshgrid(np.arange(n_s), np.arange(n_n), np.arange(n_o), indexing="ij")
+    )
     row = np.arange(s.size)
     decoy = problem.decoy[s]
     action, next_node = controller.action[n, o], controller.update[n, o]
@@ -97,8 +99,11 @@ def build_paper(
         (
             np.concatenate([row, b_row[repeat], d_rows]),
             np.concatenate(
-                [z(s, n, o), l0 + l_base[repeat] + o_prime, x(pomdp.observation_of[s[d_rows]],
-                                                               o[d_rows])]
+                [
+                    z(s, n, o),
+                    l0 + l_base[repeat] + o_prime,
+                    x(pomdp.observation_of[s[d_rows]], o[d_rows]),
+                ]
             ),
             np.concatenate([np.ones(s.size), -probs.data[repeat], -np.ones(d_rows.size)]),
         ),
@@ -108,9 +113,12 @@ def build_paper(
 
     # four linearisation rows per l[e, o, n', o'] = x[O(s_e), o] * z[s'_e, n', o']
     n_l = n_edges * n_o * n_n * n_o
-    e, lo, ln, lo2 = (a.ravel() for a in np.meshgrid(np.arange(n_edges), np.arange(n_o),
-                                                    np.arange(n_n), np.arange(n_o),
-                                                    indexing="ij"))
+    e, lo, ln, lo2 = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.arange(n_edges), np.arange(n_o), np.arange(n_n), np.arange(n_o), indexing="ij"
+        )
+    )
     l_cols = l0 + np.arange(n_l)
     x_cols = x(pomdp.observation_of[edge_from[e]], lo)
     z_cols = z(edge_to[e], ln, lo2)
@@ -118,17 +126,28 @@ def build_paper(
     i = np.arange(n_l)
     ones = np.ones(n_l)
     model.rows("l_nonnegative", n_l, (i, l_cols, ones), 0.0, np.inf)
-    model.rows("l_below_z", n_l, (np.repeat(i, 2), _pair(l_cols, z_cols), np.tile([1.0, -1.0],
-                                                                                   n_l)),
-               -np.inf, 0.0)
-    model.rows("l_below_x", n_l, (np.repeat(i, 2), _pair(l_cols, x_cols), np.tile([1.0, -1.0],
-                                                                                   n_l)),
-               -np.inf, 0.0)
+    model.rows(
+        "l_below_z",
+        n_l,
+        (np.repeat(i, 2), _pair(l_cols, z_cols), np.tile([1.0, -1.0], n_l)),
+        -np.inf,
+        0.0,
+    )
+    model.rows(
+        "l_below_x",
+        n_l,
+        (np.repeat(i, 2), _pair(l_cols, x_cols), np.tile([1.0, -1.0], n_l)),
+        -np.inf,
+        0.0,
+    )
     model.rows(
         "l_above",
         n_l,
-        (np.repeat(i, 3), np.stack([l_cols, z_cols, x_cols], axis=1).ravel(),
-         np.tile([1.0, -1.0, -1.0], n_l)),
+        (
+            np.repeat(i, 3),
+            np.stack([l_cols, z_cols, x_cols], axis=1).ravel(),
+            np.tile([1.0, -1.0, -1.0], n_l),
+        ),
         -1.0,
         np.inf,
     )

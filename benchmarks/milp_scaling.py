@@ -1,0 +1,195 @@
+"""MILP benchmark on the paper's scaled grid: both formulations, sizes, build and solve times.
+
+    python benchmarks/milp_scaling.py [--sizes 5,15,25,35,45] [--budgets 0..7]
+                                      [--paper-sizes 5,15,25,35,45] [--paper-solve-sizes 5]
+                                      [--time-limit 60] [--out benchmarks/results]
+
+For every size: the compact formulation is built and solved for every budget (one model,
+warm-started along the curve); the paper's formulation is built (its size and build time are
+the paper's Fig. 4 panels) and, for the sizes in --paper-solve-sizes, solved too, under the
+same per-budget time limit. Every row also carries the time of one exact evaluation of the
+unaltered chain, measured in the same process, so times can be read as ratios to it.
+
+Writes milp_scaling.json, milp_scaling.csv and milp_scaling.png under --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import platform
+import time
+from pathlib import Path
+
+from misdirect import decoy_probability, solve
+from misdirect.scenarios import paper_grid
+from misdirect.solvers.milp import build_formulation
+
+
+def _ints(text: str) -> list[int]:
+    if ".." in text:
+        low, high = (int(p) for p in text.split(".."))
+        return list(range(low, high + 1))
+    return [int(p) for p in text.split(",") if p]
+
+
+def _evaluation_time(problem) -> float:
+    best = float("inf")
+    for _ in range(3):
+        began = time.perf_counter()
+        decoy_probability(problem, problem.identity())
+        best = min(best, time.perf_counter() - began)
+    return best
+
+
+def run(args: argparse.Namespace) -> list[dict]:
+    rows = []
+    budgets = _ints(args.budgets)
+    sizes = sorted(set(_ints(args.sizes)) | set(_ints(args.paper_sizes)))
+    for n in sizes:
+        problem = paper_grid(n, budget=max(budgets))
+        floor = _evaluation_time(problem)
+        plans = []
+        if n in _ints(args.sizes):
+            plans.append(("compact", True))
+        if n in _ints(args.paper_sizes):
+            plans.append(("paper", n in _ints(args.paper_solve_sizes)))
+        for formulation, solve_it in plans:
+            model = build_formulation(problem, formulation, max(budgets))
+            base = {
+                "n": n,
+                "formulation": formulation,
+                "variables": model.n_columns,
+                "binaries": int(model.integer.sum()),
+                "rows": model.n_rows,
+                "nonzeros": int(model.matrix.nnz),
+                "build_time_s": model.build_time_s,
+                "evaluation_time_s": floor,
+            }
+            del model
+            if not solve_it:
+                rows.append({**base, "budget": None, "status": "not_solved"})
+                print(
+                    f"n={n:3d} {formulation:8s} built: {base['variables']:,} vars, "
+                    f"{base['rows']:,} rows in {base['build_time_s']:.2f} s",
+                    flush=True,
+                )
+                continue
+            result = solve(
+                problem,
+                method="milp",
+                budgets=budgets,
+                formulation=formulation,
+                time_limit=args.time_limit,
+            )
+            for point in result.curve:
+                rows.append(
+                    {
+                        **base,
+                        "budget": point.budget,
+                        "status": point.status,
+                        "probability": point.probability,
+                        "claimed_probability": point.solver_probability,
+                        "upper_bound": point.upper_bound,
+                        "solve_time_s": point.stats["solve_time_s"],
+                        "nodes": point.stats["nodes"],
+                        "alteration": point.alteration,
+                    }
+                )
+                print(
+                    f"n={n:3d} {formulation:8s} B={point.budget:g}: {point.probability:.6f} "
+                    f"({point.status}, claimed {point.solver_probability}) "
+                    f"in {point.stats['solve_time_s']:.2f} s",
+                    flush=True,
+                )
+    return rows
+
+
+def write(rows: list[dict], out: Path, args: argparse.Namespace) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "command": "python benchmarks/milp_scaling.py "
+        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
+        "machine": platform.platform(),
+        "python": platform.python_version(),
+    }
+    (out / "milp_scaling.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    fields = [
+        "n",
+        "formulation",
+        "budget",
+        "status",
+        "probability",
+        "claimed_probability",
+        "upper_bound",
+        "variables",
+        "binaries",
+        "rows",
+        "nonzeros",
+        "build_time_s",
+        "solve_time_s",
+        "nodes",
+        "evaluation_time_s",
+    ]
+    with (out / "milp_scaling.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    plot(rows, out / "milp_scaling.png")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
+    panels = [
+        ("variables", "variables"),
+        ("rows", "rows"),
+        ("build_time_s", "construction time (s)"),
+        ("solve_time_s", "solve time, all budgets (s)"),
+    ]
+    for formulation, style in (("compact", "o-"), ("paper", "s--")):
+        mine = [r for r in rows if r["formulation"] == formulation]
+        sizes = sorted({r["n"] for r in mine})
+        for ax, (key, label) in zip(axes, panels, strict=True):
+            if key == "solve_time_s":
+                points = [
+                    (n, sum(r["solve_time_s"] for r in mine if r["n"] == n))
+                    for n in sizes
+                    if any(r.get("solve_time_s") for r in mine if r["n"] == n)
+                ]
+            else:
+                points = [(n, next(r[key] for r in mine if r["n"] == n)) for n in sizes]
+            if points:
+                ax.plot(*zip(*points, strict=True), style, label=formulation)
+            ax.set_xlabel("grid size n")
+            ax.set_ylabel(label)
+            ax.set_yscale("log")
+            ax.grid(True, which="both", alpha=0.3)
+    floor = sorted({(r["n"], r["evaluation_time_s"]) for r in rows})
+    axes[3].plot(*zip(*floor, strict=True), "k:", label="one exact evaluation")
+    axes[0].legend()
+    axes[3].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", default="5,15,25,35,45")
+    parser.add_argument("--paper-sizes", default="5,15,25,35,45")
+    parser.add_argument("--paper-solve-sizes", default="5")
+    parser.add_argument("--budgets", default="0..7")
+    parser.add_argument("--time-limit", type=float, default=60.0)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    args = parser.parse_args()
+    rows = run(args)
+    write(rows, args.out, args)
+
+
+if __name__ == "__main__":
+    main()
