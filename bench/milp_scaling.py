@@ -1,8 +1,8 @@
 """MILP benchmark on the paper's scaled grid: both formulations, sizes, build and solve times.
 
-    python benchmarks/milp_scaling.py [--sizes 5,15,25,35,45] [--budgets 0..7]
+    python bench/milp_scaling.py [--sizes 5,15,25,35,45] [--budgets 0..7]
                                       [--paper-sizes 5,15,25,35,45] [--paper-solve-sizes 5]
-                                      [--time-limit 60] [--out benchmarks/results]
+                                      [--time-limit 60] [--out bench/results]
 
 For every size: the compact formulation is built and solved for every budget (one model,
 warm-started along the curve); the paper's formulation is built (its size and build time are
@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> list[dict]:
 def write(rows: list[dict], out: Path, args: argparse.Namespace) -> None:
     out.mkdir(parents=True, exist_ok=True)
     meta = {
-        "command": "python benchmarks/milp_scaling.py "
+        "command": "python bench/milp_scaling.py "
         + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
         "machine": platform.platform(),
         "python": platform.python_version(),
@@ -185,7 +185,7 @@ def main() -> None:
     parser.add_argument("--paper-solve-sizes", default="5")
     parser.add_argument("--budgets", default="0..7")
     parser.add_argument("--time-limit", type=float, default=60.0)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results"))
+    parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
     rows = run(args)
     write(rows, args.out, args)
