@@ -467,6 +467,109 @@ def scenario_random(
     _write_scenario(problem, output, as_json)
 
 
+@app.command()
+@handle_errors
+def reproduce(
+    out_dir: Annotated[
+        Path, typer.Option("--out", help="Folder for tables, figures and report.md.")
+    ] = Path("results"),
+    quick: Annotated[
+        bool,
+        typer.Option(
+            "--quick/--full",
+            help="Quick: grids 5, 15, 25 and 60 s limits; full: up to 45 and 10 min.",
+        ),
+    ] = True,
+    solver: Annotated[str, typer.Option(help=f"MILP backend: {', '.join(BACKENDS)}.")] = "highs",
+    time_limit: Annotated[
+        float | None, typer.Option(help="Seconds per MILP solve (default 60 quick, 600 full).")
+    ] = None,
+    sizes: Annotated[
+        str | None, typer.Option(help="Grid sizes of the scalability study, e.g. 5,15,25.")
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the paper's experiments (Section VII) and write its tables and figures beside ours."""
+    from misdirect.reproduce import reproduce as run_reproduce
+
+    size_list = None
+    if sizes is not None:
+        try:
+            size_list = [int(part) for part in sizes.split(",") if part.strip()]
+        except ValueError:
+            raise ProblemError(
+                f"expected sizes like 5,15,25, got {sizes!r}", field="--sizes"
+            ) from None
+        if not size_list or min(size_list) < 5:
+            raise ProblemError("grid sizes must be at least 5", field="--sizes")
+    if time_limit is not None and not time_limit > 0:
+        raise ProblemError("must be a positive number of seconds", field="--time-limit")
+    with _ExperimentProgress(enabled=not as_json) as progress:
+        report = run_reproduce(
+            out_dir,
+            quick=quick,
+            solver=solver,
+            time_limit=time_limit,
+            sizes=size_list,
+            progress=progress,
+        )
+    if as_json:
+        _print_json(
+            {
+                "out": str(report.out),
+                "mode": report.mode,
+                "time_s": report.time_s,
+                "summary": report.summary,
+                "tables": {name: f"{name}.csv" for name in report.tables},
+                "figures": {
+                    name: [p.name for p in paths] for name, paths in report.figures.items()
+                },
+            }
+        )
+        return
+    table = Table(title=escape(f"misdirect reproduce ({report.mode}) — {report.out}/report.md"))
+    for column in ("experiment", "ours", "paper", "agrees"):
+        table.add_column(column)
+    for row in report.summary:
+        table.add_row(*(escape(row[c]) for c in ("experiment", "ours", "paper", "agrees")))
+    out.print(table)
+    out.print(
+        escape(f"{report.time_s:.1f} s; tables, figures and report.md in {report.out}/"),
+        highlight=False,
+    )
+
+
+class _ExperimentProgress:
+    """One progress bar per experiment, on stderr."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled and err.is_terminal
+        self.bar: Progress | None = None
+        self.tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> Callable[[str, int, int], None] | None:
+        if not self.enabled:
+            return None
+        self.bar = Progress(
+            TextColumn("{task.description:<20}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            console=err,
+        )
+        self.bar.start()
+        return self.update
+
+    def update(self, experiment: str, done: int, total: int) -> None:
+        assert self.bar is not None
+        if experiment not in self.tasks:
+            self.tasks[experiment] = self.bar.add_task(experiment, total=total)
+        self.bar.update(self.tasks[experiment], completed=done, total=total)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
 @app.command("export-milp")
 @handle_errors
 def export_milp(
