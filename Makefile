@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/misdirect solve --scenario paper-grid --size 5 --budget 0..4
+	$(BIN)/misdirect reproduce --quick --out results
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
