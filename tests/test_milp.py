@@ -150,6 +150,7 @@ def test_missing_backend_is_a_clear_error(monkeypatch):
         (["--method", "exhaustive", "--time-limit", "3"], "--time-limit"),
         (["--time-limit", "-1"], "--time-limit"),
         (["--threads", "0"], "--threads"),
+        (["--verbose"], "--verbose"),
     ],
 )
 def test_bad_milp_options(args, field):

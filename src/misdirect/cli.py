@@ -310,6 +310,10 @@ def solve(
         "verbose": verbose or None,
     }
     given = {k: v for k, v in milp_options.items() if v is not None}
+    if verbose and as_json:
+        raise ProblemError(
+            "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
+        )
     if method != "milp" and given:
         option = "--" + next(iter(given)).replace("_", "-")
         raise ProblemError(f"only applies to --method milp (got --method {method})", field=option)
