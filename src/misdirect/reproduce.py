@@ -87,8 +87,10 @@ def _cell(value: Any) -> str:
     if isinstance(value, float) and value.is_integer() and abs(value) < 1e6:
         return f"{int(value):,}"
     if isinstance(value, float):
-        if value == 0 or 1e-3 <= abs(value) < 1e6:
-            return f"{value:.6f}".rstrip("0").rstrip(".") if abs(value) < 1 else f"{value:,.3f}"
+        if 1e-3 <= abs(value) < 1:
+            return f"{value:.6f}"
+        if 1 <= abs(value) < 1e6:
+            return f"{value:,.3f}"
         return f"{value:.3g}"
     if isinstance(value, int):
         return f"{value:,}"
@@ -230,7 +232,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
             {
                 "budget": b,
                 "probability": point.probability,
-                "paper_printed": printed,
+                "paper_printed": f"{printed:.3f}",
                 "rounding_agrees": round(point.probability, 3) == printed,
                 "status": point.status,
                 "alteration": _fmt(point.alteration),

@@ -40,6 +40,7 @@ from misdirect.alterations import alteration_space
 from misdirect.choice_product import ChoiceProduct, build_choice_product, end_component_states
 from misdirect.milp.model import MilpModel, ModelBuilder
 from misdirect.model import Alteration, Problem
+from misdirect.reachability import reach_probabilities
 
 
 def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
@@ -113,7 +114,18 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         return options.decode(problem, values[y0 : y0 + options.size])
 
     def start_for(alteration: Alteration) -> tuple[np.ndarray, np.ndarray]:
-        return y0 + np.arange(options.size), options.encode(alteration)
+        """A start for the solver: the binaries, and the probabilities too when the model has
+        no witness columns. A complete start spares the solver its own completion LP, which is
+        where HiGHS crashed on the 45x45 grid."""
+        binaries = (y0 + np.arange(options.size), options.encode(alteration))
+        if cycling.any():
+            return binaries
+        chosen = chain.selected_groups(alteration)
+        values = reach_probabilities(chain.transitions[chosen].tocsr(), chain.target)
+        return (
+            np.concatenate([binaries[0], z0 + np.arange(int(live.sum()))]),
+            np.concatenate([binaries[1], values[live]]),
+        )
 
     return model.build(
         formulation="compact",
