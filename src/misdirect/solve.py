@@ -149,6 +149,16 @@ def solve(
             )
         if cost > solution.budget + 1e-9:
             warnings.append(f"budget {solution.budget:g}: returned alteration costs {cost:g}")
+        upper_bound = solution.upper_bound
+        if upper_bound is not None and upper_bound < exact:
+            # a bound below a value we hold in hand is solver tolerance, or a bug if it is large
+            if exact - upper_bound > MISMATCH_TOLERANCE:
+                status = "unverified"
+                warnings.append(
+                    f"budget {solution.budget:g}: the {solver.name} solver's bound "
+                    f"{upper_bound:.9f} is below the exact value {exact:.9f}"
+                )
+            upper_bound = exact
         curve.append(
             BudgetResult(
                 budget=solution.budget,
@@ -156,7 +166,7 @@ def solve(
                 probability=exact,
                 alteration=problem.changed_observations(alpha),
                 cost=cost,
-                upper_bound=solution.upper_bound,
+                upper_bound=upper_bound,
                 solver_probability=claimed,
                 stats=solution.stats,
             )

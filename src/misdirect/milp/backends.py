@@ -62,7 +62,7 @@ class HighsBackend:
         self._highspy = highspy
         self.options = options
         self.model: MilpModel | None = None
-        self.highs = self._fresh()
+        self.highs: Any = None
 
     def _fresh(self) -> Any:
         options = self.options
@@ -109,15 +109,16 @@ class HighsBackend:
         self.model.row_upper[row] = value
 
     def write(self, path: Path) -> None:
-        assert self.model is not None
+        assert self.model is not None, "load() a model first"
+        self.highs = self._fresh()
         self._pass(self.model)
         self.highs.writeModel(str(path))
 
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
         hs = self._highspy
-        if self.model is not None:
-            self.highs = self._fresh()
-            self._pass(self.model)
+        assert self.model is not None, "load() a model first"
+        self.highs = self._fresh()
+        self._pass(self.model)
         if start is not None:
             columns, values = start
             self.highs.setSolution(
@@ -128,7 +129,7 @@ class HighsBackend:
         elapsed = time.perf_counter() - began
         model_status = self.highs.getModelStatus()
         if model_status == hs.HighsModelStatus.kModelEmpty:  # nothing to choose: the offset
-            offset = self.model.offset if self.model is not None else 0.0
+            offset = self.model.offset
             return BackendResult("optimal", np.zeros(0), offset, offset, 0, elapsed)
         info = self.highs.getInfo()
         has_incumbent = info.primal_solution_status == 2  # kSolutionStatusFeasible
@@ -139,7 +140,10 @@ class HighsBackend:
             hs.HighsModelStatus.kInterrupt: "time_limit",
             hs.HighsModelStatus.kInfeasible: "infeasible",
         }.get(model_status, "error")
-        bound = info.mip_dual_bound if math.isfinite(info.mip_dual_bound) else None
+        if not self.model.integer.any():  # a pure LP: its optimum is its bound
+            bound = info.objective_function_value if status == "optimal" else None
+        else:
+            bound = info.mip_dual_bound if math.isfinite(info.mip_dual_bound) else None
         return BackendResult(
             status=status,
             values=values,
