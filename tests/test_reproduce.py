@@ -118,3 +118,17 @@ def test_heat_map_data_by_power_series(results):
         }
         for (x, y), value in written.items():
             assert value == pytest.approx(per_cell[y * 5 + x], abs=1e-9), (budget, x, y)
+
+
+@pytest.mark.parametrize(
+    ("args", "field"),
+    [
+        (["--sizes", "3"], "--sizes"),
+        (["--sizes", "five"], "--sizes"),
+        (["--time-limit", "0"], "--time-limit"),
+    ],
+)
+def test_bad_reproduce_options(tmp_path, args, field):
+    outcome = runner.invoke(app, ["reproduce", "--out", str(tmp_path), *args, "--json"])
+    assert outcome.exit_code == 2, outcome.output
+    assert json.loads(outcome.stdout)["error"]["field"] == field
