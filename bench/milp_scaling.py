@@ -44,7 +44,8 @@ def _evaluation_time(problem) -> float:
 
 
 def run(args: argparse.Namespace) -> list[dict]:
-    rows = []
+    """Every (size, formulation); results are rewritten after each, so a crash keeps the rest."""
+    rows: list[dict] = []
     budgets = _ints(args.budgets)
     sizes = sorted(set(_ints(args.sizes)) | set(_ints(args.paper_sizes)))
     for n in sizes:
@@ -70,6 +71,7 @@ def run(args: argparse.Namespace) -> list[dict]:
             del model
             if not solve_it:
                 rows.append({**base, "budget": None, "status": "not_solved"})
+                write(rows, args.out, args)
                 print(
                     f"n={n:3d} {formulation:8s} built: {base['variables']:,} vars, "
                     f"{base['rows']:,} rows in {base['build_time_s']:.2f} s",
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> list[dict]:
                     f"in {point.stats['solve_time_s']:.2f} s",
                     flush=True,
                 )
+            write(rows, args.out, args)
     return rows
 
 
@@ -187,8 +190,7 @@ def main() -> None:
     parser.add_argument("--time-limit", type=float, default=60.0)
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args()
-    rows = run(args)
-    write(rows, args.out, args)
+    run(args)
 
 
 if __name__ == "__main__":

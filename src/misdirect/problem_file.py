@@ -15,9 +15,17 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    WithJsonSchema,
+)
 
 from misdirect.errors import ProblemError
+from misdirect.grid_map import LegendEntry, compile_grid
 from misdirect.model import Controller, CostModel, Pomdp, Problem
 
 FORMAT = "misdirect/v1"
@@ -49,7 +57,12 @@ def _cost(value: Any) -> Any:
     return _number(value)
 
 
-Name = Annotated[str, BeforeValidator(_name), Field(min_length=1)]
+Name = Annotated[
+    str,
+    BeforeValidator(_name),
+    Field(min_length=1),
+    WithJsonSchema({"anyOf": [{"type": "string", "minLength": 1}, {"type": "integer"}]}),
+]
 Probability = Annotated[float, BeforeValidator(_number), Field(ge=0.0, le=1.0)]
 Budget = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
 Cost = Annotated[
@@ -111,8 +124,34 @@ class CostSpec(_Strict):
     )
 
 
+def _legend_entry(value: Any) -> Any:
+    """``G: goal`` is short for ``G: {kind: goal}``."""
+    return {"kind": value} if isinstance(value, str) else value
+
+
+class GridCellSpec(_Strict):
+    kind: Literal["blank", "goal", "decoy", "wall"] = "blank"
+    start: bool = False
+    sensor: Name | None = Field(default=None, description="sensor id watching this cell")
+
+
+class GridSpec(_Strict):
+    """A grid world drawn as a map (see misdirect.grid_map); replaces ``pomdp``."""
+
+    map: str = Field(description="rows of whitespace-separated cells, north first")
+    legend: dict[Name, Annotated[GridCellSpec, BeforeValidator(_legend_entry)]] = Field(
+        default_factory=dict, description="symbol -> kind; digits need no entry (sensor ids)"
+    )
+    slip: float = Field(
+        default=0.1, ge=0.0, le=0.5, description="probability of each orthogonal move"
+    )
+    actions: list[Name] = Field(default_factory=lambda: ["N", "E", "S", "W"], min_length=1)
+
+
 class DeceptionSpec(_Strict):
-    decoy: list[Name] = Field(min_length=1)
+    decoy: list[Name] | None = Field(
+        default=None, min_length=1, description="decoy states (grid maps mark them instead)"
+    )
     budget: Budget = 0.0
     cost: CostSpec = Field(default_factory=CostSpec)
 
@@ -123,7 +162,8 @@ class ProblemFileV1(_Strict):
     format: Literal["misdirect/v1"]
     name: str = ""
     description: str | None = None
-    pomdp: PomdpSpec
+    pomdp: PomdpSpec | None = None
+    grid: GridSpec | None = None
     controller: ControllerSpec
     deception: DeceptionSpec
 
@@ -213,13 +253,36 @@ def _lookup(index: dict[str, int], name: str, kind: str, field: str) -> int:
 
 def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
     """Resolve names and check consistency; returns the array model."""
-    pomdp = _compile_pomdp(spec.pomdp)
+    if (spec.pomdp is None) == (spec.grid is None):
+        raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
+    if spec.grid is not None:
+        if spec.deception.decoy is not None:
+            raise ProblemError(
+                "with a grid map, decoy cells are marked in the map (legend kind: decoy)",
+                field="deception.decoy",
+            )
+        world = compile_grid(
+            spec.grid.map,
+            {
+                symbol: LegendEntry(kind=entry.kind, start=entry.start, sensor=entry.sensor)
+                for symbol, entry in spec.grid.legend.items()
+            },
+            slip=spec.grid.slip,
+            actions=spec.grid.actions,
+        )
+        pomdp, decoy = world.pomdp, world.decoy
+        if not decoy.any():
+            raise ProblemError("the map has no decoy cell (legend kind: decoy)", field="grid.map")
+    else:
+        pomdp = _compile_pomdp(spec.pomdp)
+        if spec.deception.decoy is None:
+            raise ProblemError("list the decoy states", field="deception.decoy")
+        state_index = {name: i for i, name in enumerate(pomdp.states)}
+        decoy = np.zeros(pomdp.n_states, dtype=bool)
+        for i, name in enumerate(spec.deception.decoy):
+            decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
     controller = _compile_controller(spec.controller, pomdp)
     obs_index = {name: i for i, name in enumerate(pomdp.observations)}
-    state_index = {name: i for i, name in enumerate(pomdp.states)}
-    decoy = np.zeros(pomdp.n_states, dtype=bool)
-    for i, name in enumerate(spec.deception.decoy):
-        decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
     return Problem(
         pomdp=pomdp,
         controller=controller,
@@ -496,6 +559,12 @@ def write_problem(problem: Problem, path: str | Path) -> None:
 def json_schema() -> dict[str, Any]:
     """JSON Schema of the v1 format (published as ``docs/problem-format.schema.json``)."""
     schema = ProblemFileV1.model_json_schema()
+    # the legend's string shorthand (``G: goal``) is applied before validation, so pydantic
+    # cannot see it; publish it
+    legend = schema["$defs"]["GridSpec"]["properties"]["legend"]
+    legend["additionalProperties"] = {
+        "anyOf": [{"enum": ["blank", "goal", "decoy", "wall"]}, legend["additionalProperties"]]
+    }
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["$id"] = "https://misdirect.dev/schema/problem-v1.json"
     return schema
