@@ -6,6 +6,7 @@ any kind exits with code 2 and one line naming the file (or option), the field a
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -469,6 +470,104 @@ def scenario_random(
         seed, states=states, actions=actions, observations=observations, nodes=nodes
     )
     _write_scenario(problem, output, as_json)
+
+
+@app.command()
+@handle_errors
+def simulate(
+    file: FileArgument = None,
+    alter: Annotated[
+        list[str] | None,
+        typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+    ] = None,
+    runs: Annotated[int, typer.Option(help="Number of simulated runs.")] = 100_000,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    max_steps: Annotated[int, typer.Option(help="Stop a run after this many steps.")] = 10_000,
+    trajectories: Annotated[
+        Path | None, typer.Option(help="Write the first --samples runs step by step (CSV).")
+    ] = None,
+    samples: Annotated[int, typer.Option(help="Runs to write with --trajectories.")] = 10,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the attacked robot many times: empirical frequencies with 95 % intervals."""
+    from misdirect.simulate import simulate as run_simulation
+    from misdirect.simulate import wilson_interval
+
+    for option, value, least in (
+        ("--runs", runs, 1),
+        ("--max-steps", max_steps, 1),
+        ("--samples", samples, 0),
+    ):
+        if value < least:
+            raise ProblemError(f"must be at least {least}, got {value}", field=option)
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    result = run_simulation(
+        problem,
+        alpha,
+        runs=runs,
+        seed=seed,
+        max_steps=max_steps,
+        record=samples if trajectories is not None else 0,
+    )
+    exact = decoy_probability(problem, alpha)
+    low, high = result.confidence_interval()
+    outcomes = {
+        "decoy": {
+            "runs": result.decoy_hits,
+            "frequency": result.decoy_frequency,
+            "interval_95": [low, high],
+        }
+    }
+    for state, hits in result.absorbed.items():
+        outcomes[state] = {
+            "runs": hits,
+            "frequency": hits / runs,
+            "interval_95": list(wilson_interval(hits, runs)),
+        }
+    if trajectories is not None:
+        with trajectories.open("w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["run", "step", "state", "node", "received", "action"])
+            writer.writerows(result.trajectories)
+    payload = {
+        "problem": problem.name,
+        "alteration": problem.changed_observations(alpha),
+        "runs": runs,
+        "seed": seed,
+        "outcomes": outcomes,
+        "unfinished": result.unfinished,
+        "mean_steps": result.mean_steps,
+        "exact_decoy_probability": exact,
+        "exact_within_interval": low <= exact <= high,
+    }
+    if as_json:
+        _print_json(payload)
+        return
+    table = Table(title=escape(f"{problem.name} — {runs:,} runs, seed {seed}"))
+    for column in ("outcome", "runs", "frequency", "95 % interval"):
+        table.add_column(column, justify="left" if column == "outcome" else "right")
+    for name, row in outcomes.items():
+        table.add_row(
+            escape(name),
+            f"{row['runs']:,}",
+            f"{row['frequency']:.4f}",
+            f"[{row['interval_95'][0]:.4f}, {row['interval_95'][1]:.4f}]",
+        )
+    if result.unfinished:
+        table.add_row(f"still running after {max_steps:,} steps", f"{result.unfinished:,}", "", "")
+    out.print(table)
+    verdict = "inside" if payload["exact_within_interval"] else "[red]outside[/]"
+    out.print(
+        f"alteration {_fmt_alteration(payload['alteration'])} · mean steps "
+        f"{result.mean_steps:.2f} · exact Pr(decoy) {exact:.6f} ({verdict} the interval)",
+        highlight=False,
+    )
 
 
 @app.command()

@@ -6,7 +6,7 @@ vectorised over runs: each step advances every live run with a handful of numpy 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -20,6 +20,8 @@ class Simulation:
     absorbed: dict[str, int]  # absorbing non-decoy state -> runs that stopped there
     unfinished: int  # runs still going after max_steps
     mean_steps: float  # over runs that stopped
+    trajectories: list[tuple[int, int, str, str, str, str]] = field(default_factory=list)
+    # (run, step, state, memory node, observation received, action) for the recorded runs
 
     @property
     def decoy_frequency(self) -> float:
@@ -27,10 +29,15 @@ class Simulation:
 
     def confidence_interval(self, z: float = 1.96) -> tuple[float, float]:
         """Wilson score interval for the decoy frequency (z = 1.96: 95 %)."""
-        n, p = self.runs, self.decoy_frequency
-        centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-        half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-        return float(centre - half), float(centre + half)
+        return wilson_interval(self.decoy_hits, self.runs, z)
+
+
+def wilson_interval(hits: int, runs: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval for a frequency ``hits / runs`` (z = 1.96: 95 %)."""
+    n, p = runs, hits / runs
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return float(centre - half), float(centre + half)
 
 
 def simulate(
@@ -40,8 +47,12 @@ def simulate(
     runs: int = 10_000,
     seed: int = 0,
     max_steps: int = 10_000,
+    record: int = 0,
 ) -> Simulation:
-    """Run the robot ``runs`` times; a run stops in a decoy or absorbing state."""
+    """Run the robot ``runs`` times; a run stops in a decoy or absorbing state.
+
+    The first ``record`` runs are kept step by step as trajectories.
+    """
     rng = np.random.default_rng(seed)
     pomdp, controller = problem.pomdp, problem.controller
     alpha = problem.identity() if alteration is None else np.asarray(alteration)
@@ -61,8 +72,21 @@ def simulate(
     steps = np.zeros(runs, dtype=np.int64)
     live = np.arange(runs)
     stop = problem.decoy | pomdp.absorbing
+    trajectories: list[tuple[int, int, str, str, str, str]] = []
     for step in range(max_steps + 1):
         done = stop[state[live]]
+        if record:
+            for run in live[done & (live < record)].tolist():
+                trajectories.append(
+                    (
+                        run,
+                        step,
+                        pomdp.states[state[run]],
+                        controller.nodes[node[run]],
+                        "",
+                        "(stopped)",
+                    )
+                )
         stopped_at[live[done]] = state[live[done]]
         steps[live[done]] = step
         live = live[~done]
@@ -70,6 +94,19 @@ def simulate(
             break
         seen = alpha[pomdp.observation_of[state[live]]]
         action = controller.action[node[live], seen]
+        if record:
+            for k in np.flatnonzero(live < record):
+                run = int(live[k])
+                trajectories.append(
+                    (
+                        run,
+                        step,
+                        pomdp.states[state[run]],
+                        controller.nodes[node[run]],
+                        pomdp.observations[seen[k]],
+                        pomdp.actions[action[k]],
+                    )
+                )
         node[live] = controller.update[node[live], seen]
         row = action * pomdp.n_states + state[live]
         pick = np.searchsorted(keys, row + rng.random(live.size), side="right")
@@ -88,4 +125,5 @@ def simulate(
         absorbed=absorbed,
         unfinished=int((~finished).sum()),
         mean_steps=float(steps[finished].mean()) if finished.any() else float("nan"),
+        trajectories=sorted(trajectories),
     )

@@ -1,0 +1,61 @@
+"""`misdirect simulate`: the empirical frequency brackets the exact value, and the written
+trajectories are real runs of the controller."""
+
+import csv
+import json
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from misdirect.cli import app
+
+EXAMPLES = Path(__file__).parent.parent / "examples"
+runner = CliRunner()
+
+
+def test_simulate_trap_brackets_hand_value(tmp_path):
+    path = tmp_path / "runs.csv"
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(EXAMPLES / "trap.yaml"),
+            "--alter",
+            "o1=o0",
+            "--runs",
+            "50000",
+            "--seed",
+            "3",
+            "--trajectories",
+            str(path),
+            "--samples",
+            "5",
+            "--json",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    payload = json.loads(result.stdout)
+    low, high = payload["outcomes"]["decoy"]["interval_95"]
+    assert low <= 0.4 <= high  # hand value: 0.6·0.5 + 0.4·0.25
+    assert (
+        payload["exact_decoy_probability"] == 0.4
+        or abs(payload["exact_decoy_probability"] - 0.4) < 1e-12
+    )
+    goal_low, goal_high = payload["outcomes"]["goal"]["interval_95"]
+    assert goal_low <= 0.6 <= goal_high
+    rows = list(csv.DictReader(path.open()))
+    assert sorted({int(r["run"]) for r in rows}) == [0, 1, 2, 3, 4]
+    for run in range(5):
+        steps = [r for r in rows if int(r["run"]) == run]
+        assert [int(r["step"]) for r in steps] == list(range(len(steps)))
+        assert steps[0]["state"] == "start" and steps[0]["action"] == "go"  # reads o0: go
+        assert steps[-1]["action"] == "(stopped)"
+        assert steps[-1]["state"] in ("goal", "decoy")
+        for row in steps[:-1]:  # the altered loop sensor reads o0, so the robot goes
+            assert row["action"] == ("stay" if row["received"] == "o2" else "go")
+
+
+def test_simulate_rejects_bad_counts():
+    result = runner.invoke(app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "0", "--json"])
+    assert result.exit_code == 2
+    assert json.loads(result.stdout)["error"]["field"] == "--runs"
