@@ -59,3 +59,31 @@ def test_simulate_rejects_bad_counts():
     result = runner.invoke(app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "0", "--json"])
     assert result.exit_code == 2
     assert json.loads(result.stdout)["error"]["field"] == "--runs"
+
+
+def test_show_grid_picture_and_chain_graph(tmp_path):
+    picture = tmp_path / "attack.png"
+    result = runner.invoke(
+        app, ["show", str(EXAMPLES / "paper-grid-map.yaml"), "-a", "1=3", "-o", str(picture)]
+    )
+    assert result.exit_code == 0, result.output
+    assert picture.stat().st_size > 20_000
+    graph = tmp_path / "trap.dot"
+    result = runner.invoke(
+        app, ["show", str(EXAMPLES / "trap.yaml"), "-a", "o1=o0", "-o", str(graph)]
+    )
+    assert result.exit_code == 0, result.output
+    text = graph.read_text()
+    assert text.count("[label=") == 5 + 8  # 5 product states; 8 transitions incl. 2 self-loops
+    assert 'q1 -> q4 [label="0.5"]' in text  # the altered loop: go, half into the decoy
+
+
+def test_show_refuses_what_it_cannot_draw(tmp_path):
+    for args in (
+        [str(EXAMPLES / "trap.yaml"), "-o", str(tmp_path / "trap.png")],
+        ["--scenario", "paper-grid", "--size", "45", "-o", str(tmp_path / "big.dot")],
+        [str(EXAMPLES / "trap.yaml"), "-o", str(tmp_path / "trap.txt")],
+    ):
+        result = runner.invoke(app, ["show", *args, "--json"])
+        assert result.exit_code == 2, result.output
+        assert json.loads(result.stdout)["error"]["field"] == "-o"

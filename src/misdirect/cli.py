@@ -572,6 +572,37 @@ def simulate(
 
 @app.command()
 @handle_errors
+def show(
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Picture (.png/.svg/.pdf) or graph (.dot).")
+    ],
+    file: FileArgument = None,
+    alter: Annotated[
+        list[str] | None,
+        typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+    ] = None,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
+    from misdirect.pictures import draw
+
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    written = draw(problem, alpha, output)
+    if as_json:
+        _print_json({"written": str(written)})
+    else:
+        err.print(escape(f"wrote {written}"))
+
+
+@app.command()
+@handle_errors
 def reproduce(
     out_dir: Annotated[
         Path, typer.Option("--out", help="Folder for tables, figures and report.md.")

@@ -20,9 +20,9 @@ from matplotlib.patches import Rectangle
 SENSOR_COLOURS = plt.get_cmap("tab10").colors
 
 
-def save(fig: plt.Figure, stem: Path) -> list[Path]:
-    """Write ``stem.png`` and ``stem.svg``; returns both paths."""
-    paths = [stem.with_suffix(".png"), stem.with_suffix(".svg")]
+def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg")) -> list[Path]:
+    """Write ``stem.png`` and ``stem.svg`` (or the given suffixes); returns the paths."""
+    paths = [stem.with_suffix(suffix) for suffix in formats]
     for path in paths:
         fig.savefig(path, dpi=150, bbox_inches="tight")
     plt.close(fig)
@@ -98,6 +98,7 @@ def attack_heatmaps(
     decoy: tuple[int, int],
     panels: Sequence[dict],
     stem: Path,
+    formats: Sequence[str] = (".png", ".svg"),
 ) -> list[Path]:
     """One panel per budget: expected visits per cell under the optimal attack.
 
@@ -151,8 +152,8 @@ def attack_heatmaps(
             fontsize=8,
         )
     fig.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="expected visits per cell")
-    fig.suptitle("Optimal attacks: where the robot goes (hatched: altered sensors)", fontsize=10)
-    return save(fig, stem)
+    fig.suptitle("Where the robot goes under the attack (hatched: altered sensors)", fontsize=10)
+    return save(fig, stem, formats)
 
 
 def scalability_panels(rows: Sequence[dict], stem: Path) -> list[Path]:
