@@ -81,6 +81,10 @@ class MilpSolver:
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, budget)
             result = backend.solve(start)
+            if result.status not in ("optimal", "time_limit", "infeasible"):
+                raise SolverError(
+                    f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
+                )
             if result.values is None:
                 if result.status == "infeasible":
                     raise SolverError(
@@ -103,17 +107,12 @@ class MilpSolver:
                 "nodes": result.nodes,
                 **result.detail,
             }
-            status = "optimal" if result.status == "optimal" else "time_limit"
-            if result.status not in ("optimal", "time_limit"):
-                raise SolverError(
-                    f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
-                )
             solutions.append(
                 Solution(
                     budget=budget,
                     alteration=alteration,
                     claimed_probability=claimed,
-                    status=status,
+                    status=result.status,
                     upper_bound=min(result.bound, 1.0)
                     if model.sound and result.bound is not None
                     else None,
