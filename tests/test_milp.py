@@ -302,3 +302,36 @@ def test_export_rejects_unknown_suffix(tmp_path):
     )
     assert result.exit_code == 2
     assert json.loads(result.stdout)["error"]["field"] == "-o"
+
+
+# -- a crashing solver must not take the session with it -------------------------------------
+
+
+def test_highs_crash_is_retried_in_a_fresh_worker(monkeypatch):
+    import os
+
+    import misdirect.milp.backends as backends
+
+    real = backends.run_highs
+
+    def crash_on_first_seed(arrays, options, start, seed=0):
+        if seed == 0:
+            os._exit(139)  # what a segmentation fault in HiGHS looks like from outside
+        return real(arrays, options, start, seed)
+
+    monkeypatch.setattr(backends, "run_highs", crash_on_first_seed)
+    result = solve(paper_grid(5), budgets=[1])
+    assert result.probability == pytest.approx(GRID_OPTIMA[1], abs=5e-7)
+    assert result.curve[0].stats["highs_crashes"] == 1
+
+
+def test_highs_crashing_every_time_is_a_clear_error(monkeypatch):
+    import os
+
+    import misdirect.milp.backends as backends
+
+    monkeypatch.setattr(backends, "run_highs", lambda *args, **kwargs: os._exit(139))
+    result = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml")])
+    assert result.exit_code == 1
+    assert "HiGHS crashed 2 times" in result.stderr and "--solver scip" in result.stderr
+    assert "Traceback" not in result.output

@@ -8,7 +8,9 @@ solve accepts a start solution (the previous optimum).
 
 from __future__ import annotations
 
+import contextlib
 import math
+import multiprocessing
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -49,110 +51,227 @@ class Backend(Protocol):
 
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult: ...
 
+    def close(self) -> None: ...
+
 
 class HighsBackend:
-    """HiGHS through highspy. A fresh ``Highs`` instance per solve: passing the arrays again
-    costs milliseconds and no state of an earlier solve can leak into the next."""
+    """HiGHS through highspy, run in a worker process.
+
+    HiGHS has crashed this process outright (a segmentation fault: unbounded recursion in its
+    dual simplex, ``HEkkDualRHS::chooseNormal``) on budget curves of the larger grids, which
+    would take the user's session with it. So the model lives in a forked worker: a crash
+    costs a restart and a retry with another random seed, and a second crash becomes a clear
+    error instead of a dead interpreter. Each solve uses a fresh ``Highs`` instance, so no state
+    of an earlier solve leaks into the next.
+    """
 
     name = "highs"
+    retries = 2
 
     def __init__(self, options: SolverOptions):
-        import highspy
+        import highspy  # noqa: F401  (fail here, in the parent, if it is missing)
 
-        self._highspy = highspy
         self.options = options
         self.model: MilpModel | None = None
-        self.highs: Any = None
-
-    def _fresh(self) -> Any:
-        options = self.options
-        highs = self._highspy.Highs()
-        highs.setOptionValue("output_flag", bool(options.verbose))
-        if options.time_limit is not None:
-            highs.setOptionValue("time_limit", float(options.time_limit))
-        if options.threads is not None:
-            highs.setOptionValue("threads", int(options.threads))
-        highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
-        highs.setOptionValue("mip_abs_gap", min(1e-9, float(options.mip_gap)))
-        # Keep HiGHS' default feasibility tolerances: at 1e-9 its dual simplex recursed without
-        # end (HEkkDualRHS::chooseNormal, stack overflow) on the 45x45 grid. Values are
-        # re-evaluated exactly afterwards, so the tolerance never reaches a reported number.
-        return highs
+        self.crashes = 0
+        self._worker: Any = None
+        self._conn: Any = None
 
     def load(self, model: MilpModel) -> None:
         self.model = model
-
-    def _pass(self, model: MilpModel) -> None:
-        matrix = model.matrix.tocsc()
-        status = self.highs.passModel(
-            model.n_columns,
-            model.n_rows,
-            int(matrix.nnz),
-            1,  # column-wise
-            -1,  # maximise
-            float(model.offset),
-            model.objective.astype(np.float64),
-            model.col_lower.astype(np.float64),
-            model.col_upper.astype(np.float64),
-            model.row_lower.astype(np.float64),
-            model.row_upper.astype(np.float64),
-            matrix.indptr.astype(np.int32),
-            matrix.indices.astype(np.int32),
-            matrix.data.astype(np.float64),
-            model.integer.astype(np.int32),
-        )
-        if status == self._highspy.HighsStatus.kError:
-            raise SolverError("HiGHS rejected the model (passModel failed)")
+        self._stop_worker()
 
     def set_row_upper(self, row: int, value: float) -> None:
-        assert self.model is not None
+        assert self.model is not None, "load() a model first"
         self.model.row_upper[row] = value
 
     def write(self, path: Path) -> None:
         assert self.model is not None, "load() a model first"
-        self.highs = self._fresh()
-        self._pass(self.model)
-        self.highs.writeModel(str(path))
+        highs = _new_highs(self.options, seed=0)
+        _pass_model(highs, _model_arrays(self.model))
+        highs.writeModel(str(path))
 
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
-        hs = self._highspy
         assert self.model is not None, "load() a model first"
-        self.highs = self._fresh()
-        self._pass(self.model)
-        if start is not None:
-            columns, values = start
-            self.highs.setSolution(
-                int(columns.size), columns.astype(np.int32), values.astype(np.float64)
-            )
-        began = time.perf_counter()
-        self.highs.run()
-        elapsed = time.perf_counter() - began
-        model_status = self.highs.getModelStatus()
-        if model_status == hs.HighsModelStatus.kModelEmpty:  # nothing to choose: the offset
-            offset = self.model.offset
-            return BackendResult("optimal", np.zeros(0), offset, offset, 0, elapsed)
-        info = self.highs.getInfo()
-        has_incumbent = info.primal_solution_status == 2  # kSolutionStatusFeasible
-        values = np.asarray(self.highs.getSolution().col_value) if has_incumbent else None
-        status = {
-            hs.HighsModelStatus.kOptimal: "optimal",
-            hs.HighsModelStatus.kTimeLimit: "time_limit",
-            hs.HighsModelStatus.kInterrupt: "time_limit",
-            hs.HighsModelStatus.kInfeasible: "infeasible",
-        }.get(model_status, "error")
-        if not self.model.integer.any():  # a pure LP: its optimum is its bound
-            bound = info.objective_function_value if status == "optimal" else None
-        else:
-            bound = info.mip_dual_bound if math.isfinite(info.mip_dual_bound) else None
-        return BackendResult(
-            status=status,
-            values=values,
-            objective=info.objective_function_value if has_incumbent else None,
-            bound=bound,
-            nodes=int(info.mip_node_count),
-            solve_time_s=elapsed,
-            detail={"highs_status": self.highs.modelStatusToString(model_status)},
+        row = self.model.budget_row
+        code = None
+        for attempt in range(self.retries):
+            try:
+                if self._worker is None:
+                    self._start_worker()
+                self._conn.send(("solve", row, float(self.model.row_upper[row]), start, attempt))
+                kind, payload = self._conn.recv()
+            except (EOFError, OSError):
+                code = self._worker.exitcode if self._worker is not None else None
+                self._stop_worker()
+                self.crashes += 1
+                continue
+            if kind == "error":
+                raise SolverError(payload)
+            payload.detail["highs_crashes"] = self.crashes
+            return payload
+        raise SolverError(
+            f"HiGHS crashed {self.retries} times on this model (worker exit code {code}); "
+            "try another backend: --solver scip or --solver gurobi"
         )
+
+    def close(self) -> None:
+        self._stop_worker()
+
+    def _start_worker(self) -> None:
+        assert self.model is not None
+        methods = multiprocessing.get_all_start_methods()
+        context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        self._conn, child = context.Pipe()
+        self._worker = context.Process(
+            target=_highs_worker, args=(child, self.options), daemon=True
+        )
+        self._worker.start()
+        child.close()
+        self._conn.send(("load", _model_arrays(self.model)))
+        kind, payload = self._conn.recv()
+        if kind == "error":
+            raise SolverError(payload)
+
+    def _stop_worker(self) -> None:
+        if self._worker is not None:
+            with contextlib.suppress(OSError):
+                self._conn.send(("stop",))
+            self._worker.join(timeout=5)
+            if self._worker.is_alive():
+                self._worker.kill()
+            self._conn.close()
+        self._worker = self._conn = None
+
+    def __del__(self) -> None:
+        self._stop_worker()
+
+
+def _model_arrays(model: MilpModel) -> dict[str, Any]:
+    """The model as plain arrays (what crosses the pipe; the callables stay behind)."""
+    matrix = model.matrix.tocsc()
+    return {
+        "n_columns": model.n_columns,
+        "n_rows": model.n_rows,
+        "offset": float(model.offset),
+        "objective": model.objective.astype(np.float64),
+        "col_lower": model.col_lower.astype(np.float64),
+        "col_upper": model.col_upper.astype(np.float64),
+        "row_lower": model.row_lower.astype(np.float64),
+        "row_upper": model.row_upper.astype(np.float64).copy(),
+        "indptr": matrix.indptr.astype(np.int32),
+        "indices": matrix.indices.astype(np.int32),
+        "data": matrix.data.astype(np.float64),
+        "integer": model.integer.astype(np.int32),
+    }
+
+
+def _new_highs(options: SolverOptions, seed: int) -> Any:
+    import highspy
+
+    highs = highspy.Highs()
+    highs.setOptionValue("output_flag", bool(options.verbose))
+    if options.time_limit is not None:
+        highs.setOptionValue("time_limit", float(options.time_limit))
+    if options.threads is not None:
+        highs.setOptionValue("threads", int(options.threads))
+    highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
+    highs.setOptionValue("mip_abs_gap", min(1e-9, float(options.mip_gap)))
+    highs.setOptionValue("random_seed", int(seed))
+    # HiGHS' default feasibility tolerances: at 1e-9 its dual simplex crashed sooner. Values are
+    # re-evaluated exactly afterwards, so the tolerance never reaches a reported number.
+    return highs
+
+
+def _pass_model(highs: Any, arrays: dict[str, Any]) -> None:
+    import highspy
+
+    status = highs.passModel(
+        arrays["n_columns"],
+        arrays["n_rows"],
+        int(arrays["data"].size),
+        1,  # column-wise
+        -1,  # maximise
+        arrays["offset"],
+        arrays["objective"],
+        arrays["col_lower"],
+        arrays["col_upper"],
+        arrays["row_lower"],
+        arrays["row_upper"],
+        arrays["indptr"],
+        arrays["indices"],
+        arrays["data"],
+        arrays["integer"],
+    )
+    if status == highspy.HighsStatus.kError:
+        raise SolverError("HiGHS rejected the model (passModel failed)")
+
+
+def run_highs(
+    arrays: dict[str, Any],
+    options: SolverOptions,
+    start: tuple[np.ndarray, np.ndarray] | None,
+    seed: int = 0,
+) -> BackendResult:
+    """One solve in this process (the worker's body; also usable directly)."""
+    import highspy as hs
+
+    highs = _new_highs(options, seed)
+    _pass_model(highs, arrays)
+    if start is not None:
+        columns, values = start
+        highs.setSolution(int(columns.size), columns.astype(np.int32), values.astype(np.float64))
+    began = time.perf_counter()
+    highs.run()
+    elapsed = time.perf_counter() - began
+    model_status = highs.getModelStatus()
+    if model_status == hs.HighsModelStatus.kModelEmpty:  # nothing to choose: the offset
+        offset = arrays["offset"]
+        return BackendResult("optimal", np.zeros(0), offset, offset, 0, elapsed)
+    info = highs.getInfo()
+    has_incumbent = info.primal_solution_status == 2  # kSolutionStatusFeasible
+    values = np.asarray(highs.getSolution().col_value) if has_incumbent else None
+    status = {
+        hs.HighsModelStatus.kOptimal: "optimal",
+        hs.HighsModelStatus.kTimeLimit: "time_limit",
+        hs.HighsModelStatus.kInterrupt: "time_limit",
+        hs.HighsModelStatus.kInfeasible: "infeasible",
+    }.get(model_status, "error")
+    if not arrays["integer"].any():  # a pure LP: its optimum is its bound
+        bound = info.objective_function_value if status == "optimal" else None
+    else:
+        bound = info.mip_dual_bound if math.isfinite(info.mip_dual_bound) else None
+    return BackendResult(
+        status=status,
+        values=values,
+        objective=info.objective_function_value if has_incumbent else None,
+        bound=bound,
+        nodes=int(info.mip_node_count),
+        solve_time_s=elapsed,
+        detail={"highs_status": highs.modelStatusToString(model_status)},
+    )
+
+
+def _highs_worker(conn: Any, options: SolverOptions) -> None:
+    """Serve solves over a pipe until told to stop (or the parent goes away)."""
+    arrays: dict[str, Any] = {}
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return
+        if message[0] == "stop":
+            return
+        try:
+            if message[0] == "load":
+                arrays = message[1]
+                conn.send(("ok", None))
+            else:
+                _, row, value, start, seed = message
+                arrays["row_upper"][row] = value
+                conn.send(("result", run_highs(arrays, options, start, seed)))
+        except SolverError as error:
+            conn.send(("error", str(error)))
 
 
 class GurobiBackend:
@@ -214,6 +333,11 @@ class GurobiBackend:
     def set_row_upper(self, row: int, value: float) -> None:
         self._rows[row].RHS = value
 
+    def close(self) -> None:
+        if getattr(self, "model", None) is not None:
+            self.model.dispose()
+        self.env.dispose()
+
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
         gp = self.gp
         m = self.model
@@ -265,6 +389,9 @@ class ScipBackend:
 
     def set_row_upper(self, row: int, value: float) -> None:
         self.source.row_upper[row] = value
+
+    def close(self) -> None:
+        pass
 
     def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
         # SCIP reads the model from the MPS file HiGHS writes: a bulk path with no per-row calls

@@ -75,6 +75,19 @@ class MilpSolver:
     ) -> list[Solution]:
         model = build_formulation(problem, self.formulation, max(budgets))
         backend = make_backend(self.backend_name, self.options)
+        try:
+            return self._solve_curve(problem, model, backend, budgets, progress)
+        finally:
+            backend.close()
+
+    def _solve_curve(
+        self,
+        problem: Problem,
+        model: MilpModel,
+        backend: Any,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+    ) -> list[Solution]:
         backend.load(model)
         start = model.start_for(problem.identity())
         solutions = []
