@@ -704,6 +704,73 @@ class _ExperimentProgress:
             self.bar.stop()
 
 
+class ConvertTarget(StrEnum):
+    prism = "prism"
+    drn = "drn"
+    json = "json"
+    yaml = "yaml"
+
+
+@app.command()
+@handle_errors
+def convert(
+    output: Annotated[Path, typer.Option("--output", "-o", help="File to write.")],
+    to: Annotated[ConvertTarget, typer.Option("--to", help="Format to write.")],
+    file: FileArgument = None,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
+    from misdirect.export import write_drn, write_prism
+
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    if to is ConvertTarget.prism:
+        write_prism(problem, output)
+    elif to is ConvertTarget.drn:
+        write_drn(problem, output)
+    else:
+        wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
+        if output.suffix.lower() not in wanted:
+            raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
+        write_problem(problem, output)
+    if as_json:
+        _print_json({"written": str(output), "format": to.value})
+    else:
+        err.print(escape(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)"))
+
+
+@app.command("export-fsc")
+@handle_errors
+def export_fsc(
+    output: Annotated[Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write.")],
+    file: FileArgument = None,
+    scenario: ScenarioOption = None,
+    size: SizeOption = 5,
+    weights: WeightsOption = None,
+    values: ValuesOption = None,
+    capacity: CapacityOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the controller in PAYNT's JSON format (controller: {paynt: FILE} reads it)."""
+    from misdirect.controllers import controller_to_paynt
+
+    problem = _load_input(file, scenario, size, weights, values, capacity, seed)
+    output.write_text(
+        json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n",
+        encoding="utf-8",
+    )
+    if as_json:
+        _print_json({"written": str(output)})
+    else:
+        err.print(escape(f"wrote {output} ({problem.controller.n_nodes} nodes)"))
+
+
 @app.command("export-milp")
 @handle_errors
 def export_milp(

@@ -19,14 +19,18 @@ from pydantic import (
     BaseModel,
     BeforeValidator,
     ConfigDict,
+    Discriminator,
     Field,
+    Tag,
     ValidationError,
     WithJsonSchema,
 )
 
+from misdirect.controllers import forbid_disabled_actions, load_paynt_controller
 from misdirect.errors import ProblemError
 from misdirect.grid_map import LegendEntry, compile_grid
 from misdirect.model import Controller, CostModel, Pomdp, Problem
+from misdirect.storm_models import load_storm_pomdp
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
@@ -96,6 +100,31 @@ class PomdpSpec(_Strict):
     )
 
 
+class StormPomdpSpec(_Strict):
+    """A POMDP Storm builds: a PRISM program or a DRN file (needs ``misdirect[storm]``)."""
+
+    prism: str | None = Field(default=None, description="PRISM file, relative to this file")
+    drn: str | None = Field(default=None, description="DRN file, relative to this file")
+    constants: str | None = Field(default=None, description='PRISM constants, e.g. "N=5,p=0.1"')
+    disabled_action: Literal["stay", "forbid"] = Field(
+        default="stay",
+        description="the controller picks an action Storm does not enable in the true state: "
+        "stay put (stay), or forbid the alterations that can cause it (forbid)",
+    )
+
+
+def _pomdp_kind(value: Any) -> str:
+    if isinstance(value, dict) and ("prism" in value or "drn" in value):
+        return "storm"
+    return "explicit"
+
+
+AnyPomdpSpec = Annotated[
+    Annotated[PomdpSpec, Tag("explicit")] | Annotated[StormPomdpSpec, Tag("storm")],
+    Discriminator(_pomdp_kind),
+]
+
+
 class RuleSpec(_Strict):
     node: Name
     obs: Name
@@ -109,6 +138,30 @@ class ControllerSpec(_Strict):
     nodes: list[Name] = Field(min_length=1)
     initial: Name
     rules: list[RuleSpec] = Field(min_length=1)
+
+
+class PayntControllerSpec(_Strict):
+    """A deterministic FSC in PAYNT's JSON format (``action_function``, ``update_function``)."""
+
+    paynt: str = Field(description="PAYNT .fsc.json file, relative to this file")
+
+
+def _controller_kind(value: Any) -> str:
+    return "paynt" if isinstance(value, dict) and "paynt" in value else "rules"
+
+
+AnyControllerSpec = Annotated[
+    Annotated[ControllerSpec, Tag("rules")] | Annotated[PayntControllerSpec, Tag("paynt")],
+    Discriminator(_controller_kind),
+]
+
+
+class DecoyLabelSpec(_Strict):
+    label: Name = Field(description="a state label of the model (PRISM/DRN)")
+
+
+def _decoy_kind(value: Any) -> str:
+    return "label" if isinstance(value, dict) else "states"
 
 
 class CostSpec(_Strict):
@@ -149,8 +202,16 @@ class GridSpec(_Strict):
 
 
 class DeceptionSpec(_Strict):
-    decoy: list[Name] | None = Field(
-        default=None, min_length=1, description="decoy states (grid maps mark them instead)"
+    decoy: (
+        Annotated[
+            Annotated[list[Name], Field(min_length=1), Tag("states")]
+            | Annotated[DecoyLabelSpec, Tag("label")],
+            Discriminator(_decoy_kind),
+        ]
+        | None
+    ) = Field(
+        default=None,
+        description="decoy states, or {label: ...} (grid maps mark them in the map instead)",
     )
     budget: Budget = 0.0
     cost: CostSpec = Field(default_factory=CostSpec)
@@ -162,18 +223,31 @@ class ProblemFileV1(_Strict):
     format: Literal["misdirect/v1"]
     name: str = ""
     description: str | None = None
-    pomdp: PomdpSpec | None = None
+    pomdp: AnyPomdpSpec | None = None
     grid: GridSpec | None = None
-    controller: ControllerSpec
+    controller: AnyControllerSpec
     deception: DeceptionSpec
 
 
 # -- reading ------------------------------------------------------------------------------------
 
 
+# pydantic puts the tag of a tagged union into error locations; users never wrote it
+_UNION_TAGS = {
+    "pomdp": {"explicit", "storm"},
+    "controller": {"rules", "paynt"},
+    "decoy": {"states", "label"},
+}
+
+
 def _location(loc: tuple[Any, ...]) -> str:
     text = ""
+    previous = None
     for part in loc:
+        if isinstance(previous, str) and part in _UNION_TAGS.get(previous, ()):
+            previous = None
+            continue
+        previous = part
         if isinstance(part, int):
             text += f"[{part}]"
         else:
@@ -251,8 +325,35 @@ def _lookup(index: dict[str, int], name: str, kind: str, field: str) -> int:
         raise ProblemError(f"unknown {kind} {name!r} (known: {known})", field=field) from None
 
 
+def _resolve(name: str, base: Path | None) -> Path:
+    path = Path(name)
+    return path if base is None or path.is_absolute() else base / path
+
+
+def _compile_decoy(spec: Any, pomdp: Pomdp, labels: dict[str, np.ndarray]) -> np.ndarray:
+    if spec is None:
+        raise ProblemError("list the decoy states, or give {label: ...}", field="deception.decoy")
+    if isinstance(spec, DecoyLabelSpec):
+        if spec.label not in labels:
+            known = ", ".join(sorted(labels)) or "none (explicit models have no labels)"
+            raise ProblemError(
+                f"no state label {spec.label!r} (labels: {known})", field="deception.decoy.label"
+            )
+        decoy = labels[spec.label].copy()
+        if not decoy.any():
+            raise ProblemError(f"no state carries label {spec.label!r}", field="deception.decoy")
+        return decoy
+    state_index = {name: i for i, name in enumerate(pomdp.states)}
+    decoy = np.zeros(pomdp.n_states, dtype=bool)
+    for i, name in enumerate(spec):
+        decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
+    return decoy
+
+
 def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
     """Resolve names and check consistency; returns the array model."""
+    base = Path(source).parent if source is not None else None
+    enabled = None  # Storm's enabled actions, when disabled ones must be forbidden
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
     if spec.grid is not None:
@@ -274,19 +375,34 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
         if not decoy.any():
             raise ProblemError("the map has no decoy cell (legend kind: decoy)", field="grid.map")
     else:
-        pomdp = _compile_pomdp(spec.pomdp)
-        if spec.deception.decoy is None:
-            raise ProblemError("list the decoy states", field="deception.decoy")
-        state_index = {name: i for i, name in enumerate(pomdp.states)}
-        decoy = np.zeros(pomdp.n_states, dtype=bool)
-        for i, name in enumerate(spec.deception.decoy):
-            decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
-    controller = _compile_controller(spec.controller, pomdp)
+        if isinstance(spec.pomdp, StormPomdpSpec):
+            kind = "prism" if spec.pomdp.prism is not None else "drn"
+            if spec.pomdp.prism is not None and spec.pomdp.drn is not None:
+                raise ProblemError("give prism or drn, not both", field="pomdp")
+            world = load_storm_pomdp(
+                Path(spec.pomdp.prism or spec.pomdp.drn),
+                kind=kind,
+                constants=spec.pomdp.constants,
+                base=base,
+            )
+            pomdp, labels = world.pomdp, world.labels
+            if spec.pomdp.disabled_action == "forbid":
+                enabled = world.enabled
+        else:
+            pomdp, labels = _compile_pomdp(spec.pomdp), {}
+        decoy = _compile_decoy(spec.deception.decoy, pomdp, labels)
+    if isinstance(spec.controller, PayntControllerSpec):
+        controller = load_paynt_controller(_resolve(spec.controller.paynt, base), pomdp)
+    else:
+        controller = _compile_controller(spec.controller, pomdp)
     obs_index = {name: i for i, name in enumerate(pomdp.observations)}
+    cost = _compile_cost(spec.deception.cost, obs_index)
+    if enabled is not None:
+        cost = forbid_disabled_actions(cost, pomdp, controller, enabled)
     return Problem(
         pomdp=pomdp,
         controller=controller,
-        cost=_compile_cost(spec.deception.cost, obs_index),
+        cost=cost,
         decoy=decoy,
         budget=spec.deception.budget,
         name=spec.name,

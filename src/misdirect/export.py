@@ -1,0 +1,111 @@
+"""Writing a problem's world out for other tools: Storm's DRN and the PRISM language.
+
+Both writers produce the explicit POMDP (every action of every state, absorbing states as
+self-loops) with the decoy states as the label ``decoy``; ``misdirect convert`` uses them, and
+the tests read the files back through Storm and compare evaluated probabilities.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from misdirect.model import Problem
+
+
+def _rows(problem: Problem):
+    """(state, action, [(target, probability)]) for every state and action, in order."""
+    pomdp = problem.pomdp
+    matrix = pomdp.transitions.tocsr()
+    matrix.sort_indices()
+    for s in range(pomdp.n_states):
+        for a in range(pomdp.n_actions):
+            row = a * pomdp.n_states + s
+            start, end = matrix.indptr[row], matrix.indptr[row + 1]
+            yield (
+                s,
+                a,
+                list(
+                    zip(
+                        matrix.indices[start:end].tolist(),
+                        matrix.data[start:end].tolist(),
+                        strict=True,
+                    )
+                ),
+            )
+
+
+def write_drn(problem: Problem, path: Path) -> None:
+    """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours."""
+    pomdp = problem.pomdp
+    lines = [
+        "// Exported by misdirect",
+        "@type: POMDP",
+        "@parameters",
+        "",
+        "@reward_models",
+        "",
+        "@nr_states",
+        str(pomdp.n_states),
+        "@nr_choices",
+        str(pomdp.n_states * pomdp.n_actions),
+        "@model",
+    ]
+    current = -1
+    for s, a, entries in _rows(problem):
+        if s != current:
+            labels = []
+            if s == pomdp.initial_state:
+                labels.append("init")
+            if problem.decoy[s]:
+                labels.append("decoy")
+            lines.append(
+                f"state {s} {{{int(pomdp.observation_of[s])}}} {' '.join(labels)}".rstrip()
+            )
+            current = s
+        lines.append(f"\taction {pomdp.actions[a]}")
+        lines += [f"\t\t{t} : {p!r}" for t, p in entries]
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def write_prism(problem: Problem, path: Path) -> None:
+    """A PRISM POMDP: state variable ``s``, observable ``o`` updated with it, label ``decoy``.
+
+    Action names become PRISM action labels, so they must be PRISM identifiers; others are
+    replaced by ``a<k>`` and listed in a comment.
+    """
+    pomdp = problem.pomdp
+    labels = [_identifier(name, f"a{k}") for k, name in enumerate(pomdp.actions)]
+    o_of = pomdp.observation_of
+    lines = [
+        "// Exported by misdirect",
+        f"// problem: {problem.name}",
+        "// states (value of s): " + ", ".join(f"{i}={n}" for i, n in enumerate(pomdp.states)),
+        "// observations (value of o): "
+        + ", ".join(f"{i}={n}" for i, n in enumerate(pomdp.observations)),
+        "// actions: "
+        + ", ".join(f"{lab}={n}" for lab, n in zip(labels, pomdp.actions, strict=True)),
+        "",
+        "pomdp",
+        "",
+        "observables",
+        "\to",
+        "endobservables",
+        "",
+        "module world",
+        f"\ts : [0..{pomdp.n_states - 1}] init {pomdp.initial_state};",
+        f"\to : [0..{pomdp.n_observations - 1}] init {int(o_of[pomdp.initial_state])};",
+    ]
+    for s, a, entries in _rows(problem):
+        update = " + ".join(f"{p!r} : (s'={t}) & (o'={int(o_of[t])})" for t, p in entries)
+        lines.append(f"\t[{labels[a]}] s={s} -> {update};")
+    lines += ["endmodule", ""]
+    decoys = np.flatnonzero(problem.decoy)
+    lines.append('label "decoy" = ' + (" | ".join(f"s={s}" for s in decoys) or "false") + ";")
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _identifier(name: str, fallback: str) -> str:
+    ok = name.replace("_", "a").isalnum() and not name[0].isdigit() and name.isascii()
+    return name if ok else fallback
