@@ -184,7 +184,12 @@ def test_convert_round_trip_through_storm(tmp_path, target):
 @pytest.mark.parametrize(
     ("pomdp", "decoy", "field", "words"),
     [
-        ({"prism": "broken.prism"}, {"label": "goal"}, "pomdp.prism", "Storm cannot read"),
+        (
+            {"prism": "broken.prism"},
+            {"label": "goal"},
+            "pomdp.prism, line 4, column 13",
+            "expecting <update list>",
+        ),
         ({"prism": "missing.prism"}, {"label": "goal"}, "pomdp.prism", "not found"),
         (
             {"prism": str(SHIPPED / "maze_2.prism")},

@@ -48,6 +48,8 @@ def load_storm_pomdp(
     """Build the model with Storm and translate it; ``kind`` is ``prism`` or ``drn``."""
     field = f"pomdp.{kind}"
     stormpy = _stormpy(field)
+    # Storm logs parse errors to stderr itself; we report them once, in our own words
+    stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     path = (base / path) if base is not None and not Path(path).is_absolute() else Path(path)
     if not path.exists():
         raise ProblemError(f"file not found: {path}", field=field)
@@ -76,7 +78,9 @@ def load_storm_pomdp(
         raise
     except Exception as error:  # Storm reports parse errors as RuntimeError/StormError
         message = " ".join(str(error).split())
-        raise ProblemError(f"Storm cannot read {path.name}: {message}", field=field) from None
+        where = re.search(r"at (\d+):(\d+)", message)
+        located = f"{field}, line {where[1]}, column {where[2]}" if where else field
+        raise ProblemError(f"Storm cannot read {path.name}: {message}", field=located) from None
     if not model.is_partially_observable:
         raise ProblemError(f"{path.name} is a {model.model_type.name}, not a POMDP", field=field)
     return _translate(model, field)
