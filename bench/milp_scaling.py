@@ -20,6 +20,7 @@ import csv
 import json
 import platform
 import time
+from collections import Counter
 from pathlib import Path
 
 from misdirect import decoy_probability, solve
@@ -96,6 +97,7 @@ def run(args: argparse.Namespace) -> list[dict]:
                         "upper_bound": point.upper_bound,
                         "solve_time_s": point.stats["solve_time_s"],
                         "nodes": point.stats["nodes"],
+                        "highs_crashes": point.stats.get("highs_crashes", 0),
                         "alteration": point.alteration,
                     }
                 )
@@ -140,6 +142,41 @@ def write(rows: list[dict], out: Path, args: argparse.Namespace) -> None:
         writer.writeheader()
         writer.writerows(rows)
     plot(rows, out / "milp_scaling.png")
+    (out / "milp_scaling.md").write_text(summary_table(rows), encoding="utf-8")
+
+
+def summary_table(rows: list[dict]) -> str:
+    """One line per (n, formulation): sizes, build time, solve time over all budgets."""
+    lines = [
+        "| n | formulation | variables | binaries | rows | build (s) | solve, all budgets (s) "
+        "| statuses | max Pr (B=1..7) | solve ÷ one evaluation |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    keys = sorted({(r["n"], r["formulation"]) for r in rows})
+    for n, formulation in keys:
+        mine = [r for r in rows if r["n"] == n and r["formulation"] == formulation]
+        first = mine[0]
+        solved = [r for r in mine if r.get("solve_time_s") is not None]
+        if solved:
+            total = sum(r["solve_time_s"] for r in solved)
+            statuses = Counter(r["status"] for r in solved)
+            best = max((r["probability"] for r in solved if r["budget"]), default=None)
+            cells = [
+                f"{total:.1f}",
+                f"{optimal} / {len(solved) - optimal}",
+                "—" if best is None else f"{best:.6f}",
+                f"{total / first['evaluation_time_s']:,.0f}",
+            ]
+            if formulation == "paper":
+                claimed = max(r["claimed_probability"] or 0 for r in solved)
+                cells[2] += f" (claims {claimed:.3f})"
+        else:
+            cells = ["not solved", "—", "—", "—"]
+        lines.append(
+            f"| {n} | {formulation} | {first['variables']:,} | {first['binaries']:,} | "
+            f"{first['rows']:,} | {first['build_time_s']:.2f} | " + " | ".join(cells) + " |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def plot(rows: list[dict], path: Path) -> None:
