@@ -163,7 +163,7 @@ def summary_table(rows: list[dict]) -> str:
             best = max((r["probability"] for r in solved if r["budget"]), default=None)
             cells = [
                 f"{total:.1f}",
-                f"{optimal} / {len(solved) - optimal}",
+                ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())),
                 "—" if best is None else f"{best:.6f}",
                 f"{total / first['evaluation_time_s']:,.0f}",
             ]
