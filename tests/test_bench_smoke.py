@@ -42,3 +42,4 @@ def test_milp_benchmark_reduced_mode(tmp_path):
         assert int(paper[n]["rows"]) == 10 + 24 * n * n + 4 * 192 * edges
     assert (tmp_path / "milp_scaling.png").stat().st_size > 10_000
     assert (tmp_path / "milp_scaling.json").exists()
+    assert "| 5 | compact | 68 | 21 | 99 |" in (tmp_path / "milp_scaling.md").read_text()
