@@ -19,11 +19,11 @@ import argparse
 import csv
 import json
 import platform
-import time
 from collections import Counter
 from pathlib import Path
 
-from misdirect import decoy_probability, solve
+from misdirect import solve
+from misdirect.evaluate import evaluation_time
 from misdirect.scenarios import paper_grid
 from misdirect.solvers.milp import build_formulation
 
@@ -35,15 +35,6 @@ def _ints(text: str) -> list[int]:
     return [int(p) for p in text.split(",") if p]
 
 
-def _evaluation_time(problem) -> float:
-    best = float("inf")
-    for _ in range(3):
-        began = time.perf_counter()
-        decoy_probability(problem, problem.identity())
-        best = min(best, time.perf_counter() - began)
-    return best
-
-
 def run(args: argparse.Namespace) -> list[dict]:
     """Every (size, formulation); results are rewritten after each, so a crash keeps the rest."""
     rows: list[dict] = []
@@ -51,7 +42,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     sizes = sorted(set(_ints(args.sizes)) | set(_ints(args.paper_sizes)))
     for n in sizes:
         problem = paper_grid(n, budget=max(budgets))
-        floor = _evaluation_time(problem)
+        floor = evaluation_time(problem)
         plans = []
         if n in _ints(args.sizes):
             plans.append(("compact", True))
@@ -92,6 +83,7 @@ def run(args: argparse.Namespace) -> list[dict]:
                         **base,
                         "budget": point.budget,
                         "status": point.status,
+                        "solver_status": point.stats["status"],
                         "probability": point.probability,
                         "claimed_probability": point.solver_probability,
                         "upper_bound": point.upper_bound,
@@ -180,42 +172,23 @@ def summary_table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], path: Path) -> None:
-    import matplotlib
+    """The reproduce command's scalability panels, with solve time summed over the budgets."""
+    from misdirect.plots import scalability_panels
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
-    panels = [
-        ("variables", "variables"),
-        ("rows", "rows"),
-        ("build_time_s", "construction time (s)"),
-        ("solve_time_s", "solve time, all budgets (s)"),
-    ]
-    for formulation, style in (("compact", "o-"), ("paper", "s--")):
-        mine = [r for r in rows if r["formulation"] == formulation]
-        sizes = sorted({r["n"] for r in mine})
-        for ax, (key, label) in zip(axes, panels, strict=True):
-            if key == "solve_time_s":
-                points = [
-                    (n, sum(r["solve_time_s"] for r in mine if r["n"] == n))
-                    for n in sizes
-                    if any(r.get("solve_time_s") for r in mine if r["n"] == n)
-                ]
-            else:
-                points = [(n, next(r[key] for r in mine if r["n"] == n)) for n in sizes]
-            if points:
-                ax.plot(*zip(*points, strict=True), style, label=formulation)
-            ax.set_xlabel("grid size n")
-            ax.set_ylabel(label)
-            ax.set_yscale("log")
-            ax.grid(True, which="both", alpha=0.3)
-    floor = sorted({(r["n"], r["evaluation_time_s"]) for r in rows})
-    axes[3].plot(*zip(*floor, strict=True), "k:", label="one exact evaluation")
-    axes[0].legend()
-    axes[3].legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    totals = []
+    for n, formulation in sorted({(r["n"], r["formulation"]) for r in rows}):
+        mine = [r for r in rows if r["n"] == n and r["formulation"] == formulation]
+        solved = [r for r in mine if r.get("solve_time_s") is not None]
+        totals.append(
+            {
+                **mine[0],
+                "solve_time_s": sum(r["solve_time_s"] for r in solved) if solved else None,
+                "solver_status": "time_limit"
+                if any(r.get("solver_status") == "time_limit" for r in solved)
+                else "optimal",
+            }
+        )
+    scalability_panels(totals, path.with_suffix(""), formats=(path.suffix,))
 
 
 def main() -> None:

@@ -88,13 +88,7 @@ class ChoiceProduct:
 
     def union_graph(self) -> sp.csr_matrix:
         """``q -> q'`` whenever some group of ``q`` can move to ``q'``."""
-        owner = sp.csr_matrix(
-            (np.ones(self.n_groups), (self.group_state, np.arange(self.n_groups))),
-            shape=(self.n_states, self.n_groups),
-        )
-        graph = (owner @ (self.transitions != 0).astype(np.float64)).tocsr()
-        graph.data[:] = 1.0
-        return graph
+        return _union_graph(self.group_state, self.transitions, self.n_states)
 
     def can_reach_target(self) -> np.ndarray:
         """States from which *some* alteration (indeed some MDP scheduler) reaches the decoy."""
@@ -158,10 +152,7 @@ def build_choice_product(
 
     start = pomdp.initial_state * n_n + controller.initial_node
     if reachable_only:
-        owner = sp.csr_matrix(
-            (np.ones(n_groups), (g_pair, np.arange(n_groups))), shape=(n_s * n_n, n_groups)
-        )
-        graph = (owner @ (transitions != 0).astype(np.float64)).tocsr()
+        graph = _union_graph(g_pair, transitions, n_s * n_n)
         keep = np.flatnonzero(reachable_from(graph, np.array([start])))
     else:
         keep = np.arange(n_s * n_n)
@@ -178,6 +169,19 @@ def build_choice_product(
         group_options=group_options[kept_groups],
         transitions=transitions[kept_groups][:, keep].tocsr(),
     )
+
+
+def _union_graph(
+    group_state: np.ndarray, transitions: sp.csr_matrix, n_states: int
+) -> sp.csr_matrix:
+    """State graph of an MDP given by its groups: an edge wherever some group can move."""
+    owner = sp.csr_matrix(
+        (np.ones(group_state.size), (group_state, np.arange(group_state.size))),
+        shape=(n_states, group_state.size),
+    )
+    graph = (owner @ (transitions != 0).astype(np.float64)).tocsr()
+    graph.data[:] = 1.0
+    return graph
 
 
 def end_component_states(

@@ -28,7 +28,7 @@ from misdirect.errors import MisdirectError, ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.evaluate import evaluate as evaluate_alteration
 from misdirect.milp.backends import BACKENDS, write_model
-from misdirect.model import Problem
+from misdirect.model import Problem, format_alteration
 from misdirect.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solve import SOLVERS, SolveResult
@@ -206,7 +206,7 @@ def _fail(message: str, code: int, as_json: bool, **context: Any) -> None:
 
 
 def _fmt_alteration(alteration: dict[str, str]) -> str:
-    return escape(", ".join(f"{o} → {t}" for o, t in alteration.items()) or "none")
+    return escape(format_alteration(alteration))
 
 
 # -- commands -----------------------------------------------------------------------------------
@@ -318,7 +318,8 @@ def solve(
     if method != "milp" and given:
         option = "--" + next(iter(given)).replace("_", "-")
         raise ProblemError(f"only applies to --method milp (got --method {method})", field=option)
-    with _ProgressBar(enabled=not as_json) as progress:
+    with _Progress(enabled=not as_json, transient=True) as bars:
+        progress = bars.task("solving") if bars else None
         result = solve_problem(
             problem, method=method, budgets=requested, progress=progress, **given
         )
@@ -332,33 +333,37 @@ def solve(
         raise typer.Exit(1)
 
 
-class _ProgressBar:
-    """A progress bar on stderr for long searches; silent for short ones and under --json."""
+class _Progress:
+    """Progress bars on stderr, one per named task; silent under --json or without a terminal."""
 
-    def __init__(self, enabled: bool):
+    def __init__(self, enabled: bool, *, transient: bool = False):
         self.enabled = enabled and err.is_terminal
+        self.transient = transient
         self.bar: Progress | None = None
-        self.task: Any = None
+        self.tasks: dict[str, Any] = {}
 
-    def __enter__(self) -> Callable[[int, int], None] | None:
+    def __enter__(self) -> _Progress | None:
         if not self.enabled:
             return None
         self.bar = Progress(
-            TextColumn("searching"),
+            TextColumn("{task.description:<20}"),
             BarColumn(),
             TextColumn("{task.completed}/{task.total}"),
             TimeRemainingColumn(),
             console=err,
-            transient=True,
+            transient=self.transient,
         )
         self.bar.start()
-        return self.update
+        return self
 
-    def update(self, done: int, total: int) -> None:
+    def track(self, name: str, done: int, total: int) -> None:
         assert self.bar is not None
-        if self.task is None:
-            self.task = self.bar.add_task("search", total=total)
-        self.bar.update(self.task, completed=done)
+        if name not in self.tasks:
+            self.tasks[name] = self.bar.add_task(name, total=total)
+        self.bar.update(self.tasks[name], completed=done, total=total)
+
+    def task(self, name: str) -> Callable[[int, int], None]:
+        return lambda done, total: self.track(name, done, total)
 
     def __exit__(self, *exc: object) -> None:
         if self.bar is not None:
@@ -638,7 +643,8 @@ def reproduce(
             raise ProblemError("grid sizes must be at least 5", field="--sizes")
     if time_limit is not None and not time_limit > 0:
         raise ProblemError("must be a positive number of seconds", field="--time-limit")
-    with _ExperimentProgress(enabled=not as_json) as progress:
+    with _Progress(enabled=not as_json) as bars:
+        progress = bars.track if bars else None
         report = run_reproduce(
             out_dir,
             quick=quick,
@@ -671,37 +677,6 @@ def reproduce(
         escape(f"{report.time_s:.1f} s; tables, figures and report.md in {report.out}/"),
         highlight=False,
     )
-
-
-class _ExperimentProgress:
-    """One progress bar per experiment, on stderr."""
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled and err.is_terminal
-        self.bar: Progress | None = None
-        self.tasks: dict[str, Any] = {}
-
-    def __enter__(self) -> Callable[[str, int, int], None] | None:
-        if not self.enabled:
-            return None
-        self.bar = Progress(
-            TextColumn("{task.description:<20}"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total}"),
-            console=err,
-        )
-        self.bar.start()
-        return self.update
-
-    def update(self, experiment: str, done: int, total: int) -> None:
-        assert self.bar is not None
-        if experiment not in self.tasks:
-            self.tasks[experiment] = self.bar.add_task(experiment, total=total)
-        self.bar.update(self.tasks[experiment], completed=done, total=total)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.stop()
 
 
 class ConvertTarget(StrEnum):

@@ -267,6 +267,11 @@ class Problem:
         return emitting[emitting != pomdp.initial_observation]
 
 
+def format_alteration(changes: Mapping[str, str]) -> str:
+    """``{"o1": "o3"}`` as ``o1 → o3`` (``none`` when nothing changes), for tables and logs."""
+    return ", ".join(f"{o} → {t}" for o, t in changes.items()) or "none"
+
+
 def reachable_from(graph: sp.csr_matrix, sources: np.ndarray) -> np.ndarray:
     """Boolean mask of nodes reachable from any of ``sources`` (BFS with a virtual super-source)."""
     n = graph.shape[0]

@@ -156,7 +156,9 @@ def attack_heatmaps(
     return save(fig, stem, formats)
 
 
-def scalability_panels(rows: Sequence[dict], stem: Path) -> list[Path]:
+def scalability_panels(
+    rows: Sequence[dict], stem: Path, formats: Sequence[str] = (".png", ".svg")
+) -> list[Path]:
     """The paper's Fig. 4 (variables, rows, construction time, solve time), both formulations.
 
     Rows have ``n``, ``formulation``, ``variables``, ``rows``, ``build_time_s``,
@@ -206,4 +208,4 @@ def scalability_panels(rows: Sequence[dict], stem: Path) -> list[Path]:
         "Scalability on the scaled grid (paper Fig. 4): compact vs the paper's MILP", fontsize=10
     )
     fig.tight_layout()
-    return save(fig, stem)
+    return save(fig, stem, formats)

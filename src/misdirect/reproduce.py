@@ -12,7 +12,6 @@ tied together by ``report.md``:
 from __future__ import annotations
 
 import csv
-import math
 import platform
 import time
 from collections.abc import Callable, Sequence
@@ -23,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from misdirect import plots
-from misdirect.evaluate import decoy_probability, evaluate
+from misdirect.evaluate import decoy_probability, evaluate, evaluation_time
+from misdirect.model import format_alteration
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
 from misdirect.solve import solve
@@ -158,7 +158,7 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
                 "status": result.status,
                 "probability": result.probability,
                 "claimed_probability": result.curve[-1].solver_probability,
-                "alteration": _fmt(result.alteration),
+                "alteration": format_alteration(result.alteration),
             }
         )
         tick("reduction example", done, 2)
@@ -235,7 +235,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
                 "paper_printed": f"{printed:.3f}",
                 "rounding_agrees": round(point.probability, 3) == printed,
                 "status": point.status,
-                "alteration": _fmt(point.alteration),
+                "alteration": format_alteration(point.alteration),
                 "paper_alteration": paper_alteration,
                 "paper_alteration_value": paper_value,
                 "goal_probability": float(outcome.outcomes[problem.pomdp.states[goal]]),
@@ -289,7 +289,7 @@ def _scalability(
     total = 2 * len(sizes)
     for i, n in enumerate(sizes):
         problem = paper_grid(n, budget=SCALABILITY_BUDGET)
-        floor = _evaluation_time(problem)
+        floor = evaluation_time(problem)
         for j, formulation in enumerate(("compact", "paper")):
             result = solve(
                 problem,
@@ -366,15 +366,6 @@ def _scalability(
     )
 
 
-def _evaluation_time(problem) -> float:
-    best = math.inf
-    for _ in range(3):
-        began = time.perf_counter()
-        decoy_probability(problem, problem.identity())
-        best = min(best, time.perf_counter() - began)
-    return best
-
-
 # -- 4. attack figures -----------------------------------------------------------------------
 
 
@@ -447,10 +438,6 @@ def _write_report(report: ReproduceReport, solver: str, limit: float, sizes: lis
         "Heat-map data: [attack_visits.csv](attack_visits.csv). SVG versions sit beside each PNG.",
     ]
     (report.out / "report.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
-
-
-def _fmt(alteration: dict[str, str]) -> str:
-    return ", ".join(f"{o} → {t}" for o, t in alteration.items()) or "none"
 
 
 def _parse(text: str) -> dict[str, str]:
