@@ -242,6 +242,8 @@ def test_cli_time_limit_json():
             "3",
             "--time-limit",
             "1",
+            "--method",
+            "milp",
             "--json",
         ],
     )
@@ -253,7 +255,9 @@ def test_cli_time_limit_json():
 
 
 def test_cli_curve_with_stats():
-    result = runner.invoke(app, ["solve", "--scenario", "paper-grid", "--budget", "0..4", "--json"])
+    result = runner.invoke(
+        app, ["solve", "--scenario", "paper-grid", "--budget", "0..4", "--method", "milp", "--json"]
+    )
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
     assert [p["probability"] for p in payload["curve"]] == pytest.approx(GRID_OPTIMA, abs=5e-7)
@@ -275,7 +279,9 @@ def test_cli_curve_with_stats():
 
 
 def test_cli_budgets_list():
-    result = runner.invoke(app, ["solve", "--scenario", "paper-grid", "--budgets", "2,0", "--json"])
+    result = runner.invoke(
+        app, ["solve", "--scenario", "paper-grid", "--budgets", "2,0", "--method", "milp", "--json"]
+    )
     payload = json.loads(result.stdout)
     assert [p["budget"] for p in payload["curve"]] == [0, 2]
     assert payload["probability"] == pytest.approx(GRID_OPTIMA[2], abs=5e-7)
@@ -320,7 +326,7 @@ def test_highs_crash_is_retried_in_a_fresh_worker(monkeypatch):
         return real(arrays, options, start, seed)
 
     monkeypatch.setattr(backends, "run_highs", crash_on_first_seed)
-    result = solve(paper_grid(5), budgets=[1])
+    result = solve(paper_grid(5), method="milp", budgets=[1])
     assert result.probability == pytest.approx(GRID_OPTIMA[1], abs=5e-7)
     assert result.curve[0].stats["highs_crashes"] == 1
 
@@ -331,7 +337,7 @@ def test_highs_crashing_every_time_is_a_clear_error(monkeypatch):
     import misdirect.milp.backends as backends
 
     monkeypatch.setattr(backends, "run_highs", lambda *args, **kwargs: os._exit(139))
-    result = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml")])
+    result = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml"), "--method", "milp"])
     assert result.exit_code == 1
     assert "HiGHS crashed 2 times" in result.stderr and "--solver scip" in result.stderr
     assert "Traceback" not in result.output

@@ -268,7 +268,13 @@ def solve(
         typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
     ] = None,
     budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
-    method: Annotated[str, typer.Option(help=f"Method: {', '.join(SOLVERS)}.")] = "milp",
+    method: Annotated[
+        str,
+        typer.Option(
+            help=f"Method: {', '.join(SOLVERS)} (auto: enumerate small alteration spaces, "
+            "else the MILP; both exact)."
+        ),
+    ] = "auto",
     solver: Annotated[
         str | None, typer.Option(help=f"MILP backend: {', '.join(BACKENDS)} (default highs).")
     ] = None,
@@ -315,9 +321,11 @@ def solve(
         raise ProblemError(
             "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
         )
-    if method != "milp" and given:
+    if method == "exhaustive" and given:
         option = "--" + next(iter(given)).replace("_", "-")
-        raise ProblemError(f"only applies to --method milp (got --method {method})", field=option)
+        raise ProblemError(
+            f"only applies to --method milp or auto (got --method {method})", field=option
+        )
     with _Progress(enabled=not as_json, transient=True) as bars:
         progress = bars.task("solving") if bars else None
         result = solve_problem(
@@ -398,6 +406,8 @@ def _print_solve(result: SolveResult) -> None:
     out.print(table)
     parts = [f"without alteration {result.baseline_probability:.6f}", f"{result.time_s:.2f} s"]
     stats = result.stats
+    if "certified_by" in stats:
+        parts.append(f"certified by {stats['certified_by']} ({stats['auto_reason']})")
     if "formulation" in stats:  # a MILP
         nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
         solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)

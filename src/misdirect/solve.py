@@ -18,11 +18,16 @@ import numpy as np
 from misdirect.errors import ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
+from misdirect.solvers.auto import AutoSolver
 from misdirect.solvers.base import ProgressCallback, Solver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.milp import MilpSolver
 
-SOLVERS: dict[str, type] = {"exhaustive": ExhaustiveSolver, "milp": MilpSolver}
+SOLVERS: dict[str, type] = {
+    "auto": AutoSolver,
+    "exhaustive": ExhaustiveSolver,
+    "milp": MilpSolver,
+}
 MISMATCH_TOLERANCE = 1e-6
 
 
@@ -115,7 +120,7 @@ def default_budgets(budget: float) -> list[float]:
 def solve(
     problem: Problem,
     *,
-    method: str = "milp",
+    method: str = "auto",
     budgets: Sequence[float] | None = None,
     progress: ProgressCallback | None = None,
     **options: Any,

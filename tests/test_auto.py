@@ -1,0 +1,40 @@
+"""`--method auto` (the default): small spaces are enumerated, large ones go to the MILP; the
+answer is exact either way and says which method certified it."""
+
+import numpy as np
+import pytest
+
+from misdirect import solve
+from misdirect.scenarios import knapsack, paper_grid
+
+
+def knapsack_dp(weights, values, capacity):
+    """Textbook 0/1 knapsack by dynamic programming over integer capacities."""
+    best = [0] * (capacity + 1)
+    for w, v in zip(weights, values, strict=True):
+        for c in range(capacity, w - 1, -1):
+            best[c] = max(best[c], best[c - w] + v)
+    return best[capacity]
+
+
+def test_small_space_is_enumerated():
+    result = solve(paper_grid(5), budgets=range(5))
+    assert result.stats["certified_by"] == "exhaustive"
+    assert [p.probability for p in result.curve] == pytest.approx(
+        [0.084957, 0.719924, 0.860130, 0.862442, 0.863622], abs=5e-7
+    )
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_sixty_item_knapsack_goes_to_the_milp(seed):
+    rng = np.random.default_rng(seed)
+    weights = rng.integers(1, 101, size=60).tolist()
+    values = rng.integers(1, 101, size=60).tolist()
+    capacity = sum(weights) // 2
+    result = solve(knapsack(weights, values, capacity))
+    assert result.stats["certified_by"] == "milp"
+    assert result.status == "optimal"
+    best = knapsack_dp(weights, values, capacity)
+    assert result.probability == pytest.approx(best / (2 * sum(values)), abs=1e-12)
+    chosen = [int(o[1:]) - 1 for o in result.alteration]
+    assert sum(weights[i] for i in chosen) <= capacity
