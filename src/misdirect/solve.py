@@ -21,11 +21,13 @@ from misdirect.model import Alteration, Problem
 from misdirect.solvers.auto import AutoSolver
 from misdirect.solvers.base import ProgressCallback, Solver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
+from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp import MilpSolver
 
 SOLVERS: dict[str, type] = {
     "auto": AutoSolver,
     "exhaustive": ExhaustiveSolver,
+    "incremental": IncrementalSolver,
     "milp": MilpSolver,
 }
 MISMATCH_TOLERANCE = 1e-6

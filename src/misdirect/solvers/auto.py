@@ -1,8 +1,11 @@
-"""``--method auto``: enumerate when the alteration space is small, otherwise the MILP.
+"""``--method auto``: the fastest exact method for the model's shape.
 
-Both are exact; the choice is only about time. Enumeration costs one exact evaluation per
-alteration that fits the budget and gives the whole budget curve at once; the MILP's cost does
-not grow with the number of alterations. The answer records which method certified it.
+1. ``incremental`` (one factorisation per outer choice, a tiny Woodbury solve per alteration)
+   when the chain cannot cycle without reaching the decoy and at most 200,000 alterations fit;
+2. ``exhaustive`` (one exact evaluation per alteration) when at most 5,000 fit;
+3. the MILP otherwise: its cost does not grow with the number of alterations.
+
+All are exact; the answer records which method certified it and why.
 """
 
 from __future__ import annotations
@@ -15,9 +18,11 @@ from misdirect.alterations import alteration_space
 from misdirect.model import Problem
 from misdirect.solvers.base import ProgressCallback, Solution
 from misdirect.solvers.exhaustive import ExhaustiveSolver, _combinations
+from misdirect.solvers.incremental import IncrementalSolver, NotApplicableError
 from misdirect.solvers.milp import MilpSolver
 
-ENUMERATION_LIMIT = 5_000  # alterations within the budget; above this the MILP takes over
+ENUMERATION_LIMIT = 5_000  # alterations within the budget for plain enumeration
+INCREMENTAL_LIMIT = 200_000  # ... and for enumeration with low-rank updates
 
 
 class AutoSolver:
@@ -37,15 +42,22 @@ class AutoSolver:
     ) -> list[Solution]:
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
-        count = sum(1 for _ in islice(_combinations(space, top), self.enumeration_limit + 1))
-        small = count <= self.enumeration_limit
-        inner = ExhaustiveSolver() if small else self.milp
-        solutions = inner.solve(problem, budgets, progress=progress)
+        count = sum(1 for _ in islice(_combinations(space, top), INCREMENTAL_LIMIT + 1))
         reason = (
             f"{count:,} alterations fit the budget"
-            if small
-            else f"more than {self.enumeration_limit:,} alterations fit the budget"
+            if count <= INCREMENTAL_LIMIT
+            else f"more than {INCREMENTAL_LIMIT:,} alterations fit the budget"
         )
+        solutions = None
+        if count <= INCREMENTAL_LIMIT:
+            inner: Any = IncrementalSolver()
+            try:
+                solutions = inner.solve(problem, budgets, progress=progress)
+            except NotApplicableError as why:
+                reason += f"; no low-rank updates: {why}"
+        if solutions is None:
+            inner = ExhaustiveSolver() if count <= self.enumeration_limit else self.milp
+            solutions = inner.solve(problem, budgets, progress=progress)
         return [
             Solution(
                 budget=s.budget,
