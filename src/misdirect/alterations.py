@@ -8,6 +8,7 @@ shared search space of the exhaustive solver and the MILP.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,39 @@ class AlterationSpace:
     def size(self) -> int:
         """Number of alterations (before the budget) the space contains."""
         return int(np.prod([c.size for c in self.choices], dtype=float))
+
+    def within(
+        self,
+        budget: float,
+        indices: Sequence[int] | None = None,
+        limit: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Every choice vector with total cost ≤ ``budget``: (candidate index table, costs).
+
+        Over the choices at ``indices`` (default: all). Grown one observation at a time,
+        dropping partial vectors already over the budget; since candidate 0 is free, a
+        partial vector always completes, so ``None`` (more than ``limit``) is known early.
+        """
+        table = np.zeros((1, 0), dtype=np.int64)
+        costs = np.zeros(1)
+        for i in range(len(self.choices)) if indices is None else indices:
+            grown = costs[:, None] + np.asarray(self.choices[i].costs, dtype=np.float64)
+            keep_row, keep_option = np.nonzero(grown <= budget + 1e-9)
+            if limit is not None and keep_row.size > limit:
+                return None
+            table = np.column_stack([table[keep_row], keep_option])
+            costs = grown[keep_row, keep_option]
+        return table, costs
+
+    def alteration(self, problem: Problem, picked: Sequence[int], indices=None) -> np.ndarray:
+        """The alteration that takes candidate ``picked[j]`` for the ``j``-th choice."""
+        alpha = problem.identity()
+        for i, k in zip(
+            range(len(self.choices)) if indices is None else indices, picked, strict=True
+        ):
+            choice = self.choices[i]
+            alpha[choice.observation] = choice.targets[k]
+        return alpha
 
 
 def alteration_space(problem: Problem) -> AlterationSpace:

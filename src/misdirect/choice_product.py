@@ -134,10 +134,12 @@ def build_choice_product(
     next_node = controller.update[node, cand_target[cand]]
 
     # one group per distinct (pair, action, next node)
-    keys = np.stack([pair, action, next_node], axis=1)
-    unique_keys, group_of = np.unique(keys, axis=0, return_inverse=True)
+    n_a = pomdp.n_actions
+    keys = (pair.astype(np.int64) * n_a + action) * n_n + next_node  # lexicographic order
+    unique_keys, group_of = np.unique(keys, return_inverse=True)
     group_of = group_of.reshape(-1)
-    g_pair, g_action, g_next = unique_keys.T
+    g_pair, g_rest = np.divmod(unique_keys, n_a * n_n)
+    g_action, g_next = np.divmod(g_rest, n_n)
     n_groups = g_pair.size
     with_option = cand_option[cand] >= 0
     group_options = sp.csr_matrix(
@@ -184,6 +186,50 @@ def _union_graph(
     return graph
 
 
+def states_that_can_stay(
+    group_state: np.ndarray, transitions: sp.csr_matrix, candidates: np.ndarray
+) -> np.ndarray:
+    """Largest set Z ⊆ ``candidates`` in which every state has a group moving only inside Z.
+
+    Every end component lies in Z, and Z is empty exactly when there is none (a scheduler that
+    stays inside Z forever ends in a bottom component). Computed backwards from the states that
+    must leave, each edge looked at once, so it costs one pass even where the peeling of
+    :func:`end_component_states` would take as many rounds as the longest path.
+    """
+    n_states = candidates.size
+    structure = (transitions != 0).tocsr()
+    into = structure.T.tocsr()  # state -> groups that can move into it
+    group_stays = candidates[group_state] & (
+        np.asarray(structure @ (~candidates).astype(np.int32)).ravel() == 0
+    )
+    staying_groups = np.bincount(group_state[group_stays], minlength=n_states)
+    stay = candidates & (staying_groups > 0)
+    frontier = np.flatnonzero(candidates & ~stay)
+    while frontier.size:
+        groups = _distinct(_row_entries(into, frontier))
+        groups = groups[group_stays[groups]]
+        group_stays[groups] = False
+        staying_groups -= np.bincount(group_state[groups], minlength=n_states)
+        touched = _distinct(group_state[groups])
+        frontier = touched[stay[touched] & (staying_groups[touched] == 0)]
+        stay[frontier] = False
+    return stay
+
+
+def _distinct(values: np.ndarray) -> np.ndarray:
+    """Sorted distinct values (``np.unique`` without its per-call overhead on small arrays)."""
+    values = np.sort(values)
+    return values[np.concatenate(([True], values[1:] != values[:-1]))] if values.size else values
+
+
+def _row_entries(matrix: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
+    """Column indices of the given rows' entries, concatenated (no new matrix is built)."""
+    starts = matrix.indptr[rows]
+    lengths = matrix.indptr[rows + 1] - starts
+    offsets = np.cumsum(lengths) - lengths
+    return matrix.indices[np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())]
+
+
 def end_component_states(
     group_state: np.ndarray, transitions: sp.csr_matrix, candidates: np.ndarray
 ) -> np.ndarray:
@@ -198,7 +244,9 @@ def end_component_states(
     n_states = candidates.size
     structure = (transitions != 0).astype(np.int32).tocsr()
     entry_group = np.repeat(np.arange(group_state.size), np.diff(structure.indptr))
-    states = candidates.copy()
+    states = states_that_can_stay(group_state, structure, candidates)
+    if not states.any():  # the common case, found in one pass over the edges
+        return states
     alive = states[group_state].copy()
     while True:
         before = int(alive.sum())

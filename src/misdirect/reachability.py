@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.model import reachable_from
 
@@ -34,11 +34,31 @@ def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, 
     return prob0, ~can_miss
 
 
-def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
-    """Solve ``(I - a) x = b`` (or its transpose) by sparse LU."""
+def factorise(a: sp.spmatrix) -> SuperLU:
+    """Sparse LU of ``I - a`` for a substochastic ``a`` from which every state can leave.
+
+    ``I - a`` is then a non-singular M-matrix: Gaussian elimination needs no pivoting (every
+    pivot stays positive and every Schur complement stays an M-matrix), so the factorisation
+    can use a symmetric fill-reducing ordering on the pattern of ``A + Aᵀ``. On the grid's
+    chains that halves the fill of SuperLU's default (COLAMD with partial pivoting) and the
+    time with it. Should a pivot vanish all the same, the default is used.
+    """
     n = a.shape[0]
     system = (sp.identity(n, format="csc") - a).tocsc()
-    return splu(system).solve(b, trans="T" if transpose else "N")
+    try:
+        return splu(
+            system,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+    except RuntimeError:  # "Factor is exactly singular": let partial pivoting decide
+        return splu(system)
+
+
+def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+    """Solve ``(I - a) x = b`` (or its transpose) by sparse LU."""
+    return factorise(a).solve(b, trans="T" if transpose else "N")
 
 
 def reach_probabilities(matrix: sp.csr_matrix, target: np.ndarray) -> np.ndarray:

@@ -139,11 +139,19 @@ def solve(
     solutions = solver.solve(problem, budgets, progress=progress)
     elapsed = time.perf_counter() - started
 
+    exact_values: dict[bytes, float] = {}  # a budget curve often repeats an alteration
+
+    def exact_value(alpha: np.ndarray) -> float:
+        key = alpha.tobytes()
+        if key not in exact_values:
+            exact_values[key] = decoy_probability(problem, alpha)
+        return exact_values[key]
+
     curve, warnings = [], []
     for solution in solutions:
         alpha = np.asarray(solution.alteration, dtype=np.int64)
         problem.check_alteration(alpha, source=f"{solver.name} solver")
-        exact = decoy_probability(problem, alpha)
+        exact = exact_value(alpha)
         cost = problem.alteration_cost(alpha)
         status = solution.status
         claimed = solution.claimed_probability
@@ -187,7 +195,7 @@ def solve(
         alteration=final.alteration,
         cost=final.cost,
         budget=final.budget,
-        baseline_probability=decoy_probability(problem, problem.identity()),
+        baseline_probability=exact_value(np.asarray(problem.identity(), dtype=np.int64)),
         upper_bound=final.upper_bound,
         time_s=elapsed,
         curve=curve,

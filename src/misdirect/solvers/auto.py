@@ -11,13 +11,12 @@ All are exact; the answer records which method certified it and why.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from itertools import islice
 from typing import Any
 
 from misdirect.alterations import alteration_space
 from misdirect.model import Problem
 from misdirect.solvers.base import ProgressCallback, Solution
-from misdirect.solvers.exhaustive import ExhaustiveSolver, _combinations
+from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver, NotApplicableError
 from misdirect.solvers.milp import MilpSolver
 
@@ -42,7 +41,8 @@ class AutoSolver:
     ) -> list[Solution]:
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
-        count = sum(1 for _ in islice(_combinations(space, top), INCREMENTAL_LIMIT + 1))
+        enumerated = space.within(top, limit=INCREMENTAL_LIMIT)
+        count = INCREMENTAL_LIMIT + 1 if enumerated is None else len(enumerated[1])
         reason = (
             f"{count:,} alterations fit the budget"
             if count <= INCREMENTAL_LIMIT

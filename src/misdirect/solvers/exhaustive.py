@@ -7,30 +7,15 @@ budget curve.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-from misdirect.alterations import AlterationSpace, alteration_space
+from misdirect.alterations import alteration_space
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
-
-
-def _combinations(space: AlterationSpace, budget: float) -> Iterator[tuple[tuple[int, ...], float]]:
-    """All choice vectors (one candidate index per observation) with total cost ≤ budget."""
-    choices = space.choices
-
-    def walk(depth: int, picked: tuple[int, ...], spent: float):
-        if depth == len(choices):
-            yield picked, spent
-            return
-        for k, cost in enumerate(choices[depth].costs):
-            if spent + cost <= budget + 1e-9:
-                yield from walk(depth + 1, (*picked, k), spent + cost)
-
-    yield from walk(0, (), 0.0)
 
 
 class ExhaustiveSolver:
@@ -49,27 +34,23 @@ class ExhaustiveSolver:
     ) -> list[Solution]:
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
-        combos = []
-        for combo in _combinations(space, top):
-            combos.append(combo)
-            if len(combos) > self.max_evaluations:
-                raise SolverError(
-                    f"more than {self.max_evaluations:,} alterations fit the budget; "
-                    "exhaustive search would take too long (try --method milp)"
-                )
-        costs = np.array([spent for _, spent in combos])
-        values = np.empty(len(combos))
+        enumerated = space.within(top, limit=self.max_evaluations)
+        if enumerated is None:
+            raise SolverError(
+                f"more than {self.max_evaluations:,} alterations fit the budget; "
+                "exhaustive search would take too long (try --method milp)"
+            )
+        table, costs = enumerated
+        values = np.empty(len(costs))
         alterations = []
-        for i, (picked, _) in enumerate(combos):
-            alpha = problem.identity()
-            for choice, k in zip(space.choices, picked, strict=True):
-                alpha[choice.observation] = choice.targets[k]
+        for i, picked in enumerate(table):
+            alpha = space.alteration(problem, picked)
             alterations.append(alpha)
             values[i] = decoy_probability(problem, alpha)
             if progress is not None:
-                progress(i + 1, len(combos))
+                progress(i + 1, len(costs))
         stats = {
-            "evaluations": len(combos),
+            "evaluations": len(costs),
             "relevant_observations": len(space.choices),
             "candidates_per_observation": [c.size for c in space.choices],
         }

@@ -20,17 +20,15 @@ the value reported is then re-computed exactly by :func:`misdirect.solve`, like 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from itertools import product as cartesian
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 from misdirect.alterations import alteration_space
 from misdirect.choice_product import build_choice_product, end_component_states
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
+from misdirect.reachability import factorise
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
@@ -93,16 +91,16 @@ class IncrementalSolver:
 
         costs, values, picks = [], [], []
         done, evaluations = 0, 0
-        n_outer = _count(space, outer, top)
-        for outer_pick, outer_cost in _combos(space, outer, top):
+        outer_table, outer_costs = space.within(top, outer)
+        n_outer = len(outer_costs)
+        for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
             chosen = np.zeros(options.size, dtype=bool)
             for i, k in zip(outer, outer_pick, strict=True):
                 chosen[first_option[i] + k] = True
             for i in inner:
                 chosen[first_option[i]] = True  # inner observations unaltered in the base
             base_groups = _selected(chain, live, group_of_option, chosen)
-            matrix = sp.identity(n_live, format="csc") - inside[base_groups].tocsc()
-            lu = splu(matrix)
+            lu = factorise(inside[base_groups])
             b = to_target[base_groups]
             x0 = lu.solve(b)
             rows = np.concatenate([rows_of[observations[i]] for i in inner]).astype(np.int64)
@@ -113,44 +111,36 @@ class IncrementalSolver:
             block_start = np.concatenate(
                 [[0], np.cumsum([rows_of[observations[i]].size for i in inner])]
             )
-            # per inner observation and option: D rows, D x0, D W, Δb
-            pieces = {}
-            for j, i in enumerate(inner):
+            # per inner observation j and option k: D x0, D W and Δb on the rows it owns
+            d_x0_of, d_w_of, d_b_of = [], [], []
+            for i in inner:
                 own = rows_of[observations[i]]
+                size = space.choices[i].size
                 base_g = base_groups[live_index[own]]
-                for k in range(space.choices[i].size):
-                    new_g = group_of_option[own, first_option[i] + k]
-                    delta = inside[new_g] - inside[base_g]
-                    pieces[j, k] = (
-                        np.asarray(delta @ x0).ravel(),
-                        np.asarray(delta @ W),
-                        to_target[new_g] - to_target[base_g],
-                    )
-            w_start = W[start] if start >= 0 else None
-            for inner_pick, inner_cost in _combos(space, inner, top - outer_cost):
-                evaluations += 1
-                if evaluations > self.max_evaluations:
-                    raise SolverError(f"more than {self.max_evaluations:,} alterations")
-                changed = [(j, k) for j, k in enumerate(inner_pick) if k != 0]
-                value = x0[start] if start >= 0 else float(chain.target[chain.initial])
-                if changed and start >= 0:
-                    cols = np.concatenate(
-                        [np.arange(block_start[j], block_start[j + 1]) for j, _ in changed]
-                    )
-                    d_x0 = np.concatenate([pieces[jk][0] for jk in changed])
-                    d_w = np.vstack([pieces[jk][1][:, cols] for jk in changed])
-                    d_b = np.concatenate([pieces[jk][2] for jk in changed])
-                    inner_rhs = d_x0 + d_w @ d_b
-                    correction = np.linalg.solve(np.eye(cols.size) - d_w, inner_rhs)
-                    value = value + w_start[cols] @ (d_b + correction)
-                costs.append(outer_cost + inner_cost)
-                values.append(value)
-                picks.append((outer_pick, inner_pick))
+                new_g = group_of_option[own, first_option[i] : first_option[i] + size].T
+                delta = inside[new_g.ravel()] - inside[np.tile(base_g, size)]
+                d_x0_of.append(np.asarray(delta @ x0).reshape(size, own.size))
+                d_w_of.append(np.asarray(delta @ W).reshape(size, own.size, W.shape[1]))
+                d_b_of.append(to_target[new_g] - to_target[base_g][None, :])
+            enumerated = space.within(top - outer_cost, inner, limit=self.max_evaluations)
+            if enumerated is None or evaluations + len(enumerated[1]) > self.max_evaluations:
+                raise SolverError(f"more than {self.max_evaluations:,} alterations")
+            table, inner_costs = enumerated
+            evaluations += len(inner_costs)
+            found = np.full(len(inner_costs), float(chain.target[chain.initial]))
+            if start >= 0:
+                found[:] = x0[start]
+                blocks = (block_start, d_x0_of, d_w_of, d_b_of)
+                _add_corrections(found, table, blocks, W[start])
+            costs.append(outer_cost + inner_costs)
+            values.append(found)
+            picks.append((outer_pick, table))
             done += 1
             if progress is not None:
                 progress(done, n_outer)
 
-        costs_a, values_a = np.array(costs), np.clip(np.array(values), 0.0, 1.0)
+        costs_a, values_a = np.concatenate(costs), np.clip(np.concatenate(values), 0.0, 1.0)
+        offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
         stats = {
             "evaluations": evaluations,
             "factorisations": done,
@@ -161,7 +151,7 @@ class IncrementalSolver:
         return [
             Solution(
                 budget=budget,
-                alteration=self._alpha(problem, space, outer, inner, picks[index]),
+                alteration=self._alpha(problem, space, outer, inner, picks, offsets, index),
                 claimed_probability=float(values_a[index]),
                 upper_bound=float(values_a[index]),
                 stats=stats,
@@ -170,13 +160,53 @@ class IncrementalSolver:
         ]
 
     @staticmethod
-    def _alpha(problem, space, outer, inner, pick):
-        alpha = problem.identity()
-        for indices, ks in ((outer, pick[0]), (inner, pick[1])):
-            for i, k in zip(indices, ks, strict=True):
-                choice = space.choices[i]
-                alpha[choice.observation] = choice.targets[k]
-        return alpha
+    def _alpha(problem, space, outer, inner, picks, offsets, index):
+        block = int(np.searchsorted(offsets, index, side="right")) - 1
+        outer_pick, table = picks[block]
+        picked = [*outer_pick, *table[index - offsets[block]]]
+        return space.alteration(problem, picked, [*outer, *inner])
+
+
+def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_000) -> None:
+    """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked).
+
+    Rows that alter the same inner observations share the shapes of their small systems, so
+    each such pattern is one batched ``np.linalg.solve`` (in chunks to bound memory).
+    """
+    block_start, d_x0_of, d_w_of, d_b_of = blocks
+    altered = table != 0
+    if altered.shape[1] <= 62:  # one integer per pattern: far faster to group than rows
+        codes = altered @ (np.int64(1) << np.arange(altered.shape[1], dtype=np.int64))
+        _, first, which = np.unique(codes, return_index=True, return_inverse=True)
+        patterns = altered[first]
+    else:
+        patterns, which = np.unique(altered, axis=0, return_inverse=True)
+    which = which.ravel()
+    for index, pattern in enumerate(patterns):
+        support = np.flatnonzero(pattern)
+        if support.size == 0:
+            continue
+        cols = np.concatenate([np.arange(block_start[j], block_start[j + 1]) for j in support])
+        if cols.size == 0:  # the altered observations own no live rows: nothing changes
+            continue
+        members = np.flatnonzero(which == index)
+        step = max(1, chunk_entries // (cols.size * cols.size))
+        for first in range(0, members.size, step):
+            rows = members[first : first + step]
+            picked = [table[rows, j] for j in support]
+            d_x0 = np.concatenate(
+                [d_x0_of[j][k] for j, k in zip(support, picked, strict=True)], axis=1
+            )
+            d_b = np.concatenate(
+                [d_b_of[j][k] for j, k in zip(support, picked, strict=True)], axis=1
+            )
+            d_w = np.concatenate(
+                [d_w_of[j][k][:, :, cols] for j, k in zip(support, picked, strict=True)], axis=1
+            )
+            rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
+            system = np.eye(cols.size)[None, :, :] - d_w
+            correction = np.linalg.solve(system, rhs[..., None])[..., 0]
+            found[rows] += (d_b + correction) @ w_start[cols]
 
 
 def _group_of_option(chain, live) -> np.ndarray:
@@ -203,16 +233,3 @@ def _selected(chain, live, group_of_option, chosen) -> np.ndarray:
     if (picked < 0).any():
         raise AssertionError("a live state has no selected group")
     return picked
-
-
-def _combos(space, indices, budget):
-    """Choice vectors over the given observations with total cost ≤ budget."""
-    choices = [space.choices[i] for i in indices]
-    for pick in cartesian(*(range(c.size) for c in choices)):
-        cost = float(sum(c.costs[k] for c, k in zip(choices, pick, strict=True)))
-        if cost <= budget + 1e-9:
-            yield pick, cost
-
-
-def _count(space, indices, budget) -> int:
-    return sum(1 for _ in _combos(space, indices, budget))
