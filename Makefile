@@ -19,6 +19,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
+	$(BIN)/python bench/speed.py --out bench/results
 	$(BIN)/python bench/milp_scaling.py --out bench/results
 
 lint: $(STAMP)

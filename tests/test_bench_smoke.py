@@ -1,6 +1,7 @@
 """The MILP benchmark in a reduced mode, so that it cannot rot (no timing asserted)."""
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +44,32 @@ def test_milp_benchmark_reduced_mode(tmp_path):
     assert (tmp_path / "milp_scaling.png").stat().st_size > 10_000
     assert (tmp_path / "milp_scaling.json").exists()
     assert "| 5 | compact | 68 | 21 | 99 |" in (tmp_path / "milp_scaling.md").read_text()
+
+
+def test_speed_benchmark_reduced_mode(tmp_path):
+    """bench/speed.py --quick: small sizes, every goal row present, values checked, no timing."""
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "speed.py"), "--quick", "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+    )
+    report = json.loads((tmp_path / "speed.json").read_text())
+    assert [g["goal"] for g in report["goals"]] == ["G1", "G2", "G3", "G4", "G5"]
+    grids = {r["n"]: r for r in report["runs"] if r["case"] == "grid"}
+    # SPEC §3 budget curve on the 5x5 grid, budgets 0..7
+    assert grids[5]["probabilities"] == pytest.approx(
+        [0.084957, 0.719924, 0.860130, 0.862442] + [0.863622] * 4, abs=5e-7
+    )
+    assert all(r["statuses"] == ["optimal"] for r in grids.values())
+    knapsack = next(r for r in report["runs"] if r["case"] == "knapsack")
+    assert knapsack["probability"] == pytest.approx(knapsack["dynamic_programme"], abs=1e-12)
+    for run in report["runs"]:
+        if run["case"] == "storm" and run.get("storm_s") is not None:
+            # Storm's exact engine (elimination) and our evaluator agree on the same chain;
+            # its iterative engines stop at a precision of 1e-6
+            assert run["storm_elimination_difference"] < 1e-15
+            assert run["storm_eigen_difference"] < 1e-6
+    rows = list(csv.DictReader((tmp_path / "speed.csv").open()))
+    assert len(rows) == len(report["runs"])
+    assert "| G1 |" in (tmp_path / "speed.md").read_text()
+    assert (tmp_path / "speed.png").stat().st_size > 10_000

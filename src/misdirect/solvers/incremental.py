@@ -32,6 +32,7 @@ from misdirect.reachability import factorise
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
+INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper to refactorise)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
 
@@ -76,7 +77,7 @@ class IncrementalSolver:
         inner, total = [], 0
         for i in order:
             size = rows_of[observations[i]].size
-            if total + size > INNER_ROWS:
+            if total + size > INNER_ROWS or size > INNER_BLOCK:
                 break
             inner.append(i)
             total += size
