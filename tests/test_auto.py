@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from misdirect import solve
-from misdirect.scenarios import knapsack, paper_grid
+from misdirect.scenarios import knapsack, paper_grid, random_problem
 
 
 def knapsack_dp(weights, values, capacity):
@@ -39,3 +39,34 @@ def test_sixty_item_knapsack_goes_to_the_milp(seed):
     assert result.probability == pytest.approx(best / (2 * sum(values)), abs=1e-12)
     chosen = [int(o[1:]) - 1 for o in result.alteration]
     assert sum(weights[i] for i in chosen) <= capacity
+
+
+def test_auto_equals_exhaustive_on_random_models():
+    """Same generator as the MILP suite, other seeds; auto takes whichever route fits each."""
+    routes = set()
+    for seed in range(120):
+        rng = np.random.default_rng(70_000 + seed)
+        problem = random_problem(
+            seed + 5000,
+            states=int(rng.integers(3, 9)),
+            actions=int(rng.integers(1, 4)),
+            observations=int(rng.integers(2, 5)),
+            nodes=int(rng.integers(1, 4)),
+        )
+        budgets = [0.0, 1.0, 2.5, 4.0]
+        mine = solve(problem, budgets=budgets)
+        oracle = solve(problem, method="exhaustive", budgets=budgets)
+        routes.add(mine.stats["certified_by"])
+        assert not mine.warnings, seed
+        for a, b in zip(mine.curve, oracle.curve, strict=True):
+            assert a.probability == pytest.approx(b.probability, abs=1e-9), (seed, a.budget)
+            assert a.cost <= a.budget + 1e-9
+    assert routes == {"incremental", "exhaustive"}  # both routes were exercised
+
+
+@pytest.mark.parametrize("n", [5, 7, 9])
+def test_auto_equals_exhaustive_on_grids(n):
+    mine = solve(paper_grid(n), budgets=range(6))
+    oracle = solve(paper_grid(n), method="exhaustive", budgets=range(6))
+    for a, b in zip(mine.curve, oracle.curve, strict=True):
+        assert a.probability == pytest.approx(b.probability, abs=1e-9)

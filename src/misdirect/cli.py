@@ -272,7 +272,7 @@ def solve(
         str,
         typer.Option(
             help=f"Method: {', '.join(SOLVERS)} (auto: enumerate small alteration spaces, "
-            "else the MILP; both exact)."
+            "with low-rank updates where it can, else the MILP; all exact)."
         ),
     ] = "auto",
     solver: Annotated[
