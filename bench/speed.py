@@ -131,10 +131,10 @@ def storm_case(n: int, scratch: str) -> dict:
     from misdirect.scenarios import paper_grid
 
     problem = paper_grid(n)
-    identity = problem.identity()
-    ours, value = _best_of(3, lambda: decoy_probability(problem, identity))
+    attack = problem.alteration({"o1": "o2"})  # the attacker's choice: a value far from 0
+    ours, value = _best_of(3, lambda: decoy_probability(problem, attack))
     row = {"case": "storm", "n": n, "evaluation_s": ours, "probability": value}
-    chain = build_product(problem, identity)
+    chain = build_product(problem, attack)
     row["product_states"] = chain.n_states
     if stormpy is None:
         return {**row, "storm_s": None, "ratio": None, "note": "stormpy not installed"}
@@ -192,11 +192,29 @@ def knapsack_case(items: int, seed: int = 2026) -> dict:
     }
 
 
+def _run_and_send(connection, function, args) -> None:
+    try:
+        connection.send(("ok", function(*args)))
+    except BaseException as error:
+        connection.send(("error", repr(error)))
+
+
 def _isolated(function, *args) -> dict:
-    """Run one case in a fresh process: its own peak memory, no warm caches from others."""
+    """Run one case in a fresh process: its own peak memory, no warm caches from others.
+
+    A plain (non-daemonic) process, so the case may start processes of its own (the MILP's
+    HiGHS worker does).
+    """
     context = multiprocessing.get_context("spawn")
-    with context.Pool(1) as pool:
-        return pool.apply(function, args)
+    receiver, sender = context.Pipe(duplex=False)
+    process = context.Process(target=_run_and_send, args=(sender, function, args))
+    process.start()
+    sender.close()
+    kind, payload = receiver.recv()
+    process.join()
+    if kind == "error":
+        raise RuntimeError(f"{function.__name__}{args}: {payload}")
+    return payload
 
 
 def goals(rows: list[dict], plan: dict) -> list[dict]:

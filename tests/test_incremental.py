@@ -64,3 +64,25 @@ def test_auto_uses_updates_on_the_grid():
     result = solve(paper_grid(25), budgets=range(8))
     assert result.stats["certified_by"] == "incremental"
     assert result.stats["factorisations"] == 3  # one per choice for the blank reading
+
+
+def test_both_ways_of_batching_the_corrections_agree(monkeypatch):
+    """Padded full-size systems and per-pattern systems are the same algebra."""
+    import misdirect.solvers.incremental as incremental
+
+    problems = [paper_grid(7), paper_grid(9)] + [
+        random_problem(seed, states=8) for seed in range(20)
+    ]
+    padded = []
+    for problem in problems:
+        try:
+            padded.append(solve(problem, method="incremental", budgets=[0, 1, 2, 3]))
+        except NotApplicableError:
+            padded.append(None)
+    monkeypatch.setattr(incremental, "PADDED_ROWS", 0)
+    for problem, before in zip(problems, padded, strict=True):
+        if before is None:
+            continue
+        after = solve(problem, method="incremental", budgets=[0, 1, 2, 3])
+        for a, b in zip(after.curve, before.curve, strict=True):
+            assert a.solver_probability == pytest.approx(b.solver_probability, abs=1e-12)

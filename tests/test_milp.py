@@ -341,3 +341,16 @@ def test_highs_crashing_every_time_is_a_clear_error(monkeypatch):
     assert result.exit_code == 1
     assert "HiGHS crashed 2 times" in result.stderr and "--solver scip" in result.stderr
     assert "Traceback" not in result.output
+
+
+def _knapsack_in_a_pool_worker(_: int) -> float:
+    problem = knapsack([1, 2, 3, 4, 5], [20, 30, 40, 50, 60], 7)
+    return solve(problem, method="milp").probability
+
+
+def test_milp_inside_a_multiprocessing_pool():
+    """A pool worker is daemonic and may not start the HiGHS worker process: still solves."""
+    import multiprocessing
+
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        assert pool.map(_knapsack_in_a_pool_worker, [0]) == [pytest.approx(0.25, abs=1e-12)]

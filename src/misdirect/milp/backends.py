@@ -12,6 +12,7 @@ import contextlib
 import math
 import multiprocessing
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,7 +103,7 @@ class HighsBackend:
                 self._conn.send(("solve", row, float(self.model.row_upper[row]), start, attempt))
                 kind, payload = self._conn.recv()
             except (EOFError, OSError):
-                code = self._worker.exitcode if self._worker is not None else None
+                code = getattr(self._worker, "exitcode", None)
                 self._stop_worker()
                 self.crashes += 1
                 continue
@@ -123,11 +124,23 @@ class HighsBackend:
         methods = multiprocessing.get_all_start_methods()
         context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
         self._conn, child = context.Pipe()
-        self._worker = context.Process(
-            target=_highs_worker, args=(child, self.options), daemon=True
-        )
-        self._worker.start()
-        child.close()
+        if multiprocessing.current_process().daemon:
+            # A daemonic process (a multiprocessing.Pool worker) may not have children: solve
+            # in a thread of this process instead, without the protection against a crash.
+            self._worker = threading.Thread(
+                target=_highs_worker, args=(child, self.options), daemon=True
+            )
+        else:
+            self._worker = context.Process(
+                target=_highs_worker, args=(child, self.options), daemon=True
+            )
+        try:
+            self._worker.start()
+        except BaseException:
+            self._worker = None
+            raise
+        if isinstance(self._worker, multiprocessing.process.BaseProcess):
+            child.close()
         self._conn.send(("load", _model_arrays(self.model)))
         kind, payload = self._conn.recv()
         if kind == "error":
@@ -138,7 +151,7 @@ class HighsBackend:
             with contextlib.suppress(OSError):
                 self._conn.send(("stop",))
             self._worker.join(timeout=5)
-            if self._worker.is_alive():
+            if self._worker.is_alive() and hasattr(self._worker, "kill"):
                 self._worker.kill()
             self._conn.close()
         self._worker = self._conn = None

@@ -32,6 +32,7 @@ from misdirect.reachability import factorise
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
+PADDED_ROWS = 48  # up to this many inner rows, every alteration is solved at full size
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper to refactorise)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
@@ -171,10 +172,28 @@ class IncrementalSolver:
 def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_000) -> None:
     """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked).
 
-    Rows that alter the same inner observations share the shapes of their small systems, so
-    each such pattern is one batched ``np.linalg.solve`` (in chunks to bound memory).
+    Option 0 leaves an observation's rows as in the base, so its rows of ``D`` are zero and
+    its rows of the small system are identity rows with a zero right-hand side: padding every
+    alteration to all inner rows gives the same correction. When the inner rows are few that
+    is one batched ``np.linalg.solve`` over all alterations; otherwise alterations that change
+    the same observations are batched together, each with only its own rows.
     """
     block_start, d_x0_of, d_w_of, d_b_of = blocks
+    n_rows = int(block_start[-1])
+    if n_rows == 0:
+        return
+    if n_rows <= PADDED_ROWS:
+        step = max(1, chunk_entries // (n_rows * n_rows))
+        identity = np.eye(n_rows)[None, :, :]
+        for first in range(0, table.shape[0], step):
+            picked = list(enumerate(table[first : first + step].T))
+            d_x0 = np.concatenate([d_x0_of[j][k] for j, k in picked], axis=1)
+            d_b = np.concatenate([d_b_of[j][k] for j, k in picked], axis=1)
+            d_w = np.concatenate([d_w_of[j][k] for j, k in picked], axis=1)
+            rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
+            correction = np.linalg.solve(identity - d_w, rhs[..., None])[..., 0]
+            found[first : first + step] += (d_b + correction) @ w_start
+        return
     altered = table != 0
     if altered.shape[1] <= 62:  # one integer per pattern: far faster to group than rows
         codes = altered @ (np.int64(1) << np.arange(altered.shape[1], dtype=np.int64))
