@@ -53,8 +53,8 @@ class AutoSolver:
             inner: Any = IncrementalSolver()
             try:
                 solutions = inner.solve(problem, budgets, progress=progress)
-            except NotApplicableError as why:
-                reason += f"; no low-rank updates: {why}"
+            except NotApplicableError:
+                reason += "; no low-rank updates: the chain can cycle without reaching the decoy"
         if solutions is None:
             inner = ExhaustiveSolver() if count <= self.enumeration_limit else self.milp
             solutions = inner.solve(problem, budgets, progress=progress)

@@ -61,7 +61,8 @@ class IncrementalSolver:
         live = chain.can_reach_target() & ~chain.target
         if end_component_states(chain.group_state, chain.transitions, live).any():
             raise NotApplicableError(
-                "the chain can cycle without reaching the decoy under some alteration"
+                "the chain can cycle without reaching the decoy under some alteration, so "
+                "low-rank updates are not safe here; use --method auto, exhaustive or milp"
             )
         options = chain.options
         observations = [c.observation for c in space.choices]
