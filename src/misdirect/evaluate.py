@@ -37,7 +37,7 @@ def evaluation_time(problem: Problem, repeats: int = 3) -> float:
 
 
 def _decoy_probability(problem: Problem, chain: ProductChain) -> float:
-    values = reach_probabilities(chain.matrix, problem.decoy[chain.world_state])
+    values = reach_probabilities(chain.matrix, problem.decoy[chain.world_state], blocks=chain.node)
     return float(values[chain.initial])
 
 

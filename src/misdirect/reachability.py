@@ -8,6 +8,8 @@ linear system non-singular.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +36,10 @@ def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, 
     return prob0, ~can_miss
 
 
+PARALLEL_MIN_STATES = 5_000  # below this one factorisation is faster than threads
+SEPARATOR_MAX = 512  # block elimination only pays with a small separator
+
+
 def factorise(a: sp.spmatrix) -> SuperLU:
     """Sparse LU of ``I - a`` for a substochastic ``a`` from which every state can leave.
 
@@ -43,8 +49,11 @@ def factorise(a: sp.spmatrix) -> SuperLU:
     chains that halves the fill of SuperLU's default (COLAMD with partial pivoting) and the
     time with it. Should a pivot vanish all the same, the default is used.
     """
-    n = a.shape[0]
-    system = (sp.identity(n, format="csc") - a).tocsc()
+    return _lu((sp.identity(a.shape[0], format="csc") - a).tocsc())
+
+
+def _lu(system: sp.spmatrix) -> SuperLU:
+    system = sp.csc_matrix(system)
     try:
         return splu(
             system,
@@ -61,15 +70,72 @@ def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndar
     return factorise(a).solve(b, trans="T" if transpose else "N")
 
 
-def reach_probabilities(matrix: sp.csr_matrix, target: np.ndarray) -> np.ndarray:
-    """Probability of ever reaching ``target`` from every state (least fixed point)."""
+def solve_by_blocks(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> np.ndarray | None:
+    """Solve ``(I - a) x = b`` by block elimination along ``labels``, blocks in parallel.
+
+    The product chain of a controller that rarely changes its memory node splits by node:
+    only the states that read a memory-changing observation have transitions into another
+    node's block. Those states form the separator ``S``; the rest is block-diagonal by label.
+    Each block is factorised in its own thread (SuperLU releases the GIL), then the small
+    Schur complement on ``S`` gives ``x_S`` and back-substitution the rest. Every principal
+    submatrix and Schur complement of the non-singular M-matrix ``I - a`` is again one, so
+    no step can break down. ``None`` when the split would not pay.
+    """
+    n = a.shape[0]
+    coo = sp.coo_matrix(a)
+    crossing = labels[coo.row] != labels[coo.col]
+    separator = np.zeros(n, dtype=bool)
+    separator[coo.row[crossing]] = True  # every edge between blocks starts in S
+    interior = [np.flatnonzero(~separator & (labels == k)) for k in np.unique(labels[~separator])]
+    if separator.sum() > SEPARATOR_MAX or len(interior) < 2:
+        return None
+    system = (sp.identity(n, format="csr") - sp.csr_matrix(a)).tocsr()
+    border = np.flatnonzero(separator)
+    border_rows = system[border]
+
+    def eliminate(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rows = system[block]
+        lu = _lu(rows[:, block])
+        coupling = rows[:, border].toarray()
+        y_coupling = lu.solve(coupling) if border.size else coupling
+        return y_coupling, lu.solve(b[block])
+
+    workers = min(len(interior), os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        parts = list(pool.map(eliminate, interior))
+    schur = border_rows[:, border].toarray()
+    rhs = b[border].astype(np.float64)
+    for block, (y_coupling, y) in zip(interior, parts, strict=True):
+        to_block = border_rows[:, block]
+        schur -= to_block @ y_coupling
+        rhs -= to_block @ y
+    x = np.empty(n)
+    x_border = np.linalg.solve(schur, rhs) if border.size else rhs
+    x[border] = x_border
+    for block, (y_coupling, y) in zip(interior, parts, strict=True):
+        x[block] = y - y_coupling @ x_border
+    return x
+
+
+def reach_probabilities(
+    matrix: sp.csr_matrix, target: np.ndarray, blocks: np.ndarray | None = None
+) -> np.ndarray:
+    """Probability of ever reaching ``target`` from every state (least fixed point).
+
+    ``blocks`` (e.g. the memory node of each product state) lets large systems be solved by
+    :func:`solve_by_blocks`.
+    """
     prob0, prob1 = prob0_prob1(matrix, target)
     values = prob1.astype(np.float64)
     maybe = np.flatnonzero(~prob0 & ~prob1)
     if maybe.size:
         rows = matrix[maybe]
         b = np.asarray(rows[:, np.flatnonzero(prob1)].sum(axis=1)).ravel()
-        values[maybe] = _solve(rows[:, maybe], b)
+        inner = rows[:, maybe]
+        solved = None
+        if blocks is not None and maybe.size >= PARALLEL_MIN_STATES:
+            solved = solve_by_blocks(inner, b, blocks[maybe])
+        values[maybe] = _solve(inner, b) if solved is None else solved
     return np.clip(values, 0.0, 1.0)
 
 
