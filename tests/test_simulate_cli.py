@@ -87,3 +87,38 @@ def test_show_refuses_what_it_cannot_draw(tmp_path):
         result = runner.invoke(app, ["show", *args, "--json"])
         assert result.exit_code == 2, result.output
         assert json.loads(result.stdout)["error"]["field"] == "-o"
+
+
+def test_simulate_stops_trapped_runs_and_names_outcomes():
+    """trap.yaml unaltered: 0.6 of the runs go to `loop` and stay there forever (trapped), 0.4
+    go to `exit`, then 0.25 into the decoy and 0.75 into the goal: decoy 0.1, goal 0.3. Every
+    finished run takes exactly two steps. The default --max-steps is 10,000; trapped runs are
+    stopped when they enter the loop, not run to it."""
+    result = runner.invoke(
+        app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "40000", "--seed", "5", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    payload = json.loads(result.stdout)
+    outcomes = payload["outcomes"]
+    for name, expected in (("decoy", 0.1), ("goal", 0.3), ("trapped", 0.6)):
+        low, high = outcomes[name]["interval_95"]
+        assert low <= expected <= high, (name, outcomes[name])
+    assert outcomes["decoy"]["states"] == {"decoy": outcomes["decoy"]["runs"]}
+    assert outcomes["goal"]["states"] == {"goal": outcomes["goal"]["runs"]}
+    assert outcomes["unfinished"]["runs"] == payload["unfinished"] == 0
+    assert sum(row["runs"] for row in outcomes.values()) == 40000
+    assert payload["mean_steps_finished"] == 2.0
+    text = runner.invoke(app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "2000"]).stdout
+    assert "trapped: never stops" in text and "finished runs" in text
+    assert "goal (absorbing, not decoy)" in text and "decoy (attacker's target)" in text
+
+
+def test_simulate_library_counts_add_up():
+    from misdirect import load_problem
+    from misdirect.simulate import simulate
+
+    problem = load_problem(EXAMPLES / "trap.yaml")
+    result = simulate(problem, runs=5000, seed=1, max_steps=1)  # exit runs need 2 steps
+    assert result.decoy_hits == 0 and sum(result.absorbed.values()) == 0
+    assert result.trapped + result.unfinished == 5000
+    assert 0 < result.trapped < 5000  # the loop runs are trapped at step 1, exit runs unfinished

@@ -227,3 +227,338 @@ def test_storm_errors(tmp_path, pomdp, decoy, field, words):
     error = json.loads(result.stdout)["error"]
     assert error["field"] == field
     assert words in error["message"]
+
+
+# -- PRISM constants -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("model", "constants", "words"),
+    [
+        ("maze_2.prism", "N=5", "unknown undefined constant 'N'"),
+        ("maze_2_par.prism", "i5", "syntax error"),
+        ("maze_2_par.prism", "i=abc", "'abc'"),
+        ("maze_2_par.prism", "N=5", "constants to set: i"),
+    ],
+)
+def test_bad_constants_name_pomdp_constants(tmp_path, model, constants, words):
+    path = _problem_file(
+        tmp_path,
+        {"prism": str(SHIPPED / model), "constants": constants},
+        SOUTH_CONTROLLER,
+        {"label": "goal"},
+    )
+    result = runner.invoke(app, ["evaluate", str(path), "--json"])
+    assert result.exit_code == 2, result.output
+    error = json.loads(result.stdout)["error"]
+    assert error["field"] == "pomdp.constants"
+    assert words in error["message"]
+    assert "\n" not in error["message"]
+
+
+# -- PAYNT controllers of a model with two observable variables -------------------------------
+
+TWO_VARIABLES = """\
+pomdp
+
+observables x, y endobservables
+
+module robot
+  x : [0..2] init 0;
+  y : [0..1] init 0;
+  [east]  x<2 & y=0 -> 0.8 : (x'=x+1) + 0.2 : (y'=1);
+  [north] x<2 & y=0 -> (y'=1);
+  [stop]  x=2 | y=1 -> true;
+endmodule
+
+label "bad" = y=1;
+"""
+
+
+def test_paynt_labels_of_two_observable_variables(tmp_path):
+    """Storm names the observation (x=1, y=0) `[x=1\\t& y=0]`, and so does PAYNT; it must
+    match our observation `x=1,y=0`.
+
+    Robot: east while y=0 (0.8 ahead, 0.2 up into y=1, the decoy `bad`), stop at x=2 (goal).
+    By hand: Pr(bad) = 0.2 + 0.8 * 0.2 = 0.36. Reading (1,0) as (1,1) makes it play `north`
+    there (the controller's choice for (1,1)): 0.2 + 0.8 * 1 = 1. Reading (1,0) as (0,1) makes
+    it play `stop`, not enabled at (1,0): it stays there forever (`stay`), so 0.2."""
+    (tmp_path / "two.prism").write_text(TWO_VARIABLES)
+    storm = "[x={}\t& y={}]"
+    chosen = {(0, 0): "east", (1, 0): "east", (2, 0): "stop", (0, 1): "stop", (1, 1): "north"}
+    cells = [(1, 1), (2, 0), (0, 0), (0, 1), (1, 0)]  # not in Storm's order: matched by name
+    labels = ["north", "stop", "east"]
+    fsc = {
+        "num_nodes": 1,
+        "num_observations": len(cells),
+        "action_function": [[labels.index(chosen[c]) for c in cells]],
+        "update_function": [[0] * len(cells)],
+        "action_labels": labels,
+        "observation_labels": [storm.format(*c) for c in cells],
+    }
+    (tmp_path / "robot.fsc.json").write_text(json.dumps(fsc))
+    problem = load_problem(
+        _problem_file(
+            tmp_path,
+            {"prism": "two.prism"},
+            {"paynt": "robot.fsc.json"},
+            {"label": "bad"},
+        )
+    )
+    pomdp = problem.pomdp
+    assert sorted(pomdp.observations) == sorted(f"x={x},y={y}" for x, y in cells)
+    for cell, action in chosen.items():
+        o = pomdp.observations.index("x={},y={}".format(*cell))
+        assert pomdp.actions[problem.controller.action[0, o]] == action
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(0.36, abs=1e-12)
+    up = problem.alteration({"x=1,y=0": "x=1,y=1"})
+    assert decoy_probability(problem, up) == pytest.approx(1.0, abs=1e-12)
+    stuck = problem.alteration({"x=1,y=0": "x=0,y=1"})
+    assert decoy_probability(problem, stuck) == pytest.approx(0.2, abs=1e-12)
+
+
+# -- disabled_action: stay vs forbid ----------------------------------------------------------
+
+FORK = """\
+pomdp
+
+observables o endobservables
+
+module fork
+  s : [0..4] init 0;
+  o : [0..3] init 0;
+  [go] s=0 -> 0.6 : (s'=1) & (o'=1) + 0.4 : (s'=2) & (o'=2);
+  [a]  s=1 -> (s'=3) & (o'=3);
+  [b]  s=1 -> (s'=4) & (o'=3);
+  [a]  s=2 -> (s'=4) & (o'=3);
+  [c]  s=2 -> (s'=4) & (o'=3);
+  [done] s=3 | s=4 -> true;
+endmodule
+
+label "bad" = s=3;
+"""
+# Node n0 plays c on o=2 and moves to n1, where o=2 means a. In s=1, reading o=1 plays b (goal).
+# The controller plays b on o=3, which only the decoy s=3 and the goal s=4 emit, where b is not
+# enabled: the run has ended there, so `forbid` must not hold that against it.
+FORK_CONTROLLER = {
+    "nodes": ["n0", "n1"],
+    "initial": "n0",
+    "rules": [
+        {"node": "*", "obs": "o=0", "action": "go", "next": "n0"},
+        {"node": "*", "obs": "o=1", "action": "b", "next": "n0"},
+        {"node": "n0", "obs": "o=2", "action": "c", "next": "n1"},
+        {"node": "n1", "obs": "o=2", "action": "a", "next": "n1"},
+        {"node": "*", "obs": "o=3", "action": "b", "next": "n0"},
+    ],
+}
+
+
+def test_stay_and_forbid_solve_differently(tmp_path):
+    """Budget 1, every alteration costs 1. By hand:
+
+    stay: reading o=1 as o=2 in s=1 (probability 0.6), node n0 plays c, which s=1 does not
+    enable: the robot stays and its memory moves to n1; there it reads o=2 again and plays a,
+    into the decoy. The other branch (s=2, 0.4) ends in the goal. So 0.6, and no other single
+    alteration reaches the decoy (each makes the robot play a disabled action forever, or b).
+    forbid: o=1 -> o=2 is forbidden (c is not enabled in s=1); o=1 -> o=3 plays b (allowed,
+    goal); every alteration of o=2 plays go or b, not enabled in s=2. So 0.
+    """
+    from misdirect import solve
+
+    (tmp_path / "fork.prism").write_text(FORK)
+    stay = load_problem(
+        _problem_file(tmp_path, {"prism": "fork.prism"}, FORK_CONTROLLER, {"label": "bad"})
+    )
+    forbid = load_problem(
+        _problem_file(
+            tmp_path,
+            {"prism": "fork.prism", "disabled_action": "forbid"},
+            FORK_CONTROLLER,
+            {"label": "bad"},
+            name="forbid.yaml",
+        )
+    )
+    assert decoy_probability(stay, stay.identity()) == pytest.approx(0.0, abs=1e-12)
+    answer = solve(stay, method="exhaustive")
+    assert answer.probability == pytest.approx(0.6, abs=1e-12)
+    assert answer.alteration == {"o=1": "o=2"}
+    answer = solve(forbid, method="exhaustive")
+    assert answer.probability == pytest.approx(0.0, abs=1e-12)
+    obs = forbid.pomdp.observations
+    o1, o2, o3 = (obs.index(f"o={k}") for k in (1, 2, 3))
+    assert np.isinf(forbid.cost.row(o1)[o2]) and np.isfinite(forbid.cost.row(o1)[o3])
+    assert np.isinf(forbid.cost.row(o2)[[o1, o3]]).all()
+    # the decoy and the goal are absorbing in Storm (only a self-loop is enabled there)
+    assert forbid.pomdp.absorbing.sum() == 2
+
+
+def test_forbid_still_checks_the_controllers_own_choices(tmp_path):
+    """In s=2 (o=2) node n1 would play b, which s=2 does not enable: refused, naming it."""
+    (tmp_path / "fork.prism").write_text(FORK)
+    controller = json.loads(json.dumps(FORK_CONTROLLER))
+    controller["rules"][3]["action"] = "b"
+    path = _problem_file(
+        tmp_path, {"prism": "fork.prism", "disabled_action": "forbid"}, controller, {"label": "bad"}
+    )
+    result = runner.invoke(app, ["evaluate", str(path), "--json"])
+    assert result.exit_code == 2, result.output
+    error = json.loads(result.stdout)["error"]
+    assert error["field"] == "pomdp.disabled_action"
+    assert "'b' in state 's=2,o=2'" in error["message"] and "'n1'" in error["message"]
+
+
+# -- stormpy's shipped maze: round trip and DRN ------------------------------------------------
+
+# A controller written for the maze (PRISM maze_2.prism; o=k are its observations):
+# o=1 (s0) east, o=2 (s1, s3) east, o=3 (s2) south, o=4 (s4) west, o=5 south, o=6 north.
+MAZE_CHOICE = {0: "__NOLABEL__", 1: "east", 2: "east", 3: "south", 4: "west", 5: "south"}
+MAZE_CHOICE |= {6: "north", 7: "done"}
+# By hand, from the 13 equally likely starts (target s13 below s9):
+#   s0 -> s1 -> s2 -> s6 -> s9 -> s13, and s1, s2, s6, s9 on that path: 5 reach it; s3 <-> s4
+#   loop (east, west), s5/s8/s11 and s7/s10/s12 shuttle at the dead ends (south, north).
+#   o=3 read as o=2: s2 goes east into the s3/s4 loop, so s0, s1, s2 fail: 2 (s6, s9).
+#   o=1 read as o=5: s0 goes south into the left dead end: 4.
+#   o=5 read as o=7: `done` is not enabled in s5..s10, the robot stays: 0.
+MAZE_CASES = [({}, 5 / 13), ({"o=3": "o=2"}, 2 / 13), ({"o=1": "o=5"}, 4 / 13)]
+MAZE_CASES.append(({"o=5": "o=7"}, 0.0))
+
+
+def _maze_paynt(tmp_path) -> Path:
+    labels = sorted(set(MAZE_CHOICE.values()))
+    fsc = {
+        "action_function": [[labels.index(MAZE_CHOICE[k]) for k in range(8)]],
+        "update_function": [[0] * 8],
+        "action_labels": labels,
+        "observation_labels": [f"[o={k}]" for k in range(8)],
+    }
+    path = tmp_path / "maze.fsc.json"
+    path.write_text(json.dumps(fsc))
+    return path
+
+
+def _rules(problem, obs_name) -> dict:
+    """The problem's one-node controller as rules over the observation names ``obs_name(k)``
+    (k: the problem's own observation index)."""
+    return {
+        "nodes": ["m"],
+        "initial": "m",
+        "rules": [
+            {
+                "node": "*",
+                "obs": obs_name(k),
+                "action": problem.pomdp.actions[problem.controller.action[0, k]],
+                "next": "m",
+            }
+            for k in range(problem.pomdp.n_observations)
+        ],
+    }
+
+
+def _mapped(problem, back, obs_name, changes):
+    """``changes`` (names of ``problem``) as an alteration of ``back``."""
+    alpha = problem.alteration(changes)
+    mapped = back.identity()
+    index = {name: i for i, name in enumerate(back.pomdp.observations)}
+    for o, t in enumerate(alpha):
+        mapped[index[obs_name(o)]] = index[obs_name(int(t))]
+    return mapped
+
+
+@pytest.mark.parametrize("target", ["prism", "drn"])
+def test_shipped_maze_round_trip_through_storm(tmp_path, target):
+    _maze_paynt(tmp_path)
+    source = _problem_file(
+        tmp_path,
+        {"prism": str(SHIPPED / "maze_2.prism")},
+        {"paynt": "maze.fsc.json"},
+        {"label": "goal"},
+    )
+    original = load_problem(source)
+    for changes, expected in MAZE_CASES:
+        alpha = original.alteration(changes)
+        assert decoy_probability(original, alpha) == pytest.approx(expected, abs=1e-12)
+    out = tmp_path / f"maze.{target}"
+    result = runner.invoke(app, ["convert", str(source), "--to", target, "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    obs_name = (lambda k: f"o={k}") if target == "prism" else (lambda k: f"obs{k}")
+    back = load_problem(
+        _problem_file(
+            tmp_path,
+            {target: out.name},
+            _rules(original, obs_name),
+            {"label": "decoy"},
+            name="b.yaml",
+        )
+    )
+    assert back.pomdp.n_states == original.pomdp.n_states
+    for changes, expected in MAZE_CASES:
+        mapped = _mapped(original, back, obs_name, changes)
+        assert decoy_probability(back, mapped) == pytest.approx(expected, abs=1e-12)
+
+
+def test_shipped_maze_drn_evaluates_like_the_prism_maze(tmp_path):
+    """maze.drn is Storm's export of the maze (probabilities 1/13 rounded to 0.07692307692): the
+    same hand values, within that rounding, with observation obs<k> of the DRN being
+    observation k of the PRISM build."""
+    prism = load_problem(
+        _problem_file(
+            tmp_path,
+            {"prism": str(SHIPPED / "maze_2.prism")},
+            {"paynt": str(_maze_paynt(tmp_path))},
+            {"label": "goal"},
+        )
+    )
+    drn = load_problem(
+        _problem_file(
+            tmp_path,
+            {"drn": str(SHIPPED / "maze.drn")},
+            _rules(prism, lambda k: f"obs{k}"),
+            {"label": "goal"},
+            name="drn.yaml",
+        )
+    )
+    for changes, expected in MAZE_CASES:
+        mapped = _mapped(prism, drn, lambda k: f"obs{k}", changes)
+        assert decoy_probability(drn, mapped) == pytest.approx(expected, abs=1e-9)
+
+
+def test_simulate_storm_maze_stops_runs_at_dead_ends(tmp_path):
+    """Always south in the maze: 3 of the 13 starts (s2, s6, s9) reach the target, 4, 3 and 2
+    steps after the initial state (mean 3); the other 10 end against a wall, where south is
+    a self-loop: trapped, not run to --max-steps."""
+    path = _problem_file(
+        tmp_path, {"prism": str(SHIPPED / "maze_2.prism")}, SOUTH_CONTROLLER, {"label": "goal"}
+    )
+    result = runner.invoke(app, ["simulate", str(path), "--runs", "26000", "--json"])
+    assert result.exit_code == 0, result.output
+    payload = json.loads(result.stdout)
+    outcomes = payload["outcomes"]
+    for name, expected in (("decoy", 3 / 13), ("trapped", 10 / 13)):
+        low, high = outcomes[name]["interval_95"]
+        assert low <= expected <= high, (name, outcomes[name])
+    assert list(outcomes["decoy"]["states"]) == ["s=13,o=7"]
+    assert outcomes["goal"]["runs"] == 0 and payload["unfinished"] == 0
+    assert payload["mean_steps_finished"] == pytest.approx(3.0, abs=0.05)
+
+
+@pytest.mark.parametrize("target", ["prism", "drn", "yaml", "json"])
+def test_convert_without_output_writes_to_stdout(tmp_path, target):
+    """`misdirect convert FILE --to prism` (no -o), as the README writes it: the text on stdout
+    reads back (through Storm for PRISM and DRN) to the same decoy probability, 0.4 by hand."""
+    result = runner.invoke(app, ["convert", str(EXAMPLES / "trap.yaml"), "--to", target])
+    assert result.exit_code == 0, result.output
+    out = tmp_path / f"trap.{target}"
+    out.write_text(result.stdout)
+    if target in ("yaml", "json"):
+        back = load_problem(out)
+        alpha = back.alteration({"o1": "o0"})
+    else:
+        obs = (lambda k: f"o={k}") if target == "prism" else (lambda k: f"obs{k}")
+        original = load_problem(EXAMPLES / "trap.yaml")
+        back = load_problem(
+            _problem_file(tmp_path, {target: out.name}, _rules(original, obs), {"label": "decoy"})
+        )
+        alpha = _mapped(original, back, obs, {"o1": "o0"})
+    assert decoy_probability(back, alpha) == pytest.approx(0.4, abs=1e-12)
+    result = runner.invoke(app, ["convert", str(EXAMPLES / "trap.yaml"), "--to", target, "--json"])
+    assert json.loads(result.stdout)["content"] == out.read_text()

@@ -509,7 +509,8 @@ def simulate(
     capacity: CapacityOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Run the attacked robot many times: empirical frequencies with 95 % intervals."""
+    """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
+    not decoy) or trapped (it can no longer stop), with 95 % intervals."""
     from misdirect.simulate import simulate as run_simulation
     from misdirect.simulate import wilson_interval
 
@@ -532,19 +533,37 @@ def simulate(
     )
     exact = decoy_probability(problem, alpha)
     low, high = result.confidence_interval()
-    outcomes = {
-        "decoy": {
-            "runs": result.decoy_hits,
-            "frequency": result.decoy_frequency,
-            "interval_95": [low, high],
-        }
-    }
-    for state, hits in result.absorbed.items():
-        outcomes[state] = {
+
+    def outcome(hits: int, states: dict[str, int] | None, meaning: str) -> dict[str, Any]:
+        row: dict[str, Any] = {
             "runs": hits,
             "frequency": hits / runs,
             "interval_95": list(wilson_interval(hits, runs)),
+            "meaning": meaning,
         }
+        if states is not None:
+            row["states"] = states
+        return row
+
+    outcomes = {
+        "decoy": outcome(
+            result.decoy_hits, result.decoys, "ended in a decoy state (the attacker's target)"
+        ),
+        "goal": outcome(
+            sum(result.absorbed.values()),
+            result.absorbed,
+            "ended in an absorbing state that is not a decoy (the robot's goal)",
+        ),
+        "trapped": outcome(
+            result.trapped,
+            None,
+            "can no longer reach a decoy or goal state: the run would never stop",
+        ),
+        "unfinished": outcome(
+            result.unfinished, None, f"still running after --max-steps {max_steps:,}"
+        ),
+    }
+    outcomes["decoy"]["interval_95"] = [low, high]
     if trajectories is not None:
         with trajectories.open("w", newline="", encoding="utf-8") as handle:
             writer = csv.writer(handle)
@@ -557,7 +576,8 @@ def simulate(
         "seed": seed,
         "outcomes": outcomes,
         "unfinished": result.unfinished,
-        "mean_steps": result.mean_steps,
+        "trapped": result.trapped,
+        "mean_steps_finished": result.mean_steps,
         "exact_decoy_probability": exact,
         "exact_within_interval": low <= exact <= high,
     }
@@ -565,22 +585,35 @@ def simulate(
         _print_json(payload)
         return
     table = Table(title=escape(f"{problem.name} — {runs:,} runs, seed {seed}"))
-    for column in ("outcome", "runs", "frequency", "95 % interval"):
-        table.add_column(column, justify="left" if column == "outcome" else "right")
+    for column in ("outcome", "states", "runs", "frequency", "95 % interval"):
+        table.add_column(column, justify="left" if column in ("outcome", "states") else "right")
+    labels = {
+        "decoy": "decoy (attacker's target)",
+        "goal": "goal (absorbing, not decoy)",
+        "trapped": "trapped: never stops",
+        "unfinished": f"unfinished after {max_steps:,} steps",
+    }
     for name, row in outcomes.items():
+        if name in ("trapped", "unfinished") and row["runs"] == 0:
+            continue
+        states = row.get("states", {})
+        listed = ", ".join(
+            f"{state} ({hits:,})" if len(states) > 1 else state for state, hits in states.items()
+        )
         table.add_row(
-            escape(name),
+            escape(labels[name]),
+            escape(listed),
             f"{row['runs']:,}",
             f"{row['frequency']:.4f}",
             f"[{row['interval_95'][0]:.4f}, {row['interval_95'][1]:.4f}]",
         )
-    if result.unfinished:
-        table.add_row(f"still running after {max_steps:,} steps", f"{result.unfinished:,}", "", "")
     out.print(table)
     verdict = "inside" if payload["exact_within_interval"] else "[red]outside[/]"
+    finished = result.runs - result.trapped - result.unfinished
     out.print(
         f"alteration {_fmt_alteration(payload['alteration'])} · mean steps "
-        f"{result.mean_steps:.2f} · exact Pr(decoy) {exact:.6f} ({verdict} the interval)",
+        f"{result.mean_steps:.2f} (over the {finished:,} finished runs, decoy or goal) · "
+        f"exact Pr(decoy) {exact:.6f} ({verdict} the interval)",
         highlight=False,
     )
 
@@ -699,8 +732,11 @@ class ConvertTarget(StrEnum):
 @app.command()
 @handle_errors
 def convert(
-    output: Annotated[Path, typer.Option("--output", "-o", help="File to write.")],
     to: Annotated[ConvertTarget, typer.Option("--to", help="Format to write.")],
+    output: Annotated[
+        Path | None,
+        typer.Option("--output", "-o", help="File to write (default: standard output)."),
+    ] = None,
     file: FileArgument = None,
     scenario: ScenarioOption = None,
     size: SizeOption = 5,
@@ -711,28 +747,48 @@ def convert(
     as_json: JsonOption = False,
 ) -> None:
     """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
-    from misdirect.export import write_drn, write_prism
+    from misdirect.export import drn_text, prism_text
+    from misdirect.problem_file import problem_text
 
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    if to is ConvertTarget.prism:
-        write_prism(problem, output)
-    elif to is ConvertTarget.drn:
-        write_drn(problem, output)
-    else:
+    if output is not None and to in (ConvertTarget.json, ConvertTarget.yaml):
         wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
         if output.suffix.lower() not in wanted:
             raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
-        write_problem(problem, output)
-    if as_json:
-        _print_json({"written": str(output), "format": to.value})
+    if to is ConvertTarget.prism:
+        text = prism_text(problem)
+    elif to is ConvertTarget.drn:
+        text = drn_text(problem)
     else:
+        text = problem_text(problem, as_json=to is ConvertTarget.json)
+    _write_text(text, output, as_json, format=to.value)
+    if output is not None and not as_json:
         err.print(escape(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)"))
+
+
+def _write_text(text: str, output: Path | None, as_json: bool, **about: Any) -> None:
+    """Write ``text`` to ``output``, or to standard output when there is none (with --json,
+    as the ``content`` of the one JSON object)."""
+    if output is not None:
+        try:
+            output.write_text(text, encoding="utf-8")
+        except OSError as error:
+            raise ProblemError(f"cannot write {output}: {error.strerror}", field="-o") from None
+        if as_json:
+            _print_json({"written": str(output), **about})
+    elif as_json:
+        _print_json({"written": None, **about, "content": text})
+    else:
+        sys.stdout.write(text)
 
 
 @app.command("export-fsc")
 @handle_errors
 def export_fsc(
-    output: Annotated[Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write.")],
+    output: Annotated[
+        Path | None,
+        typer.Option("--output", "-o", help="PAYNT .fsc.json to write (default: standard output)."),
+    ] = None,
     file: FileArgument = None,
     scenario: ScenarioOption = None,
     size: SizeOption = 5,
@@ -746,13 +802,9 @@ def export_fsc(
     from misdirect.controllers import controller_to_paynt
 
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    output.write_text(
-        json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n",
-        encoding="utf-8",
-    )
-    if as_json:
-        _print_json({"written": str(output)})
-    else:
+    text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
+    _write_text(text, output, as_json, format="paynt")
+    if output is not None and not as_json:
         err.print(escape(f"wrote {output} ({problem.controller.n_nodes} nodes)"))
 
 

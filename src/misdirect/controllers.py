@@ -17,82 +17,167 @@ import numpy as np
 
 from misdirect.errors import ProblemError
 from misdirect.model import Controller, CostModel, Pomdp
+from misdirect.storm_models import valuation_name
 
 FIELD = "controller.paynt"
 
 
 def _label(name: Any) -> str:
-    """PAYNT writes observation labels as Storm valuations, e.g. ``[o=3]``; we name them ``o=3``."""
-    return str(name).strip().strip("[]").strip().replace("\t", "").replace(" & ", ",")
+    """PAYNT writes observation labels as Storm valuations (``[o=3]``, ``[x=2\\t& y=0]``); we
+    name them as the Storm model's observations are named (``o=3``, ``x=2,y=0``)."""
+    return valuation_name(name)
+
+
+def _is_index(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
+    """Read a PAYNT ``.fsc.json``; every malformed part is a ProblemError naming the file (as
+    source), the field inside it (``update_function[1][2]``) and the reason."""
     try:
         document = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ProblemError(f"file not found: {path}", field=FIELD) from None
-    except (OSError, json.JSONDecodeError) as error:
+    except (OSError, UnicodeDecodeError) as error:
         raise ProblemError(f"cannot read {path}: {error}", field=FIELD) from None
+    except json.JSONDecodeError as error:
+        raise ProblemError(
+            f"invalid JSON: {error.msg}",
+            source=str(path),
+            field=f"line {error.lineno}, column {error.colno}",
+        ) from None
+
+    def fail(field: str, reason: str) -> ProblemError:
+        return ProblemError(reason, source=str(path), field=field)
+
+    if not isinstance(document, dict):
+        raise fail(
+            "(top level)", "expected a JSON object with action_function, update_function, ..."
+        )
     for key in ("action_function", "update_function", "action_labels", "observation_labels"):
         if key not in document:
-            raise ProblemError(f"{path.name} has no {key!r}", field=FIELD)
+            raise fail(
+                key,
+                "missing (a PAYNT controller needs action_function, "
+                "update_function, action_labels and observation_labels)",
+            )
+        if not isinstance(document[key], list):
+            raise fail(key, f"expected a list, got {type(document[key]).__name__}")
+
     actions = {name: i for i, name in enumerate(pomdp.actions)}
     observations = {name: i for i, name in enumerate(pomdp.observations)}
     action_of = []
-    for name in document["action_labels"]:
+    for k, name in enumerate(document["action_labels"]):
         label = str(name) if str(name) in actions else _label(name)
         if label not in actions:
-            raise ProblemError(
-                f"action label {name!r} of {path.name} is not an action of the model "
-                f"({', '.join(pomdp.actions)})",
-                field=FIELD,
+            raise fail(
+                f"action_labels[{k}]",
+                f"{name!r} is not an action of the model ({', '.join(pomdp.actions)})",
             )
         action_of.append(actions[label])
-    obs_columns = []
-    for name in document["observation_labels"]:
+    obs_columns: list[int] = []
+    for k, name in enumerate(document["observation_labels"]):
         label = str(name) if str(name) in observations else _label(name)
         if label not in observations:
-            raise ProblemError(
-                f"observation label {name!r} of {path.name} is not an observation of the model",
-                field=FIELD,
+            raise fail(f"observation_labels[{k}]", f"{name!r} is not an observation of the model")
+        if observations[label] in obs_columns:
+            first = obs_columns.index(observations[label])
+            raise fail(
+                f"observation_labels[{k}]",
+                f"{name!r} names the same observation as observation_labels[{first}]",
             )
         obs_columns.append(observations[label])
-    if len(set(obs_columns)) != pomdp.n_observations:
+    if len(obs_columns) != pomdp.n_observations:
         missing = sorted(set(range(pomdp.n_observations)) - set(obs_columns))
-        raise ProblemError(
-            f"{path.name} does not cover observation {pomdp.observations[missing[0]]!r}; an "
-            "attacker can make the robot see any observation, so every one needs a rule",
-            field=FIELD,
+        raise fail(
+            "observation_labels",
+            f"observation {pomdp.observations[missing[0]]!r} is not covered; an attacker can "
+            "make the robot see any observation, so every one needs a rule",
         )
+
     gamma, delta = document["action_function"], document["update_function"]
-    n_nodes = len(gamma)
+    n_nodes, n_cols = len(gamma), len(obs_columns)
+    if n_nodes == 0:
+        raise fail("action_function", "empty: the controller needs at least one node")
+    if len(delta) != n_nodes:
+        raise fail(
+            "update_function",
+            f"has {len(delta)} rows (nodes), action_function has {n_nodes}",
+        )
+    declared = document.get("num_nodes")
+    if declared is not None and declared != n_nodes:
+        raise fail("num_nodes", f"says {declared!r}, but action_function has {n_nodes} rows")
+    declared = document.get("num_observations")
+    if declared is not None and declared != n_cols:
+        raise fail(
+            "num_observations",
+            f"says {declared!r}, but observation_labels has {n_cols} entries",
+        )
+    for key, table in (("action_function", gamma), ("update_function", delta)):
+        for n, row in enumerate(table):
+            if not isinstance(row, list):
+                raise fail(f"{key}[{n}]", f"expected a list, got {type(row).__name__}")
+            if len(row) != n_cols:
+                raise fail(
+                    f"{key}[{n}]",
+                    f"has {len(row)} entries, observation_labels has {n_cols} (one per "
+                    "observation)",
+                )
+
     action = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
     update = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
     for n in range(n_nodes):
         for k, o in enumerate(obs_columns):
-            where = f"action_function[{n}][{k}]"
-            chosen = gamma[n][k]
-            if isinstance(chosen, dict):  # randomized: accept only a point distribution
-                certain = [a for a, p in chosen.items() if math.isclose(float(p), 1.0)]
-                if len(certain) != 1:
-                    raise ProblemError(
-                        f"{where} is randomized; misdirect needs a deterministic controller",
-                        field=FIELD,
-                    )
-                chosen = int(certain[0])
-            if chosen is None or delta[n][k] is None:
-                raise ProblemError(
-                    f"{where} or update_function[{n}][{k}] is empty; an attacker can make the "
-                    "robot see any observation, so fill it in",
-                    field=FIELD,
+            chosen = _action_entry(gamma[n][k], f"action_function[{n}][{k}]", fail)
+            if not 0 <= chosen < len(action_of):
+                raise fail(
+                    f"action_function[{n}][{k}]",
+                    f"action index {chosen} is out of range (action_labels has "
+                    f"{len(action_of)} entries)",
                 )
-            if not 0 <= int(chosen) < len(action_of) or not 0 <= int(delta[n][k]) < n_nodes:
-                raise ProblemError(f"{where}: index out of range", field=FIELD)
-            action[n, o] = action_of[int(chosen)]
-            update[n, o] = int(delta[n][k])
+            target = delta[n][k]
+            where = f"update_function[{n}][{k}]"
+            if target is None:
+                raise fail(
+                    where,
+                    "empty; an attacker can make the robot see any observation, so fill it in",
+                )
+            if not _is_index(target):
+                raise fail(where, f"expected a node index (integer), got {target!r}")
+            if not 0 <= target < n_nodes:
+                raise fail(
+                    where,
+                    f"node {target} is out of range (the controller has "
+                    f"{n_nodes} nodes, 0..{n_nodes - 1})",
+                )
+            action[n, o] = action_of[chosen]
+            update[n, o] = target
     return Controller(
         nodes=tuple(f"n{n}" for n in range(n_nodes)), initial_node=0, action=action, update=update
     )
+
+
+def _action_entry(chosen: Any, where: str, fail) -> int:
+    """One ``action_function`` entry as an action index; randomized only if it is certain."""
+    if chosen is None:
+        raise fail(
+            where, "empty; an attacker can make the robot see any observation, so fill it in"
+        )
+    if isinstance(chosen, dict):  # randomized: accept only a point distribution
+        try:
+            weights = {int(a): float(p) for a, p in chosen.items()}
+        except (TypeError, ValueError):
+            raise fail(
+                where, "a randomized choice must map action indices to probabilities"
+            ) from None
+        certain = [a for a, p in weights.items() if math.isclose(p, 1.0)]
+        if len(certain) != 1:
+            raise fail(where, "randomized; misdirect needs a deterministic controller")
+        return certain[0]
+    if not _is_index(chosen):
+        raise fail(where, f"expected an action index (integer), got {chosen!r}")
+    return chosen
 
 
 def controller_to_paynt(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:
@@ -114,19 +199,31 @@ def controller_to_paynt(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:
 
 
 def forbid_disabled_actions(
-    cost: CostModel, pomdp: Pomdp, controller: Controller, enabled: np.ndarray
+    cost: CostModel,
+    pomdp: Pomdp,
+    controller: Controller,
+    enabled: np.ndarray,
+    decoy: np.ndarray | None = None,
 ) -> CostModel:
     """``disabled_action: forbid``: o -> o' is not allowed if, in some state emitting o, some
-    node's action for o' is not enabled there. The controller's own choices must be enabled."""
+    node's action for o' is not enabled there. The controller's own choices must be enabled.
+
+    Decoy and absorbing states are skipped: the run has ended there, so whatever the controller
+    would play in them is never played.
+    """
+    ended = pomdp.absorbing.copy()
+    if decoy is not None:
+        ended |= decoy
     pairs = dict(cost.pairs)
     for o in range(pomdp.n_observations):
-        states = np.flatnonzero(pomdp.observation_of == o)
+        states = np.flatnonzero((pomdp.observation_of == o) & ~ended)
         if states.size == 0:
             continue
         # ok[t]: every node's action for received t is enabled in every state emitting o
         ok = enabled[states][:, controller.action].all(axis=(0, 1))
         if not ok[o]:
-            n, s = _first_disabled(enabled, states, controller.action[:, o])
+            bad_s, bad_n = np.nonzero(~enabled[states][:, controller.action[:, o]])
+            n, s = int(bad_n[0]), int(states[bad_s[0]])
             raise ProblemError(
                 f"the controller plays {pomdp.actions[controller.action[n, o]]!r} in state "
                 f"{pomdp.states[s]!r} (observation {pomdp.observations[o]!r}, node "
@@ -137,13 +234,3 @@ def forbid_disabled_actions(
         for t in np.flatnonzero(~ok):
             pairs[o, int(t)] = math.inf
     return CostModel(cost.n_observations, cost.default, pairs, cost.protected)
-
-
-def _first_disabled(
-    enabled: np.ndarray, states: np.ndarray, actions: np.ndarray
-) -> tuple[int, int]:
-    for n, a in enumerate(actions):
-        for s in states:
-            if not enabled[s, a]:
-                return n, int(s)
-    raise AssertionError("no disabled action found")

@@ -37,6 +37,11 @@ def _rows(problem: Problem):
 
 
 def write_drn(problem: Problem, path: Path) -> None:
+    """Write :func:`drn_text` to ``path``."""
+    Path(path).write_text(drn_text(problem), encoding="utf-8")
+
+
+def drn_text(problem: Problem) -> str:
     """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours."""
     pomdp = problem.pomdp
     lines = [
@@ -66,10 +71,15 @@ def write_drn(problem: Problem, path: Path) -> None:
             current = s
         lines.append(f"\taction {pomdp.actions[a]}")
         lines += [f"\t\t{t} : {p!r}" for t, p in entries]
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return "\n".join(lines) + "\n"
 
 
 def write_prism(problem: Problem, path: Path) -> None:
+    """Write :func:`prism_text` to ``path``."""
+    Path(path).write_text(prism_text(problem), encoding="utf-8")
+
+
+def prism_text(problem: Problem) -> str:
     """A PRISM POMDP: state variable ``s``, observable ``o`` updated with it, label ``decoy``.
 
     Action names become PRISM action labels, so they must be PRISM identifiers; others are
@@ -103,7 +113,7 @@ def write_prism(problem: Problem, path: Path) -> None:
     lines += ["endmodule", ""]
     decoys = np.flatnonzero(problem.decoy)
     lines.append('label "decoy" = ' + (" | ".join(f"s={s}" for s in decoys) or "false") + ";")
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return "\n".join(lines) + "\n"
 
 
 def _identifier(name: str, fallback: str) -> str:

@@ -50,41 +50,147 @@ def draw(problem: Problem, alteration: Alteration, output: Path) -> Path:
     return _draw_grid(problem, alteration, cells, output)
 
 
-def _draw_grid(problem: Problem, alteration: Alteration, cells: np.ndarray, output: Path) -> Path:
-    from misdirect import plots
+def grid_arrays(
+    problem: Problem, cells: np.ndarray, per_state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, walls)``, both ``(height, width)`` indexed ``[y, x]``: ``per_state`` placed
+    at each state's cell (NaN where no state is), and the mask of cells that are no state
+    (walls). Width and height are those of the cells the states occupy."""
+    width, height = (int(v) for v in cells.max(axis=0) + 1)
+    values = np.full((height, width), np.nan)
+    values[cells[:, 1], cells[:, 0]] = per_state
+    walls = np.ones((height, width), dtype=bool)
+    walls[cells[:, 1], cells[:, 0]] = False
+    return values, walls
+
+
+def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
+    """The attack on a grid world: expected visits per cell (heat map), walls, sensor regions
+    (hatched when altered), start S, every goal G and every decoy X."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display needed
+    import matplotlib.pyplot as plt
+    from matplotlib import patheffects
+    from matplotlib.colors import ListedColormap, LogNorm, Normalize
+    from matplotlib.patches import Rectangle
+
+    from misdirect.plots import SENSOR_COLOURS
 
     pomdp = problem.pomdp
-    width, height = cells.max(axis=0) + 1
     report = evaluate(problem, alteration)
-    visits = np.zeros((height, width))
-    visits[cells[:, 1], cells[:, 0]] = report.expected_visits
-    sensors: dict[str, list[tuple[int, int]]] = {}
-    for s, o in enumerate(pomdp.observation_of):
-        name = pomdp.observations[o]
-        if name != "b" and not (pomdp.absorbing[s] or problem.decoy[s]):
-            sensors.setdefault(name, []).append(tuple(cells[s]))
-    goal_states = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
-    decoys = np.flatnonzero(problem.decoy)
-    goal_probability = sum(report.outcomes[pomdp.states[g]] for g in goal_states)
-    panel = {
-        "budget": report.cost,
-        "visits": visits,
-        "probability": report.probability,
-        "goal_probability": goal_probability,
-        "alteration": report.alteration,
-    }
-    place = lambda states: tuple(cells[states[0]]) if len(states) else (-1, -1)  # noqa: E731
-    stem = output.with_suffix("")
-    plots.attack_heatmaps(
-        int(max(width, height)),
-        sensors,
-        tuple(cells[pomdp.initial_state]),
-        place(goal_states),
-        place(decoys),
-        [panel],
-        stem,
-        formats=(output.suffix.lower(),),
+    visits, walls = grid_arrays(problem, cells, report.expected_visits)
+    height, width = visits.shape
+    positive = visits[visits > 0]
+    norm = (
+        LogNorm(vmin=max(positive.min(), 1e-4), vmax=max(positive.max(), 1e-4 * 1.01))
+        if positive.size
+        else Normalize(0.0, 1.0)
     )
+    scale = 0.9 * max(3.0, min(10.0, 10.0 * max(width, height) / 12)) / max(width, height)
+    fig, ax = plt.subplots(figsize=(max(4.5, width * scale + 1.8), max(3.5, height * scale + 1.6)))
+    extent = (-0.5, width - 0.5, -0.5, height - 0.5)
+    image = ax.imshow(
+        np.where(visits > 0, visits, np.nan),
+        origin="lower",
+        cmap="magma_r",
+        norm=norm,
+        extent=extent,
+        interpolation="nearest",
+    )
+    image.set_label("visits")
+    wall_layer = ax.imshow(
+        np.ma.masked_array(np.ones(walls.shape), mask=~walls),
+        origin="lower",
+        cmap=ListedColormap(["#4d4d4d"]),
+        extent=extent,
+        interpolation="nearest",
+    )
+    wall_layer.set_label("walls")
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(-0.5, height - 0.5)
+    ax.set_xticks(range(width))
+    ax.set_yticks(range(height))
+    ax.set_xticks(np.arange(-0.5, width), minor=True)
+    ax.set_yticks(np.arange(-0.5, height), minor=True)
+    ax.grid(which="minor", color="0.6", linewidth=0.5)
+    ax.tick_params(which="minor", length=0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (East)")
+    ax.set_ylabel("y (North)")
+
+    halo = [patheffects.withStroke(linewidth=3, foreground="white")]
+    changed = problem.changed_observations(alteration)
+    stop = pomdp.absorbing | problem.decoy
+    sensor_states = (np.array(pomdp.observations)[pomdp.observation_of] != "b") & ~stop
+    sensor_ids = list(dict.fromkeys(pomdp.observation_of[sensor_states].tolist()))
+    for k, o in enumerate(sensor_ids):
+        name = pomdp.observations[o]
+        altered = name in changed
+        where = cells[sensor_states & (pomdp.observation_of == o)]
+        for x, y in where.tolist():
+            ax.add_patch(
+                Rectangle(
+                    (x - 0.5, y - 0.5),
+                    1,
+                    1,
+                    fill=False,
+                    edgecolor=SENSOR_COLOURS[k % 10],
+                    linewidth=3 if altered else 1.2,
+                    hatch="//" if altered else None,
+                )
+            )
+        x, y = where[0].tolist()
+        ax.text(
+            x,
+            y + 0.3,
+            f"{name}→{changed[name]}" if altered else name,
+            ha="center",
+            va="center",
+            fontsize=7,
+            weight="bold" if altered else "normal",
+            bbox={"facecolor": "white", "alpha": 0.8, "pad": 1, "edgecolor": "none"},
+        )
+    goals = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
+    decoys = np.flatnonzero(problem.decoy)
+    marks = [(pomdp.initial_state, "S", "black")]
+    marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
+    for state, text, colour in marks:
+        x, y = cells[state].tolist()
+        ax.text(
+            x,
+            y - 0.12,
+            text,
+            ha="center",
+            va="center",
+            fontsize=13,
+            weight="bold",
+            color=colour,
+            path_effects=halo,
+        )
+    goal_probability = sum(report.outcomes[pomdp.states[g]] for g in goals)
+    changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
+    ax.set_title(
+        f"{problem.name or 'problem'}: {changes} (cost {report.cost:g})\n"
+        f"Pr(decoy) = {report.probability:.3f}, Pr(goal) = {goal_probability:.3f}\n"
+        "S start, G goal, X decoy, dark grey: wall, hatched: altered sensor",
+        fontsize=8,
+    )
+    ratio = height / width  # keeps the colour bar as tall as the grid, whatever its shape
+    fig.colorbar(image, ax=ax, fraction=0.046 * ratio, pad=0.04, label="expected visits per cell")
+    return fig
+
+
+def _draw_grid(problem: Problem, alteration: Alteration, cells: np.ndarray, output: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig = grid_figure(problem, alteration, cells)
+    try:
+        fig.savefig(output, dpi=150, bbox_inches="tight")
+    except OSError as error:
+        raise ProblemError(f"cannot write {output}: {error.strerror}", field="-o") from None
+    finally:
+        plt.close(fig)
     return output
 
 

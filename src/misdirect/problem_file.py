@@ -398,7 +398,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     obs_index = {name: i for i, name in enumerate(pomdp.observations)}
     cost = _compile_cost(spec.deception.cost, obs_index)
     if enabled is not None:
-        cost = forbid_disabled_actions(cost, pomdp, controller, enabled)
+        cost = forbid_disabled_actions(cost, pomdp, controller, enabled, decoy)
     return Problem(
         pomdp=pomdp,
         controller=controller,
@@ -662,14 +662,17 @@ _FlowListDumper.add_representer(dict, _represent_dict)
 def write_problem(problem: Problem, path: str | Path) -> None:
     """Write ``problem`` as YAML, or JSON when the file name ends in ``.json``."""
     path = Path(path)
+    path.write_text(problem_text(problem, as_json=path.suffix.lower() == ".json"), encoding="utf-8")
+
+
+def problem_text(problem: Problem, *, as_json: bool = False) -> str:
+    """The explicit ``misdirect/v1`` document of ``problem`` as YAML (or JSON) text."""
     document = problem_to_document(problem)
-    if path.suffix.lower() == ".json":
-        path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
-    else:
-        text = yaml.dump(
-            document, Dumper=_FlowListDumper, sort_keys=False, width=100, allow_unicode=True
-        )
-        path.write_text(text, encoding="utf-8")
+    if as_json:
+        return json.dumps(document, indent=1) + "\n"
+    return yaml.dump(
+        document, Dumper=_FlowListDumper, sort_keys=False, width=100, allow_unicode=True
+    )
 
 
 def json_schema() -> dict[str, Any]:

@@ -1,7 +1,9 @@
 """Monte-Carlo simulation of the attacked robot, straight from the POMDP and the controller.
 
-It does not use the product chain, so it is an independent check of the evaluator, and it is
-vectorised over runs: each step advances every live run with a handful of numpy operations.
+It does not use the evaluator's product chain, so it is an independent check of the evaluator,
+and it is vectorised over runs: each step advances every live run with a handful of numpy
+operations. The only graph it builds is which (state, memory node) pairs can still reach a
+decoy or absorbing state, to stop runs that never would.
 """
 
 from __future__ import annotations
@@ -9,17 +11,23 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
-from misdirect.model import Alteration, Problem
+from misdirect.model import Alteration, Problem, reachable_from
 
 
 @dataclass(frozen=True)
 class Simulation:
+    """Outcome counts of ``runs`` simulated runs; they add up to ``runs``:
+    ``decoy_hits + sum(absorbed) + trapped + unfinished``."""
+
     runs: int
     decoy_hits: int
-    absorbed: dict[str, int]  # absorbing non-decoy state -> runs that stopped there
+    absorbed: dict[str, int]  # absorbing non-decoy (goal) state -> runs that stopped there
     unfinished: int  # runs still going after max_steps
-    mean_steps: float  # over runs that stopped
+    mean_steps: float  # over finished runs only: those that stopped in a decoy or goal state
+    trapped: int = 0  # runs stopped in a product state from which no decoy or goal is reachable
+    decoys: dict[str, int] = field(default_factory=dict)  # decoy state -> runs that ended there
     trajectories: list[tuple[int, int, str, str, str, str]] = field(default_factory=list)
     # (run, step, state, memory node, observation received, action) for the recorded runs
 
@@ -51,7 +59,10 @@ def simulate(
 ) -> Simulation:
     """Run the robot ``runs`` times; a run stops in a decoy or absorbing state.
 
-    The first ``record`` runs are kept step by step as trajectories.
+    A run that enters a product state (world state, memory node) from which no decoy or
+    absorbing state is reachable under this alteration is stopped there too and counted as
+    ``trapped``: it would go on forever. The first ``record`` runs are kept step by step as
+    trajectories.
     """
     rng = np.random.default_rng(seed)
     pomdp, controller = problem.pomdp, problem.controller
@@ -72,11 +83,17 @@ def simulate(
     steps = np.zeros(runs, dtype=np.int64)
     live = np.arange(runs)
     stop = problem.decoy | pomdp.absorbing
+    n_nodes = controller.n_nodes
+    can_stop = _can_stop(problem, alpha, stop)  # over product states s * |N| + n
+    trapped_at = np.zeros(runs, dtype=bool)
     trajectories: list[tuple[int, int, str, str, str, str]] = []
     for step in range(max_steps + 1):
-        done = stop[state[live]]
+        here = state[live]
+        done = stop[here]
+        stuck = ~done & ~can_stop[here * n_nodes + node[live]]
         if record:
-            for run in live[done & (live < record)].tolist():
+            for k in np.flatnonzero((done | stuck) & (live < record)).tolist():
+                run = int(live[k])
                 trajectories.append(
                     (
                         run,
@@ -84,12 +101,13 @@ def simulate(
                         pomdp.states[state[run]],
                         controller.nodes[node[run]],
                         "",
-                        "(stopped)",
+                        "(stopped)" if done[k] else "(trapped: never stops)",
                     )
                 )
-        stopped_at[live[done]] = state[live[done]]
+        stopped_at[live[done]] = here[done]
         steps[live[done]] = step
-        live = live[~done]
+        trapped_at[live[stuck]] = True
+        live = live[~(done | stuck)]
         if live.size == 0 or step == max_steps:
             break
         seen = alpha[pomdp.observation_of[state[live]]]
@@ -114,16 +132,36 @@ def simulate(
         state[live] = matrix.indices[pick]
 
     finished = stopped_at >= 0
-    decoy_hits = int(problem.decoy[stopped_at[finished]].sum())
-    absorbed = {
-        pomdp.states[s]: int((stopped_at == s).sum())
-        for s in np.flatnonzero(pomdp.absorbing & ~problem.decoy)
-    }
+    ended = np.bincount(stopped_at[finished], minlength=pomdp.n_states)
+    goals = pomdp.absorbing & ~problem.decoy
     return Simulation(
         runs=runs,
-        decoy_hits=decoy_hits,
-        absorbed=absorbed,
-        unfinished=int((~finished).sum()),
+        decoy_hits=int(ended[problem.decoy].sum()),
+        absorbed={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(goals)},
+        unfinished=int((~finished & ~trapped_at).sum()),
         mean_steps=float(steps[finished].mean()) if finished.any() else float("nan"),
+        trapped=int(trapped_at.sum()),
+        decoys={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(problem.decoy)},
         trajectories=sorted(trajectories),
     )
+
+
+def _can_stop(problem: Problem, alpha: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Mask over product states ``s * |N| + n``: some decoy or absorbing state is reachable from
+    there under ``alpha``. Built here from the POMDP and the controller (structure only, not
+    the evaluator's product chain), then searched backwards from the stopping states."""
+    pomdp, controller = problem.pomdp, problem.controller
+    n_states, n_nodes = pomdp.n_states, controller.n_nodes
+    received = alpha[pomdp.observation_of]
+    world = np.repeat(np.arange(n_states), n_nodes)
+    node = np.tile(np.arange(n_nodes), n_states)
+    action = controller.action[node, received[world]]
+    next_node = controller.update[node, received[world]]
+    rows = pomdp.transitions[action * n_states + world]
+    source = np.repeat(np.arange(world.size), np.diff(rows.indptr))
+    target = rows.indices.astype(np.int64) * n_nodes + next_node[source]
+    size = n_states * n_nodes
+    backwards = sp.csr_matrix(
+        (np.ones(target.size, dtype=np.int8), (target, source)), shape=(size, size)
+    )
+    return reachable_from(backwards, np.flatnonzero(stop[world]))

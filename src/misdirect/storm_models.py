@@ -57,7 +57,7 @@ def load_storm_pomdp(
         if kind == "prism":
             program = stormpy.parse_prism_program(str(path))
             if constants:
-                program, _ = stormpy.instantiate_constants(program, constants)
+                program = _instantiate(stormpy, program, constants)
             if program.has_undefined_constants:
                 missing = ", ".join(c.name for c in program.constants if not c.defined)
                 raise ProblemError(
@@ -86,9 +86,33 @@ def load_storm_pomdp(
     return _translate(model, field)
 
 
-def _clean(valuation: str) -> str:
-    """``[s=2\\t& o=3]`` -> ``s=2,o=3``."""
-    return re.sub(r"\s*&\s*", ",", valuation.strip().strip("[]").strip())
+def _instantiate(stormpy, program, constants: str):
+    """Set ``constants`` ("N=5,p=0.1"); a bad definition is an error in ``pomdp.constants``."""
+    try:
+        program, _ = stormpy.instantiate_constants(program, constants)
+    except Exception as error:  # Storm raises RuntimeError (WrongFormatException) here
+        message = " ".join(str(error).split())
+        message = re.sub(
+            r"^(\w+Exception: )?Illegal constant definition string[^:]*: ", "", message
+        )
+        message = re.sub(r"^\w+Exception: ", "", message).rstrip(".")
+        undefined = [c.name for c in program.constants if not c.defined]
+        known = ", ".join(undefined) if undefined else "none: the program defines all of them"
+        raise ProblemError(
+            f"cannot set {constants!r}: {message} (constants to set: {known})",
+            field="pomdp.constants",
+        ) from None
+    return program
+
+
+def valuation_name(valuation: object) -> str:
+    """Storm's valuation text as a name: ``[s=2\\t& o=3]`` -> ``s=2,o=3``.
+
+    The one place this normalisation lives: observation names of Storm models and the
+    observation labels of PAYNT controllers (which PAYNT writes in Storm's form) both go
+    through it, so they match.
+    """
+    return re.sub(r"\s*&\s*", ",", str(valuation).strip().strip("[]").strip())
 
 
 def _translate(model, field: str) -> StormPomdp:
@@ -100,14 +124,15 @@ def _translate(model, field: str) -> StormPomdp:
             field=field,
         )
     if model.has_state_valuations():
-        names = [_clean(model.state_valuations.to_string(s)) for s in range(n_states)]
+        names = [valuation_name(model.state_valuations.to_string(s)) for s in range(n_states)]
         if len(set(names)) != n_states:
             names = [f"s{s}" for s in range(n_states)]
     else:
         names = [f"s{s}" for s in range(n_states)]
     n_obs = model.nr_observations
     if model.has_observation_valuations():
-        observations = [_clean(model.observation_valuations.to_string(o)) for o in range(n_obs)]
+        valuations = model.observation_valuations
+        observations = [valuation_name(valuations.to_string(o)) for o in range(n_obs)]
         if len(set(observations)) != n_obs:
             observations = [f"obs{o}" for o in range(n_obs)]
     else:
@@ -137,9 +162,14 @@ def _translate(model, field: str) -> StormPomdp:
                 dst.append(entry.column)
                 prob.append(float(entry.value))
     act_a, src_a = np.array(act, dtype=np.int64), np.array(src, dtype=np.int64)
+    dst_a = np.array(dst, dtype=np.int64)
     n_actions = len(action_index)
     enabled = np.zeros((n_states, n_actions), dtype=bool)
     enabled[src_a, act_a] = True
+    # a state whose every enabled choice stays put is absorbing (as under `stay`, its disabled
+    # actions do too): runs end there, and outcomes and simulation report it as such
+    leaves = np.bincount(src_a[dst_a != src_a], minlength=n_states) > 0
+    absorbing = ~leaves
     # a disabled (state, action) is a self-loop in the matrix; `forbid` is enforced on costs
     loops_s, loops_a = np.nonzero(~enabled)
     pomdp = Pomdp.from_triplets(
@@ -150,14 +180,13 @@ def _translate(model, field: str) -> StormPomdp:
         observation_of=np.array(list(model.observations), dtype=np.int64),
         action=np.concatenate([act_a, loops_a]),
         source=np.concatenate([src_a, loops_s]),
-        target=np.concatenate([np.array(dst, dtype=np.int64), loops_s]),
+        target=np.concatenate([dst_a, loops_s]),
         probability=np.concatenate([np.array(prob), np.ones(loops_s.size)]),
-        absorbing=np.zeros(n_states, dtype=bool),
+        absorbing=absorbing,
     )
     labels = {}
     for label in model.labeling.get_labels():
         mask = np.zeros(n_states, dtype=bool)
-        states = model.labeling.get_states(label)
-        mask[[s for s in range(n_states) if states.get(s)]] = True
+        mask[np.fromiter(model.labeling.get_states(label), dtype=np.int64)] = True
         labels[label] = mask
     return StormPomdp(pomdp=pomdp, labels=labels, enabled=enabled)
