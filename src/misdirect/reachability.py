@@ -8,12 +8,12 @@ linear system non-singular.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg.lapack import dgbsv
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.model import reachable_from
@@ -36,8 +36,11 @@ def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, 
     return prob0, ~can_miss
 
 
-PARALLEL_MIN_STATES = 5_000  # below this one factorisation is faster than threads
-SEPARATOR_MAX = 512  # block elimination only pays with a small separator
+DIRECT_MAX_STATES = 5_000  # below this one LU of the whole system is fastest
+CHUNK_STATES = 1_000  # consecutive components are factorised together up to about this many
+BAND_MIN_STATES = 32  # a component this large that is a thin band gets a banded solve ...
+BAND_MAX = 8  # ... if no transition reaches further than this in its state order
+SEPARATOR_MAX = 512  # cutting a separator only pays when it is small
 
 
 def factorise(a: sp.spmatrix) -> SuperLU:
@@ -70,51 +73,159 @@ def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndar
     return factorise(a).solve(b, trans="T" if transpose else "N")
 
 
-def solve_by_blocks(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> np.ndarray | None:
-    """Solve ``(I - a) x = b`` by block elimination along ``labels``, blocks in parallel.
+def _rows(matrix: sp.csr_matrix, start: int, stop: int) -> tuple[np.ndarray, ...]:
+    """CSR arrays of rows ``start:stop`` without scipy's per-slice checks."""
+    first, last = matrix.indptr[start], matrix.indptr[stop]
+    return (
+        matrix.data[first:last],
+        matrix.indices[first:last],
+        matrix.indptr[start : stop + 1] - first,
+    )
 
-    The product chain of a controller that rarely changes its memory node splits by node:
-    only the states that read a memory-changing observation have transitions into another
-    node's block. Those states form the separator ``S``; the rest is block-diagonal by label.
-    Each block is factorised in its own thread (SuperLU releases the GIL), then the small
-    Schur complement on ``S`` gives ``x_S`` and back-substitution the rest. Every principal
-    submatrix and Schur complement of the non-singular M-matrix ``I - a`` is again one, so
-    no step can break down. ``None`` when the split would not pay.
+
+def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None:
+    """Solve ``system @ x = rhs`` by block substitution over strongly connected components.
+
+    A chain that mostly moves forward (the grid robot's E and N moves) splits into many small
+    strongly connected components. Ordered so that every component comes after the ones it
+    leads to, the system is block lower triangular, and it is solved chunk by chunk, each
+    chunk once the chunks it leads to are known (Storm's topological solver, with direct
+    solves inside):
+
+    * a component of at least ``BAND_MIN_STATES`` states that is a thin band in its own state
+      order (a corridor, a grid column: bandwidth at most ``BAND_MAX``) is one chunk, solved
+      by LAPACK's banded LU in time linear in its size;
+    * other components are grouped, in order, into chunks of about ``CHUNK_STATES`` states,
+      each factorised by sparse LU alone (its fill cannot leave the chunk).
+
+    ``rhs`` may hold several columns. ``None`` when one component holds most of the states:
+    one LU of the whole system is then better. ``system`` must be a non-singular M-matrix
+    (every diagonal block of one is one too).
+    """
+    system = sp.csr_matrix(system)
+    n = system.shape[0]
+    count, component = connected_components(system, directed=True, connection="strong")
+    sizes = np.bincount(component, minlength=count)
+    if sizes.max() > n // 2:
+        return None
+    coo = system.tocoo()
+    # SciPy numbers components in the order it completes them: successors first. Check it,
+    # since the substitution below is only right in that order.
+    if np.any(component[coo.row] < component[coo.col]):
+        return None
+    order = np.argsort(component, kind="stable")
+    position = np.empty(n, dtype=np.int64)
+    position[order] = np.arange(n)
+    row, col = position[coo.row], position[coo.col]
+
+    # Bandwidths of each component in its own state order, and which get a banded solve.
+    ends = np.cumsum(sizes)
+    starts = ends - sizes
+    same = component[coo.row] == component[coo.col]
+    lower = np.zeros(count, dtype=np.int64)
+    upper = np.zeros(count, dtype=np.int64)
+    np.maximum.at(lower, component[coo.row[same]], (row - col)[same])
+    np.maximum.at(upper, component[coo.row[same]], (col - row)[same])
+    banded = (sizes >= BAND_MIN_STATES) & (lower <= BAND_MAX) & (upper <= BAND_MAX)
+    cuts = ends[np.flatnonzero(np.diff(ends // CHUNK_STATES, prepend=0) > 0)]
+    bounds = np.unique(np.concatenate(([0, n], cuts, starts[banded], ends[banded])))
+    is_band = np.zeros(bounds.size, dtype=bool)
+    is_band[np.searchsorted(bounds, starts[banded])] = True
+
+    # Entries inside a chunk form its diagonal block; the rest point to chunks solved earlier.
+    chunk = np.searchsorted(bounds, np.arange(n), side="right") - 1
+    in_band = is_band[chunk]
+    inside = chunk[row] == chunk[col]
+    sparse_part = inside & ~in_band[row]
+    diagonal = sp.csr_matrix(
+        (coo.data[sparse_part], (row[sparse_part], col[sparse_part])), shape=(n, n)
+    )
+    kl = int(lower[banded].max(initial=0))
+    ku = int(upper[banded].max(initial=0))
+    band = np.zeros((2 * kl + ku + 1, n))  # LAPACK's band storage, with room for pivoting
+    band_part = inside & in_band[row]
+    band[kl + ku + row[band_part] - col[band_part], col[band_part]] = coo.data[band_part]
+    before = sp.csr_matrix((coo.data[~inside], (row[~inside], col[~inside])), shape=(n, n))
+    before_row = np.repeat(np.arange(n), np.diff(before.indptr))
+
+    x = np.asarray(rhs, dtype=np.float64)[order]  # the right-hand side, overwritten by x
+    single = x.ndim == 1
+    if single:
+        x = x[:, None]
+    x = np.ascontiguousarray(x)
+    for k, (start, stop) in enumerate(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)):
+        first, last = before.indptr[start], before.indptr[stop]
+        if last > first:  # subtract what the chunks solved so far contribute
+            np.subtract.at(
+                x,
+                before_row[first:last],
+                before.data[first:last, None] * x[before.indices[first:last]],
+            )
+        if is_band[k]:
+            _, _, solved, info = dgbsv(kl, ku, band[:, start:stop], x[start:stop])
+            if info != 0:
+                return None
+        else:
+            size = stop - start
+            data, indices, indptr = _rows(diagonal, start, stop)
+            # The chunk's rows in CSR are its transpose in CSC: factorise that, solve transposed.
+            block_t = sp.csc_matrix((data, indices - start, indptr), shape=(size, size))
+            solved = _lu(block_t).solve(x[start:stop], trans="T")
+        x[start:stop] = solved
+    x = x[position]
+    return x[:, 0] if single else x
+
+
+def solve_with_separator(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> np.ndarray | None:
+    """Solve ``(I - a) x = b`` by cutting the states whose edges cross between ``labels``.
+
+    The product chain of a controller that rarely changes its memory node splits by node: only
+    the states that read a memory-changing observation have transitions into another node's
+    part. Those states form the separator ``S``; without them the chain falls apart into the
+    small components :func:`solve_topological` is fast on. The interior ``I`` is solved for
+    ``b_I`` and for the coupling columns at once, the small dense Schur complement on ``S``
+    gives ``x_S``, and back-substitution the rest. Every principal submatrix and Schur
+    complement of the non-singular M-matrix ``I - a`` is again one, so no step can break
+    down. ``None`` when the cut would not pay.
     """
     n = a.shape[0]
     coo = sp.coo_matrix(a)
-    crossing = labels[coo.row] != labels[coo.col]
     separator = np.zeros(n, dtype=bool)
-    separator[coo.row[crossing]] = True  # every edge between blocks starts in S
-    interior = [np.flatnonzero(~separator & (labels == k)) for k in np.unique(labels[~separator])]
-    if separator.sum() > SEPARATOR_MAX or len(interior) < 2:
+    separator[coo.row[labels[coo.row] != labels[coo.col]]] = True  # every crossing edge
+    if separator.sum() > SEPARATOR_MAX or separator.all():
         return None
     system = (sp.identity(n, format="csr") - sp.csr_matrix(a)).tocsr()
-    border = np.flatnonzero(separator)
-    border_rows = system[border]
-
-    def eliminate(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rows = system[block]
-        lu = _lu(rows[:, block])
-        coupling = rows[:, border].toarray()
-        y_coupling = lu.solve(coupling) if border.size else coupling
-        return y_coupling, lu.solve(b[block])
-
-    workers = min(len(interior), os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        parts = list(pool.map(eliminate, interior))
-    schur = border_rows[:, border].toarray()
-    rhs = b[border].astype(np.float64)
-    for block, (y_coupling, y) in zip(interior, parts, strict=True):
-        to_block = border_rows[:, block]
-        schur -= to_block @ y_coupling
-        rhs -= to_block @ y
+    border, interior = np.flatnonzero(separator), np.flatnonzero(~separator)
+    interior_rows, border_rows = system[interior], system[border]
+    coupling = interior_rows[:, border].toarray()
+    solved = solve_topological(interior_rows[:, interior], np.column_stack([b[interior], coupling]))
+    if solved is None:
+        return None
+    y, y_coupling = solved[:, 0], solved[:, 1:]
+    to_interior = border_rows[:, interior]
+    schur = border_rows[:, border].toarray() - to_interior @ y_coupling
+    x_border = np.linalg.solve(schur, b[border] - to_interior @ y) if border.size else b[border]
     x = np.empty(n)
-    x_border = np.linalg.solve(schur, rhs) if border.size else rhs
     x[border] = x_border
-    for block, (y_coupling, y) in zip(interior, parts, strict=True):
-        x[block] = y - y_coupling @ x_border
+    x[interior] = y - y_coupling @ x_border
     return x
+
+
+def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+    """Solve ``(I - a) x = b`` by the fastest exact route for the chain's shape.
+
+    Large chains are tried by components (:func:`solve_topological`), then with a separator
+    along ``labels`` (:func:`solve_with_separator`); one sparse LU is the fallback and the
+    route for small systems.
+    """
+    if a.shape[0] >= DIRECT_MAX_STATES:
+        system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)
+        solved = solve_topological(system, b)
+        if solved is None and labels is not None:
+            solved = solve_with_separator(a, b, labels)
+        if solved is not None:
+            return solved
+    return _solve(a, b)
 
 
 def reach_probabilities(
@@ -122,8 +233,8 @@ def reach_probabilities(
 ) -> np.ndarray:
     """Probability of ever reaching ``target`` from every state (least fixed point).
 
-    ``blocks`` (e.g. the memory node of each product state) lets large systems be solved by
-    :func:`solve_by_blocks`.
+    ``blocks`` (e.g. the memory node of each product state) offers :func:`solve_chain` a
+    separator to cut along.
     """
     prob0, prob1 = prob0_prob1(matrix, target)
     values = prob1.astype(np.float64)
@@ -131,11 +242,8 @@ def reach_probabilities(
     if maybe.size:
         rows = matrix[maybe]
         b = np.asarray(rows[:, np.flatnonzero(prob1)].sum(axis=1)).ravel()
-        inner = rows[:, maybe]
-        solved = None
-        if blocks is not None and maybe.size >= PARALLEL_MIN_STATES:
-            solved = solve_by_blocks(inner, b, blocks[maybe])
-        values[maybe] = _solve(inner, b) if solved is None else solved
+        labels = None if blocks is None else blocks[maybe]
+        values[maybe] = solve_chain(rows[:, maybe], b, labels)
     return np.clip(values, 0.0, 1.0)
 
 
