@@ -710,11 +710,22 @@ def reproduce(
             }
         )
         return
-    table = Table(title=escape(f"misdirect reproduce ({report.mode}) — {report.out}/report.md"))
-    for column in ("experiment", "ours", "paper", "agrees"):
-        table.add_column(column)
+    out.print(escape(f"misdirect reproduce ({report.mode}): ours beside the paper"), style="bold")
+    table = Table.grid(padding=(0, 1))
+    table.add_column(style="dim", no_wrap=True)
+    table.add_column(overflow="fold")
     for row in report.summary:
-        table.add_row(*(escape(row[c]) for c in ("experiment", "ours", "paper", "agrees")))
+        agrees = row["agrees"]
+        colour = "green" if agrees == "yes" else ("red" if agrees == "NO" else "yellow")
+        table.add_row("", "")
+        table.add_row(
+            f"[bold]{escape(row['experiment'])}[/]", f"agrees: [{colour}]{escape(agrees)}[/]"
+        )
+        table.add_row("  ours", escape(row["ours"]))
+        table.add_row("  paper", escape(row["paper"]))
+        for note in row.get("notes", []):
+            flagged = note.startswith(("UNVERIFIED", "timed out"))
+            table.add_row("  note", f"[bold red]{escape(note)}[/]" if flagged else escape(note))
     out.print(table)
     out.print(
         escape(f"{report.time_s:.1f} s; tables, figures and report.md in {report.out}/"),

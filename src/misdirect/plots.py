@@ -14,10 +14,18 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib import patheffects
+from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
-from matplotlib.patches import Rectangle
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Rectangle
 
 SENSOR_COLOURS = plt.get_cmap("tab10").colors
+HEAT_MAP = "viridis"  # perceptual; the busiest cells are bright, never near-black
+VISITS_FLOOR = 1e-3  # cells visited less than this share the darkest colour
+ABSORBING_FILL = "0.85"  # grey, outside the heat map's colours
+ALTERED = "#ff1f5b"  # outline of an altered sensor
+HALO = [patheffects.withStroke(linewidth=3, foreground="white")]
 
 
 def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg")) -> list[Path]:
@@ -27,6 +35,20 @@ def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg"))
         fig.savefig(path, dpi=150, bbox_inches="tight")
     plt.close(fig)
     return paths
+
+
+def _frame(ax, width: int, height: int) -> None:
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(-0.5, height - 0.5)
+    ax.set_xticks(range(width))
+    ax.set_yticks(range(height))
+    ax.set_xticks(np.arange(-0.5, width), minor=True)
+    ax.set_yticks(np.arange(-0.5, height), minor=True)
+    ax.grid(which="minor", color="0.6", linewidth=0.5)
+    ax.tick_params(which="minor", length=0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (East)")
+    ax.set_ylabel("y (North)")
 
 
 def _draw_cells(ax, n: int, sensors: dict[str, list[tuple[int, int]]], alpha: float) -> None:
@@ -44,30 +66,40 @@ def _draw_cells(ax, n: int, sensors: dict[str, list[tuple[int, int]]], alpha: fl
             )
         x, y = cells[0]
         ax.text(x, y + 0.28, name, ha="center", va="center", fontsize=8, weight="bold")
-    ax.set_xlim(-0.5, n - 0.5)
-    ax.set_ylim(-0.5, n - 0.5)
-    ax.set_xticks(range(n))
-    ax.set_yticks(range(n))
-    ax.set_xticks(np.arange(-0.5, n), minor=True)
-    ax.set_yticks(np.arange(-0.5, n), minor=True)
-    ax.grid(which="minor", color="0.6", linewidth=0.5)
-    ax.tick_params(which="minor", length=0)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (East)")
-    ax.set_ylabel("y (North)")
+    _frame(ax, n, n)
 
 
-def _mark(ax, cell: tuple[int, int], text: str, colour: str) -> None:
+def _mark(ax, cell: tuple[int, int], text: str, colour: str, dy: float = -0.12) -> None:
+    """A big letter (S, G, X) in a cell, with a white halo so it reads on any colour."""
     ax.text(
         cell[0],
-        cell[1] - 0.12,
+        cell[1] + dy,
         text,
         ha="center",
         va="center",
         fontsize=13,
         weight="bold",
         color=colour,
+        path_effects=[patheffects.withStroke(linewidth=3.5, foreground="white")],
+        zorder=6,
     )
+
+
+def _outline(cells: Sequence[tuple[int, int]]) -> list[list[tuple[float, float]]]:
+    """The boundary of a set of cells: every cell side not shared with another cell of the set."""
+    inside = {tuple(c) for c in cells}
+    segments = []
+    for x, y in inside:
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            if (x + dx, y + dy) in inside:
+                continue
+            if dx:
+                edge = x + dx / 2
+                segments.append([(edge, y - 0.5), (edge, y + 0.5)])
+            else:
+                edge = y + dy / 2
+                segments.append([(x - 0.5, edge), (x + 0.5, edge)])
+    return segments
 
 
 def grid_layout(
@@ -79,13 +111,19 @@ def grid_layout(
     stem: Path,
 ) -> list[Path]:
     """The grid world: sensor regions, start, true goal and decoy (hazard)."""
-    fig, ax = plt.subplots(figsize=(4.2, 4.2))
+    fig, ax = plt.subplots(figsize=(4.2, 4.2), layout="constrained")
     _draw_cells(ax, n, sensors, alpha=0.55)
+    for cell in (goal, decoy):
+        ax.add_patch(
+            Rectangle((cell[0] - 0.5, cell[1] - 0.5), 1, 1, facecolor=ABSORBING_FILL, hatch="..")
+        )
     _mark(ax, start, "S", "black")
     _mark(ax, goal, "G", "darkgreen")
     _mark(ax, decoy, "X", "crimson")
     ax.set_title(
-        f"{n}x{n} grid: sensors o0–o6, start S,\ngoal G, decoy X (blank cells: b)", fontsize=9
+        f"{n}x{n} grid: sensors o0–o6, start S, goal G, decoy X\n"
+        "(grey: the run ends there; blank cells report b)",
+        fontsize=9,
     )
     return save(fig, stem)
 
@@ -99,73 +137,197 @@ def attack_heatmaps(
     panels: Sequence[dict],
     stem: Path,
     formats: Sequence[str] = (".png", ".svg"),
+    note: str = "",
 ) -> list[Path]:
     """One panel per budget: expected visits per cell under the optimal attack.
 
-    Each panel dict has ``budget``, ``visits`` ((n, n) array indexed [y, x]), ``probability``,
-    ``goal_probability`` and ``alteration`` ({observation: received}).
+    Each panel dict has ``budget``, ``visits`` ((height, width) array indexed [y, x]),
+    ``probability``, ``goal_probability`` and ``alteration`` ({observation: received}).
+    ``note`` is printed under the title (e.g. how the controller reacts to each sensor).
+    Goal and decoy are absorbing: no step is spent there, so they are drawn grey with the
+    probability of ending there instead of a visit count.
     """
     cols = len(panels)
-    fig, axes = plt.subplots(1, cols, figsize=(4.4 * cols, 4.8), squeeze=False)
-    positive = np.concatenate([p["visits"][p["visits"] > 0] for p in panels])
-    norm = LogNorm(vmin=max(positive.min(), 1e-4), vmax=positive.max())
+    height, width = np.asarray(panels[0]["visits"]).shape
+    numbers = max(width, height) <= 8  # write the count in each cell while it stays readable
+    fig, axes = plt.subplots(
+        1, cols, figsize=(4.3 * cols + 1.2, 6.0), squeeze=False, layout="constrained"
+    )
+    top = max(float(np.max(p["visits"])) for p in panels)
+    norm = LogNorm(vmin=VISITS_FLOOR, vmax=max(top, 10 * VISITS_FLOOR))
+    cmap = plt.get_cmap(HEAT_MAP)
+    ends = {goal: "goal_probability", decoy: "probability"}
     image = None
     for ax, panel in zip(axes[0], panels, strict=True):
-        visits = np.where(panel["visits"] > 0, panel["visits"], np.nan)
+        visits = np.asarray(panel["visits"], dtype=float)
+        shown = np.clip(visits, VISITS_FLOOR, None)
         image = ax.imshow(
-            visits, origin="lower", cmap="magma_r", norm=norm, extent=(-0.5, n - 0.5, -0.5, n - 0.5)
+            shown,
+            origin="lower",
+            cmap=cmap,
+            norm=norm,
+            extent=(-0.5, width - 0.5, -0.5, height - 0.5),
         )
-        _draw_cells(ax, n, {}, alpha=0)
-        for k, (name, cells) in enumerate(sensors.items()):
-            altered = name in panel["alteration"]
-            for x, y in cells:
-                ax.add_patch(
-                    Rectangle(
-                        (x - 0.5, y - 0.5),
-                        1,
-                        1,
-                        fill=False,
-                        edgecolor=SENSOR_COLOURS[k % 10],
-                        linewidth=3 if altered else 1.2,
-                        hatch="//" if altered else None,
-                    )
+        _frame(ax, width, height)
+        for cell, key in ends.items():
+            if not (0 <= cell[0] < width and 0 <= cell[1] < height):
+                continue
+            ax.add_patch(
+                Rectangle(
+                    (cell[0] - 0.5, cell[1] - 0.5),
+                    1,
+                    1,
+                    facecolor=ABSORBING_FILL,
+                    edgecolor="0.4",
+                    hatch="..",
+                    zorder=2,
                 )
-            x, y = cells[0]
+            )
+            ax.text(
+                cell[0],
+                cell[1] - 0.32,
+                f"ends {panel[key]:.3f}",
+                ha="center",
+                va="center",
+                fontsize=6.5,
+                zorder=6,
+                bbox={"facecolor": "white", "alpha": 0.85, "pad": 0.8, "edgecolor": "none"},
+            )
+        if numbers:
+            for y in range(height):
+                for x in range(width):
+                    if (x, y) in ends:
+                        continue
+                    value = visits[y, x]
+                    dark = norm(max(value, VISITS_FLOOR)) < 0.6
+                    ax.text(
+                        x + 0.44,
+                        y - 0.42,
+                        _count(value),
+                        ha="right",
+                        va="bottom",
+                        fontsize=6,
+                        color="white" if dark else "black",
+                        zorder=4,
+                    )
+        for name, cells in sensors.items():
+            altered = name in panel["alteration"]
+            segments = _outline(cells)
+            ax.add_collection(
+                LineCollection(
+                    segments,
+                    colors=ALTERED if altered else "white",
+                    linewidths=3.2 if altered else 2.2,
+                    capstyle="projecting",
+                    path_effects=[
+                        patheffects.withStroke(
+                            linewidth=5.4 if altered else 4.0,
+                            foreground="white" if altered else "black",
+                        )
+                    ],
+                    zorder=5,
+                    clip_on=False,  # a region on the border keeps its full outline
+                )
+            )
+            x, y = max(cells, key=lambda c: (c[1], -c[0]))  # top-left cell of the region
             label = f"{name}→{panel['alteration'][name]}" if altered else name
             ax.text(
                 x,
-                y + 0.3,
+                y + 0.27,
                 label,
                 ha="center",
                 va="center",
-                fontsize=7,
-                weight="bold" if altered else "normal",
-                bbox={"facecolor": "white", "alpha": 0.8, "pad": 1, "edgecolor": "none"},
+                fontsize=7.5 if altered else 7,
+                weight="bold",
+                color=ALTERED if altered else "black",
+                zorder=7,
+                bbox={"facecolor": "white", "alpha": 0.9, "pad": 1.2, "edgecolor": "none"},
             )
         _mark(ax, start, "S", "black")
-        _mark(ax, goal, "G", "darkgreen")
-        _mark(ax, decoy, "X", "crimson")
-        changes = ", ".join(f"{o}→{t}" for o, t in panel["alteration"].items()) or "no alteration"
+        _mark(ax, goal, "G", "darkgreen", dy=0.05)
+        _mark(ax, decoy, "X", "crimson", dy=0.05)
+        changes = ", ".join(f"{o}→{t}" for o, t in panel["alteration"].items()) or "none"
         ax.set_title(
-            f"budget {panel['budget']:g}\nPr(decoy) = {panel['probability']:.3f}, "
-            f"Pr(goal) = {panel['goal_probability']:.3f}\n{changes}",
-            fontsize=8,
+            f"budget {panel['budget']:g}: Pr(end at X) = {panel['probability']:.3f}, "
+            f"Pr(end at G) = {panel['goal_probability']:.3f}\naltered sensors: {changes}",
+            fontsize=8.5,
         )
-    fig.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="expected visits per cell")
-    fig.suptitle("Where the robot goes under the attack (hatched: altered sensors)", fontsize=10)
+    colorbar = fig.colorbar(image, ax=axes[0].tolist(), shrink=0.75, extend="min")
+    colorbar.set_label(f"expected steps spent in the cell (log scale, < {VISITS_FLOOR:g} darkest)")
+    handles = [
+        Patch(
+            facecolor=ABSORBING_FILL,
+            edgecolor="0.4",
+            hatch="..",
+            label="goal G / decoy X: the run ends here (number: probability of ending there)",
+        ),
+        Line2D(
+            [],
+            [],
+            color="white",
+            linewidth=2.2,
+            label="sensor region (unaltered)",
+            path_effects=[patheffects.withStroke(linewidth=4.0, foreground="black")],
+        ),
+        Line2D(
+            [],
+            [],
+            color=ALTERED,
+            linewidth=3.2,
+            label="altered sensor: o1→o2 means sensor o1 now reports o2",
+        ),
+        Line2D([], [], linestyle="none", marker="$S$", color="black", markersize=9, label="start"),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=8, frameon=False)
+    title = "Where the robot goes under the optimal attack, budget by budget"
+    fig.suptitle(title + (f"\n{note}" if note else ""), fontsize=10)
     return save(fig, stem, formats)
 
 
+def _count(value: float) -> str:
+    if value < VISITS_FLOOR:
+        return f"<{VISITS_FLOOR:g}"
+    return f"{value:.2f}" if value >= 0.01 else f"{value:.3f}"
+
+
+def _claims(rows: Sequence[dict]) -> str:
+    claimed = sorted(
+        {
+            round(float(r["claimed_probability"]), 3)
+            for r in rows
+            if r.get("claimed_probability") is not None
+        }
+    )
+    if not claimed:
+        return ""
+    text = f"claims {claimed[0]:g}"
+    if len(claimed) > 1:
+        text += f"–{claimed[-1]:g}"
+    exact = [float(r["probability"]) for r in rows if r.get("probability") is not None]
+    if exact:
+        text += f", true value ≤ {max(exact):.3g}"
+    return text
+
+
 def scalability_panels(
-    rows: Sequence[dict], stem: Path, formats: Sequence[str] = (".png", ".svg")
+    rows: Sequence[dict],
+    stem: Path,
+    formats: Sequence[str] = (".png", ".svg"),
+    *,
+    time_limit: float | None = None,
 ) -> list[Path]:
     """The paper's Fig. 4 (variables, rows, construction time, solve time), both formulations.
 
     Rows have ``n``, ``formulation``, ``variables``, ``rows``, ``build_time_s``,
-    ``solve_time_s``, ``solver_status`` and ``evaluation_time_s``. Solves stopped by the time
-    limit are drawn as open markers at the limit and labelled "timed out", never dropped.
+    ``solve_time_s``, ``solver_status`` and ``evaluation_time_s``; optionally ``status``
+    (ours: ``unverified`` when the MILP's claimed value is not the exact value of its answer),
+    ``claimed_probability`` and ``probability``. Unverified answers are drawn hollow. Solves
+    stopped by the time limit are drawn as upward triangles at the limit, or at the measured
+    time if the solver overran it (the true time is longer either way), labelled "timed out",
+    and not joined to the measured line; they are never dropped.
+    Construction always finishes, so sizes and construction times are measurements.
     """
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.6), layout="constrained")
     panels = [
         ("variables", "variables"),
         ("rows", "constraints (rows)"),
@@ -173,39 +335,133 @@ def scalability_panels(
         ("solve_time_s", "solve time (s)"),
     ]
     styles = {"compact": ("tab:blue", "o", "-"), "paper": ("tab:red", "s", "--")}
+    names = {"compact": "compact MILP", "paper": "paper MILP"}
+    handles: list = []
     for formulation, (colour, marker, line) in styles.items():
         mine = sorted((r for r in rows if r["formulation"] == formulation), key=lambda r: r["n"])
         if not mine:
             continue
+        handles.append(
+            Line2D([], [], color=colour, marker=marker, linestyle=line, label=names[formulation])
+        )
+        wrong = [r for r in mine if r.get("status") == "unverified"]
+        if wrong:
+            claims = _claims(wrong)
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=colour,
+                    marker=marker,
+                    linestyle="none",
+                    markerfacecolor="white",
+                    markeredgewidth=2,
+                    markersize=8,
+                    label=f"{names[formulation]}: claimed optimum wrong"
+                    + (f" ({claims})" if claims else ""),
+                )
+            )
+        late = [r for r in mine if r.get("solver_status") == "time_limit"]
+        if late:
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    color=colour,
+                    marker="^",
+                    linestyle="none",
+                    markersize=10,
+                    label=f"{names[formulation]}: timed out (no proof; true time ≥ the point)",
+                )
+            )
         for ax, (key, label) in zip(axes, panels, strict=True):
-            xs = [r["n"] for r in mine if r.get(key) is not None]
-            ys = [r[key] for r in mine if r.get(key) is not None]
-            ax.plot(xs, ys, line, color=colour, marker=marker, label=formulation)
-            if key == "solve_time_s":
-                late = [r for r in mine if r.get("solver_status") == "time_limit"]
-                if late:
-                    ax.scatter(
-                        [r["n"] for r in late],
-                        [r[key] for r in late],
-                        s=140,
-                        facecolors="none",
-                        edgecolors=colour,
-                        linewidths=2,
-                        label=f"{formulation}: timed out",
+            timed_out = key == "solve_time_s"
+            measured = [
+                r
+                for r in mine
+                if r.get(key) is not None
+                and not (timed_out and r.get("solver_status") == "time_limit")
+            ]
+            ax.plot([r["n"] for r in measured], [r[key] for r in measured], line, color=colour)
+            for hollow in (False, True):
+                pick = [r for r in measured if (r.get("status") == "unverified") == hollow]
+                if pick:
+                    ax.plot(
+                        [r["n"] for r in pick],
+                        [r[key] for r in pick],
+                        linestyle="none",
+                        marker=marker,
+                        color=colour,
+                        markersize=8 if hollow else 6,
+                        markerfacecolor="white" if hollow else colour,
+                        markeredgewidth=2 if hollow else 1,
+                        zorder=4,
+                    )
+            if timed_out and late:
+                # HiGHS can overrun its limit; the true time is at least what was measured
+                ys = [max(time_limit or 0.0, r[key] or 0.0) for r in late]
+                below = formulation == "compact"  # two labels at one n must not collide
+                for r, y in zip(late, ys, strict=True):
+                    hollow = r.get("status") == "unverified"
+                    ax.plot(
+                        [r["n"]],
+                        [y],
+                        linestyle="none",
+                        marker="^",
+                        markersize=11,
+                        color=colour,
+                        markerfacecolor="white" if hollow else colour,
+                        markeredgecolor=colour if hollow else "black",
+                        markeredgewidth=2 if hollow else 1,
                         zorder=5,
+                        gid="timed-out",
+                    )
+                    ax.annotate(
+                        "timed out",
+                        (r["n"], y),
+                        xytext=(0, -10 if below else 9),
+                        textcoords="offset points",
+                        ha="center",
+                        va="top" if below else "bottom",
+                        fontsize=7.5,
+                        color=colour,
+                        weight="bold",
                     )
             ax.set_xlabel("grid size n")
             ax.set_ylabel(label)
             ax.set_yscale("log")
+            sizes = sorted({r["n"] for r in rows})
+            ax.set_xticks(sizes)
+            pad = 0.15 * max(sizes[-1] - sizes[0], 4)  # room for a "timed out" label at the end
+            ax.set_xlim(sizes[0] - pad, sizes[-1] + pad)
             ax.grid(True, which="both", alpha=0.3)
     floor = sorted({(r["n"], r["evaluation_time_s"]) for r in rows if r.get("evaluation_time_s")})
     if floor:
         for ax in axes[2:]:
-            ax.plot(*zip(*floor, strict=True), ":", color="black", label="one exact evaluation")
-    for ax in (axes[0], axes[3]):
-        ax.legend(fontsize=7)
+            ax.plot(*zip(*floor, strict=True), ":", color="black")
+        handles.append(
+            Line2D(
+                [],
+                [],
+                linestyle=":",
+                color="black",
+                label="one exact evaluation of the chain (floor)",
+            )
+        )
+    if time_limit is not None:
+        axes[3].axhline(time_limit, color="0.4", linewidth=1, linestyle="-.")
+        axes[3].margins(y=0.15)
+        handles.append(
+            Line2D(
+                [],
+                [],
+                linestyle="-.",
+                color="0.4",
+                label=f"time limit ({time_limit:g} s per solve)",
+            )
+        )
+    fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=8, frameon=False)
     fig.suptitle(
         "Scalability on the scaled grid (paper Fig. 4): compact vs the paper's MILP", fontsize=10
     )
-    fig.tight_layout()
     return save(fig, stem, formats)
