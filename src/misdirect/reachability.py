@@ -146,7 +146,7 @@ def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None
     band_part = inside & in_band[row]
     band[kl + ku + row[band_part] - col[band_part], col[band_part]] = coo.data[band_part]
     before = sp.csr_matrix((coo.data[~inside], (row[~inside], col[~inside])), shape=(n, n))
-    before_row = np.repeat(np.arange(n), np.diff(before.indptr))
+    depends = np.diff(before.indptr) > 0  # rows with a transition to an earlier chunk
 
     x = np.asarray(rhs, dtype=np.float64)[order]  # the right-hand side, overwritten by x
     single = x.ndim == 1
@@ -155,12 +155,10 @@ def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None
     x = np.ascontiguousarray(x)
     for k, (start, stop) in enumerate(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)):
         first, last = before.indptr[start], before.indptr[stop]
-        if last > first:  # subtract what the chunks solved so far contribute
-            np.subtract.at(
-                x,
-                before_row[first:last],
-                before.data[first:last, None] * x[before.indices[first:last]],
-            )
+        if last > first:  # subtract what the chunks solved so far contribute, row by row
+            rows = start + np.flatnonzero(depends[start:stop])
+            terms = before.data[first:last, None] * x[before.indices[first:last]]
+            x[rows] -= np.add.reduceat(terms, before.indptr[rows] - first, axis=0)
         if is_band[k]:
             _, _, solved, info = dgbsv(kl, ku, band[:, start:stop], x[start:stop])
             if info != 0:
@@ -197,18 +195,22 @@ def solve_with_separator(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> n
     system = (sp.identity(n, format="csr") - sp.csr_matrix(a)).tocsr()
     border, interior = np.flatnonzero(separator), np.flatnonzero(~separator)
     interior_rows, border_rows = system[interior], system[border]
+    rhs = b.reshape(n, -1)
+    columns = rhs.shape[1]
     coupling = interior_rows[:, border].toarray()
-    solved = solve_topological(interior_rows[:, interior], np.column_stack([b[interior], coupling]))
+    solved = solve_topological(
+        interior_rows[:, interior], np.column_stack([rhs[interior], coupling])
+    )
     if solved is None:
         return None
-    y, y_coupling = solved[:, 0], solved[:, 1:]
+    y, y_coupling = solved[:, :columns], solved[:, columns:]
     to_interior = border_rows[:, interior]
     schur = border_rows[:, border].toarray() - to_interior @ y_coupling
-    x_border = np.linalg.solve(schur, b[border] - to_interior @ y) if border.size else b[border]
-    x = np.empty(n)
+    x_border = np.linalg.solve(schur, rhs[border] - to_interior @ y)
+    x = np.empty((n, columns))
     x[border] = x_border
     x[interior] = y - y_coupling @ x_border
-    return x
+    return x.reshape(b.shape)
 
 
 def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
@@ -216,7 +218,7 @@ def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None)
 
     Large chains are tried by components (:func:`solve_topological`), then with a separator
     along ``labels`` (:func:`solve_with_separator`); one sparse LU is the fallback and the
-    route for small systems.
+    route for small systems. ``b`` may hold several columns.
     """
     if a.shape[0] >= DIRECT_MAX_STATES:
         system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)

@@ -1,11 +1,12 @@
-"""Enumeration with low-rank updates: one LU per outer choice, a tiny solve per alteration.
+"""Enumeration with low-rank updates: one base solve per outer choice, a tiny one per alteration.
 
 Altering an observation changes only the rows of the product chain whose world state emits it.
 Observations that cover few product states (sensors) are *inner*: for each choice of the
-*outer* ones (the blank reading that covers most of the map), the chain is factorised once and
-``W = A⁻¹ E_R`` is computed for the inner rows ``R``. An inner alteration then replaces a few
-rows, and Sherman–Morrison–Woodbury gives the new value at the start from an ``|C| x |C|``
-system, ``C`` the changed rows:
+*outer* ones (the blank reading that covers most of the map), the chain is solved once, for
+its value ``x0`` and for ``W = A⁻¹ E_R`` on the inner rows ``R`` (one call of
+:func:`misdirect.reachability.solve_chain` with all those right-hand sides). An inner
+alteration then replaces a few rows, and Sherman–Morrison–Woodbury gives the new value at the
+start from an ``|C| x |C|`` system, ``C`` the changed rows:
 
     x'(q0) = x0(q0) + W(q0, C) [Δb + (I − D W_C)⁻¹ (D x0 + D W_C Δb)]
 
@@ -28,7 +29,7 @@ from misdirect.choice_product import build_choice_product, end_component_states
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
-from misdirect.reachability import factorise
+from misdirect.reachability import solve_chain
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
@@ -91,6 +92,7 @@ class IncrementalSolver:
         to_target = np.asarray(chain.transitions @ chain.target.astype(np.float64)).ravel()
         inside = chain.transitions[:, np.flatnonzero(live)].tocsr()  # (G, n_live)
         start = int(live_index[chain.initial]) if live[chain.initial] else -1
+        live_node = chain.node[live]  # memory nodes: a separator for solve_chain to cut along
 
         costs, values, picks = [], [], []
         done, evaluations = 0, 0
@@ -103,14 +105,13 @@ class IncrementalSolver:
             for i in inner:
                 chosen[first_option[i]] = True  # inner observations unaltered in the base
             base_groups = _selected(chain, live, group_of_option, chosen)
-            lu = factorise(inside[base_groups])
-            b = to_target[base_groups]
-            x0 = lu.solve(b)
             rows = np.concatenate([rows_of[observations[i]] for i in inner]).astype(np.int64)
             local = live_index[rows]
-            selector = np.zeros((n_live, local.size))
-            selector[local, np.arange(local.size)] = 1.0
-            W = lu.solve(selector) if local.size else np.zeros((n_live, 0))
+            rhs = np.zeros((n_live, 1 + local.size))  # b, then one unit column per inner row
+            rhs[:, 0] = to_target[base_groups]
+            rhs[local, 1 + np.arange(local.size)] = 1.0
+            solved = solve_chain(inside[base_groups], rhs, live_node)
+            x0, W = solved[:, 0], solved[:, 1:]
             block_start = np.concatenate(
                 [[0], np.cumsum([rows_of[observations[i]].size for i in inner])]
             )
