@@ -216,15 +216,16 @@ def solve_with_separator(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> n
 def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
     """Solve ``(I - a) x = b`` by the fastest exact route for the chain's shape.
 
-    Large chains are tried by components (:func:`solve_topological`), then with a separator
-    along ``labels`` (:func:`solve_with_separator`); one sparse LU is the fallback and the
-    route for small systems. ``b`` may hold several columns.
+    Large chains are cut along ``labels`` first (:func:`solve_with_separator`: the separator is
+    cheap to find and, where it is small, the rest falls apart), else solved by components as
+    they are (:func:`solve_topological`); one sparse LU is the fallback and the route for small
+    systems. ``b`` may hold several columns.
     """
     if a.shape[0] >= DIRECT_MAX_STATES:
-        system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)
-        solved = solve_topological(system, b)
-        if solved is None and labels is not None:
-            solved = solve_with_separator(a, b, labels)
+        solved = None if labels is None else solve_with_separator(a, b, labels)
+        if solved is None:
+            system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)
+            solved = solve_topological(system, b)
         if solved is not None:
             return solved
     return _solve(a, b)
