@@ -142,32 +142,40 @@ def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None
     )
     kl = int(lower[banded].max(initial=0))
     ku = int(upper[banded].max(initial=0))
-    band = np.zeros((2 * kl + ku + 1, n))  # LAPACK's band storage, with room for pivoting
+    band = np.zeros((2 * kl + ku + 1, n), order="F")  # LAPACK's band storage, room to pivot
     band_part = inside & in_band[row]
     band[kl + ku + row[band_part] - col[band_part], col[band_part]] = coo.data[band_part]
     before = sp.csr_matrix((coo.data[~inside], (row[~inside], col[~inside])), shape=(n, n))
-    depends = np.diff(before.indptr) > 0  # rows with a transition to an earlier chunk
+    # Rows with transitions to earlier chunks, where their terms start, and each chunk's share.
+    depends = np.flatnonzero(np.diff(before.indptr) > 0)
+    term_start = before.indptr[depends]
+    depends_from = np.searchsorted(depends, bounds).tolist()
+    entry_from = before.indptr[bounds].tolist()
 
     x = np.asarray(rhs, dtype=np.float64)[order]  # the right-hand side, overwritten by x
     single = x.ndim == 1
     if single:
         x = x[:, None]
     x = np.ascontiguousarray(x)
-    for k, (start, stop) in enumerate(zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)):
-        first, last = before.indptr[start], before.indptr[stop]
+    data, indices = before.data, before.indices
+    for k in range(bounds.size - 1):
+        start, stop = int(bounds[k]), int(bounds[k + 1])
+        first, last = entry_from[k], entry_from[k + 1]
         if last > first:  # subtract what the chunks solved so far contribute, row by row
-            rows = start + np.flatnonzero(depends[start:stop])
-            terms = before.data[first:last, None] * x[before.indices[first:last]]
-            x[rows] -= np.add.reduceat(terms, before.indptr[rows] - first, axis=0)
+            rows = depends[depends_from[k] : depends_from[k + 1]]
+            terms = data[first:last, None] * x[indices[first:last]]
+            x[rows] -= np.add.reduceat(
+                terms, term_start[depends_from[k] : depends_from[k + 1]] - first
+            )
         if is_band[k]:
             _, _, solved, info = dgbsv(kl, ku, band[:, start:stop], x[start:stop])
             if info != 0:
                 return None
         else:
             size = stop - start
-            data, indices, indptr = _rows(diagonal, start, stop)
+            block = _rows(diagonal, start, stop)
             # The chunk's rows in CSR are its transpose in CSC: factorise that, solve transposed.
-            block_t = sp.csc_matrix((data, indices - start, indptr), shape=(size, size))
+            block_t = sp.csc_matrix((block[0], block[1] - start, block[2]), shape=(size, size))
             solved = _lu(block_t).solve(x[start:stop], trans="T")
         x[start:stop] = solved
     x = x[position]
