@@ -21,9 +21,10 @@ from misdirect.model import reachable_from
 
 def _without_rows(matrix: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
     """Copy of ``matrix`` with the out-edges of the masked rows removed."""
-    kept = (sp.diags((~rows).astype(np.float64)) @ matrix).tocsr()
-    kept.eliminate_zeros()
-    return kept
+    source = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+    keep = ~rows[source] & (matrix.data != 0)
+    indptr = np.concatenate(([0], np.cumsum(np.bincount(source[keep], minlength=rows.size))))
+    return sp.csr_matrix((matrix.data[keep], matrix.indices[keep], indptr), shape=matrix.shape)
 
 
 def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -252,7 +253,7 @@ def reach_probabilities(
     maybe = np.flatnonzero(~prob0 & ~prob1)
     if maybe.size:
         rows = matrix[maybe]
-        b = np.asarray(rows[:, np.flatnonzero(prob1)].sum(axis=1)).ravel()
+        b = rows @ prob1.astype(np.float64)  # one step into the almost-sure states
         labels = None if blocks is None else blocks[maybe]
         values[maybe] = solve_chain(rows[:, maybe], b, labels)
     return np.clip(values, 0.0, 1.0)
