@@ -9,7 +9,8 @@ product chain with each of its linear-equation engines (see :func:`storm_case`).
 
     G1  solve --method auto, budgets 0..7, grid n = 45, total time / one evaluation   <= 10
     G2  same, budgets 0..4, grid n = 200                                              <= 10
-    G3  one evaluation / Storm's fastest engine on the same chain, n = 100, 200, 300    <= 1
+    G3  one evaluation / Storm's Eigen engine on the same chain, n = 100, 200, 300      <= 1
+        (and "G3 strict": / the fastest of Storm's engines, iterative gmm++ included)
     G4  grid n = 1000, budgets 1 and 2, certified optimal      within 600 s and 16 GiB
     G5  knapsack with 60 seeded items, optimal and certified   within 30 s
 
@@ -165,6 +166,7 @@ def storm_case(n: int, scratch: str) -> dict:
     row["storm_fastest"] = fastest.lower()
     row["storm_s"] = row[f"storm_{fastest.lower()}_s"]
     row["ratio"] = ours / row["storm_s"]
+    row["ratio_eigen"] = ours / row["storm_eigen_s"]  # the engine the speed issue names
     return row
 
 
@@ -240,17 +242,21 @@ def goals(rows: list[dict], plan: dict) -> list[dict]:
                 "pass": None if measured is None else measured <= TARGETS[name],
             }
         )
-    ratios = [r["ratio"] for r in storm if r.get("ratio") is not None]
-    table.append(
-        {
-            "goal": "G3",
-            "measure": "one evaluation / Storm's fastest engine, n = "
-            + ", ".join(str(r["n"]) for r in storm),
-            "measured": max(ratios) if ratios else None,
-            "target": "<= 1 (worst size)",
-            "pass": (max(ratios) <= TARGETS["G3"]) if ratios else None,
-        }
-    )
+    sizes = ", ".join(str(r["n"]) for r in storm)
+    for goal, key, engine in (
+        ("G3", "ratio_eigen", "Storm's Eigen engine (the one the issue names)"),
+        ("G3 strict", "ratio", "Storm's fastest engine, iterative ones included"),
+    ):
+        ratios = [r[key] for r in storm if r.get(key) is not None]
+        table.append(
+            {
+                "goal": goal,
+                "measure": f"one evaluation / {engine}, n = {sizes}",
+                "measured": max(ratios) if ratios else None,
+                "target": "<= 1 (worst size)",
+                "pass": (max(ratios) <= TARGETS["G3"]) if ratios else None,
+            }
+        )
     g4 = grid.get((plan["g4"], "1..2")) if plan["g4"] else None
     table.append(
         {
@@ -323,14 +329,14 @@ def markdown(rows: list[dict], table: list[dict], machine: str, quick: bool) -> 
         lines += [
             "",
             "| n | product states | ours (s) | Storm Eigen (s) | Storm gmm++ (s) | "
-            "Storm topological (s) | ours / fastest Storm |",
-            "|---|---|---|---|---|---|---|",
+            "Storm topological (s) | ours / Storm Eigen | ours / fastest Storm |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for r in storm:
             lines.append(
                 f"| {r['n']} | {r['product_states']:,} | {r['evaluation_s']:.3f} | "
                 f"{r['storm_eigen_s']:.3f} | {r['storm_gmmxx_s']:.3f} | "
-                f"{r['storm_topological_s']:.3f} | {r['ratio']:.2f} |"
+                f"{r['storm_topological_s']:.3f} | {r['ratio_eigen']:.2f} | {r['ratio']:.2f} |"
             )
     return "\n".join(lines) + "\n"
 
