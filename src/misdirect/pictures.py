@@ -75,7 +75,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     from matplotlib.colors import ListedColormap, LogNorm, Normalize
     from matplotlib.patches import Rectangle
 
-    from misdirect.plots import SENSOR_COLOURS
+    from misdirect.plots import SENSOR_COLOURS, grid_frame
 
     pomdp = problem.pomdp
     report = evaluate(problem, alteration)
@@ -107,17 +107,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
         interpolation="nearest",
     )
     wall_layer.set_label("walls")
-    ax.set_xlim(-0.5, width - 0.5)
-    ax.set_ylim(-0.5, height - 0.5)
-    ax.set_xticks(range(width))
-    ax.set_yticks(range(height))
-    ax.set_xticks(np.arange(-0.5, width), minor=True)
-    ax.set_yticks(np.arange(-0.5, height), minor=True)
-    ax.grid(which="minor", color="0.6", linewidth=0.5)
-    ax.tick_params(which="minor", length=0)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (East)")
-    ax.set_ylabel("y (North)")
+    grid_frame(ax, width, height)
 
     halo = [patheffects.withStroke(linewidth=3, foreground="white")]
     changed = problem.changed_observations(alteration)

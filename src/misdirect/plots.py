@@ -37,7 +37,8 @@ def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg"))
     return paths
 
 
-def _frame(ax, width: int, height: int) -> None:
+def grid_frame(ax, width: int, height: int) -> None:
+    """Cells as unit squares centred on integer (x, y), x East and y North, with a light grid."""
     ax.set_xlim(-0.5, width - 0.5)
     ax.set_ylim(-0.5, height - 0.5)
     ax.set_xticks(range(width))
@@ -66,7 +67,7 @@ def _draw_cells(ax, n: int, sensors: dict[str, list[tuple[int, int]]], alpha: fl
             )
         x, y = cells[0]
         ax.text(x, y + 0.28, name, ha="center", va="center", fontsize=8, weight="bold")
-    _frame(ax, n, n)
+    grid_frame(ax, n, n)
 
 
 def _mark(ax, cell: tuple[int, int], text: str, colour: str, dy: float = -0.12) -> None:
@@ -168,7 +169,7 @@ def attack_heatmaps(
             norm=norm,
             extent=(-0.5, width - 0.5, -0.5, height - 0.5),
         )
-        _frame(ax, width, height)
+        grid_frame(ax, width, height)
         for cell, key in ends.items():
             if not (0 <= cell[0] < width and 0 <= cell[1] < height):
                 continue
