@@ -1,6 +1,6 @@
 """`--method auto` (the default): small spaces are enumerated (with low-rank updates where the
-chain cannot cycle), large ones go to the MILP; the answer is exact either way and says which
-method certified it."""
+chain cannot cycle), knapsack-like ones go to the MILP, the rest to branch-and-bound; the answer
+is exact either way and says which method certified it."""
 
 import numpy as np
 import pytest
@@ -61,7 +61,8 @@ def test_auto_equals_exhaustive_on_random_models():
         for a, b in zip(mine.curve, oracle.curve, strict=True):
             assert a.probability == pytest.approx(b.probability, abs=1e-9), (seed, a.budget)
             assert a.cost <= a.budget + 1e-9
-    assert routes == {"incremental", "exhaustive"}  # both routes were exercised
+    assert {"incremental", "exhaustive"} <= routes  # both enumeration routes were exercised
+    assert routes <= {"incremental", "exhaustive", "branch-and-bound", "milp"}
 
 
 @pytest.mark.parametrize("n", [5, 7, 9])

@@ -272,7 +272,8 @@ def solve(
         str,
         typer.Option(
             help=f"Method: {', '.join(SOLVERS)} (auto: enumerate small alteration spaces, "
-            "with low-rank updates where it can, else the MILP; all exact)."
+            "with low-rank updates where it can, else branch-and-bound, or the MILP on "
+            "knapsack-like models; all exact)."
         ),
     ] = "auto",
     solver: Annotated[

@@ -20,12 +20,14 @@ from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
 from misdirect.solvers.auto import AutoSolver
 from misdirect.solvers.base import ProgressCallback, Solver
+from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp import MilpSolver
 
 SOLVERS: dict[str, type] = {
     "auto": AutoSolver,
+    "branch-and-bound": BranchAndBoundSolver,
     "exhaustive": ExhaustiveSolver,
     "incremental": IncrementalSolver,
     "milp": MilpSolver,

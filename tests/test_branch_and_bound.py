@@ -1,0 +1,178 @@
+"""Branch-and-bound over observations with the MDP-relaxation bound: exact on every model.
+
+Expected values come from the exhaustive solver, from brute force over every alteration
+function, or from SPEC §3; never from the branch-and-bound itself.
+"""
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+
+from misdirect import solve
+from misdirect.alterations import alteration_space
+from misdirect.choice_product import build_choice_product, end_component_states
+from misdirect.evaluate import decoy_probability
+from misdirect.model import Controller
+from misdirect.scenarios import knapsack, paper_grid, random_problem
+from misdirect.scenarios.grid import ACTIONS, BLANK, E_TYPE, N_TYPE, OBSERVATIONS, scaled
+from misdirect.solvers.branch_and_bound import BranchAndBoundSolver, relaxation_bound
+from misdirect.solvers.exhaustive import ExhaustiveSolver
+
+SPEC_N5 = [0.084957, 0.719924, 0.860130, 0.862442, 0.863622, 0.863622]
+
+
+def trap_grid(n: int, budget: float = 4.0):
+    """The paper grid with three West-type sensors and a node on which the blank means West.
+
+    The attacker can now turn the robot back and forth, so the choice product has end
+    components (incremental updates do not apply), and with four behaviour classes over eleven
+    observations, 20,686 alterations fit budget 4.
+    """
+    base = paper_grid(n, budget=budget)
+    cells = [
+        (scaled(1, n), scaled(3, n)),
+        (scaled(3, n), scaled(1, n)),
+        (scaled(1, n), scaled(1, n)),
+    ]
+    observation_of = base.pomdp.observation_of.copy()
+    for j, (x, y) in enumerate(cells):
+        observation_of[y * n + x] = len(OBSERVATIONS) + j
+    names = (*OBSERVATIONS, "w0", "w1", "w2")
+    pomdp = dataclasses.replace(base.pomdp, observations=names, observation_of=observation_of)
+    east, north, west = (ACTIONS.index(a) for a in "ENW")
+    action = np.zeros((4, len(names)), dtype=np.int64)
+    update = np.zeros((4, len(names)), dtype=np.int64)
+    action[:, list(E_TYPE)], update[:, list(E_TYPE)] = east, 1
+    action[:, list(N_TYPE)], update[:, list(N_TYPE)] = north, 2
+    action[:, len(OBSERVATIONS) :], update[:, len(OBSERVATIONS) :] = west, 3
+    action[:, BLANK] = [east, east, north, west]
+    update[:, BLANK] = np.arange(4)
+    controller = Controller(
+        nodes=("n0", "n1", "n2", "n3"), initial_node=0, action=action, update=update
+    )
+    cost = dataclasses.replace(base.cost, n_observations=len(names))
+    return dataclasses.replace(
+        base, pomdp=pomdp, controller=controller, cost=cost, name=f"trap grid {n}x{n}"
+    )
+
+
+def suite_problem(seed: int):
+    rng = np.random.default_rng(90_000 + seed)
+    return random_problem(
+        seed + 9000,
+        states=int(rng.integers(3, 10)),
+        actions=int(rng.integers(1, 4)),
+        observations=int(rng.integers(2, 6)),
+        nodes=int(rng.integers(1, 4)),
+    )
+
+
+def has_end_component(problem) -> bool:
+    chain = build_choice_product(problem, alteration_space(problem))
+    live = chain.can_reach_target() & ~chain.target
+    return bool(end_component_states(chain.group_state, chain.transitions, live).any())
+
+
+def test_agrees_with_exhaustive_on_random_models():
+    budgets = [0.0, 1.0, 2.5, 4.0]
+    with_cycles = protected = forbidden = 0
+    for seed in range(150):
+        problem = suite_problem(seed).with_budget(4.0)
+        with_cycles += has_end_component(problem)
+        protected += bool(problem.cost.protected)
+        forbidden += any(np.isinf(c) for c in problem.cost.pairs.values())
+        mine = BranchAndBoundSolver().solve(problem, budgets)
+        oracle = ExhaustiveSolver().solve(problem, budgets)
+        for a, b in zip(mine, oracle, strict=True):
+            exact = decoy_probability(problem, a.alteration)
+            assert exact == pytest.approx(b.claimed_probability, abs=1e-7), (seed, a.budget)
+            assert a.claimed_probability == pytest.approx(exact, abs=1e-9)
+            assert a.status == "optimal"
+            assert a.upper_bound >= b.claimed_probability - 1e-9
+            assert problem.alteration_cost(a.alteration) <= a.budget + 1e-9
+            problem.check_alteration(a.alteration)
+    assert with_cycles >= 20 and protected >= 20 and forbidden >= 100  # the suite has them
+
+
+@pytest.mark.parametrize("n", [5, 7, 9])
+def test_agrees_with_exhaustive_on_paper_grids(n):
+    budgets = [0.0, 1.0, 2.0, 3.0]  # the oracle's cost grows fast with the budget
+    mine = solve(paper_grid(n, budget=5), method="branch-and-bound", budgets=[*budgets, 4, 5])
+    oracle = solve(paper_grid(n, budget=3), method="exhaustive", budgets=budgets)
+    assert not mine.warnings
+    for a, b in zip(mine.curve, oracle.curve, strict=False):
+        assert a.probability == pytest.approx(b.probability, abs=1e-7)
+    for point in mine.curve:
+        assert point.status == "optimal" and point.cost <= point.budget + 1e-9
+    if n == 5:
+        assert [p.probability for p in mine.curve] == pytest.approx(SPEC_N5, abs=5e-7)
+
+
+def brute_force(problem, budget: float) -> float:
+    """Best value over every alteration function within the budget (no behaviour classes)."""
+    n_o = problem.pomdp.n_observations
+    rows = [problem.cost.row(o) for o in range(n_o)]
+    targets = [
+        [o] if o == problem.pomdp.initial_observation else np.flatnonzero(np.isfinite(rows[o]))
+        for o in range(n_o)
+    ]
+    best = 0.0
+    for alpha in itertools.product(*targets):
+        alpha = np.array(alpha, dtype=np.int64)
+        if problem.alteration_cost(alpha) <= budget + 1e-9:
+            best = max(best, decoy_probability(problem, alpha))
+    return best
+
+
+def test_root_bound_is_above_the_brute_force_optimum():
+    checked = 0
+    for seed in range(40):
+        problem = suite_problem(seed)
+        if problem.pomdp.n_observations > 4:  # keep |Ω|^|Ω| small
+            continue
+        for budget in (0.0, 1.0, 3.0):
+            truth = brute_force(problem, budget)
+            assert relaxation_bound(problem, budget) >= truth - 1e-12, (seed, budget)
+            checked += 1
+    assert checked >= 30
+
+
+def test_node_limit_reports_feasible_with_a_valid_bound():
+    problem = trap_grid(9, budget=2)
+    oracle = ExhaustiveSolver().solve(problem, [2.0])[0].claimed_probability
+    (answer,) = BranchAndBoundSolver(max_nodes=2).solve(problem, [2.0])
+    assert answer.status == "feasible"
+    exact = decoy_probability(problem, answer.alteration)
+    assert answer.claimed_probability == pytest.approx(exact, abs=1e-9)
+    assert exact <= oracle + 1e-9 <= answer.upper_bound + 2e-9
+    assert problem.alteration_cost(answer.alteration) <= 2.0 + 1e-9
+
+
+def test_auto_sends_a_knapsack_to_the_milp():
+    rng = np.random.default_rng(2026)
+    weights = rng.integers(1, 101, size=60).tolist()
+    values = rng.integers(1, 101, size=60).tolist()
+    result = solve(knapsack(weights, values, sum(weights) // 2))
+    assert result.stats["certified_by"] == "milp"
+    assert "knapsack-like" in result.stats["auto_reason"]
+    assert result.status == "optimal"
+
+
+# budget 3 and 4 optima of trap_grid(9) from ExhaustiveSolver (4,984 and 20,686 evaluations)
+TRAP9_EXHAUSTIVE = {3.0: 0.9798691274109901, 4.0: 0.9985288061060325}
+
+
+def test_auto_sends_a_large_trap_grid_to_branch_and_bound():
+    problem = trap_grid(9, budget=4)
+    assert has_end_component(problem)
+    assert len(alteration_space(problem).within(4.0)[1]) > 5_000
+    result = solve(problem, budgets=[3.0, 4.0])
+    assert not result.warnings
+    for point in result.curve:
+        assert point.stats["certified_by"] == "branch-and-bound"
+        assert point.status == "optimal"
+        assert point.probability == pytest.approx(TRAP9_EXHAUSTIVE[point.budget], abs=1e-7)
+        assert point.upper_bound == pytest.approx(point.probability, abs=1e-9)
+        assert point.cost <= point.budget + 1e-9
