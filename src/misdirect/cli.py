@@ -289,9 +289,15 @@ def solve(
     time_limit: Annotated[
         float | None, typer.Option(help="MILP: seconds per budget; then report the incumbent.")
     ] = None,
-    threads: Annotated[int | None, typer.Option(help="MILP: solver threads.")] = None,
+    threads: Annotated[
+        int | None, typer.Option(help="MILP: solver threads (SCIP: its concurrent mode if > 1).")
+    ] = None,
     mip_gap: Annotated[
-        float | None, typer.Option(help="MILP: relative gap to stop at (default 1e-9).")
+        float | None,
+        typer.Option(
+            help="MILP: relative gap to stop at (default 1e-9); a point whose bound is still "
+            "above its value is reported as gap_limit, not optimal."
+        ),
     ] = None,
     verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
     scenario: ScenarioOption = None,

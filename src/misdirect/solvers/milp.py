@@ -4,6 +4,16 @@ The model is built for the largest budget asked for; a smaller budget only lower
 the budget row, so every optimum is a valid start for the next (larger) budget. The first solve
 starts from "alter nothing", which is always feasible, so a run stopped by the time limit still
 has an incumbent to report.
+
+The solver's claim for an alteration is its objective, or, when its point is more than 1e-9
+from feasible (binaries off 0/1, rows violated, within its tolerances) or its objective more
+than 1e-9 below its bound, the LP optimum with the binaries rounded: the tolerance would
+otherwise leak into the claim (0.400001 for 0.4), and an incumbent whose probabilities are not
+the largest for its alteration would look like a gap.
+
+Statuses: ``optimal`` (the solver's bound meets its incumbent within 1e-9), ``gap_limit`` (it
+stopped because the relative gap fell under ``--mip-gap``, with the bound further than that
+from the incumbent), ``time_limit``.
 """
 
 from __future__ import annotations
@@ -12,7 +22,8 @@ from collections.abc import Sequence
 from typing import Any
 
 from misdirect.errors import ProblemError, SolverError
-from misdirect.milp.backends import SolverOptions, make_backend
+from misdirect.milp import backends
+from misdirect.milp.backends import BackendResult, SolverOptions, make_backend
 from misdirect.milp.compact import build_compact
 from misdirect.milp.model import MilpModel
 from misdirect.milp.paper import build_paper
@@ -38,6 +49,25 @@ def build_formulation(problem: Problem, formulation: str, budget: float | None =
     """The MILP of ``problem`` in the named formulation, budget row set to ``budget``."""
     _check_formulation(formulation)
     return FORMULATIONS[formulation](problem, budget)
+
+
+GAP_TOLERANCE = 1e-9  # a bound this close to the incumbent counts as a proof of optimality
+FEASIBILITY_SLACK = 1e-9  # a point further than this from feasible gets its claim recomputed
+
+
+def _status(result: BackendResult, value: float | None) -> str:
+    """The backend's status, except that a solve it calls optimal while its bound lies more
+    than 1e-9 above ``value`` (its incumbent's: the better of its objective and the claim) is
+    ``gap_limit``, a stop because the gap fell under ``--mip-gap``: optimal means the bound
+    meets the incumbent."""
+    if (
+        result.status == "optimal"
+        and result.bound is not None
+        and value is not None
+        and result.bound - value > GAP_TOLERANCE * max(1.0, abs(result.bound)) + 1e-12
+    ):
+        return "gap_limit"
+    return result.status
 
 
 class MilpSolver:
@@ -98,6 +128,7 @@ class MilpSolver:
                 raise SolverError(
                     f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
                 )
+            violation = 0.0
             if result.values is None:
                 if result.status == "infeasible":
                     raise SolverError(
@@ -109,15 +140,29 @@ class MilpSolver:
             else:
                 alteration = model.decode(result.values)
                 claimed = result.objective
+                violation = backends.violation(model, result.values)
+                gapped = result.bound is not None and result.bound - claimed > GAP_TOLERANCE
+                if violation > FEASIBILITY_SLACK or gapped:
+                    # a point off by the solver's tolerances, or one whose continuous part is
+                    # short of the best for its binaries: the formulation's own value for the
+                    # decoded alteration is the LP with the binaries rounded
+                    rounded = backends.value_with_rounded_binaries(model, result.values, budget)
+                    claimed = claimed if rounded is None else rounded
                 start = model.start_for(alteration)
+            # the solver's objective carries its tolerances as its bound does; the claim may be
+            # the better value of the same binaries
+            incumbent = None if claimed is None else max(claimed, result.objective or claimed)
+            status = _status(result, incumbent)
             stats: dict[str, Any] = {
                 **model.stats(),
                 "solver": backend.name,
                 "solve_time_s": result.solve_time_s,
-                "status": result.status,
+                "status": status,
                 "objective": result.objective,
                 "bound": result.bound,
                 "nodes": result.nodes,
+                "claimed": claimed,  # the objective, or its recomputation with rounded binaries
+                "violation": violation,  # how far the solver's point is from feasible
                 **result.detail,
             }
             solutions.append(
@@ -125,7 +170,7 @@ class MilpSolver:
                     budget=budget,
                     alteration=alteration,
                     claimed_probability=claimed,
-                    status=result.status,
+                    status=status,
                     upper_bound=min(result.bound, 1.0)
                     if model.sound and result.bound is not None
                     else None,
