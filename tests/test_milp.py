@@ -640,3 +640,26 @@ def test_milp_inside_a_multiprocessing_pool():
 
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         assert pool.map(_knapsack_in_a_pool_worker, [0]) == [pytest.approx(0.25, abs=1e-12)]
+
+
+@pytest.mark.parametrize(("shift", "flagged"), [(-0.01, False), (0.01, True)])
+def test_cut_short_incumbent_may_claim_less_but_not_more(monkeypatch, shift, flagged):
+    """At a time limit the incumbent's continuous part (or a witness column) need not be the
+    best for its binaries, so a claim below the chain's value is no contradiction; a claim
+    above it is. SPEC §3: budget 1 is worth 0.719924."""
+    real = backends.HighsBackend.solve
+
+    def cut_short(self, start):
+        result = real(self, start)
+        result.objective += shift
+        result.status = "time_limit"
+        return result
+
+    monkeypatch.setattr(backends.HighsBackend, "solve", cut_short)
+    monkeypatch.setattr(backends, "value_with_rounded_binaries", lambda *args: None)
+    result = solve(paper_grid(5), method="milp", budgets=[1.0])
+    point = result.curve[0]
+    assert point.probability == pytest.approx(0.719924, abs=1e-6)
+    assert point.solver_probability == pytest.approx(0.719924 + shift, abs=1e-6)
+    assert (point.status == "unverified") is flagged
+    assert bool(result.warnings) is flagged
