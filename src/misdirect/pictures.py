@@ -71,11 +71,10 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
 
     matplotlib.use("Agg")  # no display needed
     import matplotlib.pyplot as plt
-    from matplotlib import patheffects
     from matplotlib.colors import ListedColormap, LogNorm, Normalize
     from matplotlib.patches import Rectangle
 
-    from misdirect.plots import SENSOR_COLOURS, grid_frame
+    from misdirect.plots import SENSOR_COLOURS, grid_frame, mark_cell
 
     pomdp = problem.pomdp
     report = evaluate(problem, alteration)
@@ -109,7 +108,6 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     wall_layer.set_label("walls")
     grid_frame(ax, width, height)
 
-    halo = [patheffects.withStroke(linewidth=3, foreground="white")]
     changed = problem.changed_observations(alteration)
     stop = pomdp.absorbing | problem.decoy
     sensor_states = (np.array(pomdp.observations)[pomdp.observation_of] != "b") & ~stop
@@ -146,18 +144,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     marks = [(pomdp.initial_state, "S", "black")]
     marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
     for state, text, colour in marks:
-        x, y = cells[state].tolist()
-        ax.text(
-            x,
-            y - 0.12,
-            text,
-            ha="center",
-            va="center",
-            fontsize=13,
-            weight="bold",
-            color=colour,
-            path_effects=halo,
-        )
+        mark_cell(ax, tuple(cells[state].tolist()), text, colour)
     goal_probability = sum(report.outcomes[pomdp.states[g]] for g in goals)
     changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
     ax.set_title(

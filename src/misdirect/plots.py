@@ -70,7 +70,7 @@ def _draw_cells(ax, n: int, sensors: dict[str, list[tuple[int, int]]], alpha: fl
     grid_frame(ax, n, n)
 
 
-def _mark(ax, cell: tuple[int, int], text: str, colour: str, dy: float = -0.12) -> None:
+def mark_cell(ax, cell: tuple[int, int], text: str, colour: str, dy: float = -0.12) -> None:
     """A big letter (S, G, X) in a cell, with a white halo so it reads on any colour."""
     ax.text(
         cell[0],
@@ -118,9 +118,9 @@ def grid_layout(
         ax.add_patch(
             Rectangle((cell[0] - 0.5, cell[1] - 0.5), 1, 1, facecolor=ABSORBING_FILL, hatch="..")
         )
-    _mark(ax, start, "S", "black")
-    _mark(ax, goal, "G", "darkgreen")
-    _mark(ax, decoy, "X", "crimson")
+    mark_cell(ax, start, "S", "black")
+    mark_cell(ax, goal, "G", "darkgreen")
+    mark_cell(ax, decoy, "X", "crimson")
     ax.set_title(
         f"{n}x{n} grid: sensors o0–o6, start S, goal G, decoy X\n"
         "(grey: the run ends there; blank cells report b)",
@@ -244,9 +244,9 @@ def attack_heatmaps(
                 zorder=7,
                 bbox={"facecolor": "white", "alpha": 0.9, "pad": 1.2, "edgecolor": "none"},
             )
-        _mark(ax, start, "S", "black")
-        _mark(ax, goal, "G", "darkgreen", dy=0.05)
-        _mark(ax, decoy, "X", "crimson", dy=0.05)
+        mark_cell(ax, start, "S", "black")
+        mark_cell(ax, goal, "G", "darkgreen", dy=0.05)
+        mark_cell(ax, decoy, "X", "crimson", dy=0.05)
         changes = ", ".join(f"{o}→{t}" for o, t in panel["alteration"].items()) or "none"
         ax.set_title(
             f"budget {panel['budget']:g}: Pr(end at X) = {panel['probability']:.3f}, "

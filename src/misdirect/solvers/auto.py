@@ -1,6 +1,6 @@
 """``--method auto``: the fastest exact method for the model's shape.
 
-1. ``incremental`` (one factorisation per outer choice, a tiny Woodbury solve per alteration)
+1. ``incremental`` (one base solve per outer choice, a tiny Woodbury solve per alteration)
    when the chain cannot cycle without reaching the decoy and at most 200,000 alterations fit;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
    (300) fit: below that, enumeration beats branch-and-bound's several evaluations per node

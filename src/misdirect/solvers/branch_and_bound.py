@@ -68,7 +68,6 @@ class _Relaxation:
         owned = per_observation[observations]
         # largest first; observations owning no live state never change the value: fixed to 0
         self.order = [int(i) for i in np.argsort(-owned, kind="stable") if owned[i] > 0]
-        self.owned = owned
         self.group_options = chain.group_options.tocsr()
         self.free_group = np.diff(self.group_options.indptr) == 0  # state has no choice at all
         self.group_start = np.flatnonzero(
@@ -120,6 +119,14 @@ class _Relaxation:
             if not switch.any():
                 return float(values[chain.initial]), values, policy
             policy = np.where(switch, best, policy)
+
+    def ranked(self, i: int, remaining: float, usage: np.ndarray) -> np.ndarray:
+        """Affordable candidates of observation ``i``, most used by the policy first, then
+        cheapest: the order to branch in, and the greedy completion's pick."""
+        first = self.first_option[i]
+        costs = self.option_cost[first : self.first_option[i + 1]]
+        fits = np.flatnonzero(costs <= remaining + BUDGET_SLACK)
+        return fits[np.lexsort((costs[fits], -usage[first + fits]))]
 
     def usage(self, policy: np.ndarray) -> np.ndarray:
         """Per option: how many live choosing states the policy's groups agree with it."""
@@ -252,11 +259,8 @@ class _Search:
             if self._prune(bound):
                 continue
             i = relax.order[level]
-            first = relax.first_option[i]
-            size = relax.first_option[i + 1] - first
-            costs = relax.option_cost[first : first + size]
-            fits = np.flatnonzero(costs <= node.remaining + BUDGET_SLACK)
-            preferred = fits[np.lexsort((costs[fits], -usage[first + fits]))]
+            costs = relax.option_cost[relax.first_option[i] : relax.first_option[i + 1]]
+            preferred = relax.ranked(i, node.remaining, usage)
             for k in preferred[::-1]:  # the stack pops the preferred candidate first
                 self.stack.append(
                     _Node(
@@ -273,12 +277,9 @@ class _Search:
         relax = self.relax
         completed = list(picks)
         for i in relax.order[len(picks) :]:
-            first = relax.first_option[i]
-            costs = relax.option_cost[first : relax.first_option[i + 1]]
-            fits = np.flatnonzero(costs <= remaining + BUDGET_SLACK)
-            k = int(fits[np.lexsort((costs[fits], -usage[first + fits]))[0]])
+            k = int(relax.ranked(i, remaining, usage)[0])
             completed.append(k)
-            remaining -= float(costs[k])
+            remaining -= float(relax.option_cost[relax.first_option[i] + k])
         return tuple(completed)
 
     def _solution(self, status: str) -> Solution:

@@ -34,7 +34,7 @@ from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
 PADDED_ROWS = 48  # up to this many inner rows, every alteration is solved at full size
-INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper to refactorise)
+INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
 
