@@ -1,9 +1,9 @@
 """Monte-Carlo simulation of the attacked robot, straight from the POMDP and the controller.
 
-It does not use the evaluator's product chain, so it is an independent check of the evaluator,
-and it is vectorised over runs: each step advances every live run with a handful of numpy
-operations. The only graph it builds is which (state, memory node) pairs can still reach a
-decoy or absorbing state, to stop runs that never would.
+It does not step through the evaluator's product chain, so it is an independent check of the
+evaluator, and it is vectorised over runs: each step advances every live run with a handful of
+numpy operations. Only to stop runs that never would stop does it ask which (state, memory
+node) pairs can still reach a decoy or absorbing state, on the product's transition graph.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from misdirect.model import Alteration, Problem, reachable_from
+from misdirect.product import full_product_matrix
 
 
 @dataclass(frozen=True)
@@ -148,20 +148,8 @@ def simulate(
 
 def _can_stop(problem: Problem, alpha: np.ndarray, stop: np.ndarray) -> np.ndarray:
     """Mask over product states ``s * |N| + n``: some decoy or absorbing state is reachable from
-    there under ``alpha``. Built here from the POMDP and the controller (structure only, not
-    the evaluator's product chain), then searched backwards from the stopping states."""
-    pomdp, controller = problem.pomdp, problem.controller
-    n_states, n_nodes = pomdp.n_states, controller.n_nodes
-    received = alpha[pomdp.observation_of]
-    world = np.repeat(np.arange(n_states), n_nodes)
-    node = np.tile(np.arange(n_nodes), n_states)
-    action = controller.action[node, received[world]]
-    next_node = controller.update[node, received[world]]
-    rows = pomdp.transitions[action * n_states + world]
-    source = np.repeat(np.arange(world.size), np.diff(rows.indptr))
-    target = rows.indices.astype(np.int64) * n_nodes + next_node[source]
-    size = n_states * n_nodes
-    backwards = sp.csr_matrix(
-        (np.ones(target.size, dtype=np.int8), (target, source)), shape=(size, size)
-    )
+    there under ``alpha``. Only this stopping test uses the product's structure; the runs
+    themselves still step through the POMDP and the controller directly."""
+    backwards = full_product_matrix(problem, alpha).T.tocsr()
+    world = np.repeat(np.arange(problem.pomdp.n_states), problem.controller.n_nodes)
     return reachable_from(backwards, np.flatnonzero(stop[world]))
