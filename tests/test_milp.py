@@ -83,33 +83,47 @@ def _property_seeds() -> tuple[int, ...]:
 
 
 def _check_against_oracle(problem, result, oracle, context):
+    """Right answer, honest status. "optimal" needs a bound within 1e-9 of the exact value; a
+    solver whose tolerances leave its bound further off (1e-9 to 1e-6 here) may still have the
+    optimum, but must say ``feasible`` or ``gap_limit`` (counted by the callers)."""
     assert not result.warnings, (context, result.warnings)
+    downgraded = 0
     for mine, best in zip(result.curve, oracle.curve, strict=True):
         where = (*context, mine.budget, mine.alteration)
         assert mine.budget == best.budget
-        assert mine.status == "optimal", where
+        if mine.status == "optimal":
+            assert mine.upper_bound - mine.probability <= 1e-9 + 1e-12, where
+        else:
+            assert mine.status in ("feasible", "gap_limit"), where
+            assert 0 < mine.upper_bound - mine.probability <= 1e-5, where
+            downgraded += 1
         # the optimum, the solver's own claim, and its proven bound against the oracle
         assert mine.probability == pytest.approx(best.probability, abs=1e-7), where
         assert mine.solver_probability == pytest.approx(best.probability, abs=1e-7), where
         assert mine.stats["bound"] >= best.probability - 1e-7, where
         assert mine.cost <= mine.budget + 1e-9, where
         assert problem.alteration_cost(problem.alteration(mine.alteration)) == mine.cost
+    return downgraded
 
 
 @pytest.mark.parametrize("chunk", range(CHUNKS))
 def test_compact_milp_equals_exhaustive_on_random_models(chunk):
+    downgraded = 0
     for seed in _property_seeds()[chunk * PER_CHUNK : (chunk + 1) * PER_CHUNK]:
         problem = _random_model(seed)
         result = solve(problem, method="milp", budgets=_budgets(seed))
-        _check_against_oracle(problem, result, _oracle(seed), (seed,))
+        downgraded += _check_against_oracle(problem, result, _oracle(seed), (seed,))
+    assert downgraded <= 2  # of 100 points
 
 
 def test_compact_milp_on_scip_equals_exhaustive():
     """A tenth of the models above, solved by SCIP."""
+    downgraded = 0
     for seed in _property_seeds()[::10]:
         problem = _random_model(seed)
         result = solve(problem, method="milp", budgets=_budgets(seed), solver="scip")
-        _check_against_oracle(problem, result, _oracle(seed), (seed, "scip"))
+        downgraded += _check_against_oracle(problem, result, _oracle(seed), (seed, "scip"))
+    assert downgraded <= 4  # of 120 points
 
 
 def test_random_models_are_not_trivial():
@@ -148,8 +162,12 @@ def test_seeds_that_went_wrong(backend):
 def test_each_defence_against_the_tolerance_leak(monkeypatch):
     """The regression tests above can fail. HiGHS (integrality tolerance 1e-6) reports the
     binaries rounded but rows off by up to 1e-6: without recomputing its claim with the
-    binaries rounded, seed 5380 at budget 1 claims 0.400001 for 0.4. SCIP at its default
-    tolerance overshoots on seed 5105 at budget 4, and at 1e-9 does not."""
+    binaries rounded (and without the Bellman rows scaled), seed 5380 at budget 1 claims
+    0.400001 for 0.4. SCIP at its default tolerance overshoots on seed 5105 at budget 4, and at
+    1e-9 does not."""
+    from misdirect.milp import compact
+
+    monkeypatch.setattr(compact, "BELLMAN_SCALE", 1.0)
     monkeypatch.setattr(backends, "value_with_rounded_binaries", lambda *args: None)
     leak = solve(random_problem(5380), method="milp", budgets=[1.0])
     assert leak.curve[0].solver_probability == pytest.approx(0.400001, abs=1e-9)
@@ -277,7 +295,7 @@ def test_only_a_licence_error_skips_gurobi(monkeypatch):
     pytest.importorskip("gurobipy")
 
     def failing(message):
-        def solve(self, start):
+        def solve(self, start, time_limit=None):
             raise SolverError(message)
 
         return solve
@@ -309,7 +327,7 @@ def test_missing_backend_is_a_clear_error(monkeypatch):
     [
         (["--solver", "cplex"], "--solver"),
         (["--formulation", "clever"], "--formulation"),
-        (["--method", "exhaustive", "--time-limit", "3"], "--time-limit"),
+        (["--method", "exhaustive", "--threads", "2"], "--threads"),
         (["--time-limit", "-1"], "--time-limit"),
         (["--threads", "0"], "--threads"),
         (["--verbose"], "--verbose"),
@@ -474,9 +492,9 @@ def test_warm_start_is_the_previous_optimum(monkeypatch):
     starts = []
     real = backends.HighsBackend.solve
 
-    def recording(self, start):
+    def recording(self, start, time_limit=None):
         starts.append((start[0].copy(), start[1].copy()))
-        return real(self, start)
+        return real(self, start, time_limit)
 
     monkeypatch.setattr(backends.HighsBackend, "solve", recording)
     problem = paper_grid(5)
@@ -559,8 +577,8 @@ def test_cli_disagreement_is_loud(monkeypatch):
     """A solver claiming a value its alteration does not have: warning on stderr, exit 1."""
     real = backends.HighsBackend.solve
 
-    def lying(self, start):
-        result = real(self, start)
+    def lying(self, start, time_limit=None):
+        result = real(self, start, time_limit)
         result.objective += 0.01
         return result
 
@@ -649,8 +667,8 @@ def test_cut_short_incumbent_may_claim_less_but_not_more(monkeypatch, shift, fla
     above it is. SPEC §3: budget 1 is worth 0.719924."""
     real = backends.HighsBackend.solve
 
-    def cut_short(self, start):
-        result = real(self, start)
+    def cut_short(self, start, time_limit=None):
+        result = real(self, start, time_limit)
         result.objective += shift
         result.status = "time_limit"
         return result

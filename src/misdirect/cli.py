@@ -20,7 +20,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from misdirect import __version__
@@ -287,7 +287,11 @@ def solve(
         ),
     ] = None,
     time_limit: Annotated[
-        float | None, typer.Option(help="MILP: seconds per budget; then report the incumbent.")
+        float | None,
+        typer.Option(
+            help="Seconds for the whole command, every method and budget; then each budget "
+            "reports its best alteration, a proven upper bound and the gap (status time_limit)."
+        ),
     ] = None,
     threads: Annotated[
         int | None, typer.Option(help="MILP: solver threads (SCIP: its concurrent mode if > 1).")
@@ -300,6 +304,9 @@ def solve(
         ),
     ] = None,
     verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
+    ] = False,
     scenario: ScenarioOption = None,
     size: SizeOption = 5,
     weights: WeightsOption = None,
@@ -328,13 +335,10 @@ def solve(
         raise ProblemError(
             "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
         )
-    if method == "exhaustive" and given:
-        option = "--" + next(iter(given)).replace("_", "-")
-        raise ProblemError(
-            f"only applies to --method milp or auto (got --method {method})", field=option
-        )
-    with _Progress(enabled=not as_json, transient=True) as bars:
+    with _Progress(enabled=not quiet, transient=True) as bars:
         progress = bars.task("solving") if bars else None
+        if progress is None and not (quiet or as_json):
+            progress = _print_handovers  # no terminal: hand-overs still get a line each
         result = solve_problem(
             problem, method=method, budgets=requested, progress=progress, **given
         )
@@ -364,25 +368,52 @@ class _Progress:
             TextColumn("{task.description:<20}"),
             BarColumn(),
             TextColumn("{task.completed}/{task.total}"),
-            TimeRemainingColumn(),
+            TimeElapsedColumn(),
+            TextColumn("{task.fields[detail]}"),
             console=err,
             transient=self.transient,
         )
         self.bar.start()
         return self
 
-    def track(self, name: str, done: int, total: int) -> None:
+    def track(
+        self,
+        name: str,
+        done: int,
+        total: int,
+        *,
+        stage: str | None = None,
+        detail: str | None = None,
+        note: str | None = None,
+    ) -> None:
         assert self.bar is not None
+        if note:
+            self.bar.console.print(f"[dim]{escape(note)}[/]", highlight=False)
+        if total <= 0:
+            return
         if name not in self.tasks:
-            self.tasks[name] = self.bar.add_task(name, total=total)
-        self.bar.update(self.tasks[name], completed=done, total=total)
+            self.tasks[name] = self.bar.add_task(name, total=total, detail="")
+        description = name if stage is None else f"{name}: {stage}"
+        self.bar.update(
+            self.tasks[name],
+            completed=done,
+            total=total,
+            description=description,
+            **({} if detail is None else {"detail": detail}),
+        )
 
-    def task(self, name: str) -> Callable[[int, int], None]:
-        return lambda done, total: self.track(name, done, total)
+    def task(self, name: str) -> Callable[..., None]:
+        return lambda done, total, **info: self.track(name, done, total, **info)
 
     def __exit__(self, *exc: object) -> None:
         if self.bar is not None:
             self.bar.stop()
+
+
+def _print_handovers(done: int, total: int, *, note: str | None = None, **_: object) -> None:
+    """Progress without a terminal: only the hand-overs between methods, one line each."""
+    if note:
+        err.print(escape(note), highlight=False, soft_wrap=True)
 
 
 def _print_solve(result: SolveResult) -> None:

@@ -236,7 +236,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
         method="milp",
         solver=solver,
         budgets=budgets,
-        progress=lambda done, total: tick("grid case study", done, total),
+        progress=lambda done, total, **_: tick("grid case study", done, total),
     )
     rows = []
     for point in result.curve:
@@ -260,7 +260,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
                 "alteration": format_alteration(point.alteration),
                 "paper_alteration": paper_alteration,
                 "paper_alteration_value": paper_value,
-                "goal_probability": float(outcome.outcomes[problem.pomdp.states[goal]]),
+                "goal_probability": float(outcome.outcomes.get(problem.pomdp.states[goal], 0.0)),
                 "cost": point.cost,
                 "_alteration": point.alteration,
                 "_visits": outcome.expected_visits,

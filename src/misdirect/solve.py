@@ -19,7 +19,7 @@ from misdirect.errors import ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
 from misdirect.solvers.auto import AutoSolver
-from misdirect.solvers.base import ProgressCallback, Solver
+from misdirect.solvers.base import CERTIFY_TOLERANCE, ProgressCallback, Solver
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
@@ -56,6 +56,7 @@ class BudgetResult:
     upper_bound: float | None
     solver_probability: float | None  # None when the solver stopped without an incumbent
     stats: dict[str, Any] = field(default_factory=dict)
+    alteration_array: Alteration | None = field(default=None, repr=False)
 
     @property
     def gap(self) -> float | None:
@@ -157,6 +158,7 @@ def solve(
         cost = problem.alteration_cost(alpha)
         status = solution.status
         claimed = solution.claimed_probability
+        stats = dict(solution.stats)
         # An incumbent cut short (time or gap limit, node limit) may claim less than its
         # alteration is worth: its continuous part (or a MILP's witness columns) was not yet
         # pushed to the best for its choices. Only claiming more, or any mismatch at a proven
@@ -186,18 +188,12 @@ def solve(
                 )
             upper_bound = exact
         curve.append(
-            BudgetResult(
-                budget=solution.budget,
-                status=status,
-                probability=exact,
-                alteration=problem.changed_observations(alpha),
-                cost=cost,
-                upper_bound=upper_bound,
-                solver_probability=claimed,
-                stats=solution.stats,
-            )
+            _Point(solution.budget, status, exact, alpha, cost, upper_bound, claimed, stats)
         )
+    _make_monotone(curve)
+    curve = [point.result(problem) for point in curve]
     final = curve[-1]
+    curve_alterations = [point.alteration_array for point in curve]
     return SolveResult(
         problem=problem.name,
         method=solver.name,
@@ -212,5 +208,86 @@ def solve(
         curve=curve,
         stats=final.stats,
         warnings=warnings,
-        alteration_array=np.asarray(solutions[-1].alteration, dtype=np.int64),
+        alteration_array=curve_alterations[-1],
     )
+
+
+@dataclass
+class _Point:
+    """One budget's answer while ``solve`` checks the curve as a whole."""
+
+    budget: float
+    status: str
+    probability: float
+    alteration: np.ndarray
+    cost: float
+    upper_bound: float | None
+    claimed: float | None
+    stats: dict[str, Any]
+
+    def result(self, problem: Problem) -> BudgetResult:
+        return BudgetResult(
+            budget=self.budget,
+            status=self.status,
+            probability=self.probability,
+            alteration=problem.changed_observations(self.alteration),
+            cost=self.cost,
+            upper_bound=self.upper_bound,
+            solver_probability=self.claimed,
+            stats=self.stats,
+            alteration_array=self.alteration,
+        )
+
+
+def _make_monotone(curve: list[_Point]) -> None:
+    """What one budget's answer proves about the others, and "optimal" only when proven.
+
+    * A larger budget can do whatever a smaller one can: a point worse than one at a smaller
+      budget takes that alteration (a solver cut short may not have found it again).
+    * An upper bound at a larger budget bounds every smaller one too.
+    * ``optimal`` requires a proven bound within ``CERTIFY_TOLERANCE`` of the exact value of the
+      alteration returned, whatever the method said; a point without one is ``feasible``, and a
+      point whose bound (perhaps one from a larger budget) closes the gap becomes ``optimal``.
+    """
+    order = sorted(range(len(curve)), key=lambda j: curve[j].budget)
+    best: _Point | None = None
+    for j in order:
+        point = curve[j]
+        if best is not None and point.probability < best.probability - 1e-12:
+            point.stats["replaced"] = (
+                f"the solver's answer ({point.probability:.9f}) was worse than budget "
+                f"{best.budget:g}'s, whose alteration it takes"
+            )
+            point.alteration, point.probability, point.cost = (
+                best.alteration,
+                best.probability,
+                best.cost,
+            )
+            if point.upper_bound is not None:
+                point.upper_bound = max(point.upper_bound, point.probability)
+        if best is None or point.probability > best.probability:
+            best = point
+    bound: float | None = None
+    for j in reversed(order):
+        point = curve[j]
+        if point.status == "unverified":
+            continue
+        if bound is not None and (point.upper_bound is None or bound < point.upper_bound):
+            point.upper_bound = max(bound, point.probability)
+        if point.upper_bound is not None:
+            bound = point.upper_bound
+        certified = (
+            point.upper_bound is not None
+            and point.upper_bound - point.probability <= CERTIFY_TOLERANCE + 1e-12
+        )
+        if point.status == "optimal" and not certified:
+            point.stats["not_certified"] = (
+                "no proven bound within 1e-9 of the exact value"
+                if point.upper_bound is None
+                else f"proven bound {point.upper_bound:.12f} is "
+                f"{point.upper_bound - point.probability:.2e} above the exact value"
+            )
+            point.status = "feasible"
+        elif point.status in ("time_limit", "gap_limit", "feasible") and certified:
+            point.stats["certified_by_bound"] = "a bound at this or a larger budget meets it"
+            point.status = "optimal"

@@ -41,6 +41,10 @@ INTEGRALITY_TOLERANCE = 1e-9
 # Switching presolve off altogether is worse: then HiGHS' root cuts cut off the optimum of
 # random_problem(5269) at budget 2. Both are regression tests in tests/test_milp.py.
 HIGHS_PRESOLVE_RULES_OFF = 1 << 9
+# HiGHS checks its clock only now and then; the parent stops a worker still running this long
+# after the limit (10 % + 1 s keeps a whole command within 10 % + 2 s of its limit)
+HIGHS_GRACE_FACTOR = 1.1
+HIGHS_GRACE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -69,7 +73,11 @@ class Backend(Protocol):
 
     def set_row_upper(self, row: int, value: float) -> None: ...
 
-    def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult: ...
+    def solve(
+        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+    ) -> BackendResult:
+        """One solve from ``start``; ``time_limit`` (seconds) overrides the options'."""
+        ...
 
     def close(self) -> None: ...
 
@@ -111,15 +119,34 @@ class HighsBackend:
         _pass_model(highs, _model_arrays(self.model))
         highs.writeModel(str(path))
 
-    def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
+    def solve(
+        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+    ) -> BackendResult:
         assert self.model is not None, "load() a model first"
         row = self.model.budget_row
+        limit = self.options.time_limit if time_limit is None else time_limit
         code = None
+        began = time.perf_counter()
         for attempt in range(self.retries):
             try:
                 if self._worker is None:
                     self._start_worker()
-                self._conn.send(("solve", row, float(self.model.row_upper[row]), start, attempt))
+                message = ("solve", row, float(self.model.row_upper[row]), start, attempt, limit)
+                self._conn.send(message)
+                # HiGHS overshoots its own limit (seconds, on large models): past the limit
+                # and a grace period the worker is stopped and the solve counts as timed out
+                grace = None if limit is None else limit * HIGHS_GRACE_FACTOR + HIGHS_GRACE_S
+                if grace is not None and not self._conn.poll(grace):
+                    self._stop_worker(kill=True)
+                    return BackendResult(
+                        "time_limit",
+                        None,
+                        None,
+                        None,
+                        None,
+                        time.perf_counter() - began,
+                        detail={"highs_status": "stopped at the time limit"},
+                    )
                 kind, payload = self._conn.recv()
             except (EOFError, OSError):
                 code = getattr(self._worker, "exitcode", None)
@@ -165,11 +192,13 @@ class HighsBackend:
         if kind == "error":
             raise SolverError(payload)
 
-    def _stop_worker(self) -> None:
+    def _stop_worker(self, kill: bool = False) -> None:
         if self._worker is not None:
+            if kill and hasattr(self._worker, "kill"):
+                self._worker.kill()
             with contextlib.suppress(OSError):
                 self._conn.send(("stop",))
-            self._worker.join(timeout=5)
+            self._worker.join(timeout=0.5 if kill else 5)
             if self._worker.is_alive() and hasattr(self._worker, "kill"):
                 self._worker.kill()
             self._conn.close()
@@ -301,9 +330,10 @@ def _highs_worker(conn: Any, options: SolverOptions) -> None:
                 arrays = message[1]
                 conn.send(("ok", None))
             else:
-                _, row, value, start, seed = message
+                _, row, value, start, seed, limit = message
                 arrays["row_upper"][row] = value
-                conn.send(("result", run_highs(arrays, options, start, seed)))
+                timed = dataclasses.replace(options, time_limit=limit)
+                conn.send(("result", run_highs(arrays, timed, start, seed)))
         except SolverError as error:
             conn.send(("error", str(error)))
 
@@ -333,8 +363,6 @@ class GurobiBackend:
         try:
             self.model = gp.Model(env=self.env)
             m = self.model
-            if self.options.time_limit is not None:
-                m.Params.TimeLimit = self.options.time_limit
             if self.options.threads is not None:
                 m.Params.Threads = self.options.threads
             m.Params.MIPGap = self.options.mip_gap
@@ -373,9 +401,13 @@ class GurobiBackend:
             self.model.dispose()
         self.env.dispose()
 
-    def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
+    def solve(
+        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+    ) -> BackendResult:
         gp = self.gp
         m = self.model
+        limit = self.options.time_limit if time_limit is None else time_limit
+        m.Params.TimeLimit = float("inf") if limit is None else limit
         if start is not None:
             columns, values = start
             starts = np.full(m.NumVars, gp.GRB.UNDEFINED)
@@ -428,7 +460,10 @@ class ScipBackend:
     def close(self) -> None:
         pass
 
-    def solve(self, start: tuple[np.ndarray, np.ndarray] | None) -> BackendResult:
+    def solve(
+        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+    ) -> BackendResult:
+        limit = self.options.time_limit if time_limit is None else time_limit
         # SCIP reads the model from the MPS file HiGHS writes: a bulk path with no per-row calls
         with tempfile.TemporaryDirectory() as folder:
             path = Path(folder) / "model.mps"
@@ -436,8 +471,8 @@ class ScipBackend:
             scip = self.pyscipopt.Model()
             scip.hideOutput(not self.options.verbose)
             scip.readProblem(str(path))
-        if self.options.time_limit is not None:
-            scip.setParam("limits/time", float(self.options.time_limit))
+        if limit is not None:
+            scip.setParam("limits/time", float(limit))
         scip.setParam("limits/gap", float(self.options.mip_gap))
         scip.setParam("numerics/feastol", INTEGRALITY_TOLERANCE)  # also SCIP's integrality one
         threads = self.options.threads
@@ -501,12 +536,13 @@ def violation(model: MilpModel, values: np.ndarray) -> float:
     for one, rounds the binaries it reports but not the rows that depend on them."""
     integral = values[model.integer]
     activity = model.matrix @ values
+    scale = 1.0 if model.row_scale is None else model.row_scale  # in the rows' own units
     parts = [
         np.abs(integral - np.round(integral)),
         model.col_lower - values,
         values - model.col_upper,
-        model.row_lower - activity,
-        activity - model.row_upper,
+        (model.row_lower - activity) / scale,
+        (activity - model.row_upper) / scale,
     ]
     return float(max((part.max() for part in parts if part.size), default=0.0))
 

@@ -36,6 +36,7 @@ class MilpModel:
     decode: Callable[[np.ndarray], Alteration]  # column values -> alteration
     start_for: Callable[[Alteration], tuple[np.ndarray, np.ndarray]]  # alteration -> (cols, vals)
     sound: bool = True  # does the optimum equal the true optimum (and the bound bound it)?
+    row_scale: np.ndarray | None = None  # factor each row was multiplied by (None: all 1)
     build_time_s: float = 0.0
     notes: dict[str, Any] = field(default_factory=dict)
 
@@ -75,6 +76,7 @@ class ModelBuilder:
         self._entries: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._lower: list[np.ndarray] = []
         self._upper: list[np.ndarray] = []
+        self._scale: list[np.ndarray] = []
         self.column_blocks: dict[str, slice] = {}
         self.row_blocks: dict[str, slice] = {}
 
@@ -95,15 +97,22 @@ class ModelBuilder:
         entries: tuple[np.ndarray, np.ndarray, np.ndarray],
         lower: np.ndarray | float,
         upper: np.ndarray | float,
+        *,
+        scale: float = 1.0,
     ) -> int:
-        """Add ``count`` rows; ``entries`` are (row within block, column, coefficient)."""
+        """Add ``count`` rows; ``entries`` are (row within block, column, coefficient).
+
+        ``scale`` multiplies the rows (coefficients and bounds): a solver's absolute
+        feasibility tolerance then allows only ``tolerance / scale`` in the original units.
+        """
         first = self._n_rows
         row, col, val = (np.asarray(a) for a in entries)
         self._entries.append(
-            (row.astype(np.int64) + first, col.astype(np.int64), val.astype(np.float64))
+            (row.astype(np.int64) + first, col.astype(np.int64), scale * val.astype(np.float64))
         )
-        self._lower.append(np.broadcast_to(np.asarray(lower, dtype=np.float64), (count,)))
-        self._upper.append(np.broadcast_to(np.asarray(upper, dtype=np.float64), (count,)))
+        self._lower.append(np.broadcast_to(scale * np.asarray(lower, dtype=np.float64), (count,)))
+        self._upper.append(np.broadcast_to(scale * np.asarray(upper, dtype=np.float64), (count,)))
+        self._scale.append(np.full(count, float(scale)))
         self.row_blocks[name] = slice(first, first + int(count))
         self._n_rows += int(count)
         return first
@@ -128,6 +137,7 @@ class ModelBuilder:
             matrix=matrix,
             row_lower=np.concatenate(self._lower) if self._lower else np.zeros(0),
             row_upper=np.concatenate(self._upper) if self._upper else np.zeros(0),
+            row_scale=np.concatenate(self._scale) if self._scale else np.zeros(0),
             col_lower=np.concatenate(
                 [np.full(n, lo, dtype=np.float64) for _, n, lo, _, _ in parts]
             ),

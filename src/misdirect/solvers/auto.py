@@ -1,24 +1,32 @@
-"""``--method auto``: the fastest exact method for the model's shape.
+"""``--method auto``: the fastest exact method for the model's shape, within one deadline.
 
 1. ``incremental`` (one base solve per outer choice, a tiny Woodbury solve per alteration)
    when the chain cannot cycle without reaching the decoy and at most 200,000 alterations fit;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
-   (300) fit: below that, enumeration beats branch-and-bound's several evaluations per node
-   (measured on trap grids n = 9 and 21: 31 alterations 0.09 s against 0.17 s, 436
-   alterations 2.2 s against 1.2 s);
+   (300) fit, or when enumerating them all would take at most ``ENUMERATION_SECONDS`` at the
+   measured cost of one evaluation (tiny chains: a few hundred product states evaluate in well
+   under a millisecond, so thousands of alterations are quicker to enumerate than to search):
+   below that, enumeration beats branch-and-bound's several evaluations per node (measured on
+   trap grids n = 9 and 21: 31 alterations 0.09 s against 0.17 s, 436 alterations 2.2 s
+   against 1.2 s);
 3. the MILP when every relevant observation owns at most ``KNAPSACK_STATES`` live product
    states (knapsack-like): the per-state relaxation then only drops the budget, its bound is
    weak and branch-and-bound degenerates to enumeration, while the MILP's LP handles the budget
-   row (20-item knapsack: 3,126 nodes and 13 s against 0.06 s);
+   row (20-item knapsack: 3,126 nodes and 13 s against 0.06 s); a budget the MILP cannot
+   certify to 1e-9 goes to branch-and-bound, started from the MILP's answer;
 4. ``branch-and-bound`` otherwise (its relaxation is tight where few observations own many
    states, where the MILP's is weak), with the MILP as fallback for any budget on which it hits
-   its node limit.
+   its node limit; on a tiny chain (under ``TINY_CHAIN`` product states) it has no node limit,
+   since a node costs microseconds there and the MILP has hung on such chains (88 states).
 
-All are exact; every answer records which method certified it and why.
+Every stage runs against what is left of the one deadline (``--time-limit``), so no hand-over
+starts without time, and every hand-over is reported to the progress callback. All stages are
+exact; every answer records which method certified it and why.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -26,17 +34,27 @@ import numpy as np
 
 from misdirect.alterations import alteration_space
 from misdirect.choice_product import build_choice_product
+from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
-from misdirect.solvers.base import ProgressCallback, Solution
+from misdirect.solvers.base import (
+    CERTIFY_TOLERANCE,
+    Deadline,
+    ProgressCallback,
+    Solution,
+    check_time_limit,
+    report,
+)
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver, NotApplicableError
 from misdirect.solvers.milp import MilpSolver
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
+ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time
 INCREMENTAL_LIMIT = 200_000  # ... and for enumeration with low-rank updates
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
+TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
 
 
 class AutoSolver:
@@ -47,9 +65,12 @@ class AutoSolver:
         self,
         enumeration_limit: int = ENUMERATION_LIMIT,
         node_limit: int = NODE_LIMIT,
+        time_limit: float | None = None,
         **milp_options: Any,
     ):
+        check_time_limit(time_limit)
         self.enumeration_limit = enumeration_limit
+        self.time_limit = time_limit
         self.branch_and_bound = BranchAndBoundSolver(max_nodes=node_limit)
         self.milp = MilpSolver(**milp_options)  # validates the options up front
 
@@ -59,7 +80,9 @@ class AutoSolver:
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
     ) -> list[Solution]:
+        deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
         enumerated = space.within(top, limit=INCREMENTAL_LIMIT)
@@ -71,43 +94,152 @@ class AutoSolver:
         )
         if count <= INCREMENTAL_LIMIT:
             try:
-                solutions = IncrementalSolver().solve(problem, budgets, progress=progress)
+                solutions = IncrementalSolver().solve(
+                    problem, budgets, progress=progress, deadline=deadline
+                )
                 return _label(solutions, "incremental", reason)
             except NotApplicableError:
                 reason += "; no low-rank updates: the chain can cycle without reaching the decoy"
-        if count <= self.enumeration_limit:
-            solutions = ExhaustiveSolver().solve(problem, budgets, progress=progress)
+        if count <= self.enumeration_limit or (
+            count <= INCREMENTAL_LIMIT and count * _evaluation_time(problem) <= ENUMERATION_SECONDS
+        ):
+            if count > self.enumeration_limit:
+                reason += (
+                    f"; one evaluation is quick enough to try all within {ENUMERATION_SECONDS:g} s"
+                )
+            solutions = ExhaustiveSolver().solve(
+                problem, budgets, progress=progress, deadline=deadline
+            )
             return _label(solutions, "exhaustive", reason)
-        largest = _largest_observation(problem, space)
+        largest, product_states = _largest_observation(problem, space)
         if largest <= KNAPSACK_STATES:
             reason += (
                 f"; knapsack-like (each observation owns at most {largest} live product "
                 "states), so the MILP"
             )
-            return _label(self.milp.solve(problem, budgets, progress=progress), "milp", reason)
+            report(progress, 0, len(budgets), stage="milp", note=f"auto: {reason}")
+            solutions = _label(
+                self.milp.solve(problem, budgets, progress=progress, deadline=deadline),
+                "milp",
+                reason,
+            )
+            return self._finish_with(
+                self._branch_and_bound_after,
+                problem,
+                budgets,
+                solutions,
+                progress,
+                deadline,
+                why=f"{reason}; the MILP did not certify it, so branch-and-bound from its answer",
+            )
         reason += f"; the largest observation owns {largest:,} live product states"
+        search = self.branch_and_bound
+        if product_states < TINY_CHAIN:
+            # a node costs microseconds here, while the MILP's start-up alone costs more
+            reason += f"; a tiny chain ({product_states:,} product states): no node limit"
+            search = BranchAndBoundSolver(max_nodes=10**9)
+        report(progress, 0, len(budgets), stage="branch-and-bound", note=f"auto: {reason}")
         solutions = _label(
-            self.branch_and_bound.solve(problem, budgets, progress=progress),
+            search.solve(problem, budgets, progress=progress, deadline=deadline),
             "branch-and-bound",
             reason,
         )
+        return self._finish_with(
+            self._milp_after,
+            problem,
+            budgets,
+            solutions,
+            progress,
+            deadline,
+            why=f"{reason}; branch-and-bound hit its node limit, so the MILP",
+        )
+
+    def _finish_with(self, stage, problem, budgets, solutions, progress, deadline, *, why):
+        """Hand every budget that is not certified to ``stage``, if time is left; keep the
+        better answer and the tighter bound of the two."""
         unfinished = [j for j, s in enumerate(solutions) if s.status != "optimal"]
-        if unfinished:
-            fallback = self.milp.solve(problem, [budgets[j] for j in unfinished])
-            why = f"{reason}; branch-and-bound hit its node limit, so the MILP"
-            for j, s in zip(unfinished, _label(fallback, "milp", why), strict=True):
-                solutions[j] = s
+        if not unfinished:
+            return solutions
+        if deadline.expired():
+            report(progress, 0, 0, note=f"auto: no time left to hand over ({why})")
+            return solutions
+        report(
+            progress,
+            0,
+            len(unfinished),
+            note=f"auto: budgets {', '.join(f'{budgets[j]:g}' for j in unfinished)}: {why}",
+        )
+        fallback = stage(
+            problem,
+            [budgets[j] for j in unfinished],
+            [solutions[j] for j in unfinished],
+            progress,
+            deadline,
+        )
+        for j, second in zip(unfinished, fallback, strict=True):
+            solutions[j] = _better(problem, solutions[j], second, why)
         return solutions
 
+    def _milp_after(self, problem, budgets, earlier, progress, deadline):
+        del earlier  # the MILP warm-starts from its own previous budget
+        return _label(
+            self.milp.solve(problem, budgets, progress=progress, deadline=deadline), "milp", ""
+        )
 
-def _largest_observation(problem: Problem, space) -> int:
-    """Live product states owned by the relevant observation that owns the most."""
+    def _branch_and_bound_after(self, problem, budgets, earlier, progress, deadline):
+        solver = BranchAndBoundSolver(max_nodes=10**9)  # the deadline is the only limit now
+        seeds = [s.alteration for s in earlier]
+        return _label(
+            solver.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds),
+            "branch-and-bound",
+            "",
+        )
+
+
+def _better(problem: Problem, first: Solution, second: Solution, why: str) -> Solution:
+    """The better answer of two stages for one budget, with the tighter of their bounds."""
+    values = [
+        decoy_probability(problem, np.asarray(s.alteration, dtype=np.int64))
+        for s in (first, second)
+    ]
+    pick = second if values[1] > values[0] + 1e-12 else first
+    value = max(values)
+    bounds = [s.upper_bound for s in (first, second) if s.upper_bound is not None]
+    bound = max(min(bounds), value) if bounds else None
+    proven = bound is not None and bound - value <= CERTIFY_TOLERANCE
+    status = "optimal" if proven else pick.status
+    if status == "optimal" and not proven:
+        status = "feasible"
+    stats = {**pick.stats, "auto_reason": why, "stages": [first.stats, second.stats]}
+    stats["certified_by"] = (second if second.status == "optimal" else pick).stats.get(
+        "certified_by", "auto"
+    )
+    return Solution(
+        budget=pick.budget,
+        alteration=pick.alteration,
+        claimed_probability=value,
+        status=status,
+        upper_bound=bound,
+        stats=stats,
+    )
+
+
+def _evaluation_time(problem: Problem) -> float:
+    """Seconds for one exact evaluation (of the unaltered chain, once)."""
+    began = time.perf_counter()
+    decoy_probability(problem, problem.identity())
+    return time.perf_counter() - began
+
+
+def _largest_observation(problem: Problem, space) -> tuple[int, int]:
+    """Live product states owned by the relevant observation that owns the most, and the
+    number of states of the choice product."""
     chain = build_choice_product(problem, space)
     live = chain.can_reach_target() & ~chain.target
     observations = np.array([c.observation for c in space.choices], dtype=np.int64)
     owner = problem.pomdp.observation_of[chain.world_state[live]]
     counts = np.bincount(owner, minlength=problem.pomdp.n_observations)
-    return int(counts[observations].max(initial=0))
+    return int(counts[observations].max(initial=0)), int(chain.n_states)
 
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:

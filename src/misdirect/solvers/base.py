@@ -6,7 +6,8 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -14,7 +15,50 @@ import numpy as np
 
 from misdirect.model import Alteration, Problem
 
-ProgressCallback = Callable[[int, int], None]  # (done, total)
+CERTIFY_TOLERANCE = 1e-9  # "optimal" means: a proven bound within this of the exact value
+
+
+class ProgressCallback(Protocol):
+    """What a solver tells whoever watches: ``done`` of ``total`` steps of ``stage``.
+
+    ``detail`` is a short status line (incumbent, bound, gap, rate); ``note`` a hand-over worth
+    a line of its own (e.g. "branch-and-bound hit its node limit at budget 4: the MILP takes
+    over").
+    """
+
+    def __call__(
+        self,
+        done: int,
+        total: int,
+        *,
+        stage: str | None = None,
+        detail: str | None = None,
+        note: str | None = None,
+    ) -> None: ...
+
+
+class Deadline:
+    """A wall-clock limit shared by every stage and budget of one ``solve`` call."""
+
+    def __init__(self, seconds: float | None):
+        self.seconds = seconds
+        self.end = None if seconds is None else time.perf_counter() + seconds
+
+    def remaining(self) -> float | None:
+        """Seconds left (never negative), None without a limit."""
+        return None if self.end is None else max(self.end - time.perf_counter(), 0.0)
+
+    def expired(self) -> bool:
+        return self.end is not None and time.perf_counter() >= self.end
+
+    def share(self, parts: int) -> float | None:
+        """An even share of what is left for the next of ``parts`` pieces of work; what a
+        piece does not use rolls over to the pieces after it."""
+        left = self.remaining()
+        return None if left is None else left / max(parts, 1)
+
+
+NO_DEADLINE = Deadline(None)
 
 
 @dataclass(frozen=True)
@@ -23,8 +67,8 @@ class Solution:
 
     budget: float
     alteration: Alteration
-    claimed_probability: float  # the solver's own value for it
-    status: str = "optimal"  # "optimal" | "time_limit" | "feasible"
+    claimed_probability: float | None  # the solver's own value for it (None: no incumbent)
+    status: str = "optimal"  # "optimal" | "time_limit" | "feasible" | "gap_limit"
     upper_bound: float | None = None  # proven bound on the optimum, if the solver has one
     stats: dict[str, Any] = field(default_factory=dict)
 
@@ -39,9 +83,50 @@ class Solver(Protocol):
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
     ) -> list[Solution]:
-        """One :class:`Solution` per budget, in the order given."""
+        """One :class:`Solution` per budget, in the order given, by ``deadline`` (default:
+        the solver's own ``time_limit``, counted from the call)."""
         ...
+
+
+def report(
+    progress: ProgressCallback | None,
+    done: int,
+    total: int,
+    *,
+    stage: str | None = None,
+    detail: str | None = None,
+    note: str | None = None,
+) -> None:
+    """Call ``progress`` if there is one (solvers report through this, never directly)."""
+    if progress is not None:
+        progress(done, total, stage=stage, detail=detail, note=note)
+
+
+def refuse_options(method: str, options: dict[str, Any], accepted: Sequence[str] = ()) -> None:
+    """A clear error for an option ``method`` does not take (never a TypeError)."""
+    from misdirect.errors import ProblemError
+
+    for name, value in options.items():
+        if value is not None and name not in accepted:
+            flag = "--" + name.replace("_", "-")
+            takes = "takes only --time-limit" if "time_limit" in accepted else "takes no options"
+            raise ProblemError(
+                f"does not apply to --method {method} ({method} {takes}; --solver, "
+                "--threads, --mip-gap and --formulation are MILP options, for --method milp "
+                "or auto)",
+                field=flag,
+            )
+
+
+def check_time_limit(time_limit: float | None) -> None:
+    from misdirect.errors import ProblemError
+
+    if time_limit is not None and not (time_limit > 0 and np.isfinite(time_limit)):
+        raise ProblemError(
+            f"must be a positive number of seconds, got {time_limit}", field="--time-limit"
+        )
 
 
 def best_per_budget(

@@ -33,9 +33,16 @@ import numpy as np
 from misdirect.alterations import AlterationSpace, alteration_space
 from misdirect.choice_product import ChoiceProduct, build_choice_product
 from misdirect.errors import ProblemError
-from misdirect.model import Problem
+from misdirect.model import Alteration, Problem
 from misdirect.reachability import reach_probabilities
-from misdirect.solvers.base import ProgressCallback, Solution
+from misdirect.solvers.base import (
+    Deadline,
+    ProgressCallback,
+    Solution,
+    check_time_limit,
+    refuse_options,
+    report,
+)
 
 PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by more than a tie
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
@@ -136,6 +143,18 @@ class _Relaxation:
     def alteration(self, picks: Sequence[int]) -> np.ndarray:
         return self.space.alteration(self.problem, picks, self.order[: len(picks)])
 
+    def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
+        """The search's picks for ``alteration``, None if it takes a target outside the
+        space (not the cheapest of its behaviour class)."""
+        picks = []
+        for i in self.order:
+            choice = self.space.choices[i]
+            hit = np.flatnonzero(choice.targets == alteration[choice.observation])
+            if hit.size == 0:
+                return None
+            picks.append(int(hit[0]))
+        return tuple(picks)
+
     def cost(self, picks: Sequence[int]) -> float:
         pairs = zip(self.order, picks, strict=False)  # ``picks`` may be a prefix
         return float(sum(self.option_cost[self.first_option[i] + k] for i, k in pairs))
@@ -147,16 +166,13 @@ class BranchAndBoundSolver:
     name = "branch-and-bound"
     curve_is_free = False
 
-    def __init__(self, max_nodes: int = 20_000, **milp_options: object):
-        if milp_options:  # e.g. --time-limit from the command line: say so, do not crash
-            option = "--" + next(iter(milp_options)).replace("_", "-")
-            raise ProblemError(
-                "only applies to --method milp or auto (got --method branch-and-bound)",
-                field=option,
-            )
+    def __init__(self, max_nodes: int = 20_000, time_limit: float | None = None, **options: object):
+        refuse_options(self.name, options, accepted=("time_limit",))
+        check_time_limit(time_limit)
         if max_nodes < 1:
             raise ProblemError(f"must be at least 1, got {max_nodes}", field="max_nodes")
         self.max_nodes = max_nodes
+        self.time_limit = time_limit
 
     def solve(
         self,
@@ -164,7 +180,12 @@ class BranchAndBoundSolver:
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
+        seeds: Sequence[Alteration | None] | None = None,
     ) -> list[Solution]:
+        """``seeds`` (one per budget, optional): known good alterations, e.g. a MILP's
+        incumbents, that the search starts from."""
+        deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
         chain = build_choice_product(problem, space)
@@ -174,11 +195,27 @@ class BranchAndBoundSolver:
         incumbent: tuple[tuple[int, ...], float] | None = None
         answers: dict[int, Solution] = {}
         for done, j in enumerate(order):
-            search = _Search(relax, float(budgets[j]), self.max_nodes, incumbent, policy)
-            answers[j] = search.run()
+            budget = float(budgets[j])
+            search = _Search(relax, budget, self.max_nodes, incumbent, policy)
+            seed = None if seeds is None else seeds[j]
+            picks = None if seed is None else relax.picks_of(seed)
+            if picks is not None and relax.cost(picks) <= budget + BUDGET_SLACK:
+                search.offer(picks, search.value(picks))
+            share = deadline.share(len(order) - done)
+            limit = None if share is None else Deadline(share)
+
+            def tick(search=search, budget=budget, done=done) -> None:
+                report(
+                    progress,
+                    done,
+                    len(order),
+                    stage=f"branch-and-bound, budget {budget:g}",
+                    detail=search.describe(),
+                )
+
+            answers[j] = search.run(limit, tick)
             incumbent, policy = (search.best_picks, search.best_value), search.root_policy
-            if progress is not None:
-                progress(done + 1, len(budgets))
+            report(progress, done + 1, len(order), stage="branch-and-bound")
         return [answers[j] for j in range(len(budgets))]
 
 
@@ -200,7 +237,7 @@ class _Search:
         self.best_cost = 0.0
         self.evaluated: dict[tuple[int, ...], float] = {}
         if seed is not None:  # the smaller budget's answer stays feasible
-            self._offer(seed[0], seed[1])
+            self.offer(seed[0], seed[1])
         self.root_policy = policy
         self.stack = [_Node((), budget, np.inf, policy)]
         self.nodes = self.pruned = 0
@@ -208,7 +245,7 @@ class _Search:
         self.root_bound: float | None = None
         self.evaluations_before = relax.evaluations
 
-    def _offer(self, picks: tuple[int, ...], value: float) -> None:
+    def offer(self, picks: tuple[int, ...], value: float) -> None:
         """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper."""
         cost = self.relax.cost(picks)
         better = value > self.best_value + PRUNE_TOLERANCE
@@ -216,7 +253,7 @@ class _Search:
         if better or tied_cheaper:
             self.best_picks, self.best_value, self.best_cost = picks, value, cost
 
-    def _value(self, picks: tuple[int, ...]) -> float:
+    def value(self, picks: tuple[int, ...]) -> float:
         """Exact value of a complete assignment (the chain of its groups, least fixed point)."""
         if picks not in self.evaluated:
             relax = self.relax
@@ -233,14 +270,29 @@ class _Search:
             return True
         return False
 
-    def run(self) -> Solution:
+    def describe(self) -> str:
+        bound = self.open_bound()
+        return (
+            f"incumbent {self.best_value:.6f}, bound {bound:.6f}, gap {bound - self.best_value:.2e}"
+            f", {self.nodes:,} nodes"
+        )
+
+    def open_bound(self) -> float:
+        open_bound = max((n.parent_bound for n in self.stack), default=-np.inf)
+        return float(min(max(self.best_value, self.pruned_bound, open_bound), 1.0))
+
+    def run(self, deadline: Deadline | None = None, tick=None) -> Solution:
         relax = self.relax
         depth = len(relax.order)
         if self.best_value < 0:
-            self._offer(self.best_picks, self._value(self.best_picks))
+            self.offer(self.best_picks, self.value(self.best_picks))
         while self.stack:
             if self.nodes >= self.max_nodes:
                 return self._solution("feasible")
+            if deadline is not None and deadline.expired():
+                return self._solution("time_limit")
+            if tick is not None and self.nodes % 64 == 0:
+                tick()
             node = self.stack.pop()
             if self._prune(node.parent_bound):
                 continue
@@ -251,11 +303,11 @@ class _Search:
                 self.root_bound, self.root_policy = bound, policy
             level = len(node.picks)
             if level == depth:  # every observation fixed: the relaxation is the chain itself
-                self._offer(node.picks, bound)
+                self.offer(node.picks, bound)
                 continue
             usage = relax.usage(policy)
             rounded = self._round(node.picks, node.remaining, usage)
-            self._offer(rounded, self._value(rounded))
+            self.offer(rounded, self.value(rounded))
             if self._prune(bound):
                 continue
             i = relax.order[level]
@@ -283,14 +335,13 @@ class _Search:
         return tuple(completed)
 
     def _solution(self, status: str) -> Solution:
-        open_bound = max((n.parent_bound for n in self.stack), default=-np.inf)
-        bound = max(self.best_value, self.pruned_bound, open_bound)
+        bound = self.open_bound()
         return Solution(
             budget=self.budget,
             alteration=self.relax.alteration(self.best_picks),
             claimed_probability=self.best_value,
             status=status,
-            upper_bound=float(min(bound, 1.0)),
+            upper_bound=bound,
             stats={
                 "nodes": self.nodes,
                 "pruned": self.pruned,

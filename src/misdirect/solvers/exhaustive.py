@@ -2,7 +2,8 @@
 
 Every combination of per-observation candidates whose cost fits the largest budget is evaluated
 exactly; the best one within each budget is the optimum there, so one run gives the whole
-budget curve.
+budget curve. Stopped by its deadline, it reports the best alteration seen so far with status
+``time_limit`` and the root bound of the MDP relaxation (see ``branch_and_bound``).
 """
 
 from __future__ import annotations
@@ -15,15 +16,28 @@ from misdirect.alterations import alteration_space
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
-from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
+from misdirect.solvers.base import (
+    Deadline,
+    ProgressCallback,
+    Solution,
+    best_per_budget,
+    check_time_limit,
+    refuse_options,
+    report,
+)
 
 
 class ExhaustiveSolver:
     name = "exhaustive"
     curve_is_free = True
 
-    def __init__(self, max_evaluations: int = 2_000_000):
+    def __init__(
+        self, max_evaluations: int = 2_000_000, time_limit: float | None = None, **options
+    ):
+        refuse_options(self.name, options, accepted=("time_limit",))
+        check_time_limit(time_limit)
         self.max_evaluations = max_evaluations
+        self.time_limit = time_limit
 
     def solve(
         self,
@@ -31,7 +45,9 @@ class ExhaustiveSolver:
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
     ) -> list[Solution]:
+        deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
         enumerated = space.within(top, limit=self.max_evaluations)
@@ -41,26 +57,42 @@ class ExhaustiveSolver:
                 "exhaustive search would take too long (try --method milp)"
             )
         table, costs = enumerated
-        values = np.empty(len(costs))
-        alterations = []
+        values = np.full(len(costs), -np.inf)
+        alterations: dict[int, np.ndarray] = {}
+        done = 0
         for i, picked in enumerate(table):
+            if i > 0 and deadline.expired():  # "alter nothing" (row 0) is always evaluated
+                break
             alpha = space.alteration(problem, picked)
-            alterations.append(alpha)
+            alterations[i] = alpha
             values[i] = decoy_probability(problem, alpha)
-            if progress is not None:
-                progress(i + 1, len(costs))
+            done = i + 1
+            report(progress, done, len(costs), stage="exhaustive")
+        finished = done == len(costs)
         stats = {
-            "evaluations": len(costs),
+            "evaluations": done,
+            "alterations_within_budget": len(costs),
             "relevant_observations": len(space.choices),
             "candidates_per_observation": [c.size for c in space.choices],
         }
+        picks = best_per_budget(costs[:done], values[:done], budgets)
+        if finished:
+            return [
+                Solution(
+                    b, alterations[i], float(values[i]), upper_bound=float(values[i]), stats=stats
+                )
+                for b, i in zip(budgets, picks, strict=True)
+            ]
+        from misdirect.solvers.branch_and_bound import relaxation_bound
+
         return [
             Solution(
-                budget=b,
-                alteration=alterations[i],
-                claimed_probability=float(values[i]),
-                upper_bound=float(values[i]),
+                b,
+                alterations[i],
+                float(values[i]),
+                status="time_limit",
+                upper_bound=max(float(values[i]), min(relaxation_bound(problem, b), 1.0)),
                 stats=stats,
             )
-            for b, i in zip(budgets, best_per_budget(costs, values, budgets), strict=True)
+            for b, i in zip(budgets, picks, strict=True)
         ]

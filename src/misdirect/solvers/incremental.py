@@ -30,7 +30,15 @@ from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
 from misdirect.reachability import solve_chain
-from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget
+from misdirect.solvers.base import (
+    Deadline,
+    ProgressCallback,
+    Solution,
+    best_per_budget,
+    check_time_limit,
+    refuse_options,
+    report,
+)
 
 INNER_ROWS = 200  # inner observations together may own at most this many product states
 PADDED_ROWS = 48  # up to this many inner rows, every alteration is solved at full size
@@ -46,8 +54,13 @@ class IncrementalSolver:
     name = "incremental"
     curve_is_free = True
 
-    def __init__(self, max_evaluations: int = 5_000_000):
+    def __init__(
+        self, max_evaluations: int = 5_000_000, time_limit: float | None = None, **options
+    ):
+        refuse_options(self.name, options, accepted=("time_limit",))
+        check_time_limit(time_limit)
         self.max_evaluations = max_evaluations
+        self.time_limit = time_limit
 
     def solve(
         self,
@@ -55,7 +68,9 @@ class IncrementalSolver:
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
     ) -> list[Solution]:
+        deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
         chain = build_choice_product(problem, space)
@@ -99,6 +114,8 @@ class IncrementalSolver:
         outer_table, outer_costs = space.within(top, outer)
         n_outer = len(outer_costs)
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
+            if done > 0 and deadline.expired():  # the first (unaltered outer) block always runs
+                break
             chosen = np.zeros(options.size, dtype=bool)
             for i, k in zip(outer, outer_pick, strict=True):
                 chosen[first_option[i] + k] = True
@@ -140,8 +157,7 @@ class IncrementalSolver:
             values.append(found)
             picks.append((outer_pick, table))
             done += 1
-            if progress is not None:
-                progress(done, n_outer)
+            report(progress, done, n_outer, stage="incremental")
 
         costs_a, values_a = np.concatenate(costs), np.clip(np.concatenate(values), 0.0, 1.0)
         offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
@@ -152,16 +168,26 @@ class IncrementalSolver:
             "outer_observations": len(outer),
         }
         picked = best_per_budget(costs_a, values_a, budgets, tolerance=NEAR_TIE)
-        return [
-            Solution(
-                budget=budget,
-                alteration=self._alpha(problem, space, outer, inner, picks, offsets, index),
-                claimed_probability=float(values_a[index]),
-                upper_bound=float(values_a[index]),
-                stats=stats,
+        finished = done == n_outer
+        if not finished:
+            from misdirect.solvers.branch_and_bound import relaxation_bound
+        solutions = []
+        for budget, index in zip(budgets, picked, strict=True):
+            within = values_a[costs_a <= budget + 1e-9]
+            bound = float(within.max())  # every alteration within the budget was enumerated
+            if not finished:
+                bound = max(bound, min(relaxation_bound(problem, budget), 1.0))
+            solutions.append(
+                Solution(
+                    budget=budget,
+                    alteration=self._alpha(problem, space, outer, inner, picks, offsets, index),
+                    claimed_probability=float(values_a[index]),
+                    status="optimal" if finished else "time_limit",
+                    upper_bound=bound,
+                    stats=stats,
+                )
             )
-            for budget, index in zip(budgets, picked, strict=True)
-        ]
+        return solutions
 
     @staticmethod
     def _alpha(problem, space, outer, inner, picks, offsets, index):

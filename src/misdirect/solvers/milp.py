@@ -22,13 +22,21 @@ from collections.abc import Sequence
 from typing import Any
 
 from misdirect.errors import ProblemError, SolverError
+from misdirect.evaluate import decoy_probability
 from misdirect.milp import backends
 from misdirect.milp.backends import BackendResult, SolverOptions, make_backend
 from misdirect.milp.compact import build_compact
 from misdirect.milp.model import MilpModel
 from misdirect.milp.paper import build_paper
 from misdirect.model import Problem
-from misdirect.solvers.base import ProgressCallback, Solution
+from misdirect.solvers.base import (
+    CERTIFY_TOLERANCE,
+    Deadline,
+    ProgressCallback,
+    Solution,
+    check_time_limit,
+    report,
+)
 
 FORMULATIONS = {
     "compact": build_compact,
@@ -84,9 +92,9 @@ class MilpSolver:
         verbose: bool = False,
     ):
         _check_formulation(formulation)
-        for value, option in ((time_limit, "--time-limit"), (mip_gap, "--mip-gap")):
-            if value is not None and not value >= 0:
-                raise ProblemError(f"must be a non-negative number, got {value}", field=option)
+        check_time_limit(time_limit)
+        if mip_gap is not None and not mip_gap >= 0:
+            raise ProblemError(f"must be a non-negative number, got {mip_gap}", field="--mip-gap")
         if threads is not None and threads < 1:
             raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
         self.backend_name = solver
@@ -102,11 +110,13 @@ class MilpSolver:
         budgets: Sequence[float],
         *,
         progress: ProgressCallback | None = None,
+        deadline: Deadline | None = None,
     ) -> list[Solution]:
+        deadline = deadline or Deadline(self.options.time_limit)
         model = build_formulation(problem, self.formulation, max(budgets))
         backend = make_backend(self.backend_name, self.options)
         try:
-            return self._solve_curve(problem, model, backend, budgets, progress)
+            return self._solve_curve(problem, model, backend, budgets, progress, deadline)
         finally:
             backend.close()
 
@@ -117,13 +127,17 @@ class MilpSolver:
         backend: Any,
         budgets: Sequence[float],
         progress: ProgressCallback | None,
+        deadline: Deadline,
     ) -> list[Solution]:
         backend.load(model)
         start = model.start_for(problem.identity())
         solutions = []
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, budget)
-            result = backend.solve(start)
+            report(
+                progress, done - 1, len(budgets), stage=f"milp ({backend.name}), budget {budget:g}"
+            )
+            result = backend.solve(start, time_limit=deadline.share(len(budgets) - done + 1))
             if result.status not in ("optimal", "time_limit", "infeasible"):
                 raise SolverError(
                     f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
@@ -153,6 +167,28 @@ class MilpSolver:
             # the better value of the same binaries
             incumbent = None if claimed is None else max(claimed, result.objective or claimed)
             status = _status(result, incumbent)
+            upper_bound = (
+                min(result.bound, 1.0) if model.sound and result.bound is not None else None
+            )
+            exact = decoy_probability(problem, alteration)
+            if upper_bound is None and model.sound and status != "optimal":
+                # stopped before the solver had a bound: the MDP relaxation's is always proven
+                from misdirect.solvers.branch_and_bound import relaxation_bound
+
+                upper_bound = max(min(relaxation_bound(problem, budget), 1.0), exact)
+            not_certified = None
+            if status == "optimal" and (
+                upper_bound is None or upper_bound - exact > CERTIFY_TOLERANCE
+            ):
+                # within the solver's tolerances, but not proven to 1e-9 for the alteration
+                # it returns (its point may rely on rows or binaries off by 1e-6): not optimal
+                status = "feasible"
+                not_certified = (
+                    "the formulation proves no bound"
+                    if upper_bound is None
+                    else f"{backend.name} stopped as optimal with its bound {upper_bound:.12f}, "
+                    f"{upper_bound - exact:.2e} above the exact value of its answer"
+                )
             stats: dict[str, Any] = {
                 **model.stats(),
                 "solver": backend.name,
@@ -163,6 +199,8 @@ class MilpSolver:
                 "nodes": result.nodes,
                 "claimed": claimed,  # the objective, or its recomputation with rounded binaries
                 "violation": violation,  # how far the solver's point is from feasible
+                "exact": exact,  # the chain's value of the decoded alteration
+                **({"not_certified": not_certified} if not_certified else {}),
                 **result.detail,
             }
             solutions.append(
@@ -171,12 +209,9 @@ class MilpSolver:
                     alteration=alteration,
                     claimed_probability=claimed,
                     status=status,
-                    upper_bound=min(result.bound, 1.0)
-                    if model.sound and result.bound is not None
-                    else None,
+                    upper_bound=upper_bound,
                     stats=stats,
                 )
             )
-            if progress is not None:
-                progress(done, len(budgets))
+            report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
