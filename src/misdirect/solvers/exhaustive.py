@@ -85,13 +85,14 @@ class ExhaustiveSolver:
             ]
         from misdirect.solvers.branch_and_bound import relaxation_bound
 
+        bound = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget too
         return [
             Solution(
                 b,
                 alterations[i],
                 float(values[i]),
                 status="time_limit",
-                upper_bound=max(float(values[i]), min(relaxation_bound(problem, b), 1.0)),
+                upper_bound=max(float(values[i]), bound),
                 stats=stats,
             )
             for b, i in zip(budgets, picks, strict=True)

@@ -171,12 +171,14 @@ class IncrementalSolver:
         finished = done == n_outer
         if not finished:
             from misdirect.solvers.branch_and_bound import relaxation_bound
+
+            relaxed = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget
         solutions = []
         for budget, index in zip(budgets, picked, strict=True):
             within = values_a[costs_a <= budget + 1e-9]
             bound = float(within.max())  # every alteration within the budget was enumerated
             if not finished:
-                bound = max(bound, min(relaxation_bound(problem, budget), 1.0))
+                bound = max(bound, relaxed)
             solutions.append(
                 Solution(
                     budget=budget,

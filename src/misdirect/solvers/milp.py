@@ -132,6 +132,7 @@ class MilpSolver:
         backend.load(model)
         start = model.start_for(problem.identity())
         solutions = []
+        relaxed: float | None = None
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, budget)
             report(
@@ -173,9 +174,12 @@ class MilpSolver:
             exact = decoy_probability(problem, alteration)
             if upper_bound is None and model.sound and status != "optimal":
                 # stopped before the solver had a bound: the MDP relaxation's is always proven
-                from misdirect.solvers.branch_and_bound import relaxation_bound
+                # (computed once, at the largest budget, which bounds every smaller one)
+                if relaxed is None:
+                    from misdirect.solvers.branch_and_bound import relaxation_bound
 
-                upper_bound = max(min(relaxation_bound(problem, budget), 1.0), exact)
+                    relaxed = min(relaxation_bound(problem, max(budgets)), 1.0)
+                upper_bound = max(relaxed, exact)
             not_certified = None
             if status == "optimal" and (
                 upper_bound is None or upper_bound - exact > CERTIFY_TOLERANCE
