@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +19,7 @@ import numpy as np
 
 from misdirect.errors import ProblemError
 from misdirect.model import Controller, CostModel, Pomdp
-from misdirect.storm_models import valuation_name
+from misdirect.storm_models import NO_LABEL, valuation_name
 
 FIELD = "controller.paynt"
 
@@ -32,9 +34,32 @@ def _is_index(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
+PAYNT_NO_LABEL = "__no_label__"  # PAYNT's name for an unlabelled choice (ours: __NOLABEL__)
+
+
+@dataclass(frozen=True)
+class PayntController:
+    controller: Controller
+    # observations with a null entry (some node never meets them): not alteration targets
+    never_read: np.ndarray
+
+
+def load_paynt_controller(path: Path, pomdp: Pomdp, *, aliases: Sequence[str] = ()) -> Controller:
+    """The controller of a PAYNT ``.fsc.json`` (see :func:`read_paynt_controller`)."""
+    return read_paynt_controller(path, pomdp, aliases=aliases).controller
+
+
+def read_paynt_controller(
+    path: Path, pomdp: Pomdp, *, aliases: Sequence[str] = ()
+) -> PayntController:
     """Read a PAYNT ``.fsc.json``; every malformed part is a ProblemError naming the file (as
-    source), the field inside it (``update_function[1][2]``) and the reason."""
+    source), the field inside it (``update_function[1][2]``) and the reason.
+
+    ``aliases[o]`` is Storm's own text for observation ``o`` (PAYNT writes that), matched when
+    the label is not one of our names. A ``null`` entry means PAYNT's controller never meets
+    that (node, observation): the observation is returned in ``never_read``, and the entry is
+    filled with a placeholder (action 0, stay in the node) that no run can reach once no
+    alteration may target it."""
     try:
         document = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -66,7 +91,15 @@ def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
             raise fail(key, f"expected a list, got {type(document[key]).__name__}")
 
     actions = {name: i for i, name in enumerate(pomdp.actions)}
+    if PAYNT_NO_LABEL not in actions and NO_LABEL in actions:
+        actions[PAYNT_NO_LABEL] = actions[NO_LABEL]
     observations = {name: i for i, name in enumerate(pomdp.observations)}
+    # Storm's texts, where they name one observation only (a true boolean prints as nothing)
+    texts, counts = np.unique(np.array(aliases, dtype=str), return_counts=True)
+    unique_texts = set(texts[counts == 1].tolist())
+    for o, text in enumerate(aliases):
+        if text in unique_texts and text not in observations:
+            observations[text] = o
     action_of = []
     for k, name in enumerate(document["action_labels"]):
         label = str(name) if str(name) in actions else _label(name)
@@ -127,8 +160,18 @@ def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
 
     action = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
     update = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
+    never: set[int] = set()
     for n in range(n_nodes):
         for k, o in enumerate(obs_columns):
+            if gamma[n][k] is None and delta[n][k] is None:
+                if o == pomdp.initial_observation and n == 0:
+                    raise fail(
+                        f"action_function[{n}][{k}]",
+                        "empty, but the robot starts in node 0 reading this observation",
+                    )
+                never.add(o)
+                action[n, o], update[n, o] = action_of[0] if action_of else 0, n
+                continue
             chosen = _action_entry(gamma[n][k], f"action_function[{n}][{k}]", fail)
             if not 0 <= chosen < len(action_of):
                 raise fail(
@@ -139,10 +182,7 @@ def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
             target = delta[n][k]
             where = f"update_function[{n}][{k}]"
             if target is None:
-                raise fail(
-                    where,
-                    "empty; an attacker can make the robot see any observation, so fill it in",
-                )
+                raise fail(where, "empty, but action_function has an action here; fill it in")
             if not _is_index(target):
                 raise fail(where, f"expected a node index (integer), got {target!r}")
             if not 0 <= target < n_nodes:
@@ -153,17 +193,16 @@ def load_paynt_controller(path: Path, pomdp: Pomdp) -> Controller:
                 )
             action[n, o] = action_of[chosen]
             update[n, o] = target
-    return Controller(
+    controller = Controller(
         nodes=tuple(f"n{n}" for n in range(n_nodes)), initial_node=0, action=action, update=update
     )
+    return PayntController(controller, np.array(sorted(never), dtype=np.int64))
 
 
 def _action_entry(chosen: Any, where: str, fail) -> int:
     """One ``action_function`` entry as an action index; randomized only if it is certain."""
     if chosen is None:
-        raise fail(
-            where, "empty; an attacker can make the robot see any observation, so fill it in"
-        )
+        raise fail(where, "empty, but update_function has a node here; fill it in")
     if isinstance(chosen, dict):  # randomized: accept only a point distribution
         try:
             weights = {int(a): float(p) for a, p in chosen.items()}
@@ -196,6 +235,16 @@ def controller_to_paynt(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:
         "observation_labels": list(pomdp.observations),
         "node_labels": [controller.nodes[n] for n in order],
     }
+
+
+def forbid_targets(cost: CostModel, targets: np.ndarray) -> CostModel:
+    """No observation may be altered into one of ``targets`` (cost inf)."""
+    pairs = dict(cost.pairs)
+    for t in targets.tolist():
+        for o in range(cost.n_observations):
+            if o != t:
+                pairs[o, t] = math.inf
+    return CostModel(cost.n_observations, cost.default, pairs, cost.protected)
 
 
 def forbid_disabled_actions(

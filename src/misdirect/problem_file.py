@@ -26,7 +26,7 @@ from pydantic import (
     WithJsonSchema,
 )
 
-from misdirect.controllers import forbid_disabled_actions, load_paynt_controller
+from misdirect.controllers import forbid_disabled_actions, forbid_targets, read_paynt_controller
 from misdirect.errors import ProblemError
 from misdirect.grid_map import LegendEntry, compile_grid
 from misdirect.model import Controller, CostModel, Pomdp, Problem
@@ -106,6 +106,17 @@ class StormPomdpSpec(_Strict):
     prism: str | None = Field(default=None, description="PRISM file, relative to this file")
     drn: str | None = Field(default=None, description="DRN file, relative to this file")
     constants: str | None = Field(default=None, description='PRISM constants, e.g. "N=5,p=0.1"')
+    terminal: str | None = Field(
+        default=None,
+        description="states that end the run (made absorbing), as PAYNT builds its models with "
+        'the property\'s target terminal: a PRISM expression over variables and labels ("goal", '
+        "or goal when no variable is called that), or for DRN a label expression (!, &, |)",
+    )
+    terminal_from: str | None = Field(
+        default=None,
+        description="a property, e.g. 'P=? [F \"goal\"]', whose target states Storm builds "
+        "terminal (exactly what PAYNT does with its specification)",
+    )
     disabled_action: Literal["stay", "forbid"] = Field(
         default="stay",
         description="the controller picks an action Storm does not enable in the true state: "
@@ -160,8 +171,18 @@ class DecoyLabelSpec(_Strict):
     label: Name = Field(description="a state label of the model (PRISM/DRN)")
 
 
+class DecoyExpressionSpec(_Strict):
+    expression: str = Field(
+        min_length=1,
+        description="a state condition: PRISM expression over variables and labels, or for DRN "
+        "a label expression (!, &, |, parentheses)",
+    )
+
+
 def _decoy_kind(value: Any) -> str:
-    return "label" if isinstance(value, dict) else "states"
+    if isinstance(value, dict):
+        return "expression" if "expression" in value else "label"
+    return "states"
 
 
 class CostSpec(_Strict):
@@ -205,13 +226,15 @@ class DeceptionSpec(_Strict):
     decoy: (
         Annotated[
             Annotated[list[Name], Field(min_length=1), Tag("states")]
-            | Annotated[DecoyLabelSpec, Tag("label")],
+            | Annotated[DecoyLabelSpec, Tag("label")]
+            | Annotated[DecoyExpressionSpec, Tag("expression")],
             Discriminator(_decoy_kind),
         ]
         | None
     ) = Field(
         default=None,
-        description="decoy states, or {label: ...} (grid maps mark them in the map instead)",
+        description="decoy states, {label: ...} or {expression: ...} (grid maps mark them in "
+        "the map instead)",
     )
     budget: Budget = 0.0
     cost: CostSpec = Field(default_factory=CostSpec)
@@ -236,7 +259,7 @@ class ProblemFileV1(_Strict):
 _UNION_TAGS = {
     "pomdp": {"explicit", "storm"},
     "controller": {"rules", "paynt"},
-    "decoy": {"states", "label"},
+    "decoy": {"states", "label", "expression"},
 }
 
 
@@ -330,9 +353,21 @@ def _resolve(name: str, base: Path | None) -> Path:
     return path if base is None or path.is_absolute() else base / path
 
 
-def _compile_decoy(spec: Any, pomdp: Pomdp, labels: dict[str, np.ndarray]) -> np.ndarray:
+def _compile_decoy(
+    spec: Any, pomdp: Pomdp, labels: dict[str, np.ndarray], condition=None
+) -> np.ndarray:
     if spec is None:
         raise ProblemError("list the decoy states, or give {label: ...}", field="deception.decoy")
+    if isinstance(spec, DecoyExpressionSpec):
+        field = "deception.decoy.expression"
+        if condition is None:
+            raise ProblemError(
+                "an expression needs a PRISM or DRN model (list the states instead)", field=field
+            )
+        decoy = condition(spec.expression, field)
+        if not decoy.any():
+            raise ProblemError(f"no state satisfies {spec.expression!r}", field=field)
+        return decoy
     if isinstance(spec, DecoyLabelSpec):
         if spec.label not in labels:
             known = ", ".join(sorted(labels)) or "none (explicit models have no labels)"
@@ -354,6 +389,8 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     """Resolve names and check consistency; returns the array model."""
     base = Path(source).parent if source is not None else None
     enabled = None  # Storm's enabled actions, when disabled ones must be forbidden
+    aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)
+    never = np.zeros(0, dtype=np.int64)  # observations a PAYNT controller says never occur
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
     if spec.grid is not None:
@@ -384,19 +421,25 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
                 kind=kind,
                 constants=spec.pomdp.constants,
                 base=base,
+                terminal=spec.pomdp.terminal,
+                terminal_from=spec.pomdp.terminal_from,
             )
-            pomdp, labels = world.pomdp, world.labels
+            pomdp, labels, condition = world.pomdp, world.labels, world.condition
+            aliases = world.storm_observation_names
             if spec.pomdp.disabled_action == "forbid":
                 enabled = world.enabled
         else:
-            pomdp, labels = _compile_pomdp(spec.pomdp), {}
-        decoy = _compile_decoy(spec.deception.decoy, pomdp, labels)
+            pomdp, labels, condition = _compile_pomdp(spec.pomdp), {}, None
+        decoy = _compile_decoy(spec.deception.decoy, pomdp, labels, condition)
     if isinstance(spec.controller, PayntControllerSpec):
-        controller = load_paynt_controller(_resolve(spec.controller.paynt, base), pomdp)
+        paynt = read_paynt_controller(_resolve(spec.controller.paynt, base), pomdp, aliases=aliases)
+        controller, never = paynt.controller, paynt.never_read
     else:
         controller = _compile_controller(spec.controller, pomdp)
     obs_index = {name: i for i, name in enumerate(pomdp.observations)}
     cost = _compile_cost(spec.deception.cost, obs_index)
+    if never.size:  # no state may be made to read an observation the controller never meets
+        cost = forbid_targets(cost, never)
     if enabled is not None:
         cost = forbid_disabled_actions(cost, pomdp, controller, enabled, decoy)
     return Problem(
