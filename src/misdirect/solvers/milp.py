@@ -167,7 +167,7 @@ class MilpSolver:
             # the solver's objective carries its tolerances as its bound does; the claim may be
             # the better value of the same binaries
             incumbent = None if claimed is None else max(claimed, result.objective or claimed)
-            status = _status(result, incumbent)
+            status = stopped = _status(result, incumbent)
             upper_bound = (
                 min(result.bound, 1.0) if model.sound and result.bound is not None else None
             )
@@ -197,7 +197,7 @@ class MilpSolver:
                 **model.stats(),
                 "solver": backend.name,
                 "solve_time_s": result.solve_time_s,
-                "status": status,
+                "status": stopped,  # how the solver stopped; the point's status may be lower
                 "objective": result.objective,
                 "bound": result.bound,
                 "nodes": result.nodes,
