@@ -20,7 +20,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/speed.py --out bench/results
+	$(BIN)/python bench/real_chains.py --out bench/results
 	$(BIN)/python bench/milp_scaling.py --out bench/results
+	$(BIN)/python bench/hard_instances.py --out bench/results
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

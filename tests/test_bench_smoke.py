@@ -83,3 +83,34 @@ def test_speed_benchmark_reduced_mode(tmp_path):
     assert len(rows) == len(report["runs"])
     assert "| G1 |" in (tmp_path / "speed.md").read_text()
     assert (tmp_path / "speed.png").stat().st_size > 10_000
+
+
+def test_hard_instances_benchmark_reduced_mode(tmp_path):
+    """Small sensor networks, certified by auto and by both MILP backends: every row must
+    certify, and the values must agree across methods (no timing asserted)."""
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "hard_instances.py"),
+            "--quick",
+            "--out",
+            str(tmp_path),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    payload = json.loads((tmp_path / "hard_instances.json").read_text())
+    assert [goal["goal"] for goal in payload["goals"]] == ["H1", "H2", "H3", "H4"]
+    rows = payload["rows"]
+    assert all("error" not in r and r["certified"] for r in rows)
+    by_instance: dict = {}
+    for r in rows:
+        values = [p["probability"] for p in r["points"]]
+        assert values == sorted(values)  # a curve never decreases
+        key = (r["n"], r["sensors"])
+        for p in r["points"]:
+            by_instance.setdefault((*key, p["budget"]), []).append(p["probability"])
+    for values in by_instance.values():
+        assert max(values) - min(values) <= 1e-9
+    lines = list(csv.DictReader((tmp_path / "hard_instances.csv").open()))
+    assert len(lines) == sum(len(r["points"]) for r in rows)

@@ -6,12 +6,16 @@ any kind exits with code 2 and one line naming the file (or option), the field a
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import math
 import os
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from enum import StrEnum
 from functools import wraps
 from pathlib import Path
@@ -24,13 +28,15 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from misdirect import __version__
+from misdirect.alterations import max_alteration_cost
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.evaluate import evaluate as evaluate_alteration
+from misdirect.io_utils import check_output_path, one_line, prepare_output_dir, write_output
 from misdirect.milp.backends import BACKENDS, write_model
 from misdirect.model import Problem, format_alteration
 from misdirect.problem_file import json_schema, load_problem, write_problem
-from misdirect.scenarios import knapsack, paper_grid, random_problem
+from misdirect.scenarios import knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solve import SOLVERS, SolveResult
 from misdirect.solve import solve as solve_problem
 from misdirect.solvers.milp import FORMULATIONS, build_formulation
@@ -49,6 +55,16 @@ app.add_typer(scenario_app, name="scenario")
 out = Console()
 err = Console(stderr=True)
 INPUT_ERROR = 2
+INTERRUPTED = 130  # 128 + SIGINT, as a shell reports it
+TERMINATED = 143  # 128 + SIGTERM
+
+# Largest values of the numeric options, checked before anything is allocated (README, Limits)
+MAX_GRID_SIZE = 2_000  # paper-grid n: 4 million states, 8 million product states
+MAX_SEED = 2**64 - 1
+MAX_RUNS = 10_000_000  # simulate: about 60 bytes per run are held at once
+MAX_STEPS = 100_000_000
+MAX_SAMPLES = 100_000
+MAX_RANDOM = {"--states": 100_000, "--actions": 100, "--observations": 10_000, "--nodes": 1_000}
 
 
 class Scenario(StrEnum):
@@ -92,6 +108,12 @@ def _numbers(text: str | None, option: str) -> list[float]:
         ) from None
 
 
+def check_range(option: str, value: int | float, least: int | float, most: int | float) -> None:
+    """A numeric option within its documented range, before anything is built from it."""
+    if not least <= value <= most:
+        raise ProblemError(f"must be between {least:,} and {most:,}, got {value:,}", field=option)
+
+
 def _scenario_problem(
     scenario: Scenario,
     size: int,
@@ -120,25 +142,50 @@ def _load_input(
 ) -> Problem:
     if (file is None) == (scenario is None):
         raise ProblemError("give either a problem FILE or --scenario (exactly one)")
+    check_range("--seed", seed, 0, MAX_SEED)
+    if size > MAX_GRID_SIZE:
+        check_range("--size", size, 5, MAX_GRID_SIZE)
     if file is not None:
         return load_problem(file)
     return _scenario_problem(scenario, size, weights, values, capacity, seed)
 
 
-def _parse_alter(pairs: list[str]) -> dict[str, str]:
+def _split_alter(pair: str, observations: tuple[str, ...]) -> tuple[str, str]:
+    """``OBS=OBS`` split at the ``=`` that leaves two known observations, so that names with
+    an ``=`` in them (Storm's ``o=2``) can be altered; if none does, at the first ``=`` (the
+    unknown name is then reported)."""
+    known = set(observations)
+    splits = [(pair[:i].strip(), pair[i + 1 :].strip()) for i, c in enumerate(pair) if c == "="]
+    splits = [(a, b) for a, b in splits if a and b]
+    if not splits:
+        raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
+    matching = [(a, b) for a, b in splits if a in known and b in known]
+    if len(matching) > 1:
+        readings = " or ".join(f"{a!r} -> {b!r}" for a, b in matching)
+        raise ProblemError(
+            f"{pair!r} is ambiguous: {readings} (observations contain '=')", field="--alter"
+        )
+    return matching[0] if matching else splits[0]
+
+
+def _parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[str, str]:
     changes: dict[str, str] = {}
     for pair in pairs:
-        original, sep, received = pair.partition("=")
-        if not sep or not original.strip() or not received.strip():
-            raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
-        if original.strip() in changes:
-            raise ProblemError(f"{original.strip()!r} is altered twice", field="--alter")
-        changes[original.strip()] = received.strip()
+        original, received = _split_alter(pair, observations)
+        if original in changes:
+            raise ProblemError(f"{original!r} is altered twice", field="--alter")
+        changes[original] = received
     return changes
 
 
-def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None:
-    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``."""
+def parse_budgets(
+    budget: str | None, budgets: str | None, cap: float | None = None
+) -> list[float] | None:
+    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``.
+
+    A range is expanded only up to ``cap`` (the most expensive complete alteration: every
+    budget beyond it gives the same answer), then its upper end, which solve clamps and
+    reports; so ``0..1000000000`` never materialises a billion budgets."""
     if budget is not None and budgets is not None:
         raise ProblemError("give --budget or --budgets, not both", field="--budgets")
     option = "--budgets" if budgets is not None else "--budget"
@@ -147,12 +194,25 @@ def parse_budgets(budget: str | None, budgets: str | None) -> list[float] | None
             parsed = [float(b) for b in budgets.split(",") if b.strip()]
         elif budget is not None and ".." in budget:
             low, high = (int(part) for part in budget.split("..", 1))
-            parsed = [float(b) for b in range(low, high + 1)]
+            if low < 0 or high < low:
+                raise ProblemError(
+                    f"expected a range low..high with 0 ≤ low ≤ high, got {budget!r}", field=option
+                )
+            top = high if cap is None else min(high, max(low, math.ceil(cap)))
+            if top - low > 1_000_000:
+                raise ProblemError(
+                    f"a range of {top - low + 1:,} budgets is too many; give fewer", field=option
+                )
+            parsed = [float(b) for b in range(low, top + 1)]
+            if top < high:
+                parsed.append(float(high))
         elif budget is not None:
             parsed = [float(budget)]
         else:
             return None
-    except ValueError:
+    except (ValueError, OverflowError) as error:
+        if isinstance(error, ProblemError):
+            raise
         raise ProblemError(
             "expected a number, a range like 0..7, or a list like 0,1,2", field=option
         ) from None
@@ -171,20 +231,60 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that the same clean-up (a solver's worker killed, temporary
+    files removed) runs before the command exits with 143."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def _signals_as_exceptions() -> Iterator[None]:
+    """SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` while a command runs
+    (restored afterwards, so an embedding program keeps its own handlers)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
+
+
 def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
-    """Turn library errors into exit code 2 and one readable line, never a traceback."""
+    """Turn library errors into exit code 2 and one readable line, never a traceback;
+    Ctrl-C and SIGTERM into one line and exit code 130 or 143."""
 
     @wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> None:
         as_json = kwargs.get("as_json", False)
         try:
-            command(*args, **kwargs)
+            with _signals_as_exceptions():
+                command(*args, **kwargs)
         except ProblemError as error:
             _fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
         except MisdirectError as error:
             _fail(str(error), 1, as_json)
         except (typer.Exit, typer.Abort):
             raise
+        except Terminated:
+            _fail("terminated (SIGTERM)", TERMINATED, as_json)
+        except KeyboardInterrupt:
+            _fail("interrupted", INTERRUPTED, as_json)
+        except MemoryError:
+            _fail(
+                "out of memory: the model is too large for this machine (see Limits in the README)",
+                1,
+                as_json,
+            )
+        except OSError as error:  # an I/O failure no check foresaw (a disk filling up, ...)
+            where = f"{error.filename}: " if error.filename else ""
+            _fail(f"{where}{error.strerror or error}", 1, as_json)
         except Exception as error:  # a bug: keep the traceback behind an opt-in
             if os.environ.get("MISDIRECT_DEBUG"):
                 raise
@@ -199,10 +299,16 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
 
 
 def _fail(message: str, code: int, as_json: bool, **context: Any) -> None:
+    message = one_line(message)  # a name with a newline must not split the one line
     if as_json:
         _print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
+
+
+def _note(text: str) -> None:
+    """One line on stderr (``wrote ...``), names escaped."""
+    err.print(escape(one_line(text)), highlight=False, soft_wrap=True)
 
 
 def _fmt_alteration(alteration: dict[str, str]) -> str:
@@ -230,7 +336,8 @@ def evaluate(
 ) -> None:
     """Exact probability of reaching the decoy under one alteration (none by default)."""
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    changes = _parse_alter(alter or [], problem.pomdp.observations)
+    alpha = problem.alteration(changes, source="--alter")
     result = evaluate_alteration(problem, alpha)
     baseline = (
         result.probability
@@ -316,8 +423,12 @@ def solve(
     as_json: JsonOption = False,
 ) -> None:
     """Optimal alteration within the budget, with the best value for every smaller budget."""
+    if threads is not None:
+        check_range("--threads", threads, 1, 1024)
+    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
+        raise ProblemError("must be a positive number of seconds", field="--time-limit")
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    requested = parse_budgets(budget, budgets)
+    requested = parse_budgets(budget, budgets, cap=max_alteration_cost(problem))
     if requested is not None:
         problem = problem.with_budget(max(requested))
         if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
@@ -348,7 +459,7 @@ def solve(
         _print_solve(result)
     if result.warnings:
         for warning in result.warnings:
-            err.print(f"[bold red]warning:[/] {escape(warning)}", highlight=False)
+            err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
         raise typer.Exit(1)
 
 
@@ -413,7 +524,7 @@ class _Progress:
 def _print_handovers(done: int, total: int, *, note: str | None = None, **_: object) -> None:
     """Progress without a terminal: only the hand-overs between methods, one line each."""
     if note:
-        err.print(escape(note), highlight=False, soft_wrap=True)
+        err.print(escape(one_line(note)), highlight=False, soft_wrap=True)
 
 
 def _print_solve(result: SolveResult) -> None:
@@ -443,6 +554,12 @@ def _print_solve(result: SolveResult) -> None:
         )
     out.print(table)
     parts = [f"without alteration {result.baseline_probability:.6f}", f"{result.time_s:.2f} s"]
+    if result.budget_clamped_from is not None:
+        parts.insert(
+            0,
+            f"budget {result.budget_clamped_from:g} clamped to {result.budget:g} (every "
+            "alteration costs at most that)",
+        )
     stats = result.stats
     if "certified_by" in stats:
         parts.append(f"certified by {stats['certified_by']} ({stats['auto_reason']})")
@@ -464,13 +581,13 @@ OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to writ
 
 
 def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
-    write_problem(problem, output)
+    write_problem(problem, output)  # atomic: nothing is reported unless the file is in place
     if as_json:
         _print_json(
             {"written": str(output), "problem": problem.name, "states": problem.pomdp.n_states}
         )
     else:
-        err.print(escape(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)"))
+        _note(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
 
 
 @scenario_app.command("paper-grid")
@@ -482,6 +599,10 @@ def scenario_paper_grid(
     as_json: JsonOption = False,
 ) -> None:
     """The paper's n x n grid world (SPEC §3)."""
+    check_output_path(output)
+    check_range("--size", size, 5, MAX_GRID_SIZE)
+    if not (math.isfinite(budget) and budget >= 0):
+        raise ProblemError(f"must be a non-negative number, got {budget}", field="--budget")
     _write_scenario(paper_grid(size, budget=budget), output, as_json)
 
 
@@ -495,7 +616,29 @@ def scenario_knapsack(
     as_json: JsonOption = False,
 ) -> None:
     """The knapsack reduction of the NP-hardness proof (SPEC §4)."""
+    check_output_path(output)
     problem = knapsack(_numbers(weights, "--weights"), _numbers(values, "--values"), capacity)
+    _write_scenario(problem, output, as_json)
+
+
+@scenario_app.command("sensor-grid")
+@handle_errors
+def scenario_sensor_grid(
+    output: OutputOption,
+    size: Annotated[int, typer.Option(help="Grid size n (5..1000).")] = 20,
+    sensors: Annotated[
+        int, typer.Option(help="Number of sensors k, each covering 1-6 cells.")
+    ] = 16,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    memory: Annotated[int, typer.Option(help="Controller memory nodes (3: the paper's).")] = 3,
+    costs: Annotated[
+        str, typer.Option(help="uniform (every alteration 1) or random (1..3 per sensor).")
+    ] = "uniform",
+    budget: Annotated[float, typer.Option(help="Budget written into the file.")] = 3,
+    as_json: JsonOption = False,
+) -> None:
+    """A sensor network on the paper's slippery grid (docs/sensor-grid.md)."""
+    problem = sensor_grid(size, sensors, seed=seed, memory=memory, costs=costs, budget=budget)
     _write_scenario(problem, output, as_json)
 
 
@@ -511,6 +654,8 @@ def scenario_random(
     as_json: JsonOption = False,
 ) -> None:
     """A seeded random model with traps, absorbing non-decoy states and forbidden pairs."""
+    check_output_path(output)
+    check_range("--seed", seed, 0, MAX_SEED)
     for option, value in (
         ("--states", states),
         ("--actions", actions),
@@ -519,6 +664,7 @@ def scenario_random(
     ):
         if value < 1:
             raise ProblemError(f"must be at least 1, got {value}", field=option)
+        check_range(option, value, 1, MAX_RANDOM[option])
     problem = random_problem(
         seed, states=states, actions=actions, observations=observations, nodes=nodes
     )
@@ -552,15 +698,20 @@ def simulate(
     from misdirect.simulate import simulate as run_simulation
     from misdirect.simulate import wilson_interval
 
-    for option, value, least in (
-        ("--runs", runs, 1),
-        ("--max-steps", max_steps, 1),
-        ("--samples", samples, 0),
+    for option, value, least, most in (
+        ("--runs", runs, 1, MAX_RUNS),
+        ("--max-steps", max_steps, 1, MAX_STEPS),
+        ("--samples", samples, 0, MAX_SAMPLES),
     ):
         if value < least:
             raise ProblemError(f"must be at least {least}, got {value}", field=option)
+        check_range(option, value, least, most)
+    check_range("--seed", seed, 0, MAX_SEED)
+    if trajectories is not None:
+        check_output_path(trajectories, field="--trajectories")
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    changes = _parse_alter(alter or [], problem.pomdp.observations)
+    alpha = problem.alteration(changes, source="--alter")
     result = run_simulation(
         problem,
         alpha,
@@ -603,10 +754,11 @@ def simulate(
     }
     outcomes["decoy"]["interval_95"] = [low, high]
     if trajectories is not None:
-        with trajectories.open("w", newline="", encoding="utf-8") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(["run", "step", "state", "node", "received", "action"])
-            writer.writerows(result.trajectories)
+        buffer = io.StringIO(newline="")
+        writer = csv.writer(buffer)
+        writer.writerow(["run", "step", "state", "node", "received", "action"])
+        writer.writerows(result.trajectories)
+        write_output(trajectories, buffer.getvalue(), field="--trajectories")
     payload = {
         "problem": problem.name,
         "alteration": problem.changed_observations(alpha),
@@ -678,13 +830,15 @@ def show(
     """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
     from misdirect.pictures import draw
 
+    check_output_path(output)
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
-    alpha = problem.alteration(_parse_alter(alter or []), source="--alter")
+    changes = _parse_alter(alter or [], problem.pomdp.observations)
+    alpha = problem.alteration(changes, source="--alter")
     written = draw(problem, alpha, output)
     if as_json:
         _print_json({"written": str(written)})
     else:
-        err.print(escape(f"wrote {written}"))
+        _note(f"wrote {written}")
 
 
 @app.command()
@@ -722,8 +876,11 @@ def reproduce(
             ) from None
         if not size_list or min(size_list) < 5:
             raise ProblemError("grid sizes must be at least 5", field="--sizes")
-    if time_limit is not None and not time_limit > 0:
+        if max(size_list) > MAX_GRID_SIZE:
+            raise ProblemError(f"grid sizes must be at most {MAX_GRID_SIZE:,}", field="--sizes")
+    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
         raise ProblemError("must be a positive number of seconds", field="--time-limit")
+    prepare_output_dir(out_dir, field="--out")
     with _Progress(enabled=not as_json) as bars:
         progress = bars.track if bars else None
         report = run_reproduce(
@@ -796,14 +953,19 @@ def convert(
     as_json: JsonOption = False,
 ) -> None:
     """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
-    from misdirect.export import drn_text, prism_text
+    from misdirect.export import drn_text, export_notes, prism_text
     from misdirect.problem_file import problem_text
 
+    if output is not None:
+        check_output_path(output)
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
     if output is not None and to in (ConvertTarget.json, ConvertTarget.yaml):
         wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
         if output.suffix.lower() not in wanted:
             raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
+    if to in (ConvertTarget.prism, ConvertTarget.drn):
+        for note in export_notes(problem, to.value):
+            _note(f"note: {note}")
     if to is ConvertTarget.prism:
         text = prism_text(problem)
     elif to is ConvertTarget.drn:
@@ -812,17 +974,14 @@ def convert(
         text = problem_text(problem, as_json=to is ConvertTarget.json)
     _write_text(text, output, as_json, format=to.value)
     if output is not None and not as_json:
-        err.print(escape(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)"))
+        _note(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
 
 
 def _write_text(text: str, output: Path | None, as_json: bool, **about: Any) -> None:
     """Write ``text`` to ``output``, or to standard output when there is none (with --json,
     as the ``content`` of the one JSON object)."""
     if output is not None:
-        try:
-            output.write_text(text, encoding="utf-8")
-        except OSError as error:
-            raise ProblemError(f"cannot write {output}: {error.strerror}", field="-o") from None
+        write_output(output, text)  # atomic; a bad path or a failed write is one line
         if as_json:
             _print_json({"written": str(output), **about})
     elif as_json:
@@ -850,11 +1009,13 @@ def export_fsc(
     """Write the controller in PAYNT's JSON format (controller: {paynt: FILE} reads it)."""
     from misdirect.controllers import controller_to_paynt
 
+    if output is not None:
+        check_output_path(output)
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
     text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
     _write_text(text, output, as_json, format="paynt")
     if output is not None and not as_json:
-        err.print(escape(f"wrote {output} ({problem.controller.n_nodes} nodes)"))
+        _note(f"wrote {output} ({problem.controller.n_nodes} nodes)")
 
 
 @app.command("export-milp")
@@ -877,6 +1038,12 @@ def export_milp(
     as_json: JsonOption = False,
 ) -> None:
     """Write the MILP as MPS or LP for any other solver (columns c0, c1, …; maximise)."""
+    check_output_path(output)
+    if output.suffix.lower() not in (".mps", ".lp"):
+        raise ProblemError(
+            f"cannot write {output.suffix or 'a file without suffix'}: use .mps or .lp",
+            field="-o",
+        )
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
     if budget is not None and (not math.isfinite(budget) or budget < 0):
         raise ProblemError("must be a non-negative number", field="--budget")
@@ -886,7 +1053,7 @@ def export_milp(
     if as_json:
         _print_json(stats)
     else:
-        err.print(
+        _note(
             f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
             f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
             f"{model.matrix.nnz:,} non-zeros"
@@ -904,7 +1071,7 @@ def schema(
     if output is None:
         sys.stdout.write(text)
     else:
-        output.write_text(text, encoding="utf-8")
+        write_output(output, text)
         if as_json:
             _print_json({"written": str(output)})
 

@@ -1,7 +1,9 @@
-"""Problem generators: the paper's grid world and knapsack reduction, and seeded random models."""
+"""Problem generators: the paper's grid world and knapsack reduction, sensor networks on the
+paper's grid, and seeded random models."""
 
 from misdirect.scenarios.grid import paper_grid
 from misdirect.scenarios.knapsack import knapsack
 from misdirect.scenarios.random import random_problem
+from misdirect.scenarios.sensor_grid import sensor_grid
 
-__all__ = ["knapsack", "paper_grid", "random_problem"]
+__all__ = ["knapsack", "paper_grid", "random_problem", "sensor_grid"]
