@@ -232,3 +232,61 @@ def test_cli_honours_a_short_time_limit():
         assert point["upper_bound"] is not None
         assert point["upper_bound"] >= point["probability"]
         assert point["status"] in ("optimal", "time_limit")
+
+
+def test_auto_hands_an_uncertified_milp_answer_to_branch_and_bound(monkeypatch):
+    """The knapsack reduction goes to the MILP (every observation owns at most 2 live states).
+    If the MILP cannot certify a budget (here: its bound is made 1e-6 loose, as a solver's
+    tolerance can), auto lets branch-and-bound prove it, says so in a hand-over note, and the
+    answer is the paper's 0.25 at budget 7 (SPEC of the reduction: o1, o2, o4 altered)."""
+    from misdirect.scenarios import knapsack
+    from misdirect.solvers import auto
+    from misdirect.solvers import milp as milp_module
+
+    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)  # no enumeration: the MILP's route
+    real = milp_module.MilpSolver.solve
+
+    def loose(self, problem, budgets, **kwargs):
+        return [
+            dataclasses.replace(s, status="feasible", upper_bound=s.upper_bound + 1e-6)
+            for s in real(self, problem, budgets, **kwargs)
+        ]
+
+    monkeypatch.setattr(milp_module.MilpSolver, "solve", loose)
+    notes = []
+
+    def watch(done, total, *, stage=None, detail=None, note=None):
+        if note:
+            notes.append(note)
+
+    problem = knapsack([1, 2, 3, 4, 5], [20, 30, 40, 50, 60], 7)
+    result = solve(problem, budgets=[7], progress=watch, enumeration_limit=0)
+    point = result.curve[0]
+    assert point.probability == pytest.approx(0.25, abs=1e-12)
+    assert point.status == "optimal" and point.upper_bound - point.probability <= CERTIFY
+    assert point.stats["certified_by"] == "branch-and-bound"
+    assert any("knapsack-like" in n for n in notes)
+    assert any("did not certify" in n and "branch-and-bound" in n for n in notes)
+
+
+def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
+    """Branch-and-bound stopped at its node limit (1 node) hands the budget to the MILP, with a
+    note; the answer equals the exhaustive optimum (the oracle)."""
+    from misdirect.solvers import auto
+
+    monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # no tiny-chain exception for this small model
+    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)  # no enumeration
+    notes = []
+
+    def watch(done, total, *, stage=None, detail=None, note=None):
+        if note:
+            notes.append(note)
+
+    problem = paper_grid(7)
+    result = solve(problem, budgets=[2.0], progress=watch, node_limit=1, enumeration_limit=0)
+    oracle = solve(problem, method="exhaustive", budgets=[2.0])
+    assert result.probability == pytest.approx(oracle.probability, abs=1e-9)
+    assert result.status == "optimal"
+    assert any("largest observation owns" in n for n in notes)
+    assert any("node limit, so the MILP" in n for n in notes)
+    assert result.curve[0].stats["certified_by"] in ("milp", "branch-and-bound")

@@ -207,13 +207,16 @@ def _better(problem: Problem, first: Solution, second: Solution, why: str) -> So
     bounds = [s.upper_bound for s in (first, second) if s.upper_bound is not None]
     bound = max(min(bounds), value) if bounds else None
     proven = bound is not None and bound - value <= CERTIFY_TOLERANCE
-    status = "optimal" if proven else pick.status
-    if status == "optimal" and not proven:
-        status = "feasible"
+    if proven:
+        status = "optimal"
+    elif "time_limit" in (first.status, second.status):  # the proof ran out of time
+        status = "time_limit"
+    else:
+        status = pick.status
     stats = {**pick.stats, "auto_reason": why, "stages": [first.stats, second.stats]}
-    stats["certified_by"] = (second if second.status == "optimal" else pick).stats.get(
-        "certified_by", "auto"
-    )
+    # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
+    closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
+    stats["certified_by"] = (closer if proven else pick).stats.get("certified_by", "auto")
     return Solution(
         budget=pick.budget,
         alteration=pick.alteration,
