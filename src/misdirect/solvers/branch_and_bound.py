@@ -29,6 +29,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from misdirect.alterations import AlterationSpace, alteration_space
 from misdirect.choice_product import ChoiceProduct, build_choice_product
@@ -44,6 +46,7 @@ from misdirect.solvers.base import (
     report,
 )
 
+GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by more than a tie
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
@@ -83,6 +86,7 @@ class _Relaxation:
         self.live_groups = self.live[chain.group_state]
         # live states whose group says which candidates they use (for rounding policies)
         self.choosing = self.live & (chain.groups_per_state > 1)
+        self.group_of_option: np.ndarray | None = None  # built on first use (local search)
         self.evaluations = 0
 
     def allowed_options(self, picks: Sequence[int], remaining: float) -> np.ndarray:
@@ -143,6 +147,78 @@ class _Relaxation:
     def alteration(self, picks: Sequence[int]) -> np.ndarray:
         return self.space.alteration(self.problem, picks, self.order[: len(picks)])
 
+    def policy_of(self, picks: Sequence[int]) -> np.ndarray:
+        """The group every state takes under the complete assignment ``picks``."""
+        allowed = self.allowed_groups(self.allowed_options(picks, 0.0))
+        return self.best_groups(np.where(allowed, 0.0, -np.inf))[0]
+
+    def improve(
+        self,
+        picks: tuple[int, ...],
+        value: float,
+        budget: float,
+        deadline: Deadline | None = None,
+        tries: int = GREEDY_TRIES,
+    ) -> tuple[tuple[int, ...], float]:
+        """Hill-climb from ``picks`` by changing one observation at a time within ``budget``.
+
+        Candidates are ranked by a first-order estimate of their gain (the expected visits of
+        the states they change times the one-step advantage of their group under the current
+        values), and only the ``tries`` best are evaluated exactly: a good incumbent early,
+        for the pruning and for answers cut short by the time limit.
+        """
+        chain, live = self.chain, self.live
+        if self.group_of_option is None:
+            from misdirect.solvers.incremental import _group_of_option
+
+            self.group_of_option = _group_of_option(chain, live)
+        inner = np.flatnonzero(live)
+        if inner.size == 0 or not self.order:
+            return picks, value
+        position = np.full(chain.n_states, -1)
+        position[inner] = np.arange(inner.size)
+        state_obs = self.problem.pomdp.observation_of[chain.world_state]
+        while deadline is None or not deadline.expired():
+            policy = self.policy_of(picks)
+            values = self.evaluate(policy)
+            block = chain.transitions[policy[inner]][:, inner].tocsc()
+            system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
+            if not live[chain.initial]:
+                return picks, value
+            start = np.zeros(inner.size)
+            start[position[chain.initial]] = 1.0
+            try:
+                visits = spla.splu(system).solve(start)
+            except RuntimeError:  # singular: the chain cycles without reaching the decoy
+                return picks, value
+            score = np.asarray(chain.transitions @ values).ravel()
+            spent = self.cost(picks)
+            moves = []
+            for position_in_order, i in enumerate(self.order):
+                first = self.first_option[i]
+                costs = self.option_cost[first : self.first_option[i + 1]]
+                current = picks[position_in_order]
+                owned = inner[state_obs[inner] == self.space.choices[i].observation]
+                for k in np.flatnonzero(spent - costs[current] + costs <= budget + BUDGET_SLACK):
+                    if k == current:
+                        continue
+                    groups = self.group_of_option[owned, first + k]
+                    gain = visits[position[owned]] @ (score[groups] - values[owned])
+                    moves.append((float(gain), position_in_order, int(k)))
+            moves.sort(reverse=True)
+            best = (value, picks)
+            for gain, j, k in moves[:tries]:
+                if gain <= 0:
+                    break
+                candidate = (*picks[:j], k, *picks[j + 1 :])
+                found = float(self.evaluate(self.policy_of(candidate))[chain.initial])
+                if found > best[0] + PRUNE_TOLERANCE:
+                    best = (found, candidate)
+            if best[1] is picks:
+                return picks, value
+            value, picks = best
+        return picks, value
+
     def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
         """The search's picks for ``alteration``, None if it takes a target outside the
         space (not the cheapest of its behaviour class)."""
@@ -201,6 +277,13 @@ class BranchAndBoundSolver:
             picks = None if seed is None else relax.picks_of(seed)
             if picks is not None and relax.cost(picks) <= budget + BUDGET_SLACK:
                 search.offer(picks, search.value(picks))
+            # a good incumbent before the search: the previous budget's, improved locally
+            if search.best_value < 0:
+                search.offer(search.best_picks, search.value(search.best_picks))
+            share = deadline.share(len(order) - done)
+            climb = None if share is None else Deadline(share / 4)
+            better, found = relax.improve(search.best_picks, search.best_value, budget, climb)
+            search.offer(better, found)
             share = deadline.share(len(order) - done)
             limit = None if share is None else Deadline(share)
 
