@@ -13,7 +13,7 @@ import numpy as np
 
 from misdirect.model import Alteration, Problem
 from misdirect.product import ProductChain, build_product
-from misdirect.reachability import occupation, reach_probabilities
+from misdirect.reachability import occupation, reach_probability
 
 
 def decoy_probability(problem: Problem, alteration: Alteration) -> float:
@@ -37,33 +37,54 @@ def evaluation_time(problem: Problem, repeats: int = 3) -> float:
 
 
 def _decoy_probability(problem: Problem, chain: ProductChain) -> float:
-    values = reach_probabilities(chain.matrix, problem.decoy[chain.world_state], blocks=chain.node)
-    return float(values[chain.initial])
+    target = problem.decoy[chain.world_state]
+    return reach_probability(chain.matrix, target, chain.initial, blocks=chain.node)
 
 
 @dataclass(frozen=True)
 class Evaluation:
-    """Everything known about one alteration, computed exactly."""
+    """Everything known about one alteration, computed exactly.
+
+    ``outcomes`` lists the decoy and absorbing states a run can end in first, with non-zero
+    probability only (a model may have thousands of absorbing states, most never entered);
+    ``all_outcomes`` and ``first_entry`` keep every terminal state, zeros included.
+    ``error_bound`` is the proven bound on the error of ``probability`` and of each outcome
+    when the chain was solved by the certified iterative route (a wide chain, see
+    :func:`misdirect.reachability.solve_certified`); ``None`` after a direct solve.
+    """
 
     probability: float
     alteration: dict[str, str]
     cost: float
     within_budget: bool
-    outcomes: dict[str, float]  # first decoy/absorbing state entered -> probability
+    outcomes: dict[str, float]  # first decoy/absorbing state entered -> probability, if > 0
     never_absorbed: float  # runs that cycle forever without a decoy or absorbing state
     product_states: int
     product_transitions: int
     time_s: float
     expected_visits: np.ndarray = field(repr=False)  # (|S|,) expected steps spent per world state
+    first_entry: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  # (|S|,)
+    error_bound: float | None = None
+    terminal_states: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))
+    state_names: tuple[str, ...] = field(repr=False, default=())  # the POMDP's, not a copy
 
-    def to_dict(self) -> dict:
+    @property
+    def all_outcomes(self) -> dict[str, float]:
+        """Every decoy and absorbing state with its first-entry probability, zeros included."""
+        values = self.first_entry[self.terminal_states].tolist()
+        names = [self.state_names[s] for s in self.terminal_states]
+        return dict(zip(names, values, strict=True))
+
+    def to_dict(self, *, all_outcomes: bool = False) -> dict:
+        """JSON-ready report; ``all_outcomes`` lists zero-probability terminal states too."""
         return {
             "probability": self.probability,
             "alteration": self.alteration,
             "cost": self.cost,
             "within_budget": self.within_budget,
-            "outcomes": self.outcomes,
+            "outcomes": self.all_outcomes if all_outcomes else self.outcomes,
             "never_absorbed": self.never_absorbed,
+            "error_bound": self.error_bound,
             "product_states": self.product_states,
             "product_transitions": self.product_transitions,
             "time_s": self.time_s,
@@ -71,21 +92,32 @@ class Evaluation:
 
 
 def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluation:
-    """Exact report for ``alteration`` (the identity when ``None``)."""
+    """Exact report for ``alteration`` (the identity when ``None``).
+
+    One transposed solve gives expected visits and every outcome at once
+    (:func:`misdirect.reachability.occupation`); where it took the certified iterative route,
+    the probability is read off it too (the mass first entering a decoy state), else it comes
+    from the forward solve every solver uses.
+    """
     started = time.perf_counter()
     alpha = problem.identity() if alteration is None else np.asarray(alteration, dtype=np.int64)
     chain = build_product(problem, alpha)
-    probability = _decoy_probability(problem, chain)
 
     pomdp = problem.pomdp
     decoy = problem.decoy[chain.world_state]
     terminal = decoy | pomdp.absorbing[chain.world_state]
-    occ = occupation(chain.matrix, terminal, chain.initial)
+    occ = occupation(chain.matrix, terminal, chain.initial, blocks=chain.node)
+    if occ.error_bound is not None:  # a run reaches the decoy iff the first terminal is one
+        probability = float(np.clip(occ.entered[decoy].sum(), 0.0, 1.0))
+    else:
+        probability = _decoy_probability(problem, chain)
     first_entry = np.bincount(
         chain.world_state, weights=np.where(terminal, occ.entered, 0.0), minlength=pomdp.n_states
     )
     terminal_states = np.flatnonzero(problem.decoy | pomdp.absorbing)
-    outcomes = {pomdp.states[s]: float(first_entry[s]) for s in terminal_states}
+    names = pomdp.states
+    entered = terminal_states[first_entry[terminal_states] > 0]
+    outcomes = dict(zip([names[s] for s in entered], first_entry[entered].tolist(), strict=True))
     visits = np.bincount(chain.world_state, weights=occ.visits, minlength=pomdp.n_states)
     cost = problem.alteration_cost(alpha)
     return Evaluation(
@@ -99,4 +131,8 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         product_transitions=chain.n_transitions,
         time_s=time.perf_counter() - started,
         expected_visits=visits,
+        first_entry=first_entry,
+        error_bound=occ.error_bound,
+        terminal_states=terminal_states,
+        state_names=names,
     )

@@ -1,9 +1,13 @@
 """Exact reachability analysis of a finite Markov chain (Baier & Katoen, ch. 10).
 
 Graph precomputation first (states that cannot reach the target get 0, states that reach it
-almost surely get 1), then one sparse LU solve on the remaining states. Removing the
+almost surely get 1), then one linear solve on the remaining states. Removing the
 probability-0 states is what makes the answer the *least* fixed point (SPEC §1) and the
 linear system non-singular.
+
+The solve is direct (sparse LU, split by components, bands and separators) except on wide
+chains, where LU fill explodes: there Krylov iterations run and the answer carries a proven
+error bound (:func:`solve_certified`), checked against :data:`CERTIFIED_TOL` before it is used.
 """
 
 from __future__ import annotations
@@ -42,6 +46,15 @@ CHUNK_STATES = 1_000  # consecutive components are factorised together up to abo
 BAND_MIN_STATES = 32  # a component this large that is a thin band gets a banded solve ...
 BAND_MAX = 8  # ... if no transition reaches further than this in its state order
 SEPARATOR_MAX = 512  # cutting a separator only pays when it is small
+ITERATIVE_MIN_STATES = 20_000  # below this even a wide component's LU is quick
+WIDE_LEVEL = 1_000  # a breadth-first level this wide: LU fronts of about that size, cubed
+CERTIFIED_TOL = 1e-10  # largest proven error accepted from the iterative route
+VISITS_TOL = 1e-9  # ... and on expected visits, relative to max(1, visits)
+REFINE_TARGET = 1e-13  # refinement stops once the proven error is this small ...
+REFINE_ROUNDS = 5  # ... after this many rounds, or when the residual stops falling
+KRYLOV_RTOL = 1e-13  # the first round's inner solve shrinks the residual this much
+KRYLOV_MAX_ITER = 2_000
+UNIT_ROUNDOFF = 2.0**-53
 
 
 def factorise(a: sp.spmatrix) -> SuperLU:
@@ -199,8 +212,8 @@ def solve_with_separator(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> n
     coo = sp.coo_matrix(a)
     separator = np.zeros(n, dtype=bool)
     separator[coo.row[labels[coo.row] != labels[coo.col]]] = True  # every crossing edge
-    if separator.sum() > SEPARATOR_MAX or separator.all():
-        return None
+    if not separator.any() or separator.sum() > SEPARATOR_MAX or separator.all():
+        return None  # nothing to cut (a memoryless controller): the caller splits as it is
     system = (sp.identity(n, format="csr") - sp.csr_matrix(a)).tocsr()
     border, interior = np.flatnonzero(separator), np.flatnonzero(~separator)
     interior_rows, border_rows = system[interior], system[border]
@@ -222,22 +235,288 @@ def solve_with_separator(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray) -> n
     return x.reshape(b.shape)
 
 
+def _structured(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None) -> np.ndarray | None:
+    """The separator, then the component route; ``None`` when both decline."""
+    solved = None if labels is None else solve_with_separator(a, b, labels)
+    if solved is None:
+        system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)
+        solved = solve_topological(system, b)
+    return solved
+
+
 def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
     """Solve ``(I - a) x = b`` by the fastest exact route for the chain's shape.
 
     Large chains are cut along ``labels`` first (:func:`solve_with_separator`: the separator is
     cheap to find and, where it is small, the rest falls apart), else solved by components as
-    they are (:func:`solve_topological`); one sparse LU is the fallback and the route for small
-    systems. ``b`` may hold several columns.
+    they are (:func:`solve_topological`). A chain that stays one big, wide component (a drone
+    among moving agents: LU fill grows like the cube of its separators) gets the certified
+    iterative solve (:func:`solve_certified`; ``b`` one column). One sparse LU is the fallback
+    and the route for small systems. ``b`` may hold several columns.
     """
     if a.shape[0] >= DIRECT_MAX_STATES:
-        solved = None if labels is None else solve_with_separator(a, b, labels)
-        if solved is None:
-            system = sp.identity(a.shape[0], format="csr") - sp.csr_matrix(a)
-            solved = solve_topological(system, b)
+        solved = _structured(a, b, labels)
         if solved is not None:
             return solved
+        if np.ndim(b) == 1 and lu_would_fill(a):
+            certified = solve_certified(a, b)
+            if certified is not None and certified.state_error().max() <= CERTIFIED_TOL:
+                return certified.x
     return _solve(a, b)
+
+
+def _neighbours(matrix: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
+    """Column indices of the entries in ``rows`` (with repeats), without slicing the matrix."""
+    starts, stops = matrix.indptr[rows], matrix.indptr[rows + 1]
+    counts = stops - starts
+    offsets = np.repeat(starts - np.cumsum(counts) + counts, counts)
+    return matrix.indices[offsets + np.arange(counts.sum())]
+
+
+def lu_would_fill(a: sp.spmatrix) -> bool:
+    """Whether a sparse LU of ``I - a`` would drown in fill: many states, wide breadth-first levels.
+
+    Each breadth-first level separates the states before it from those after it, and an LU's
+    dense fronts are about as wide as the separators its ordering finds, so their cube is the
+    cost. Grid-like chains (the robot's grid, corridors) have levels of a few hundred states;
+    a drone among moving agents has levels of thousands (at 5·10^4 states SuperLU fills 10^8
+    entries in a minute), while runs there end within a few hundred steps, which is what
+    makes Krylov iterations converge fast.
+    """
+    n = a.shape[0]
+    if n < ITERATIVE_MIN_STATES:
+        return False
+    matrix = sp.csr_matrix(a)
+    seen = np.zeros(n, dtype=bool)
+    frontier = np.array([0])
+    seen[0] = True
+    while frontier.size:
+        reached = _neighbours(matrix, frontier)
+        frontier = np.unique(reached[~seen[reached]])
+        if frontier.size > WIDE_LEVEL:
+            return True
+        seen[frontier] = True
+    return False
+
+
+def _dot(u: np.ndarray, v: np.ndarray) -> float:
+    """``u · v`` in one pass without BLAS, whose threads stall on a busy machine."""
+    return float(np.einsum("i,i->", u, v))
+
+
+def _bicgstab(op: sp.csr_matrix, b: np.ndarray, rtol: float, max_iter: int) -> np.ndarray | None:
+    """BiCGSTAB for ``op x = b``, right-preconditioned by the diagonal (folded into ``op``).
+
+    ``None`` on breakdown, or as soon as the pace so far says the residual will not fall by
+    ``rtol`` within ``max_iter`` iterations (the caller then takes the direct route). Vector
+    updates run in place and without BLAS: at 10^5 states they cost as much as the products,
+    and BLAS's threads, spinning while other processes hold the cores, made them 100 times
+    slower on a busy 2-core machine.
+    """
+    norm_b = np.sqrt(_dot(b, b))
+    x = np.zeros_like(b)
+    if norm_b == 0.0:
+        return x
+    if not np.isfinite(norm_b):
+        return None
+    target = rtol * norm_b
+    inv_diag = 1.0 / op.diagonal()
+    if (inv_diag == 1.0).all():  # no self-loops: nothing to scale
+        scaled, inv_diag = op, np.ones(1)
+    else:  # solve (op D⁻¹) z = b, then x = D⁻¹ z
+        scaled = op @ sp.diags(inv_diag, format="csr")
+    r = b.copy()
+    # the shadow residual: b alone breaks down on sparse right-hand sides (a unit vector)
+    r_hat = b + np.random.default_rng(0).random(b.size) * (norm_b / np.sqrt(b.size))
+    p = np.zeros_like(b)
+    v = np.zeros_like(b)
+    scratch = np.empty_like(b)
+    rho = alpha = omega = 1.0
+    best = norm_b
+
+    def axpy(a: float, u: np.ndarray, out: np.ndarray) -> None:  # out += a u
+        np.multiply(u, a, out=scratch)
+        out += scratch
+
+    for k in range(1, max_iter + 1):
+        rho_next = _dot(r_hat, r)
+        if rho_next == 0.0 or omega == 0.0:
+            return None
+        beta = (rho_next / rho) * (alpha / omega)
+        rho = rho_next
+        axpy(-omega, v, p)  # p = r + beta (p - omega v)
+        p *= beta
+        p += r
+        v = scaled @ p
+        denominator = _dot(r_hat, v)
+        if denominator == 0.0:
+            return None
+        alpha = rho / denominator
+        axpy(alpha, p, x)
+        axpy(-alpha, v, r)  # r is now s
+        t = scaled @ r
+        tt = _dot(t, t)
+        if tt == 0.0:  # s = 0: solved at the half step
+            return x * inv_diag
+        omega = _dot(t, r) / tt
+        axpy(omega, r, x)
+        axpy(-omega, t, r)
+        residual = np.sqrt(_dot(r, r))
+        if residual <= target:
+            return x * inv_diag
+        if not np.isfinite(residual):
+            return None
+        best = min(best, residual)
+        if k % 25 == 0 and k >= 100:  # judge the pace: give up early on slow chains
+            pace = np.log(best / norm_b) / k
+            if pace >= 0 or np.log(rtol) / pace > max_iter:
+                return None
+    return None
+
+
+def _rounding(op: sp.csr_matrix) -> np.ndarray:
+    """``γ`` per row: ``|fl(b - op x) - (b - op x)| <= γ (|b| + |op| |x|)`` (Higham's bound for
+    a dot product of the row's length, plus the subtraction)."""
+    return 1.01 * (np.diff(op.indptr) + 2) * UNIT_ROUNDOFF
+
+
+def _time_bound(system: sp.csr_matrix) -> np.ndarray | None:
+    """A proven ``y >= (I - Q)⁻¹ 1`` (expected steps before leaving the system, from each state).
+
+    Any ``y`` with ``(I - Q) y >= 1`` is one, because ``(I - Q)⁻¹ >= 0`` (an M-matrix). A rough
+    Krylov solution of ``(I - Q) t = 1`` is scaled by the least lower bound of ``(I - Q) t``
+    (rounding of the product accounted for), then checked again.
+    """
+    n = system.shape[0]
+    magnitude = abs(system)
+    gamma = _rounding(system)
+    for rtol in (1e-2, 1e-5, 1e-9):
+        t = _bicgstab(system, np.ones(n), rtol, KRYLOV_MAX_ITER)
+        if t is None:
+            return None
+        low = (system @ t - gamma * (magnitude @ np.abs(t))).min()
+        if low <= 0:
+            continue
+        y = t * ((1 + 1e-9) / low)
+        if (y >= 0).all() and (system @ y - gamma * (magnitude @ y)).min() >= 1.0:
+            return y
+    return None
+
+
+@dataclass(frozen=True)
+class Certified:
+    """An iterative solution of ``op x = b`` with a proven bound on its error.
+
+    ``op`` is ``I - Q`` or its transpose, ``Q`` substochastic and leaking from every state, so
+    ``(I - Q)⁻¹ >= 0`` and the error ``(I - Q)⁻¹ r`` (resp. ``(I - Q)⁻ᵀ r``) is bounded by the
+    residual ``r`` alone. ``residual`` bounds ``|b - op x|`` entry by entry in exact arithmetic
+    (the rounding of computing it included).
+    """
+
+    x: np.ndarray
+    residual: np.ndarray
+    time_bound: np.ndarray | None  # y >= (I - Q)⁻¹ 1, proven; None when not computed
+    transpose: bool
+
+    def state_error(self) -> np.ndarray:
+        """Proven bound on ``|x - x*|`` per state (needs ``time_bound``).
+
+        Forward: ``(I - Q)⁻¹ |r| <= max|r| y``. Transposed: entry ``s`` is ``Σ_j |r_j| G_js``
+        with ``G = (I - Q)⁻¹``, and ``G_js <= G_ss <= y_s`` (visits to ``s`` from ``j`` are at
+        most those from ``s``, which are at most all steps from ``s``): ``Σ|r| y_s``.
+        """
+        if self.time_bound is None:
+            return np.full(self.x.size, np.inf)
+        scale = self.residual.sum() if self.transpose else self.residual.max(initial=0.0)
+        return scale * self.time_bound
+
+    def functional_error(self) -> float:
+        """Proven bound on the error of ``cᵀx`` (a transposed solve) for every ``c >= 0`` with
+        ``G c <= 1``, ``G = (I - Q)⁻¹``: probabilities of leaving into some set of states.
+
+        The error of ``x`` is ``Gᵀ r``, so that of ``cᵀx`` is ``rᵀ G c``, at most ``Σ|r|``.
+        """
+        return float(self.residual.sum())
+
+
+def solve_certified(
+    a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False, states: bool = True
+) -> Certified | None:
+    """Solve ``(I - a) x = b`` (or the transpose) iteratively, with a proven error bound.
+
+    Iterative refinement: the residual is recomputed in full, a Krylov solve (BiCGSTAB,
+    :data:`KRYLOV_RTOL`) corrects ``x``, until the proven error is below
+    :data:`REFINE_TARGET` or stops falling. ``states`` also proves the per-state bound
+    (:meth:`Certified.state_error`, one rough extra solve); a transposed solve whose caller
+    only needs absorption probabilities does without. ``None`` when Krylov breaks down or
+    would be too slow: the caller then factorises.
+    """
+    n = a.shape[0]
+    system = (sp.identity(n, format="csr") - sp.csr_matrix(a)).tocsr()
+    op = system.T.tocsr() if transpose else system
+    time_bound = _time_bound(system) if states else None
+    if states and time_bound is None:
+        return None
+    magnitude = abs(op)
+    gamma = _rounding(op)
+    b = np.asarray(b, dtype=np.float64)
+    x = np.zeros(n)
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    weight = 1.0 if time_bound is None else max(1.0, float(time_bound.max()))
+    for round_ in range(REFINE_ROUNDS + 1):
+        r = b - op @ x
+        floor = gamma * (np.abs(b) + magnitude @ np.abs(x))  # what rounding alone may hide
+        bound = np.abs(r) + floor
+        size = (bound.sum() if transpose else bound.max(initial=0.0)) * weight
+        if best is None or size < best[0]:
+            best = (size, x, bound)
+        if size <= REFINE_TARGET or round_ == REFINE_ROUNDS or np.abs(r).sum() <= floor.sum():
+            break  # proven small enough, or at the rounding floor: another round cannot help
+        # aim at the rounding floor: shrinking the residual further proves nothing more
+        ratio = np.sqrt(_dot(floor, floor) / max(_dot(r, r), 1e-300))
+        rtol = max(KRYLOV_RTOL, min(0.1, 0.3 * ratio))
+        correction = _bicgstab(op, r, rtol, KRYLOV_MAX_ITER)
+        if correction is None:
+            if round_ == 0:
+                return None
+            break
+        x = x + correction
+    _, x, bound = best
+    return Certified(x=x, residual=bound, time_bound=time_bound, transpose=transpose)
+
+
+def reach_probability(
+    matrix: sp.csr_matrix, target: np.ndarray, initial: int, blocks: np.ndarray | None = None
+) -> float:
+    """Probability of ever reaching ``target`` from ``initial`` alone (least fixed point).
+
+    Where the chain is one wide component this needs only one transposed solve, the
+    occupation measure from ``initial``, whose proven error bound needs no second solve
+    (:meth:`Certified.functional_error`). Otherwise it is :func:`reach_probabilities` at
+    ``initial``.
+    """
+    prob0, prob1 = prob0_prob1(matrix, target)
+    if prob0[initial] or prob1[initial]:
+        return float(prob1[initial])
+    maybe = np.flatnonzero(~prob0 & ~prob1)
+    rows = matrix[maybe]
+    b = rows @ prob1.astype(np.float64)
+    a = rows[:, maybe]
+    k = int(np.searchsorted(maybe, initial))
+    if maybe.size >= DIRECT_MAX_STATES:
+        solved = _structured(a, b, None if blocks is None else blocks[maybe])
+        if solved is not None:
+            return float(np.clip(solved[k], 0.0, 1.0))
+        if lu_would_fill(a):
+            start = np.zeros(maybe.size)
+            start[k] = 1.0
+            certified = solve_certified(a, start, transpose=True, states=False)
+            if certified is not None:
+                value = _dot(certified.x, b)
+                error = certified.functional_error() + maybe.size * UNIT_ROUNDOFF * abs(value)
+                if error <= CERTIFIED_TOL:
+                    return float(np.clip(value, 0.0, 1.0))
+    return float(np.clip(_solve(a, b)[k], 0.0, 1.0))
 
 
 def reach_probabilities(
@@ -273,10 +552,27 @@ class Occupation:
     entered: np.ndarray
     transient: np.ndarray  # mask
     trapped: np.ndarray  # mask
+    # Proven bound on the error of every entry of ``entered`` and of any sum of them, when the
+    # certified iterative route solved it (its visits are then proven to VISITS_TOL relative
+    # to max(1, visits)); None after a direct solve.
+    error_bound: float | None = None
 
 
-def occupation(matrix: sp.csr_matrix, terminal: np.ndarray, initial: int) -> Occupation:
-    """Expected visits and first-entry distribution from ``initial`` (one transposed LU solve)."""
+def occupation(
+    matrix: sp.csr_matrix,
+    terminal: np.ndarray,
+    initial: int,
+    blocks: np.ndarray | None = None,
+) -> Occupation:
+    """Expected visits and first-entry distribution from ``initial``: one transposed solve.
+
+    The occupation measure ``x = (I - Q)⁻ᵀ e_initial`` over the transient states gives both at
+    once: ``x`` is the expected visits, and the first-entry probability of a non-transient
+    state ``t`` is ``Σ_s x_s P(s, t)``, for every ``t`` together. Only states that can still
+    reach a terminal state are transient, so ``I - Q`` is non-singular and states that cycle
+    forever without one (trapped) are entered, not visited forever. The transposed system is
+    solved like the forward one (:func:`solve_chain`'s routes; ``blocks`` offers a separator).
+    """
     n = matrix.shape[0]
     can_reach = reachable_from(matrix.T.tocsr(), np.flatnonzero(terminal))
     transient = can_reach & ~terminal
@@ -288,10 +584,31 @@ def occupation(matrix: sp.csr_matrix, terminal: np.ndarray, initial: int) -> Occ
         return Occupation(visits, entered, transient, trapped)
     inner = np.flatnonzero(transient)
     rows = matrix[inner]
+    a = rows[:, inner]
     start = np.zeros(inner.size)
     start[np.searchsorted(inner, initial)] = 1.0
-    y = np.maximum(_solve(rows[:, inner], start, transpose=True), 0.0)
+    y, error_bound = _occupation_measure(a, start, None if blocks is None else blocks[inner])
+    y = np.maximum(y, 0.0)
     visits[inner] = y
     entered = np.asarray(rows.T @ y).ravel()
     entered[inner] = 0.0
-    return Occupation(visits, entered, transient, trapped)
+    return Occupation(visits, entered, transient, trapped, error_bound)
+
+
+def _occupation_measure(
+    a: sp.csr_matrix, start: np.ndarray, labels: np.ndarray | None
+) -> tuple[np.ndarray, float | None]:
+    """``(I - a)⁻ᵀ start`` and its proven error bound on absorption probabilities (or None)."""
+    if a.shape[0] >= DIRECT_MAX_STATES:
+        solved = _structured(a.T.tocsr(), start, labels)
+        if solved is not None:
+            return solved, None
+        if lu_would_fill(a):
+            certified = solve_certified(a, start, transpose=True, states=True)
+            if certified is not None:
+                rounding = a.shape[0] * UNIT_ROUNDOFF  # of summing x_s P(s, t), at most 1
+                error = certified.functional_error() + rounding
+                scale = np.maximum(1.0, np.abs(certified.x))
+                if error <= CERTIFIED_TOL and (certified.state_error() <= VISITS_TOL * scale).all():
+                    return certified.x, error
+    return _solve(a, start, transpose=True), None
