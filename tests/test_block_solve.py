@@ -118,6 +118,7 @@ def test_random_models_through_the_structured_paths(monkeypatch):
         return result
 
     monkeypatch.setattr(reachability, "DIRECT_MAX_STATES", 0)
+    monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
     monkeypatch.setattr(reachability, "solve_with_separator", spy)
     after = [decoy_probability(p, a) for p, a in zip(problems, alterations, strict=True)]
     assert after == pytest.approx(before, abs=1e-12)

@@ -119,6 +119,7 @@ def test_certified_route_equals_a_dense_solve_within_its_bound(seed, monkeypatch
     assert (np.abs(backward.x - visits[inner]) <= backward.state_error() + 1e-15).all()
 
     monkeypatch.setattr(reachability, "DIRECT_MAX_STATES", 0)
+    monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
     monkeypatch.setattr(reachability, "ITERATIVE_MIN_STATES", 0)
     monkeypatch.setattr(reachability, "WIDE_LEVEL", 0)
     monkeypatch.setattr(reachability, "_structured", lambda *args: None)
@@ -242,6 +243,7 @@ def test_slow_chain_falls_back_to_lu(monkeypatch):
     monkeypatch.setattr(reachability, "KRYLOV_MAX_ITER", 50)
     assert solve_certified(q, b) is None
     monkeypatch.setattr(reachability, "DIRECT_MAX_STATES", 0)
+    monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
     monkeypatch.setattr(reachability, "ITERATIVE_MIN_STATES", 0)
     monkeypatch.setattr(reachability, "WIDE_LEVEL", 0)
     exact = np.linalg.solve(np.eye(n) - q.toarray(), b)

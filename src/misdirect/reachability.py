@@ -41,6 +41,7 @@ def prob0_prob1(matrix: sp.csr_matrix, target: np.ndarray) -> tuple[np.ndarray, 
     return prob0, ~can_miss
 
 
+DENSE_MAX_STATES = 200  # up to this many states, dense arrays beat sparse ones' overhead
 DIRECT_MAX_STATES = 5_000  # below this one LU of the whole system is fastest
 CHUNK_STATES = 1_000  # consecutive components are factorised together up to about this many
 BAND_MIN_STATES = 32  # a component this large that is a thin band gets a banded solve ...
@@ -495,6 +496,8 @@ def reach_probability(
     (:meth:`Certified.functional_error`). Otherwise it is :func:`reach_probabilities` at
     ``initial``.
     """
+    if matrix.shape[0] <= DENSE_MAX_STATES:
+        return float(_reach_dense(matrix, target)[initial])
     prob0, prob1 = prob0_prob1(matrix, target)
     if prob0[initial] or prob1[initial]:
         return float(prob1[initial])
@@ -527,6 +530,8 @@ def reach_probabilities(
     ``blocks`` (e.g. the memory node of each product state) offers :func:`solve_chain` a
     separator to cut along.
     """
+    if matrix.shape[0] <= DENSE_MAX_STATES:
+        return _reach_dense(matrix, target)
     prob0, prob1 = prob0_prob1(matrix, target)
     values = prob1.astype(np.float64)
     maybe = np.flatnonzero(~prob0 & ~prob1)
@@ -535,6 +540,29 @@ def reach_probabilities(
         b = rows @ prob1.astype(np.float64)  # one step into the almost-sure states
         labels = None if blocks is None else blocks[maybe]
         values[maybe] = solve_chain(rows[:, maybe], b, labels)
+    return np.clip(values, 0.0, 1.0)
+
+
+def _reach_dense(matrix: sp.spmatrix, target: np.ndarray) -> np.ndarray:
+    """:func:`reach_probabilities` for a tiny chain, with dense arrays (one LU, LAPACK).
+
+    The states that can reach ``target`` (backward search over the dense edge mask) are
+    exactly those with a positive value, and ``I - P`` restricted to them is non-singular:
+    from each of them the target stays reachable, so no probability mass stays there forever.
+    So no prob-1 search is needed, and the solve gives the least fixed point directly.
+    """
+    dense = matrix.toarray()
+    target = np.asarray(target, dtype=bool)
+    edges = dense > 0
+    reach, frontier = target.copy(), target.copy()
+    while frontier.any():
+        frontier = edges[:, frontier].any(axis=1) & ~reach
+        reach |= frontier
+    values = target.astype(np.float64)
+    maybe = np.flatnonzero(reach & ~target)
+    if maybe.size:
+        system = np.eye(maybe.size) - dense[np.ix_(maybe, maybe)]
+        values[maybe] = np.linalg.solve(system, dense[maybe][:, target].sum(axis=1))
     return np.clip(values, 0.0, 1.0)
 
 
