@@ -8,6 +8,7 @@ shared search space of the exhaustive solver and the MILP.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -88,3 +89,28 @@ def alteration_space(problem: Problem) -> AlterationSpace:
         if picked.size > 1:
             choices.append(ObservationChoices(o, picked, costs[picked]))
     return AlterationSpace(tuple(choices))
+
+
+def max_alteration_cost(problem: Problem) -> float:
+    """Cost of the most expensive complete alteration: for every relevant observation, its
+    most expensive finite alteration. Any budget at least this large affords every alteration,
+    so it is "no limit" and solvers never need to look beyond it (budgets are clamped to it).
+
+    Read off the cost model's default and overrides, without a dense ``|Ω|`` row per
+    observation."""
+    cost = problem.cost
+    n = cost.n_observations
+    overrides = cost._pairs_by_source
+    total = 0.0
+    for o in problem.relevant_observations.tolist():
+        if o in cost.protected:
+            continue
+        targets, values = overrides.get(o, (np.zeros(0, dtype=np.int64), np.zeros(0)))
+        listed = values[(targets != o)]
+        finite = listed[np.isfinite(listed)]
+        most = float(finite.max()) if finite.size else 0.0
+        uncovered = n - 1 - np.unique(targets[targets != o]).size  # targets at the default
+        if uncovered > 0 and math.isfinite(cost.default):
+            most = max(most, float(cost.default))
+        total += most
+    return total

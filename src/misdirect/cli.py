@@ -165,7 +165,10 @@ def _split_alter(pair: str, observations: tuple[str, ...]) -> tuple[str, str]:
         raise ProblemError(
             f"{pair!r} is ambiguous: {readings} (observations contain '=')", field="--alter"
         )
-    return matching[0] if matching else splits[0]
+    if matching:
+        return matching[0]
+    # no reading names two known observations: report the one that is unknown
+    return next(((a, b) for a, b in splits if a in known), splits[0])
 
 
 def _parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[str, str]:
@@ -557,8 +560,8 @@ def _print_solve(result: SolveResult) -> None:
     if result.budget_clamped_from is not None:
         parts.insert(
             0,
-            f"budget {result.budget_clamped_from:g} clamped to {result.budget:g} (every "
-            "alteration costs at most that)",
+            f"budgets above {result.budget_clamped_to:g} solved as {result.budget_clamped_to:g} "
+            "(no alteration costs more)",
         )
     stats = result.stats
     if "certified_by" in stats:

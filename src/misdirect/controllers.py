@@ -8,7 +8,6 @@ problem's actions and observations; node 0 is the initial node.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from misdirect.errors import ProblemError
+from misdirect.io_utils import parse_json, read_text_file
 from misdirect.model import Controller, CostModel, Pomdp
 from misdirect.storm_models import NO_LABEL, valuation_name
 
@@ -60,18 +60,9 @@ def read_paynt_controller(
     that (node, observation): the observation is returned in ``never_read``, and the entry is
     filled with a placeholder (action 0, stay in the node) that no run can reach once no
     alteration may target it."""
-    try:
-        document = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ProblemError(f"file not found: {path}", field=FIELD) from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ProblemError(f"cannot read {path}: {error}", field=FIELD) from None
-    except json.JSONDecodeError as error:
-        raise ProblemError(
-            f"invalid JSON: {error.msg}",
-            source=str(path),
-            field=f"line {error.lineno}, column {error.colno}",
-        ) from None
+    if not Path(path).exists():
+        raise ProblemError(f"file not found: {path}", field=FIELD)
+    document = parse_json(read_text_file(Path(path)), source=str(path))
 
     def fail(field: str, reason: str) -> ProblemError:
         return ProblemError(reason, source=str(path), field=field)

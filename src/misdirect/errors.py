@@ -36,3 +36,7 @@ class ProblemError(MisdirectError, ValueError):
 
 class SolverError(MisdirectError, RuntimeError):
     """A solver could not produce an answer (missing backend, inconsistent result, ...)."""
+
+
+class WriteError(MisdirectError):
+    """An output could not be written (disk full, I/O error): nothing was reported as written."""

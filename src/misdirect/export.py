@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from misdirect.io_utils import one_line
 from misdirect.model import Problem
 
 
@@ -36,14 +37,45 @@ def _rows(problem: Problem):
             )
 
 
+def _drn_action(name: str, fallback: str) -> str:
+    """DRN reads an action name up to the end of its line, and splits it at white space."""
+    ok = name and name.isprintable() and not any(c.isspace() or c in "[]{}" for c in name)
+    return name if ok else fallback
+
+
+def export_notes(problem: Problem, to: str) -> list[str]:
+    """What the PRISM or DRN text cannot keep as it is, one line each: names that are not
+    PRISM identifiers (PRISM) or not single words (DRN) become ``a<k>``, and names with
+    control characters appear escaped in the comments."""
+    pomdp = problem.pomdp
+    rename = _identifier if to == "prism" else _drn_action
+    renamed = [
+        f"{name!r} -> {label}"
+        for k, name in enumerate(pomdp.actions)
+        if (label := rename(name, f"a{k}")) != name
+    ]
+    notes = []
+    if renamed:
+        shown = ", ".join(renamed[:5]) + (
+            f", … ({len(renamed)} in all)" if len(renamed) > 5 else ""
+        )
+        notes.append(f"{to.upper()} cannot express these action names, renamed: {shown}")
+    names = (problem.name, *pomdp.states, *pomdp.observations, *pomdp.actions)
+    if to == "prism" and any(one_line(name) != name for name in names):
+        notes.append("names with control characters are escaped in the PRISM comments")
+    return notes
+
+
 def write_drn(problem: Problem, path: Path) -> None:
     """Write :func:`drn_text` to ``path``."""
     Path(path).write_text(drn_text(problem), encoding="utf-8")
 
 
 def drn_text(problem: Problem) -> str:
-    """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours."""
+    """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours. An action
+    name DRN cannot hold (white space, brackets, control characters) is written ``a<k>``."""
     pomdp = problem.pomdp
+    actions = [_drn_action(name, f"a{k}") for k, name in enumerate(pomdp.actions)]
     lines = [
         "// Exported by misdirect",
         "@type: POMDP",
@@ -69,7 +101,7 @@ def drn_text(problem: Problem) -> str:
                 f"state {s} {{{int(pomdp.observation_of[s])}}} {' '.join(labels)}".rstrip()
             )
             current = s
-        lines.append(f"\taction {pomdp.actions[a]}")
+        lines.append(f"\taction {actions[a]}")
         lines += [f"\t\t{t} : {p!r}" for t, p in entries]
     return "\n".join(lines) + "\n"
 
@@ -88,14 +120,16 @@ def prism_text(problem: Problem) -> str:
     pomdp = problem.pomdp
     labels = [_identifier(name, f"a{k}") for k, name in enumerate(pomdp.actions)]
     o_of = pomdp.observation_of
+    # names appear only in comments, which end at a line break: escape what could break one
     lines = [
         "// Exported by misdirect",
-        f"// problem: {problem.name}",
-        "// states (value of s): " + ", ".join(f"{i}={n}" for i, n in enumerate(pomdp.states)),
+        f"// problem: {one_line(problem.name)}",
+        "// states (value of s): "
+        + ", ".join(f"{i}={one_line(n)}" for i, n in enumerate(pomdp.states)),
         "// observations (value of o): "
-        + ", ".join(f"{i}={n}" for i, n in enumerate(pomdp.observations)),
+        + ", ".join(f"{i}={one_line(n)}" for i, n in enumerate(pomdp.observations)),
         "// actions: "
-        + ", ".join(f"{lab}={n}" for lab, n in zip(labels, pomdp.actions, strict=True)),
+        + ", ".join(f"{lab}={one_line(n)}" for lab, n in zip(labels, pomdp.actions, strict=True)),
         "",
         "pomdp",
         "",

@@ -62,7 +62,7 @@ def compile_grid(
         y = height - 1 - row
         for x, (column, token) in enumerate(tokens):
             entry = legend.get(token)
-            if entry is None and token.isdigit():
+            if entry is None and token.isdecimal():
                 entry = LegendEntry(kind="blank", sensor=token)
             if entry is None:
                 known = ", ".join(repr(k) for k in legend) or "none"
@@ -136,7 +136,7 @@ def compile_grid(
 
 
 def _sensor_order(name: str) -> tuple[int, str]:
-    return (int(name), name) if name.isdigit() else (10**9, name)
+    return (int(name), name) if name.isdecimal() else (10**9, name)
 
 
 def _parse(text: str) -> list[tuple[int, list[tuple[int, str]]]]:

@@ -14,6 +14,7 @@ import numpy as np
 
 from misdirect.errors import ProblemError
 from misdirect.evaluate import evaluate
+from misdirect.io_utils import one_line, write_output
 from misdirect.model import Alteration, Problem
 from misdirect.product import build_product
 
@@ -145,7 +146,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
     for state, text, colour in marks:
         mark_cell(ax, tuple(cells[state].tolist()), text, colour)
-    goal_probability = sum(report.outcomes[pomdp.states[g]] for g in goals)
+    goal_probability = sum(report.outcomes.get(pomdp.states[g], 0.0) for g in goals)
     changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
     ax.set_title(
         f"{problem.name or 'problem'}: {changes} (cost {report.cost:g})\n"
@@ -162,10 +163,8 @@ def _draw_grid(problem: Problem, alteration: Alteration, cells: np.ndarray, outp
     import matplotlib.pyplot as plt
 
     fig = grid_figure(problem, alteration, cells)
-    try:
-        fig.savefig(output, dpi=150, bbox_inches="tight")
-    except OSError as error:
-        raise ProblemError(f"cannot write {output}: {error.strerror}", field="-o") from None
+    try:  # atomic, like every output: a temporary file beside it, then os.replace
+        write_output(output, lambda path: fig.savefig(path, dpi=150, bbox_inches="tight"))
     finally:
         plt.close(fig)
     return output
@@ -195,9 +194,9 @@ def _write_dot(problem: Problem, alteration: Alteration, output: Path) -> Path:
     for q, r, p in zip(coo.row, coo.col, coo.data, strict=True):
         lines.append(f'  q{q} -> q{r} [label="{p:.3g}"];')
     lines.append("}")
-    output.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_output(output, "\n".join(lines) + "\n")
     return output
 
 
 def _quote(text: str) -> str:
-    return text.replace("\\", "\\\\").replace('"', '\\"')
+    return one_line(text).replace("\\", "\\\\").replace('"', '\\"')

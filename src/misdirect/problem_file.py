@@ -29,6 +29,14 @@ from pydantic import (
 from misdirect.controllers import forbid_disabled_actions, forbid_targets, read_paynt_controller
 from misdirect.errors import ProblemError
 from misdirect.grid_map import LegendEntry, compile_grid
+from misdirect.io_utils import (
+    check_input_file,
+    check_memory,
+    parse_json,
+    parse_yaml,
+    read_text_file,
+    write_output,
+)
 from misdirect.model import Controller, CostModel, Pomdp, Problem
 from misdirect.storm_models import load_storm_pomdp
 
@@ -279,28 +287,12 @@ def _location(loc: tuple[Any, ...]) -> str:
 
 
 def _read_document(path: Path) -> Any:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ProblemError("file not found", source=str(path)) from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ProblemError(f"cannot read file ({error})", source=str(path)) from None
+    """The parsed file: a regular file within the size limit, JSON by suffix, else YAML, with
+    depth, alias and duplicate-key limits (misdirect.io_utils)."""
+    text = read_text_file(path)
     if path.suffix.lower() == ".json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as error:
-            raise ProblemError(
-                f"invalid JSON: {error.msg}",
-                source=str(path),
-                field=f"line {error.lineno}, column {error.colno}",
-            ) from None
-    try:
-        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else None
-        reason = getattr(error, "problem", None) or str(error)
-        raise ProblemError(f"invalid YAML: {reason}", source=str(path), field=where) from None
+        return parse_json(text, source=str(path))
+    return parse_yaml(text, source=str(path))
 
 
 def parse_spec(document: Any) -> ProblemFileV1:
@@ -416,6 +408,9 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
             kind = "prism" if spec.pomdp.prism is not None else "drn"
             if spec.pomdp.prism is not None and spec.pomdp.drn is not None:
                 raise ProblemError("give prism or drn, not both", field="pomdp")
+            model_file = _resolve(spec.pomdp.prism or spec.pomdp.drn, base)
+            if model_file.exists():  # a FIFO or a device would hang Storm: refuse it first
+                check_input_file(model_file, field=f"pomdp.{kind}")
             world = load_storm_pomdp(
                 Path(spec.pomdp.prism or spec.pomdp.drn),
                 kind=kind,
@@ -432,6 +427,9 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
             pomdp, labels, condition = _compile_pomdp(spec.pomdp), {}, None
         decoy = _compile_decoy(spec.deception.decoy, pomdp, labels, condition)
     if isinstance(spec.controller, PayntControllerSpec):
+        paynt_file = _resolve(spec.controller.paynt, base)
+        if paynt_file.exists():
+            check_input_file(paynt_file, field="controller.paynt")
         paynt = read_paynt_controller(_resolve(spec.controller.paynt, base), pomdp, aliases=aliases)
         controller, never = paynt.controller, paynt.never_read
     else:
@@ -539,6 +537,11 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
     actions = {name: i for i, name in enumerate(pomdp.actions)}
     observations = {name: i for i, name in enumerate(pomdp.observations)}
     shape = (len(nodes), pomdp.n_observations)
+    check_memory(  # two dense tables, and the product chain needs |S|·|N| states on top
+        16.0 * shape[0] * shape[1],
+        f"a controller table of {shape[0]:,} nodes x {shape[1]:,} observations",
+        field="controller.nodes",
+    )
     action = np.full(shape, -1, dtype=np.int64)
     update = np.full(shape, -1, dtype=np.int64)
     compiled = []
@@ -705,7 +708,7 @@ _FlowListDumper.add_representer(dict, _represent_dict)
 def write_problem(problem: Problem, path: str | Path) -> None:
     """Write ``problem`` as YAML, or JSON when the file name ends in ``.json``."""
     path = Path(path)
-    path.write_text(problem_text(problem, as_json=path.suffix.lower() == ".json"), encoding="utf-8")
+    write_output(path, problem_text(problem, as_json=path.suffix.lower() == ".json"))
 
 
 def problem_text(problem: Problem, *, as_json: bool = False) -> str:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.io_utils import check_memory
 from misdirect.model import Alteration, Problem, reachable_from
 
 
@@ -36,10 +37,37 @@ class ProductChain:
         return int(self.matrix.nnz)
 
 
+# Bytes the construction holds at its peak, per product state (the index arrays: world, node,
+# received, action, next node, indptr) and per transition (gathered rows, their columns and
+# row ids, the CSR copy, the reachable sub-matrix); measured to within a factor of about 1.5.
+BYTES_PER_PRODUCT_STATE = 56
+BYTES_PER_PRODUCT_TRANSITION = 48
+
+
+def check_product_fits(problem: Problem) -> None:
+    """Refuse, before allocating anything, a product chain that cannot fit in memory.
+
+    A cheap upper bound: ``|S|·|N|`` product states, each with the POMDP's mean number of
+    successors. Only a chain whose construction alone needs more than the available memory
+    is refused (evaluating it needs more still), with its size and the estimate."""
+    pomdp, n_nodes = problem.pomdp, problem.controller.n_nodes
+    states = pomdp.n_states * n_nodes
+    rows = max(pomdp.transitions.shape[0], 1)
+    transitions = states * pomdp.transitions.nnz / rows
+    needed = states * BYTES_PER_PRODUCT_STATE + transitions * BYTES_PER_PRODUCT_TRANSITION
+    check_memory(
+        needed,
+        f"the product chain (up to {pomdp.n_states:,} states x {n_nodes:,} controller nodes "
+        f"= {states:,} states, about {transitions:,.0f} transitions)",
+        field="product",
+    )
+
+
 def full_product_matrix(problem: Problem, alteration: Alteration) -> sp.csr_matrix:
     """Transition matrix over all ``|S|·|N|`` pairs, product index ``s * |N| + n``."""
     pomdp, controller = problem.pomdp, problem.controller
     n_states, n_nodes = pomdp.n_states, controller.n_nodes
+    check_product_fits(problem)
     received = alteration[pomdp.observation_of]  # (S,) observation the robot gets in s
     world = np.repeat(np.arange(n_states), n_nodes)
     node = np.tile(np.arange(n_nodes), n_states)

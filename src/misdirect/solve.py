@@ -10,11 +10,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from misdirect.alterations import max_alteration_cost
 from misdirect.errors import ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
@@ -96,8 +97,20 @@ class SolveResult:
     stats: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     alteration_array: Alteration | None = field(default=None, repr=False)
+    # the largest budget asked for, when it exceeded the most expensive complete alteration:
+    # the solvers then ran at that alteration's cost instead (every budget above it is equal)
+    budget_clamped_from: float | None = None
+    budget_clamped_to: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        clamped = (
+            {}
+            if self.budget_clamped_from is None
+            else {
+                "budget_clamped_from": self.budget_clamped_from,
+                "budget_clamped_to": self.budget_clamped_to,
+            }
+        )
         return {
             "problem": self.problem,
             "status": self.status,
@@ -113,6 +126,7 @@ class SolveResult:
             "curve": [point.to_dict() for point in self.curve],
             "stats": self.stats,
             "warnings": self.warnings,
+            **clamped,
         }
 
 
@@ -130,17 +144,36 @@ def solve(
     progress: ProgressCallback | None = None,
     **options: Any,
 ) -> SolveResult:
-    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), verified exactly."""
+    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), verified exactly.
+
+    A budget above the cost of the most expensive complete alteration affords everything, so
+    the solvers run at that cost instead and its answer is reported at the budget asked for
+    (``budget_clamped_from`` / ``budget_clamped_to`` say so): no method then enumerates or
+    sweeps a range it cannot need (a budget of 1e9 is "no limit", not a billion budgets).
+    """
     solver = get_solver(method, **options)
+    cap = max_alteration_cost(problem)
+    asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
+    clamped_from = asked if math.isfinite(asked) and asked > cap else None
     if budgets is None:
-        budgets = default_budgets(problem.budget) if solver.curve_is_free else [problem.budget]
+        whole = default_budgets(min(problem.budget, cap)) if solver.curve_is_free else []
+        budgets = [*whole, problem.budget]
     budgets = sorted({float(b) for b in budgets})
     for b in budgets:
         if not math.isfinite(b) or b < 0:
             raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
+    if problem.budget > cap:
+        problem = problem.with_budget(cap)
+    # each budget above the cap is answered by the cap's solution, reported at its own budget
+    clamped = sorted({min(b, cap) for b in budgets})
     started = time.perf_counter()
-    solutions = solver.solve(problem, budgets, progress=progress)
+    solutions = solver.solve(problem, clamped, progress=progress)
     elapsed = time.perf_counter() - started
+    if clamped_from is not None:
+        by_budget = {solution.budget: solution for solution in solutions}
+        solutions = [
+            replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
+        ]
 
     exact_values: dict[bytes, float] = {}  # a budget curve often repeats an alteration
 
@@ -209,6 +242,8 @@ def solve(
         stats=final.stats,
         warnings=warnings,
         alteration_array=curve_alterations[-1],
+        budget_clamped_from=clamped_from,
+        budget_clamped_to=None if clamped_from is None else cap,
     )
 
 

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import math
 import multiprocessing
+import signal
 import tempfile
 import threading
 import time
@@ -115,9 +116,12 @@ class HighsBackend:
 
     def write(self, path: Path) -> None:
         assert self.model is not None, "load() a model first"
+        import highspy
+
         highs = _new_highs(self.options, seed=0)
         _pass_model(highs, _model_arrays(self.model))
-        highs.writeModel(str(path))
+        if highs.writeModel(str(path)) == highspy.HighsStatus.kError or not Path(path).is_file():
+            raise SolverError(f"HiGHS could not write {path}")
 
     def solve(
         self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
@@ -148,6 +152,9 @@ class HighsBackend:
                         detail={"highs_status": "stopped at the time limit"},
                     )
                 kind, payload = self._conn.recv()
+            except KeyboardInterrupt:  # Ctrl-C or SIGTERM: stop HiGHS now, not after its solve
+                self._stop_worker(kill=True)
+                raise
             except (EOFError, OSError):
                 code = getattr(self._worker, "exitcode", None)
                 self._stop_worker()
@@ -317,6 +324,12 @@ def run_highs(
 
 def _highs_worker(conn: Any, options: SolverOptions) -> None:
     """Serve solves over a pipe until told to stop (or the parent goes away)."""
+    if threading.current_thread() is threading.main_thread():
+        # Ctrl-C reaches the whole process group: the parent handles it and kills this worker,
+        # which must not print a KeyboardInterrupt traceback of its own (nor run the parent's
+        # SIGTERM handler, inherited through fork)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
     arrays: dict[str, Any] = {}
     while True:
         try:
@@ -419,6 +432,8 @@ class GurobiBackend:
         except gp.GurobiError as error:
             raise SolverError(f"Gurobi failed: {error}") from None
         elapsed = time.perf_counter() - began
+        if m.Status == gp.GRB.INTERRUPTED:  # Gurobi caught Ctrl-C itself: pass it on
+            raise KeyboardInterrupt
         status = {
             gp.GRB.OPTIMAL: "optimal",
             gp.GRB.TIME_LIMIT: "time_limit",
@@ -497,6 +512,8 @@ class ScipBackend:
             scip.optimize()
         elapsed = time.perf_counter() - began
         raw = scip.getStatus()
+        if raw == "userinterrupt":  # SCIP caught Ctrl-C itself: pass it on, do not answer
+            raise KeyboardInterrupt
         status = {
             "optimal": "optimal",
             "timelimit": "time_limit",
@@ -582,6 +599,10 @@ def write_model(model: MilpModel, path: Path) -> None:
         raise ProblemError(
             f"cannot write {suffix or 'a file without suffix'}: use .mps or .lp", field="-o"
         )
+    from misdirect.io_utils import write_output
+
     backend = HighsBackend(SolverOptions())
     backend.load(model)
-    backend.write(Path(path))
+    # into a temporary file beside the target, moved into place only once HiGHS reports
+    # success and the file exists (HiGHS crashes on some unwritable paths, e.g. under /proc)
+    write_output(Path(path), backend.write)
