@@ -51,6 +51,10 @@ app = typer.Typer(
 )
 scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True)
 app.add_typer(scenario_app, name="scenario")
+controller_app = typer.Typer(
+    help="The robot's controller: synthesize it with PAYNT.", no_args_is_help=True
+)
+app.add_typer(controller_app, name="controller")
 
 out = Console()
 err = Console(stderr=True)
@@ -538,7 +542,7 @@ def _print_solve(result: SolveResult) -> None:
     table.add_column("max Pr(reach decoy)", justify="right")
     if bounded:
         table.add_column("upper bound", justify="right")
-    table.add_column("optimal alteration")
+    table.add_column("optimal alteration" if not bounded else "best alteration found")
     table.add_column("cost", justify="right")
     table.add_column("status")
     for point in result.curve:
@@ -565,7 +569,9 @@ def _print_solve(result: SolveResult) -> None:
         )
     stats = result.stats
     if "certified_by" in stats:
-        parts.append(f"certified by {stats['certified_by']} ({stats['auto_reason']})")
+        proven = all(point.status == "optimal" for point in result.curve)
+        verb = "certified by" if proven else "method"
+        parts.append(f"{verb} {stats['certified_by']} ({stats['auto_reason']})")
     if "formulation" in stats:  # a MILP
         nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
         solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)
@@ -672,6 +678,55 @@ def scenario_random(
         seed, states=states, actions=actions, observations=observations, nodes=nodes
     )
     _write_scenario(problem, output, as_json)
+
+
+@controller_app.command("synthesize")
+@handle_errors
+def controller_synthesize(
+    model: Annotated[Path, typer.Argument(help="PRISM POMDP (the robot's world).")],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write (PAYNT's own JSON).")
+    ],
+    props: Annotated[
+        str, typer.Option("--props", help='One optimizing property, e.g. Pmax=? [F "goal"].')
+    ],
+    constants: Annotated[
+        str | None, typer.Option(help='Undefined PRISM constants, e.g. "N=5,p=0.1".')
+    ] = None,
+    memory: Annotated[int, typer.Option(help="Memory nodes per observation.")] = 1,
+    timeout: Annotated[float, typer.Option(help="Time limit for PAYNT (s).")] = 60.0,
+    as_json: JsonOption = False,
+) -> None:
+    """Synthesize the robot's controller with PAYNT and write PAYNT's JSON of it
+    (controller: {paynt: FILE} reads it; give the property as pomdp.terminal_from)."""
+    from misdirect.paynt_synthesis import synthesize
+
+    check_output_path(output)
+    check_range("--memory", memory, 1, 100)
+    check_range("--timeout", timeout, 1, 10**6)
+    result = synthesize(model, props, constants=constants, memory=memory, timeout=timeout)
+    write_output(output, json.dumps(result.document, indent=4) + "\n")
+    nodes = result.document.get("num_nodes")
+    if as_json:
+        _print_json(
+            {
+                "written": str(output),
+                "value": result.value,
+                "property": result.property,
+                "nodes": nodes,
+                "memory": result.memory,
+                "seconds": result.seconds,
+            }
+        )
+        return
+    value = "not reported" if result.value is None else f"{result.value:.6g}"
+    out.print(
+        f"PAYNT's controller: {escape(result.property)} = {value} ({nodes} nodes, "
+        f"{result.seconds:.1f} s)",
+        highlight=False,
+        soft_wrap=True,
+    )
+    _note(f"wrote {output}")
 
 
 @app.command()
