@@ -290,3 +290,21 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
     assert any("largest observation owns" in n for n in notes)
     assert any("node limit, so the MILP" in n for n in notes)
     assert result.curve[0].stats["certified_by"] in ("milp", "branch-and-bound")
+
+
+@pytest.mark.parametrize("method", ["exhaustive", "incremental"])
+def test_enumeration_cut_short_still_proves_the_budgets_it_finished(method, monkeypatch):
+    """Enumeration runs cheapest first, so when the deadline stops it, every budget whose
+    alterations were all evaluated is still proven: here the deadline expires at once, so
+    budget 0 ("alter nothing", the only free alteration) is optimal and budget 2 is not."""
+    from misdirect.solvers import base
+
+    monkeypatch.setattr(base.Deadline, "expired", lambda self: self.end is not None)
+    problem = paper_grid(7)
+    result = solve(problem, method=method, budgets=[0, 2], time_limit=60)
+    zero, two = result.curve
+    assert zero.status == "optimal" and zero.alteration == {}
+    assert two.status == "time_limit" and two.upper_bound >= two.probability
+    exact = solve(problem, method="exhaustive", budgets=[0, 2])
+    assert zero.probability == pytest.approx(exact.curve[0].probability, abs=1e-12)
+    assert two.upper_bound >= exact.curve[1].probability - 1e-9

@@ -57,6 +57,10 @@ class ExhaustiveSolver:
                 "exhaustive search would take too long (try --method milp)"
             )
         table, costs = enumerated
+        # cheapest first ("alter nothing" leads): cut short, every budget up to the last cost
+        # enumerated completely is still proven
+        order = np.argsort(costs, kind="stable")
+        table, costs = table[order], costs[order]
         values = np.full(len(costs), -np.inf)
         alterations: dict[int, np.ndarray] = {}
         done = 0
@@ -76,24 +80,21 @@ class ExhaustiveSolver:
             "candidates_per_observation": [c.size for c in space.choices],
         }
         picks = best_per_budget(costs[:done], values[:done], budgets)
-        if finished:
-            return [
-                Solution(
-                    b, alterations[i], float(values[i]), upper_bound=float(values[i]), stats=stats
-                )
-                for b, i in zip(budgets, picks, strict=True)
-            ]
-        from misdirect.solvers.branch_and_bound import relaxation_bound
+        # a budget is proven when every alteration it affords was evaluated
+        complete = [finished or costs[done] > b + 1e-9 for b in budgets]
+        bound = None
+        if not all(complete):
+            from misdirect.solvers.branch_and_bound import relaxation_bound
 
-        bound = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget too
+            bound = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget too
         return [
             Solution(
                 b,
                 alterations[i],
                 float(values[i]),
-                status="time_limit",
-                upper_bound=max(float(values[i]), bound),
+                status="optimal" if proven else "time_limit",
+                upper_bound=float(values[i]) if proven else max(float(values[i]), bound),
                 stats=stats,
             )
-            for b, i in zip(budgets, picks, strict=True)
+            for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]

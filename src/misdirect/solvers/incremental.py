@@ -112,6 +112,10 @@ class IncrementalSolver:
         costs, values, picks = [], [], []
         done, evaluations = 0, 0
         outer_table, outer_costs = space.within(top, outer)
+        # cheapest outer choices first: cut short, every budget below the first outer choice
+        # not reached has all its alterations enumerated, so it is still proven
+        ranked = np.argsort(outer_costs, kind="stable")
+        outer_table, outer_costs = outer_table[ranked], outer_costs[ranked]
         n_outer = len(outer_costs)
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
             if done > 0 and deadline.expired():  # the first (unaltered outer) block always runs
@@ -168,13 +172,13 @@ class IncrementalSolver:
             "outer_observations": len(outer),
         }
         picked = best_per_budget(costs_a, values_a, budgets, tolerance=NEAR_TIE)
-        finished = done == n_outer
-        if not finished:
+        complete = [done == n_outer or outer_costs[done] > b + 1e-9 for b in budgets]
+        if not all(complete):
             from misdirect.solvers.branch_and_bound import relaxation_bound
 
             relaxed = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget
         solutions = []
-        for budget, index in zip(budgets, picked, strict=True):
+        for budget, index, finished in zip(budgets, picked, complete, strict=True):
             within = values_a[costs_a <= budget + 1e-9]
             bound = float(within.max())  # every alteration within the budget was enumerated
             if not finished:
