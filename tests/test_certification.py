@@ -308,3 +308,44 @@ def test_enumeration_cut_short_still_proves_the_budgets_it_finished(method, monk
     exact = solve(problem, method="exhaustive", budgets=[0, 2])
     assert zero.probability == pytest.approx(exact.curve[0].probability, abs=1e-12)
     assert two.upper_bound >= exact.curve[1].probability - 1e-9
+
+
+def test_ctrl_c_during_a_solve_prints_the_best_answers_so_far():
+    """A first Ctrl-C asks the solvers to stop: the command prints what it has (exactly
+    evaluated, a curve that never decreases, unfinished points marked interrupted), says so in
+    one line and exits 130. The MILP on the 25x25 grid at budgets 0..7 takes minutes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    command = [
+        str(Path(sys.executable).parent / "misdirect"),
+        "solve",
+        "--scenario",
+        "paper-grid",
+        "--size",
+        "25",
+        "--method",
+        "milp",
+        "--budget",
+        "0..7",
+        "--json",
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        time.sleep(6)  # past the start-up and into the MILP's budgets
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, stderr
+    assert stderr.decode().count("\n") == 1 and b"interrupted" in stderr
+    payload = json.loads(stdout)
+    assert payload["interrupted"] is True
+    values = [p["probability"] for p in payload["curve"]]
+    assert values == sorted(values) and len(values) == 8
+    assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}
+    assert payload["curve"][-1]["status"] == "interrupted"

@@ -20,7 +20,13 @@ from misdirect.errors import ProblemError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Alteration, Problem
 from misdirect.solvers.auto import AutoSolver
-from misdirect.solvers.base import CERTIFY_TOLERANCE, ProgressCallback, Solver
+from misdirect.solvers.base import (
+    CERTIFY_TOLERANCE,
+    ProgressCallback,
+    Solver,
+    clear_stop,
+    stop_requested,
+)
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
@@ -101,6 +107,7 @@ class SolveResult:
     # the solvers then ran at that alteration's cost instead (every budget above it is equal)
     budget_clamped_from: float | None = None
     budget_clamped_to: float | None = None
+    interrupted: bool = False  # stopped early on request (Ctrl-C): the best found so far
 
     def to_dict(self) -> dict[str, Any]:
         clamped = (
@@ -127,6 +134,7 @@ class SolveResult:
             "stats": self.stats,
             "warnings": self.warnings,
             **clamped,
+            **({"interrupted": True} if self.interrupted else {}),
         }
 
 
@@ -167,7 +175,9 @@ def solve(
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
     started = time.perf_counter()
+    clear_stop()
     solutions = solver.solve(problem, clamped, progress=progress)
+    interrupted = stop_requested()
     elapsed = time.perf_counter() - started
     if clamped_from is not None:
         by_budget = {solution.budget: solution for solution in solutions}
@@ -224,6 +234,10 @@ def solve(
             _Point(solution.budget, status, exact, alpha, cost, upper_bound, claimed, stats)
         )
     _make_monotone(curve)
+    if interrupted:  # stopped by request (Ctrl-C), not by the time limit
+        for point in curve:
+            if point.status == "time_limit":
+                point.status = "interrupted"
     curve = [point.result(problem) for point in curve]
     final = curve[-1]
     curve_alterations = [point.alteration_array for point in curve]
@@ -244,6 +258,7 @@ def solve(
         alteration_array=curve_alterations[-1],
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
+        interrupted=interrupted,
     )
 
 

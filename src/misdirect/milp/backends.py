@@ -44,6 +44,7 @@ INTEGRALITY_TOLERANCE = 1e-9
 HIGHS_PRESOLVE_RULES_OFF = 1 << 9
 # HiGHS checks its clock only now and then; the parent stops a worker still running this long
 # after the limit (10 % + 1 s keeps a whole command within 10 % + 2 s of its limit)
+STOP_POLL_S = 0.1  # how often a waiting parent looks for a stop request
 HIGHS_GRACE_FACTOR = 1.1
 HIGHS_GRACE_S = 1.0
 
@@ -140,7 +141,7 @@ class HighsBackend:
                 # HiGHS overshoots its own limit (seconds, on large models): past the limit
                 # and a grace period the worker is stopped and the solve counts as timed out
                 grace = None if limit is None else limit * HIGHS_GRACE_FACTOR + HIGHS_GRACE_S
-                if grace is not None and not self._conn.poll(grace):
+                if not self._answered(grace):
                     self._stop_worker(kill=True)
                     return BackendResult(
                         "time_limit",
@@ -171,6 +172,17 @@ class HighsBackend:
 
     def close(self) -> None:
         self._stop_worker()
+
+    def _answered(self, seconds: float | None) -> bool:
+        """Wait up to ``seconds`` (forever: None) for the worker's answer, in short slices so
+        that a stop request (Ctrl-C in the CLI) is seen within a fraction of a second."""
+        from misdirect.solvers.base import stop_requested
+
+        end = None if seconds is None else time.perf_counter() + seconds
+        while not self._conn.poll(STOP_POLL_S):
+            if stop_requested() or (end is not None and time.perf_counter() >= end):
+                return False
+        return True
 
     def _start_worker(self) -> None:
         assert self.model is not None

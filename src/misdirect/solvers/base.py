@@ -6,6 +6,7 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -37,6 +38,23 @@ class ProgressCallback(Protocol):
     ) -> None: ...
 
 
+_stop = threading.Event()  # set by request_stop(): every deadline has passed
+
+
+def request_stop() -> None:
+    """Make every :class:`Deadline` expire now (Ctrl-C in the CLI): solvers stop at their next
+    check and hand back the best they have, as if their time were up."""
+    _stop.set()
+
+
+def stop_requested() -> bool:
+    return _stop.is_set()
+
+
+def clear_stop() -> None:
+    _stop.clear()
+
+
 class Deadline:
     """A wall-clock limit shared by every stage and budget of one ``solve`` call."""
 
@@ -46,10 +64,12 @@ class Deadline:
 
     def remaining(self) -> float | None:
         """Seconds left (never negative), None without a limit."""
+        if _stop.is_set():
+            return 0.0
         return None if self.end is None else max(self.end - time.perf_counter(), 0.0)
 
     def expired(self) -> bool:
-        return self.end is not None and time.perf_counter() >= self.end
+        return _stop.is_set() or (self.end is not None and time.perf_counter() >= self.end)
 
     def share(self, parts: int) -> float | None:
         """An even share of what is left for the next of ``parts`` pieces of work; what a
