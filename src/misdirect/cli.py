@@ -457,9 +457,10 @@ def solve(
         progress = bars.task("solving") if bars else None
         if progress is None and not (quiet or as_json):
             progress = _print_handovers  # no terminal: hand-overs still get a line each
-        result = solve_problem(
-            problem, method=method, budgets=requested, progress=progress, **given
-        )
+        with _stop_gracefully() as received:
+            result = solve_problem(
+                problem, method=method, budgets=requested, progress=progress, **given
+            )
     if as_json:
         _print_json(result.to_dict())
     else:
@@ -467,7 +468,39 @@ def solve(
     if result.warnings:
         for warning in result.warnings:
             err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
+    if received:  # the best answer so far is printed above, marked interrupted
+        name = "terminated (SIGTERM)" if received[0] == signal.SIGTERM else "interrupted"
+        err.print(f"{name}: the best answers found so far are shown", highlight=False)
+        raise typer.Exit(TERMINATED if received[0] == signal.SIGTERM else INTERRUPTED)
+    if result.warnings:
         raise typer.Exit(1)
+
+
+@contextlib.contextmanager
+def _stop_gracefully() -> Iterator[list[int]]:
+    """While solving, the first Ctrl-C or SIGTERM asks the solvers to stop and hand back their
+    best answers (every deadline expires at once); a second one stops at once, as elsewhere.
+    Yields the list of signals received."""
+    from misdirect.solvers.base import clear_stop, request_stop
+
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def ask(signum: int, frame: Any) -> None:
+        if received:
+            raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+        received.append(signum)
+        request_stop()
+
+    previous = {sig: signal.signal(sig, ask) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        clear_stop()
 
 
 class _Progress:

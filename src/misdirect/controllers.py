@@ -1,15 +1,22 @@
 """Controllers from elsewhere: PAYNT's ``.fsc.json`` in and out, and Storm's enabled actions.
 
 PAYNT (the synthesis tool built on Storm) writes a finite-state controller as JSON with
-``action_function[node][obs]`` and ``update_function[node][obs]`` (indices), and the labels
-``action_labels`` and ``observation_labels`` they refer to. We map both by name onto the
-problem's actions and observations; node 0 is the initial node.
+``action_function[node][obs]`` and ``update_function[node][obs]`` (indices, or distributions
+``{index: probability}``), or jointly as ``transitions[node][obs]`` (a distribution over
+(action, next node)), and the labels ``action_labels`` and ``observation_labels`` they refer
+to. Node 0 is the initial node.
+
+Which observation a column means: for a model misdirect loads through Storm, PAYNT's
+observation k of the model as PAYNT builds it (see :class:`misdirect.storm_models.PayntView`),
+when the file's labels are exactly PAYNT's for that model; otherwise, and for explicit
+models, the labels are matched by name.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,9 +26,13 @@ import numpy as np
 from misdirect.errors import ProblemError
 from misdirect.io_utils import parse_json, read_text_file
 from misdirect.model import Controller, CostModel, Pomdp
-from misdirect.storm_models import NO_LABEL, valuation_name
+from misdirect.storm_models import NO_LABEL, PAYNT_NO_LABEL, PayntView, valuation_name
 
 FIELD = "controller.paynt"
+TOLERANCE = 1e-9  # a distribution is deterministic if one entry is 1 within this
+SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking
+_GENERATED = re.compile(r"^\w+_cmd_\d+$")  # PAYNT's name for an unlabelled PRISM command
+_PAIR = re.compile(r"^\s*[(\[]?\s*(\d+)\s*,\s*(\d+)\s*[)\]]?\s*$")
 
 
 def _label(name: Any) -> str:
@@ -32,9 +43,6 @@ def _label(name: Any) -> str:
 
 def _is_index(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-PAYNT_NO_LABEL = "__no_label__"  # PAYNT's name for an unlabelled choice (ours: __NOLABEL__)
 
 
 @dataclass(frozen=True)
@@ -50,16 +58,24 @@ def load_paynt_controller(path: Path, pomdp: Pomdp, *, aliases: Sequence[str] = 
 
 
 def read_paynt_controller(
-    path: Path, pomdp: Pomdp, *, aliases: Sequence[str] = ()
+    path: Path,
+    pomdp: Pomdp,
+    *,
+    aliases: Sequence[str] = (),
+    view: PayntView | Callable[[], PayntView] | None = None,
 ) -> PayntController:
     """Read a PAYNT ``.fsc.json``; every malformed part is a ProblemError naming the file (as
     source), the field inside it (``update_function[1][2]``) and the reason.
 
-    ``aliases[o]`` is Storm's own text for observation ``o`` (PAYNT writes that), matched when
-    the label is not one of our names. A ``null`` entry means PAYNT's controller never meets
-    that (node, observation): the observation is returned in ``never_read``, and the entry is
-    filled with a placeholder (action 0, stay in the node) that no run can reach once no
-    alteration may target it."""
+    ``view`` is the model as PAYNT builds it (or a function building it), for models loaded
+    through Storm: when the file's ``observation_labels`` are PAYNT's labels of that model,
+    column k is PAYNT's observation k, and PAYNT's action labels (``maze_cmd_8``,
+    ``__no_label__``) are mapped as PAYNT made them. Otherwise labels are matched by name;
+    ``aliases[o]`` is Storm's own text for observation ``o``, matched when the label is not
+    one of our names. A ``null`` entry means PAYNT's controller never meets that (node,
+    observation): the observation is returned in ``never_read``, and the entry is filled with
+    a placeholder (action 0, stay in the node) that no run can reach once no alteration may
+    target it."""
     if not Path(path).exists():
         raise ProblemError(f"file not found: {path}", field=FIELD)
     document = parse_json(read_text_file(Path(path)), source=str(path))
@@ -71,7 +87,9 @@ def read_paynt_controller(
         raise fail(
             "(top level)", "expected a JSON object with action_function, update_function, ..."
         )
-    for key in ("action_function", "update_function", "action_labels", "observation_labels"):
+    joint = "transitions" in document and "action_function" not in document
+    tables = ("transitions",) if joint else ("action_function", "update_function")
+    for key in (*tables, "action_labels", "observation_labels"):
         if key not in document:
             raise fail(
                 key,
@@ -81,65 +99,48 @@ def read_paynt_controller(
         if not isinstance(document[key], list):
             raise fail(key, f"expected a list, got {type(document[key]).__name__}")
 
-    actions = {name: i for i, name in enumerate(pomdp.actions)}
-    if PAYNT_NO_LABEL not in actions and NO_LABEL in actions:
-        actions[PAYNT_NO_LABEL] = actions[NO_LABEL]
-    observations = {name: i for i, name in enumerate(pomdp.observations)}
-    # Storm's texts, where they name one observation only (a true boolean prints as nothing)
-    texts, counts = np.unique(np.array(aliases, dtype=str), return_counts=True)
-    unique_texts = set(texts[counts == 1].tolist())
-    for o, text in enumerate(aliases):
-        if text in unique_texts and text not in observations:
-            observations[text] = o
-    action_of = []
-    for k, name in enumerate(document["action_labels"]):
-        label = str(name) if str(name) in actions else _label(name)
-        if label not in actions:
-            raise fail(
-                f"action_labels[{k}]",
-                f"{name!r} is not an action of the model ({', '.join(pomdp.actions)})",
-            )
-        action_of.append(actions[label])
-    obs_columns: list[int] = []
-    for k, name in enumerate(document["observation_labels"]):
-        label = str(name) if str(name) in observations else _label(name)
-        if label not in observations:
-            raise fail(f"observation_labels[{k}]", f"{name!r} is not an observation of the model")
-        if observations[label] in obs_columns:
-            first = obs_columns.index(observations[label])
-            raise fail(
-                f"observation_labels[{k}]",
-                f"{name!r} names the same observation as observation_labels[{first}]",
-            )
-        obs_columns.append(observations[label])
-    if len(obs_columns) != pomdp.n_observations:
-        missing = sorted(set(range(pomdp.n_observations)) - set(obs_columns))
+    why_no_view = ""
+    if callable(view):
+        try:
+            view = view()
+        except ProblemError as error:  # matched by name then, and said why if that fails
+            view, why_no_view = None, error.reason
+    labels = document["observation_labels"]
+    by_position = view is not None and [str(x) for x in labels] == list(view.labels)
+
+    action_of = _action_columns(document["action_labels"], pomdp, view, fail)
+    if by_position:
+        obs_columns = _columns_by_position(view, labels, pomdp, fail)
+    else:
+        obs_columns = _columns_by_name(labels, pomdp, aliases, view, why_no_view, fail)
+    missing = sorted(set(range(pomdp.n_observations)) - set(obs_columns))
+    if missing:
         raise fail(
             "observation_labels",
             f"observation {pomdp.observations[missing[0]]!r} is not covered; an attacker can "
             "make the robot see any observation, so every one needs a rule",
         )
 
-    gamma, delta = document["action_function"], document["update_function"]
-    n_nodes, n_cols = len(gamma), len(obs_columns)
+    first_table = document[tables[0]]
+    n_nodes, n_cols = len(first_table), len(labels)
     if n_nodes == 0:
-        raise fail("action_function", "empty: the controller needs at least one node")
-    if len(delta) != n_nodes:
+        raise fail(tables[0], "empty: the controller needs at least one node")
+    if not joint and len(document["update_function"]) != n_nodes:
         raise fail(
             "update_function",
-            f"has {len(delta)} rows (nodes), action_function has {n_nodes}",
+            f"has {len(document['update_function'])} rows (nodes), action_function has {n_nodes}",
         )
     declared = document.get("num_nodes")
     if declared is not None and declared != n_nodes:
-        raise fail("num_nodes", f"says {declared!r}, but action_function has {n_nodes} rows")
+        raise fail("num_nodes", f"says {declared!r}, but {tables[0]} has {n_nodes} rows")
     declared = document.get("num_observations")
     if declared is not None and declared != n_cols:
         raise fail(
             "num_observations",
             f"says {declared!r}, but observation_labels has {n_cols} entries",
         )
-    for key, table in (("action_function", gamma), ("update_function", delta)):
-        for n, row in enumerate(table):
+    for key in tables:
+        for n, row in enumerate(document[key]):
             if not isinstance(row, list):
                 raise fail(f"{key}[{n}]", f"expected a list, got {type(row).__name__}")
             if len(row) != n_cols:
@@ -154,34 +155,58 @@ def read_paynt_controller(
     never: set[int] = set()
     for n in range(n_nodes):
         for k, o in enumerate(obs_columns):
-            if gamma[n][k] is None and delta[n][k] is None:
+            if o < 0:  # PAYNT's observation k has no state in our model: never read
+                continue
+            if joint:
+                where = f"transitions[{n}][{k}]"
+                pair = _joint_entry(document["transitions"][n][k], where, fail)
+                chosen, target = pair if pair is not None else (None, None)
+                action_where = update_where = where
+            else:
+                action_where, update_where = (
+                    f"action_function[{n}][{k}]",
+                    f"update_function[{n}][{k}]",
+                )
+                chosen = _point(document["action_function"][n][k], action_where, "action", fail)
+                target = _point(document["update_function"][n][k], update_where, "node", fail)
+            if chosen is None and target is None:
                 if o == pomdp.initial_observation and n == 0:
                     raise fail(
-                        f"action_function[{n}][{k}]",
+                        action_where,
                         "empty, but the robot starts in node 0 reading this observation",
                     )
                 never.add(o)
                 action[n, o], update[n, o] = action_of[0] if action_of else 0, n
                 continue
-            chosen = _action_entry(gamma[n][k], f"action_function[{n}][{k}]", fail)
+            if chosen is None:
+                raise fail(action_where, "empty, but update_function has a node here; fill it in")
+            if target is None:
+                raise fail(
+                    update_where, "empty, but action_function has an action here; fill it in"
+                )
             if not 0 <= chosen < len(action_of):
                 raise fail(
-                    f"action_function[{n}][{k}]",
+                    action_where,
                     f"action index {chosen} is out of range (action_labels has "
                     f"{len(action_of)} entries)",
                 )
-            target = delta[n][k]
-            where = f"update_function[{n}][{k}]"
-            if target is None:
-                raise fail(where, "empty, but action_function has an action here; fill it in")
-            if not _is_index(target):
-                raise fail(where, f"expected a node index (integer), got {target!r}")
             if not 0 <= target < n_nodes:
                 raise fail(
-                    where,
+                    update_where,
                     f"node {target} is out of range (the controller has "
                     f"{n_nodes} nodes, 0..{n_nodes - 1})",
                 )
+            if by_position and view.available[k]:
+                ours = pomdp.actions[action_of[chosen]]
+                enabled = {view.actions.get(label, label) for label in view.available[k]}
+                if ours not in enabled:
+                    raise fail(
+                        action_where,
+                        f"plays {ours!r}, which PAYNT's observation {k} does not enable in "
+                        f"this model ({', '.join(sorted(enabled))}): PAYNT built another "
+                        "model (other constants, or another property: give its property as "
+                        "pomdp.terminal_from)",
+                    )
             action[n, o] = action_of[chosen]
             update[n, o] = target
     controller = Controller(
@@ -190,24 +215,184 @@ def read_paynt_controller(
     return PayntController(controller, np.array(sorted(never), dtype=np.int64))
 
 
-def _action_entry(chosen: Any, where: str, fail) -> int:
-    """One ``action_function`` entry as an action index; randomized only if it is certain."""
-    if chosen is None:
-        raise fail(where, "empty, but update_function has a node here; fill it in")
-    if isinstance(chosen, dict):  # randomized: accept only a point distribution
-        try:
-            weights = {int(a): float(p) for a, p in chosen.items()}
-        except (TypeError, ValueError):
+def _action_columns(names: list[Any], pomdp: Pomdp, view: PayntView | None, fail) -> list[int]:
+    """Our action of each ``action_labels`` entry: by name, or as PAYNT labelled it."""
+    actions = {name: i for i, name in enumerate(pomdp.actions)}
+    if PAYNT_NO_LABEL not in actions and NO_LABEL in actions:
+        actions[PAYNT_NO_LABEL] = actions[NO_LABEL]
+    action_of = []
+    for k, name in enumerate(names):
+        text = str(name)
+        if text in actions:
+            action_of.append(actions[text])
+        elif view is not None and view.actions.get(text) in actions:
+            action_of.append(actions[view.actions[text]])
+        elif _label(name) in actions:
+            action_of.append(actions[_label(name)])
+        else:
+            hint = ""
+            if _GENERATED.match(text):
+                hint = "; PAYNT names an unlabelled PRISM command so: " + (
+                    "PAYNT's build of this model has no such command (other constants?)"
+                    if view is not None
+                    else "load the model from its PRISM file (pomdp: {prism: ...}) to map it"
+                )
             raise fail(
-                where, "a randomized choice must map action indices to probabilities"
-            ) from None
-        certain = [a for a, p in weights.items() if math.isclose(p, 1.0)]
-        if len(certain) != 1:
-            raise fail(where, "randomized; misdirect needs a deterministic controller")
-        return certain[0]
-    if not _is_index(chosen):
-        raise fail(where, f"expected an action index (integer), got {chosen!r}")
-    return chosen
+                f"action_labels[{k}]",
+                f"{name!r} is not an action of the model ({', '.join(pomdp.actions)}){hint}",
+            )
+    return action_of
+
+
+def _columns_by_position(view: PayntView, labels: list[Any], pomdp: Pomdp, fail) -> list[int]:
+    """Column k is PAYNT's observation k: our observation of the same states."""
+    columns: list[int] = []
+    for k, o in enumerate(view.observation.tolist()):
+        if o == -2:
+            raise fail(
+                f"observation_labels[{k}]",
+                f"PAYNT's observation {k} ({labels[k]!r}) spans several observations of the "
+                "model misdirect built",
+            )
+        if o >= 0 and o in columns:
+            first = columns.index(o)
+            raise fail(
+                f"observation_labels[{k}]",
+                f"PAYNT's observation {k} is observation {pomdp.observations[o]!r}, as is "
+                f"observation_labels[{first}]",
+            )
+        columns.append(o)
+    return columns
+
+
+def _columns_by_name(
+    labels: list[Any],
+    pomdp: Pomdp,
+    aliases: Sequence[str],
+    view: PayntView | None,
+    why_no_view: str,
+    fail,
+) -> list[int]:
+    """Column k is the observation its label names (our name, or Storm's text of it)."""
+    observations = {name: i for i, name in enumerate(pomdp.observations)}
+    # Storm's texts, where they name one observation only (a true boolean prints as nothing)
+    texts, counts = np.unique(np.array(aliases, dtype=str), return_counts=True)
+    unique_texts = set(texts[counts == 1].tolist())
+    for o, text in enumerate(aliases):
+        if text in unique_texts and text not in observations:
+            observations[text] = o
+    columns: list[int] = []
+    for k, name in enumerate(labels):
+        label = str(name) if str(name) in observations else _label(name)
+        if label not in observations:
+            if view is not None and len(view.labels) != len(labels):
+                hint = (
+                    f" (PAYNT's build of this model has {len(view.labels)} observations, the "
+                    f"file {len(labels)}: was PAYNT run on this program with the same "
+                    "constants? give its property as pomdp.terminal_from)"
+                )
+            elif view is not None:
+                hint = (
+                    f" (nor PAYNT's label of its observation {k}, {view.labels[k]!r}: was PAYNT "
+                    "run on this program with the same constants? give its property as "
+                    "pomdp.terminal_from)"
+                )
+            else:
+                hint = f" ({why_no_view})" if why_no_view else ""
+            raise fail(
+                f"observation_labels[{k}]", f"{name!r} is not an observation of the model{hint}"
+            )
+        if observations[label] in columns:
+            first = columns.index(observations[label])
+            raise fail(
+                f"observation_labels[{k}]",
+                f"{name!r} names the same observation as observation_labels[{first}]",
+            )
+        columns.append(observations[label])
+    return columns
+
+
+def _distribution(items: list[tuple[Any, Any]], where: str, fail) -> list[tuple[Any, float]]:
+    """The entries of positive probability, checked: numbers in [0, 1] summing to 1."""
+    support, total = [], 0.0
+    for key, p in items:
+        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 <= p <= 1:
+            raise fail(where, f"probability {p!r} of {key!r} is not a number in [0, 1]")
+        total += p
+        if p > 0:
+            support.append((key, float(p)))
+    if abs(total - 1.0) > SUM_TOLERANCE:
+        raise fail(where, f"probabilities sum to {total:.12g}, not 1")
+    return support
+
+
+def _certain(support: list[tuple[Any, float]], where: str, fail) -> Any:
+    """The one outcome of a distribution that is certain; a randomized one is refused."""
+    if len(support) == 1 and abs(support[0][1] - 1.0) <= TOLERANCE:
+        return support[0][0]
+    shown = ", ".join(f"{key}: {p:.6g}" for key, p in support[:4])
+    raise fail(
+        where,
+        f"randomized ({shown}); randomized controllers are not supported yet: misdirect "
+        "needs a deterministic controller",
+    )
+
+
+def _point(entry: Any, where: str, what: str, fail) -> int | None:
+    """One ``action_function``/``update_function`` entry as an index (None when empty): an
+    integer, or a ``{index: probability}`` distribution that puts probability 1 on one."""
+    if entry is None:
+        return None
+    if isinstance(entry, dict):
+        items = []
+        for key, p in entry.items():
+            if not re.fullmatch(r"\s*\d+\s*", str(key)):
+                raise fail(where, f"a randomized choice must map {what} indices to probabilities")
+            items.append((int(key), p))
+        return _certain(_distribution(items, where, fail), where, fail)
+    if not _is_index(entry):
+        article = "an" if what[0] in "aeiou" else "a"
+        raise fail(where, f"expected {article} {what} index (integer), got {entry!r}")
+    return entry
+
+
+def _joint_entry(entry: Any, where: str, fail) -> tuple[int, int] | None:
+    """One entry of PAYNT's joint ``Fsc`` (``transitions[node][obs]``, a distribution over
+    (action, next node)) as that pair when it is certain; None when empty. Accepted forms:
+    ``{"(a, m)": p}`` (also ``"a,m"``), ``[[a, m, p], ...]`` and
+    ``[{"action": a, "update": m, "probability": p}, ...]`` (``memory``/``node`` for
+    ``update``, ``prob`` for ``probability``)."""
+    if entry is None:
+        return None
+    items: list[tuple[Any, Any]] = []
+    shape = (
+        'expected a distribution over (action, next node): {"(a, m)": p}, [[a, m, p], ...] '
+        'or [{"action": a, "update": m, "probability": p}, ...]'
+    )
+    if isinstance(entry, dict):
+        for key, p in entry.items():
+            match = _PAIR.match(str(key))
+            if match is None:
+                raise fail(where, f"{shape}; got the key {key!r}")
+            items.append(((int(match[1]), int(match[2])), p))
+    elif isinstance(entry, list):
+        for item in entry:
+            if isinstance(item, list) and len(item) == 3:
+                a, m, p = item
+            elif isinstance(item, dict):
+                a = item.get("action")
+                m = next((item[k] for k in ("update", "memory", "node") if k in item), None)
+                p = next((item[k] for k in ("probability", "prob") if k in item), None)
+            else:
+                raise fail(where, f"{shape}; got {item!r}")
+            if not (_is_index(a) and _is_index(m)):
+                raise fail(where, f"{shape}; got {item!r}")
+            items.append(((a, m), p))
+    else:
+        raise fail(where, f"{shape}; got {entry!r}")
+    if not items:
+        raise fail(where, f"{shape}; got an empty one")
+    return _certain(_distribution(items, where, fail), where, fail)
 
 
 def controller_to_paynt(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:

@@ -382,6 +382,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     base = Path(source).parent if source is not None else None
     enabled = None  # Storm's enabled actions, when disabled ones must be forbidden
     aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)
+    paynt_view = None  # builds the model as PAYNT does: its observation numbering and labels
     never = np.zeros(0, dtype=np.int64)  # observations a PAYNT controller says never occur
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
@@ -420,7 +421,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
                 terminal_from=spec.pomdp.terminal_from,
             )
             pomdp, labels, condition = world.pomdp, world.labels, world.condition
-            aliases = world.storm_observation_names
+            aliases, paynt_view = world.storm_observation_names, world.paynt_view
             if spec.pomdp.disabled_action == "forbid":
                 enabled = world.enabled
         else:
@@ -430,7 +431,9 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
         paynt_file = _resolve(spec.controller.paynt, base)
         if paynt_file.exists():
             check_input_file(paynt_file, field="controller.paynt")
-        paynt = read_paynt_controller(_resolve(spec.controller.paynt, base), pomdp, aliases=aliases)
+        paynt = read_paynt_controller(
+            _resolve(spec.controller.paynt, base), pomdp, aliases=aliases, view=paynt_view
+        )
         controller, never = paynt.controller, paynt.never_read
     else:
         controller = _compile_controller(spec.controller, pomdp)

@@ -18,6 +18,7 @@ label, ``__NOLABEL__`` for an unlabelled choice (as Storm's own DRN export write
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import re
@@ -46,6 +47,29 @@ class StormPomdp:
     condition: Callable[[str, str], np.ndarray] | None = None
     # Storm's own text of each observation's valuation (what PAYNT writes as its label)
     storm_observation_names: tuple[str, ...] = field(default=())
+    # the state variables in the order that state names list them (for matching other builds)
+    state_variables: tuple[str, ...] = field(default=())
+    # the same model as PAYNT builds it (PAYNT's observation numbering and action labels),
+    # built on demand: only PAYNT controllers need it
+    paynt_view: Callable[[], PayntView] | None = field(default=None, compare=False)
+
+
+@dataclass(frozen=True)
+class PayntView:
+    """The model as PAYNT 0.5 builds it, matched to ours.
+
+    PAYNT's ``.fsc.json`` has one column per observation of *its* model, in its order; its
+    ``observation_labels`` are only Storm's text of them (stormpy 2.0 prints most of them
+    wrongly, and several observations alike), and its action labels include names it made up
+    for unlabelled PRISM commands (``maze_cmd_8``). So the columns are matched by position
+    against a rebuild of PAYNT's model, not by label.
+    """
+
+    labels: tuple[str, ...]  # what PAYNT writes as observation_labels[k]
+    # (columns,) our observation for PAYNT's observation k; -1: no state of ours, -2: several
+    observation: np.ndarray
+    actions: dict[str, str]  # PAYNT's action label -> our action name
+    available: tuple[frozenset[str], ...]  # PAYNT's action labels enabled at its observation k
 
 
 def _stormpy(field: str):
@@ -148,7 +172,20 @@ def load_storm_pomdp(
         ) from None
     if kind == "drn" and (terminal is not None or terminal_from is not None):
         world = _make_terminal_drn(stormpy, world, terminal, terminal_from)
-    return world
+    built = world
+
+    def paynt_view() -> PayntView:
+        return _paynt_view(
+            stormpy,
+            path,
+            kind,
+            built,
+            constants=constants,
+            terminal=terminal,
+            terminal_from=terminal_from,
+        )
+
+    return dataclasses.replace(world, paynt_view=paynt_view)
 
 
 def _instantiate(stormpy, program, constants: str):
@@ -416,6 +453,7 @@ def _translate(
         enabled=enabled,
         condition=condition,
         storm_observation_names=storm_names,
+        state_variables=arrays.state_variables if values else (),
     )
 
 
@@ -795,10 +833,165 @@ def _make_terminal_drn(stormpy, world: StormPomdp, terminal, terminal_from) -> S
         probability=coo.data,
         absorbing=absorbing,
     )
-    return StormPomdp(
-        pomdp=pomdp,
-        labels=world.labels,
-        enabled=world.enabled,
-        condition=world.condition,
-        storm_observation_names=world.storm_observation_names,
+    return dataclasses.replace(world, pomdp=pomdp)
+
+
+# -- the model as PAYNT builds it ----------------------------------------------------------------
+
+PAYNT_NO_LABEL = "__no_label__"  # PAYNT's label for a choice without one (ours: __NOLABEL__)
+_ONE_LINE_OBSERVABLES = re.compile(
+    r"(?m)^[ \t]*observables\b[ \t]*(?P<items>[^\n]*?)[ \t]*\bendobservables\b"
+    r"[ \t]*(?P<rest>[^\n]*)$"
+)
+
+
+def paynt_prism_text(text: str) -> str:
+    """The PRISM program as PAYNT 0.5 can read it.
+
+    PAYNT reads ``observables`` line by line: the keyword must start a line and
+    ``endobservables`` must start a later one (``observables x, y endobservables`` on one line
+    makes it give up on the file). Such a block is split over three lines; nothing else
+    changes, so Storm builds the same model from either text.
+    """
+
+    def split(match: re.Match) -> str:
+        rest = f"\n{match['rest']}" if match["rest"].strip() else ""
+        return f"observables\n{match['items']}\nendobservables{rest}"
+
+    text = _ONE_LINE_OBSERVABLES.sub(split, text)
+    return re.sub(r"(?m)^[ \t]+(?=(?:end)?observables\b)", "", text)
+
+
+def _paynt_rewrite(text: str) -> str:
+    """PAYNT's own rewriting of an ``observables`` block (paynt/parser/prism_parser.py,
+    ``load_sketch_prism``): each listed variable ``x`` becomes ``observable "x" = x;``. Storm
+    then numbers and prints the observations as PAYNT sees them."""
+    out: list[str] = []
+    inside = False
+    for line in text.splitlines(keepends=True):
+        if line.startswith("observables"):
+            inside = True
+            line = line.split("//")[0].strip()
+            if len(line) <= len("observables"):
+                continue
+            line = line[len("observables") :].strip()
+        if inside:
+            if line.startswith("endobservables"):
+                inside = False
+                continue
+            line = line.split("//")[0].strip()
+            out += [f'observable "{o.strip()}" = {o.strip()};\n' for o in line.split(",")]
+            continue
+        out.append(line)
+    return "".join(out)
+
+
+def _paynt_view(
+    stormpy,
+    path: Path,
+    kind: str,
+    world: StormPomdp,
+    *,
+    constants: str | None,
+    terminal: str | None,
+    terminal_from: str | None,
+) -> PayntView:
+    """Build the model the way PAYNT 0.5 does (``Sketch.load_sketch``) and match it to ours.
+
+    PRISM: PAYNT's rewriting of ``observables``, Storm's parser in PRISM compatibility mode,
+    ``label_unlabelled_commands`` (an unlabelled command of module ``m`` becomes the action
+    ``m_cmd_<k>``, k its position in the module), Storm's builder with PAYNT's options and the
+    property's target terminal, then ``make_canonic``. DRN: Storm's DRN reader, then
+    ``make_canonic``; unlabelled choices are PAYNT's ``__no_label__``. The terminal states are
+    those of the problem file (``terminal``/``terminal_from``): PAYNT's are its property's.
+    """
+    field = "controller.paynt"
+    renamed: set[str] = set()
+    try:
+        if kind == "prism":
+            text = _paynt_rewrite(paynt_prism_text(path.read_text(encoding="utf-8")))
+            with tempfile.TemporaryDirectory(prefix="misdirect-") as folder:
+                copy = Path(folder) / path.name
+                copy.write_text(text, encoding="utf-8")
+                program = stormpy.parse_prism_program(str(copy), prism_compatibility=True)
+            if constants:
+                program = _instantiate(stormpy, program, constants)
+            labelled = program.label_unlabelled_commands({})
+
+            def commands(p) -> set[str]:
+                return {c.action_name for m in p.modules for c in m.commands}
+
+            renamed = commands(labelled) - commands(program)
+            formulas = []
+            if terminal is not None:
+                formulas = [_prism_target(stormpy, labelled, terminal, "pomdp.terminal")]
+            elif terminal_from is not None:
+                formulas = [_prism_property(stormpy, labelled, terminal_from)]
+            options = stormpy.BuilderOptions(formulas) if formulas else stormpy.BuilderOptions()
+            options.set_build_state_valuations(True)
+            options.set_build_choice_origins(True)
+            options.set_build_all_labels(True)
+            options.set_build_choice_labels(True)
+            options.set_add_overlapping_guards_label(True)
+            options.set_build_observation_valuations(True)
+            model = stormpy.build_model(labelled, options=options)
+        else:
+            options = stormpy.developer.DirectEncodingParserOptions()
+            options.build_choice_labeling = True
+            model = stormpy.build_model_from_drn(str(path), options=options)
+        model = stormpy.pomdp.make_canonic(model)
+    except ProblemError:
+        raise
+    except Exception as error:  # Storm's parser or builder (RuntimeError, SyntaxError)
+        raise ProblemError(
+            f"cannot build {path.name} the way PAYNT does: {_storm_message(error)}", field=field
+        ) from None
+
+    pomdp = world.pomdp
+    n_states = model.nr_states
+    ours = np.full(n_states, -1, dtype=np.int64)  # our state of each of PAYNT's states
+    if world.state_variables and model.has_state_valuations():
+        values = _variables(model.state_valuations, world.state_variables)
+        names = _names(values) or []
+        index = {name: s for s, name in enumerate(pomdp.states)}
+        ours = np.array([index.get(name, -1) for name in names], dtype=np.int64)
+    elif n_states == pomdp.n_states:  # no valuations (DRN): the same file, the same states
+        ours = np.arange(n_states)
+    paynt_obs = np.asarray(model.observations, dtype=np.int64)
+    n_obs = model.nr_observations
+    found = ours >= 0
+    pairs = np.unique(
+        np.stack([paynt_obs[found], pomdp.observation_of[ours[found]]], axis=1), axis=0
+    )
+    observation = np.full(n_obs, -1, dtype=np.int64)
+    column, counts = np.unique(pairs[:, 0], return_counts=True)
+    observation[column[counts > 1]] = -2
+    single = np.isin(pairs[:, 0], column[counts == 1])
+    observation[pairs[single, 0]] = pairs[single, 1]
+
+    if model.has_observation_valuations():
+        valuations = model.observation_valuations
+        labels = tuple(valuations.to_string(o) for o in range(n_obs))
+    else:
+        labels = tuple(str(o) for o in range(n_obs))
+    _, first = np.unique(paynt_obs, return_index=True)
+    labelling = model.choice_labeling if model.has_choice_labeling() else None
+    available: list[frozenset[str]] = []
+    for o in range(n_obs):
+        names_here: set[str] = set()
+        if o < first.size:
+            state = int(first[o])
+            for offset in range(model.get_nr_available_actions(state)):
+                choice = model.get_choice_index(state, offset)
+                got = labelling.get_labels_of_choice(choice) if labelling else set()
+                names_here.add(next(iter(got)) if len(got) == 1 else PAYNT_NO_LABEL)
+        available.append(frozenset(names_here))
+    actions: dict[str, str] = {}
+    for label in set().union(*available) if available else set():
+        if label in pomdp.actions:
+            actions[label] = label
+        elif (label in renamed or label == PAYNT_NO_LABEL) and NO_LABEL in pomdp.actions:
+            actions[label] = NO_LABEL
+    return PayntView(
+        labels=labels, observation=observation, actions=actions, available=tuple(available)
     )

@@ -1,0 +1,302 @@
+"""PAYNT as it comes: controllers synthesized here by the installed PAYNT, loaded unedited.
+
+The models in tests/data are our own, in the style of PAYNT's benchmarks. Each controller is
+synthesized in the test through PAYNT's own API (no misdirect code involved) and written as
+PAYNT writes it; misdirect then loads it as ``controller: {paynt: FILE}``. The expected values
+come from Storm: the PRISM program with a controller module added, built by Storm with the
+property's target terminal (as PAYNT builds), where each state reads PAYNT's observation of
+it, taken from PAYNT's own model. They are also compared with the value PAYNT reports.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from misdirect import decoy_probability, load_problem, solve
+from misdirect.cli import app
+
+stormpy = pytest.importorskip("stormpy")
+try:
+    import paynt.api
+    import paynt.parser.sketch
+    import paynt.utils.timer
+except ImportError:  # pragma: no cover - CI installs it with the test extra
+    pytest.skip("paynt is not installed (pip install 'misdirect[paynt]')", allow_module_level=True)
+
+from prism_product import prism_product  # noqa: E402
+
+DATA = Path(__file__).parent / "data"
+runner = CliRunner()
+PAYNT_TOLERANCE = 1e-4  # PAYNT model checks to a precision of 1e-4
+
+# model, constants, PAYNT's property, memory
+CASES = {
+    "maze": ("maze", None, 'Pmax=? [F "goal"]', 2),
+    "geo": ("geo", None, 'Pmax=? [F "goal"]', 2),
+    "grid": ("grid_avoid", "N=3", 'Pmax=? [F "goal"]', 2),
+}
+
+
+def _split_observables(text: str) -> str:
+    """PAYNT reads ``observables`` only with the keyword and ``endobservables`` on lines of
+    their own; our maze and geo write it on one line."""
+    return re.sub(
+        r"(?m)^observables\s+(.*?)\s+endobservables", r"observables\n\1\nendobservables", text
+    )
+
+
+def _constants(text: str, constants: str | None) -> str:
+    for part in (constants or "").split(","):
+        if part:
+            name, value = part.split("=")
+            text = re.sub(rf"const int {name};", f"const int {name} = {value};", text)
+    return text
+
+
+def _run_paynt(tmp_path: Path, case: str):
+    """PAYNT's own API: its JSON of the controller (unedited), its value, its POMDP."""
+    model, constants, prop, memory = CASES[case]
+    sketch = tmp_path / f"{model}-sketch.prism"
+    text = (DATA / f"{model}.prism").read_text()
+    sketch.write_text(_constants(_split_observables(text), constants))
+    props = tmp_path / "sketch.props"
+    props.write_text(prop + "\n")
+    paynt.utils.timer.GlobalTimer.start(20)
+    factory, task = paynt.parser.sketch.Sketch.load_sketch(
+        str(sketch), str(props), task_kwargs={"memory_size": memory}
+    )
+    synthesizer = paynt.api.get_synthesizer(factory, task, "ar", fsc_synthesis=True)
+    synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
+    result = synthesizer.build_result()
+    assert result.fsc is not None
+    (tmp_path / "robot.fsc.json").write_text(str(result.fsc))  # PAYNT's own __str__: its JSON
+    return json.loads(str(result.fsc)), float(result.value), factory.pomdp
+
+
+def _problem(tmp_path: Path, case: str, decoy: str = "bad", name: str = "p.yaml") -> Path:
+    model, constants, prop, _ = CASES[case]
+    pomdp = {"prism": str(DATA / f"{model}.prism"), "terminal_from": prop}
+    if constants:
+        pomdp["constants"] = constants
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": pomdp,
+        "controller": {"paynt": "robot.fsc.json"},
+        "deception": {"decoy": {"label": decoy}, "budget": 1},
+    }
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def _storm_values(tmp_path: Path, case: str, fsc: dict, pomdp) -> dict[str, float]:
+    """Pr(F "bad") and Pr(F "goal") of the PRISM program composed with PAYNT's controller.
+
+    Each state reads PAYNT's observation of it: the guard of observation k lists the states
+    of PAYNT's own POMDP in it, by valuation. Unlabelled commands get PAYNT's names
+    (module_cmd_k, k the command's position in its module)."""
+    model, constants, prop, _ = CASES[case]
+    source = _constants((DATA / f"{model}.prism").read_text(), constants)
+    source = re.sub(r"(?ms)^observables\b.*?endobservables", "", source)
+    source = re.sub(r'(?m)^observable\s+"[^"]*"\s*=[^;]*;', "", source).replace("pomdp", "mdp", 1)
+
+    def name_commands(match: re.Match) -> str:
+        module, body, count = match[1], match[2], iter(range(10**6))
+
+        def label(command: re.Match) -> str:
+            k = next(count)  # position among all commands of the module
+            return f"{command[1]}[{command[2] or f'{module}_cmd_{k}'}]"
+
+        named = re.sub(r"(?m)^(\s*)\[(\w*)\]", label, body)
+        return f"module {module}{named}endmodule"
+
+    source = re.sub(r"(?ms)^module (\w+)(.*?)endmodule", name_commands, source)
+    guards: dict[int, list[str]] = {}
+    for s in range(pomdp.nr_states):
+        valuation = json.loads(str(pomdp.state_valuations.to_json(s)))
+        items = [
+            (k if v else f"!{k}") if isinstance(v, bool) else f"{k}={v}"
+            for k, v in valuation.items()
+        ]
+        guards.setdefault(int(pomdp.observations[s]), []).append(" & ".join(items))
+    labels = [str(label) for label in fsc["action_labels"]]
+    lines = ["module controller", f"  node : [0..{fsc['num_nodes'] - 1}] init 0;"]
+    for n in range(fsc["num_nodes"]):
+        for k in range(fsc["num_observations"]):
+            a, m = fsc["action_function"][n][k], fsc["update_function"][n][k]
+            if a is None or k not in guards or labels[a] == "__no_label__":
+                continue
+            guard = " | ".join(f"({g})" for g in guards[k])
+            lines.append(f"  [{labels[a]}] node = {n} & ({guard}) -> (node' = {m});")
+    lines += [f"  [{label}] false -> true;" for label in labels if label != "__no_label__"]
+    lines.append("endmodule")
+    composed = tmp_path / "composed.prism"
+    composed.write_text(source + "\n" + "\n".join(lines) + "\n")
+    program = stormpy.parse_prism_program(str(composed))
+    options = stormpy.BuilderOptions([stormpy.parse_properties(prop, program)[0].get_raw_formula()])
+    options.set_build_all_labels()
+    mdp = stormpy.build_model[stormpy.Rational](program, options=options)
+    values = {}
+    for label in ("bad", "goal"):
+        both = []
+        for direction in ("max", "min"):
+            formula = stormpy.parse_properties(f'P{direction}=? [F "{label}"]', program)[0]
+            result = stormpy.model_checking(mdp, formula, environment=stormpy.environments.exact())
+            both.append(float(result.get_value(mdp.initial_states[0])))
+        assert both[0] == pytest.approx(both[1], abs=1e-12)  # the controller is deterministic
+        values[label] = both[0]
+    return values
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_paynt_controller_loads_unedited_and_agrees_with_storm(tmp_path, case):
+    fsc, paynt_value, pomdp = _run_paynt(tmp_path, case)
+    # as PAYNT writes it: its names for unlabelled commands, Storm's (wrong) observation text
+    assert "__comment_action_function" in fsc
+    assert any(re.fullmatch(r"\w+_cmd_\d+", label) for label in fsc["action_labels"])
+    storm = _storm_values(tmp_path, case, fsc, pomdp)
+    problem = load_problem(_problem(tmp_path, case))
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(storm["bad"], abs=1e-9)
+    goal = load_problem(_problem(tmp_path, case, decoy="goal", name="goal.yaml"))
+    reach_goal = decoy_probability(goal, goal.identity())
+    assert reach_goal == pytest.approx(storm["goal"], abs=1e-9)
+    assert reach_goal == pytest.approx(paynt_value, abs=PAYNT_TOLERANCE)
+
+
+def test_geo_values_by_hand(tmp_path):
+    """geo: the target's end is a fair coin the robot cannot see, and the goal ends the run.
+    A controller that surely reaches the goal visits one end first, which is the bad one
+    with probability 1/2: Pr(goal) = 1 and Pr(bad) = 1/2."""
+    _, paynt_value, _ = _run_paynt(tmp_path, "geo")
+    goal = load_problem(_problem(tmp_path, "geo", decoy="goal"))
+    bad = load_problem(_problem(tmp_path, "geo", name="bad.yaml"))
+    assert paynt_value == pytest.approx(1.0, abs=PAYNT_TOLERANCE)
+    assert decoy_probability(goal, goal.identity()) == pytest.approx(1.0, abs=1e-9)
+    assert decoy_probability(bad, bad.identity()) == pytest.approx(0.5, abs=1e-9)
+
+
+@pytest.mark.parametrize("case", ["maze", "grid"])
+def test_solve_on_paynt_controller_re_evaluates_exactly(tmp_path, case):
+    _run_paynt(tmp_path, case)
+    problem = load_problem(_problem(tmp_path, case))
+    result = solve(problem, budgets=[1])
+    alteration = problem.alteration(result.alteration)
+    assert result.probability == pytest.approx(decoy_probability(problem, alteration), abs=1e-12)
+    # Storm builds the product of the attacked robot itself, in exact arithmetic
+    path = tmp_path / "product.prism"
+    path.write_text(prism_product(problem, alteration))
+    program = stormpy.parse_prism_program(str(path))
+    formula = stormpy.parse_properties('P=? [F "decoy"]', program)
+    model = stormpy.build_model[stormpy.Rational](program, formula)
+    exact = stormpy.model_checking(model, formula[0], environment=stormpy.environments.exact())
+    assert result.probability == pytest.approx(
+        float(exact.get_value(model.initial_states[0])), abs=1e-9
+    )
+
+
+def test_cli_synthesize_writes_what_paynt_writes(tmp_path):
+    output = tmp_path / "robot.fsc.json"
+    result = runner.invoke(
+        app,
+        [
+            "controller",
+            "synthesize",
+            str(DATA / "grid_avoid.prism"),
+            "--props",
+            'Pmax=? [F "goal"]',
+            "--constants",
+            "N=3",
+            "--memory",
+            "2",
+            "--timeout",
+            "20",
+            "-o",
+            str(output),
+            "--json",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    fsc = json.loads(output.read_text())
+    assert "grid_cmd_0" in fsc["action_labels"] and "__no_label__" in fsc["action_labels"]
+    problem = load_problem(_problem(tmp_path, "grid", decoy="goal"))
+    value = decoy_probability(problem, problem.identity())
+    assert report["value"] == pytest.approx(value, abs=PAYNT_TOLERANCE)
+    assert report["nodes"] == fsc["num_nodes"] == problem.controller.n_nodes
+
+
+def test_cli_synthesize_errors(tmp_path):
+    model = str(DATA / "grid_avoid.prism")
+    cases = [
+        (["--props", 'P=? [F "goal"]', "--constants", "N=3"], "--props", "optimizing"),
+        (["--props", 'Pmax=? [F "nowhere"]', "--constants", "N=3"], "PAYNT", "'nowhere'"),
+        (["--props", 'Pmax=? [F "goal"]', "--constants", "M=3"], "--constants", "'M'"),
+    ]
+    for extra, field, words in cases:
+        result = runner.invoke(
+            app, ["controller", "synthesize", model, "-o", str(tmp_path / "x.json"), *extra]
+        )
+        assert result.exit_code == 2, result.output
+        assert result.stderr.count("\n") == 1 and field in result.stderr and words in result.stderr
+
+
+def _write_fsc(tmp_path: Path, fsc: dict) -> Path:
+    (tmp_path / "robot.fsc.json").write_text(json.dumps(fsc))
+    return _problem(tmp_path, "grid")
+
+
+def test_point_distributions_and_joint_form_load(tmp_path):
+    fsc, _, _ = _run_paynt(tmp_path, "grid")
+    reference = load_problem(_problem(tmp_path, "grid"))
+    factored = dict(fsc)
+    factored["action_function"] = [
+        [None if a is None else {str(a): 1.0} for a in row] for row in fsc["action_function"]
+    ]
+    factored["update_function"] = [
+        [None if m is None else {str(m): 1.0} for m in row] for row in fsc["update_function"]
+    ]
+    joint = {k: v for k, v in fsc.items() if k not in ("action_function", "update_function")}
+    joint["transitions"] = [
+        [None if a is None else {f"({a}, {m})": 1.0} for a, m in zip(ra, rm, strict=True)]
+        for ra, rm in zip(fsc["action_function"], fsc["update_function"], strict=True)
+    ]
+    for variant in (factored, joint):
+        problem = load_problem(_write_fsc(tmp_path, variant))
+        assert np.array_equal(problem.controller.action, reference.controller.action)
+        assert np.array_equal(problem.controller.update, reference.controller.update)
+
+
+def test_randomized_controllers_are_refused_in_one_line(tmp_path):
+    fsc, _, _ = _run_paynt(tmp_path, "grid")
+    randomized = json.loads(json.dumps(fsc))
+    randomized["action_function"][0][2] = {"0": 0.5, "2": 0.5}
+    joint = {k: v for k, v in fsc.items() if k not in ("action_function", "update_function")}
+    joint["transitions"] = [[[[0, 0, 0.5], [0, 1, 0.5]]] * fsc["num_observations"]]
+    joint["num_nodes"] = 1
+    for variant, field in ((randomized, "action_function[0][2]"), (joint, "transitions[0][0]")):
+        path = _write_fsc(tmp_path, variant)
+        result = runner.invoke(app, ["evaluate", str(path)])
+        assert result.exit_code == 2, result.output
+        assert result.stderr.count("\n") == 1
+        assert f"{field}: randomized" in result.stderr
+        assert "randomized controllers are not supported yet" in result.stderr
+
+
+def test_controller_of_another_model_is_one_clear_error(tmp_path):
+    """PAYNT's file for N=3 against the model built with N=4: PAYNT's labels of its
+    observations differ, so nothing is matched silently."""
+    _run_paynt(tmp_path, "grid")
+    path = _problem(tmp_path, "grid")
+    document = yaml.safe_load(path.read_text())
+    document["pomdp"]["constants"] = "N=4"
+    path.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, ["evaluate", str(path)])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.count("\n") == 1 and "robot.fsc.json" in result.stderr
