@@ -513,3 +513,17 @@ def test_ctrl_c_during_a_highs_solve(sig, code):
             not Path(f"/proc/{worker}").exists()
             or "Z" in Path(f"/proc/{worker}/stat").read_text().split()[2]
         )
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["solve", "--scenario", "paper-grid", "--seed", "abc"], ["solvx"], ["solve", "--nope"]],
+)
+def test_usage_errors_of_the_installed_command_are_one_line(args):
+    """click's own usage errors (an option that does not parse, an unknown command or option)
+    go through the console entry point: one line, exit 2, no usage block."""
+    command = [str(Path(sys.executable).parent / "misdirect"), *args]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stderr.startswith("error: misdirect") and done.stderr.count("\n") == 1
+    assert "Usage" not in done.stderr and "Traceback" not in done.stderr

@@ -1183,4 +1183,21 @@ def _root(
 
 
 def main() -> None:
-    app()
+    """The console entry point: usage errors (an option that does not parse, an unknown
+    command) become one line and exit code 2, like every other input error."""
+    # typer may vendor click: take its classes from typer's own exceptions, by name
+    usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+    try:
+        code = app(standalone_mode=False)
+    except usage_error as error:
+        if type(error).__name__ == "NoArgsIsHelpError":  # help, asked for by omission
+            print(error.ctx.get_help())
+            sys.exit(0)
+        where = f"{error.ctx.command_path}: " if error.ctx is not None else ""
+        message = f"error: {escape(one_line(where + error.format_message()))}"
+        err.print(message, highlight=False, soft_wrap=True)
+        sys.exit(INPUT_ERROR)
+    except typer.Abort:
+        err.print("interrupted", highlight=False)
+        sys.exit(INTERRUPTED)
+    sys.exit(code if isinstance(code, int) else 0)
