@@ -562,3 +562,43 @@ def test_convert_without_output_writes_to_stdout(tmp_path, target):
     assert decoy_probability(back, alpha) == pytest.approx(0.4, abs=1e-12)
     result = runner.invoke(app, ["convert", str(EXAMPLES / "trap.yaml"), "--to", target, "--json"])
     assert json.loads(result.stdout)["content"] == out.read_text()
+
+
+BIG_PRISM = """pomdp
+observables o endobservables
+module m
+  x : [0..100000] init 0;
+  y : [0..100000] init 0;
+  o : [0..1] init 0;
+  [a] true -> 0.5:(x'=min(x+1,100000)) + 0.5:(y'=min(y+1,100000));
+endmodule
+label "goal" = x=100000;
+"""
+
+
+def test_a_program_too_large_to_build_is_refused_before_storm_builds_it(tmp_path, monkeypatch):
+    """x and y each range over 100,001 values: up to 100,001² states (Storm's program keeps
+    no range for o, which no command changes), more than the default limit of 10^8, so the
+    command refuses in one line with that size instead
+    of letting Storm build for minutes; the environment variable lowers or raises the limit."""
+    (tmp_path / "big.prism").write_text(BIG_PRISM)
+    controller = {
+        "nodes": ["m"],
+        "initial": "m",
+        "rules": [{"node": "*", "obs": "*", "action": "a", "next": "m"}],
+    }
+    path = _problem_file(tmp_path, {"prism": "big.prism"}, controller, {"label": "goal"})
+    result = runner.invoke(app, ["evaluate", str(path)])
+    assert result.exit_code == 2
+    assert "10,000,200,001 states" in result.stderr and "pomdp.prism" in result.stderr
+    assert result.stderr.count("\n") == 1
+    monkeypatch.setenv("MISDIRECT_MAX_PRISM_STATES", "1")
+    small = _problem_file(
+        tmp_path,
+        {"prism": str(SHIPPED / "maze_2.prism")},
+        SOUTH_CONTROLLER,
+        {"label": "goal"},
+        name="maze.yaml",
+    )
+    refused = runner.invoke(app, ["evaluate", str(small)])
+    assert refused.exit_code == 2 and "more than the limit of 1 " in refused.stderr

@@ -123,6 +123,7 @@ def load_storm_pomdp(
                     f'constants without a value: {missing} (give them as constants: "N=5")',
                     field="pomdp.constants",
                 )
+            _check_state_space(program)
             formulas = []
             if terminal is not None:
                 formulas = [_prism_target(stormpy, program, terminal, "pomdp.terminal")]
@@ -186,6 +187,44 @@ def load_storm_pomdp(
         )
 
     return dataclasses.replace(world, paynt_view=paynt_view)
+
+
+MAX_PRISM_STATES = 100_000_000  # default of MISDIRECT_MAX_PRISM_STATES
+
+
+def _check_state_space(program) -> None:
+    """Refuse, before Storm builds it, a program whose variables span more states than the
+    limit: Storm cannot be stopped once it builds, and a model that size would not fit anyway.
+
+    The size is the product of the variables' ranges, an upper bound of the reachable states;
+    ``MISDIRECT_MAX_PRISM_STATES`` raises the limit for a program whose reachable part is far
+    smaller.
+    """
+    import os
+
+    limit = int(os.environ.get("MISDIRECT_MAX_PRISM_STATES", MAX_PRISM_STATES))
+    try:
+        concrete = program.substitute_constants()
+        sizes = [2] * len(concrete.global_boolean_variables)
+        integers = list(concrete.global_integer_variables)
+        for module in concrete.modules:
+            sizes += [2] * len(module.boolean_variables)
+            integers += list(module.integer_variables)
+        for variable in integers:
+            low = variable.lower_bound_expression.evaluate_as_int()
+            high = variable.upper_bound_expression.evaluate_as_int()
+            sizes.append(max(high - low + 1, 1))
+    except Exception:  # an unbounded or unusual variable: leave the size to Storm
+        return
+    bound = 1
+    for size in sizes:
+        bound *= size
+    if bound > limit:
+        raise ProblemError(
+            f"the program's variables span up to {bound:,} states, more than the limit of "
+            f"{limit:,} (set MISDIRECT_MAX_PRISM_STATES to raise it if far fewer are reachable)",
+            field="pomdp.prism",
+        )
 
 
 def _instantiate(stormpy, program, constants: str):
