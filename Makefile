@@ -23,6 +23,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/real_chains.py --out bench/results
 	$(BIN)/python bench/milp_scaling.py --out bench/results
 	$(BIN)/python bench/hard_instances.py --out bench/results
+	$(BIN)/python bench/defence.py --out bench/results
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -7,6 +7,14 @@ The library in five names::
     result = misdirect.solve(problem, method="exhaustive")   # verified optimum + budget curve
 """
 
+from misdirect.defence import (
+    AuditResult,
+    HardenResult,
+    OnlineAttack,
+    audit,
+    harden,
+    online_attack_value,
+)
 from misdirect.errors import MisdirectError, ProblemError, SolverError
 from misdirect.evaluate import Evaluation, decoy_probability, evaluate
 from misdirect.model import Controller, CostModel, Pomdp, Problem
@@ -17,20 +25,26 @@ from misdirect.solve import SolveResult, solve
 __version__ = "0.1.0"
 
 __all__ = [
+    "AuditResult",
     "Controller",
     "CostModel",
     "Evaluation",
+    "HardenResult",
     "MisdirectError",
+    "OnlineAttack",
     "Pomdp",
     "Problem",
     "ProblemError",
     "ProductChain",
     "SolveResult",
     "SolverError",
+    "audit",
     "build_product",
     "decoy_probability",
     "evaluate",
+    "harden",
     "load_problem",
+    "online_attack_value",
     "solve",
     "write_problem",
 ]
