@@ -40,7 +40,9 @@ from misdirect.solvers.base import (
     report,
 )
 
-INNER_ROWS = 200  # inner observations together may own at most this many product states
+INNER_ROWS = 200  # inner observations together may own at least this many product states,
+INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
+INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
 PADDED_ROWS = 48  # up to this many inner rows, every alteration is solved at full size
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
@@ -92,10 +94,12 @@ class IncrementalSolver:
         state_obs = problem.pomdp.observation_of[chain.world_state]
         rows_of = {o: np.flatnonzero(live & (state_obs == o)) for o in observations}
         order = sorted(range(len(observations)), key=lambda i: rows_of[observations[i]].size)
+        # every inner row saves the outer enumeration a factor; W's memory caps them
+        inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
         inner, total = [], 0
         for i in order:
             size = rows_of[observations[i]].size
-            if total + size > INNER_ROWS or size > INNER_BLOCK:
+            if total + size > inner_rows or size > INNER_BLOCK:
                 break
             inner.append(i)
             total += size
