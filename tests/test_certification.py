@@ -243,7 +243,8 @@ def test_auto_hands_an_uncertified_milp_answer_to_branch_and_bound(monkeypatch):
     from misdirect.solvers import auto
     from misdirect.solvers import milp as milp_module
 
-    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)  # no enumeration: the MILP's route
+    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)  # no enumeration: the MILP's route
+    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)
     real = milp_module.MilpSolver.solve
 
     def loose(self, problem, budgets, **kwargs):
@@ -275,7 +276,8 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
     from misdirect.solvers import auto
 
     monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # no tiny-chain exception for this small model
-    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)  # no enumeration
+    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)  # no enumeration
+    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)
     notes = []
 
     def watch(done, total, *, stage=None, detail=None, note=None):

@@ -68,3 +68,18 @@ def test_knapsack_reduction_equals_subset_enumeration(seed):
     chosen = [int(o[1:]) - 1 for o in result.alteration]
     assert sum(weights[i] for i in chosen) <= capacity
     assert sum(values[i] for i in chosen) == best
+
+
+def test_counting_alterations_equals_listing_them():
+    """AlterationSpace.count_within (a count per distinct total cost) against the length of
+    the list ``within`` builds, on random models with fractional and forbidden costs."""
+    from misdirect.alterations import alteration_space
+    from misdirect.scenarios import random_problem
+
+    for seed in range(30):
+        problem = random_problem(seed, states=10, observations=6, nodes=2)
+        for budget in (0.0, 0.5, 1.0, 2.5, 4.0):
+            space = alteration_space(problem.with_budget(budget))
+            listed = len(space.within(budget)[1])
+            assert space.count_within(budget, 10**6) == listed
+            assert space.count_within(budget, listed - 1) == listed if listed > 1 else True

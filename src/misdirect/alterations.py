@@ -62,6 +62,22 @@ class AlterationSpace:
             costs = grown[keep_row, keep_option]
         return table, costs
 
+    def count_within(self, budget: float, limit: int) -> int:
+        """How many choice vectors cost at most ``budget`` (``limit + 1`` once it is more than
+        ``limit``), without listing them: a count per distinct total cost."""
+        counts = {0.0: 1}
+        for choice in self.choices:
+            grown: dict[float, int] = {}
+            for total, count in counts.items():
+                for cost in np.asarray(choice.costs, dtype=np.float64).tolist():
+                    key = round(total + cost, 9)
+                    if key <= budget + 1e-9:
+                        grown[key] = grown.get(key, 0) + count
+            counts = grown
+            if sum(counts.values()) > limit:
+                return limit + 1
+        return sum(counts.values())
+
     def alteration(self, problem: Problem, picked: Sequence[int], indices=None) -> np.ndarray:
         """The alteration that takes candidate ``picked[j]`` for the ``j``-th choice."""
         alpha = problem.identity()

@@ -114,6 +114,7 @@ class IncrementalSolver:
         live_node = chain.node[live]  # memory nodes: a separator for solve_chain to cut along
 
         costs, values, picks = [], [], []
+        unevaluated = np.inf  # cheapest alteration left unevaluated by the deadline
         done, evaluations = 0, 0
         outer_table, outer_costs = space.within(top, outer)
         # cheapest outer choices first: cut short, every budget below the first outer choice
@@ -160,7 +161,12 @@ class IncrementalSolver:
             if start >= 0:
                 found[:] = x0[start]
                 blocks = (block_start, d_x0_of, d_w_of, d_b_of)
-                _add_corrections(found, table, blocks, W[start])
+                corrected = _add_corrections(found, table, blocks, W[start], deadline)
+                if not corrected.all():  # cut short: those alterations were not evaluated
+                    left = float(inner_costs[~corrected].min()) + outer_cost
+                    unevaluated = min(unevaluated, left)
+                    evaluations -= int((~corrected).sum())
+                    inner_costs = np.where(corrected, inner_costs, np.inf)
             costs.append(outer_cost + inner_costs)
             values.append(found)
             picks.append((outer_pick, table))
@@ -176,7 +182,10 @@ class IncrementalSolver:
             "outer_observations": len(outer),
         }
         picked = best_per_budget(costs_a, values_a, budgets, tolerance=NEAR_TIE)
-        complete = [done == n_outer or outer_costs[done] > b + 1e-9 for b in budgets]
+        complete = [
+            (done == n_outer or outer_costs[done] > b + 1e-9) and unevaluated > b + 1e-9
+            for b in budgets
+        ]
         if not all(complete):
             from misdirect.solvers.branch_and_bound import relaxation_bound
 
@@ -207,8 +216,11 @@ class IncrementalSolver:
         return space.alteration(problem, picked, [*outer, *inner])
 
 
-def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_000) -> None:
-    """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked).
+def _add_corrections(
+    found, table, blocks, w_start, deadline: Deadline | None = None, chunk_entries: int = 4_000_000
+) -> np.ndarray:
+    """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked);
+    returns which rows got it (all, unless ``deadline`` passed first).
 
     Option 0 leaves an observation's rows as in the base, so its rows of ``D`` are zero and
     its rows of the small system are identity rows with a zero right-hand side: padding every
@@ -218,12 +230,17 @@ def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_0
     """
     block_start, d_x0_of, d_w_of, d_b_of = blocks
     n_rows = int(block_start[-1])
+    corrected = np.zeros(table.shape[0], dtype=bool)
     if n_rows == 0:
-        return
+        corrected[:] = True
+        return corrected
     if n_rows <= PADDED_ROWS:
         step = max(1, chunk_entries // (n_rows * n_rows))
         identity = np.eye(n_rows)[None, :, :]
         for first in range(0, table.shape[0], step):
+            if first > 0 and deadline is not None and deadline.expired():
+                return corrected
+            corrected[first : first + step] = True
             picked = list(enumerate(table[first : first + step].T))
             d_x0 = np.concatenate([d_x0_of[j][k] for j, k in picked], axis=1)
             d_b = np.concatenate([d_b_of[j][k] for j, k in picked], axis=1)
@@ -231,23 +248,33 @@ def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_0
             rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
             correction = np.linalg.solve(identity - d_w, rhs[..., None])[..., 0]
             found[first : first + step] += (d_b + correction) @ w_start
-        return
+        return corrected
     altered = table != 0
     if altered.shape[1] <= 62:  # one integer per pattern: far faster to group than rows
         codes = altered @ (np.int64(1) << np.arange(altered.shape[1], dtype=np.int64))
-        _, first, which = np.unique(codes, return_index=True, return_inverse=True)
-        patterns = altered[first]
-    else:
-        patterns, which = np.unique(altered, axis=0, return_inverse=True)
+    else:  # one byte string per pattern (np.unique over rows sorts 100x slower)
+        packed = np.ascontiguousarray(np.packbits(altered, axis=1))
+        codes = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, first, which = np.unique(codes, return_index=True, return_inverse=True)
+    patterns = altered[first]
     which = which.ravel()
-    for index, pattern in enumerate(patterns):
+    grouped = np.argsort(which, kind="stable")  # the rows of each pattern, one slice each
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=len(patterns)))])
+    # fewest altered observations first (the first is "alter none of them"): cut short by the
+    # deadline, the small budgets are complete and stay proven
+    by_size = np.argsort(patterns.sum(axis=1), kind="stable")
+    for step_index, index in enumerate(by_size):
+        pattern = patterns[index]
+        if step_index > 0 and deadline is not None and deadline.expired():
+            return corrected
+        members = grouped[bounds[index] : bounds[index + 1]]
+        corrected[members] = True
         support = np.flatnonzero(pattern)
         if support.size == 0:
             continue
         cols = np.concatenate([np.arange(block_start[j], block_start[j + 1]) for j in support])
         if cols.size == 0:  # the altered observations own no live rows: nothing changes
             continue
-        members = np.flatnonzero(which == index)
         step = max(1, chunk_entries // (cols.size * cols.size))
         for first in range(0, members.size, step):
             rows = members[first : first + step]
@@ -265,6 +292,7 @@ def _add_corrections(found, table, blocks, w_start, chunk_entries: int = 4_000_0
             system = np.eye(cols.size)[None, :, :] - d_w
             correction = np.linalg.solve(system, rhs[..., None])[..., 0]
             found[rows] += (d_b + correction) @ w_start[cols]
+    return corrected
 
 
 def _group_of_option(chain, live) -> np.ndarray:
