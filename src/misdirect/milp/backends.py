@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+import scipy.sparse as sp
 
 from misdirect.errors import ProblemError, SolverError
 from misdirect.milp.model import MilpModel
@@ -494,7 +495,7 @@ class ScipBackend:
         # SCIP reads the model from the MPS file HiGHS writes: a bulk path with no per-row calls
         with tempfile.TemporaryDirectory() as folder:
             path = Path(folder) / "model.mps"
-            write_model(self.source, path)
+            write_model(unscaled(self.source), path)
             scip = self.pyscipopt.Model()
             scip.hideOutput(not self.options.verbose)
             scip.readProblem(str(path))
@@ -518,10 +519,15 @@ class ScipBackend:
             scip.addSol(solution)
         concurrent = int(threads) if threads is not None and threads > 1 else 0
         began = time.perf_counter()
-        if concurrent:
-            scip.solveConcurrent()
-        else:
-            scip.optimize()
+        try:
+            if concurrent:
+                scip.solveConcurrent()
+            else:
+                scip.optimize()
+        except Exception as error:  # pyscipopt raises plain Exception ("error in LP solver")
+            raise SolverError(
+                f"SCIP failed: {error}; try another backend: --solver highs"
+            ) from None
         elapsed = time.perf_counter() - began
         raw = scip.getStatus()
         if raw == "userinterrupt":  # SCIP caught Ctrl-C itself: pass it on, do not answer
@@ -602,6 +608,22 @@ def value_with_rounded_binaries(
     finally:
         backend.close()
     return result.objective if result.status == "optimal" else None
+
+
+def unscaled(model: MilpModel) -> MilpModel:
+    """``model`` with its rows back in their own units (``row_scale`` undone): scaling helps a
+    solver whose feasibility tolerance is absolute and loose (HiGHS, 1e-6), but SCIP runs at
+    1e-9 already and its LP ran into numerical trouble on scaled sensor networks."""
+    if model.row_scale is None or np.all(model.row_scale == 1.0):
+        return model
+    inverse = 1.0 / model.row_scale
+    return dataclasses.replace(
+        model,
+        matrix=sp.diags(inverse, format="csr") @ model.matrix,
+        row_lower=model.row_lower * inverse,
+        row_upper=model.row_upper * inverse,
+        row_scale=None,
+    )
 
 
 def write_model(model: MilpModel, path: Path) -> None:
