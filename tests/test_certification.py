@@ -351,3 +351,34 @@ def test_ctrl_c_during_a_solve_prints_the_best_answers_so_far():
     assert values == sorted(values) and len(values) == 8
     assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}
     assert payload["curve"][-1]["status"] == "interrupted"
+
+
+def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monkeypatch):
+    """When the largest budget has too many alterations to enumerate but the smaller ones do
+    not, auto proves the small budgets by enumeration and searches only the large ones (from
+    the best enumerated answer); every point still equals the exhaustive optimum."""
+    from misdirect.alterations import alteration_space
+    from misdirect.solvers import auto
+
+    problem = paper_grid(7)
+    budgets = [0.0, 1.0, 2.0, 3.0]
+    space = alteration_space(problem.with_budget(3))
+    at_one = space.count_within(1.0, 10**6)
+    assert space.count_within(3.0, 10**6) > at_one  # the top budget is the larger space
+    monkeypatch.setattr(auto, "INCREMENTAL_SURE", at_one)
+    monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", at_one)
+    notes = []
+    result = solve(
+        problem,
+        budgets=budgets,
+        enumeration_limit=0,
+        progress=lambda d, t, **info: notes.append(info.get("note")),
+    )
+    oracle = solve(problem, method="exhaustive", budgets=budgets)
+    methods = [p.stats["certified_by"] for p in result.curve]
+    assert methods[:2] == ["incremental", "incremental"]
+    assert set(methods[2:]) <= {"branch-and-bound", "milp"} and len(methods) == 4
+    for mine, best in zip(result.curve, oracle.curve, strict=True):
+        assert mine.status == "optimal"
+        assert mine.probability == pytest.approx(best.probability, abs=1e-9)
+    assert any(n and "budgets up to 1 enumerated" in n for n in notes)

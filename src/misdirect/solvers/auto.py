@@ -85,7 +85,9 @@ class AutoSolver:
         *,
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
+        seeds: Sequence | None = None,
     ) -> list[Solution]:
+        """``seeds`` (one alteration per budget, optional) start branch-and-bound."""
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         space = alteration_space(problem.with_budget(top))
@@ -95,10 +97,40 @@ class AutoSolver:
             if count <= INCREMENTAL_LIMIT
             else f"more than {INCREMENTAL_LIMIT:,} alterations fit the budget"
         )
-        left = deadline.remaining()
-        if count <= INCREMENTAL_SURE or (
-            count <= INCREMENTAL_LIMIT and (left is None or count * UPDATE_SECONDS <= left / 2)
-        ):
+
+        def enumerable(n: int) -> bool:
+            left = deadline.remaining()
+            return n <= INCREMENTAL_SURE or (
+                n <= INCREMENTAL_LIMIT and (left is None or n * UPDATE_SECONDS <= left / 2)
+            )
+
+        if not enumerable(count) and len(budgets) > 1:
+            # the smaller budgets of a curve may still be enumerable: prove those first, and
+            # start the search for the larger ones from their best answer
+            ordered = sorted(budgets)
+            small = [b for b in ordered if enumerable(space.count_within(b, INCREMENTAL_LIMIT))]
+            if small:
+                try:
+                    first = IncrementalSolver().solve(
+                        problem, small, progress=progress, deadline=deadline
+                    )
+                except NotApplicableError:
+                    first = None
+                if first is not None:
+                    note = f"auto: budgets up to {small[-1]:g} enumerated, the rest searched"
+                    report(progress, 0, 0, note=note)
+                    rest = [b for b in ordered if b not in small]
+                    later = self.solve(
+                        problem,
+                        rest,
+                        progress=progress,
+                        deadline=deadline,
+                        seeds=[first[-1].alteration] * len(rest),
+                    )
+                    found = dict(zip(small, _label(first, "incremental", reason), strict=True))
+                    found.update(zip(rest, later, strict=True))
+                    return [found[b] for b in budgets]
+        if enumerable(count):
             try:
                 solutions = IncrementalSolver().solve(
                     problem, budgets, progress=progress, deadline=deadline
@@ -146,7 +178,7 @@ class AutoSolver:
             search = BranchAndBoundSolver(max_nodes=10**9)
         report(progress, 0, len(budgets), stage="branch-and-bound", note=f"auto: {reason}")
         solutions = _label(
-            search.solve(problem, budgets, progress=progress, deadline=deadline),
+            search.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds),
             "branch-and-bound",
             reason,
         )
