@@ -26,10 +26,10 @@ def _exact(p: float) -> str:
     return str(fraction) if abs(float(fraction) - p) < 1e-15 else repr(float(p))
 
 
-def prism_product(problem: Problem, alteration: np.ndarray) -> str:
-    pomdp, ctrl = problem.pomdp, problem.controller
-    received = alteration[pomdp.observation_of]  # observation the robot gets in each state
-    lines = ["dtmc", "module world", f"  s : [0..{pomdp.n_states - 1}] init {pomdp.initial_state};"]
+def world_module(pomdp) -> list[str]:
+    """The POMDP's world as a PRISM module: one command per state and action, labelled act<a>
+    so that a controller module synchronises on it; absorbing states loop."""
+    lines = ["module world", f"  s : [0..{pomdp.n_states - 1}] init {pomdp.initial_state};"]
     for s in range(pomdp.n_states):
         for a in range(pomdp.n_actions):
             if pomdp.absorbing[s]:
@@ -40,8 +40,14 @@ def prism_product(problem: Problem, alteration: np.ndarray) -> str:
                 f"{_exact(p)}:(s'={t})" for t, p in zip(row.indices, row.data, strict=True)
             )
             lines.append(f"  [act{a}] s={s} -> {branches};")
+    return [*lines, "endmodule"]
+
+
+def prism_product(problem: Problem, alteration: np.ndarray) -> str:
+    pomdp, ctrl = problem.pomdp, problem.controller
+    received = alteration[pomdp.observation_of]  # observation the robot gets in each state
+    lines = ["dtmc", *world_module(pomdp)]
     lines += [
-        "endmodule",
         "module controller",
         f"  n : [0..{ctrl.n_nodes - 1}] init {ctrl.initial_node};",
     ]

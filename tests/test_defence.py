@@ -6,7 +6,6 @@ from __future__ import annotations
 import itertools
 import json
 from dataclasses import replace
-from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -18,6 +17,7 @@ from misdirect.evaluate import decoy_probability
 from misdirect.model import Controller, CostModel, Pomdp, Problem
 from misdirect.problem_file import write_problem
 from misdirect.scenarios import paper_grid, random_problem
+from prism_product import world_module
 
 runner = CliRunner()
 
@@ -263,11 +263,6 @@ def test_budgeted_online_refuses_costs_without_a_common_unit():
 # -- Storm: the attacker's product MDP written out independently ------------------------------
 
 
-def _exact(p: float) -> str:
-    fraction = Fraction(p).limit_denominator(10_000)
-    return str(fraction) if abs(float(fraction) - p) < 1e-15 else repr(float(p))
-
-
 def prism_attacker_mdp(problem: Problem, budget: float | None, unit: float = 0.5) -> str:
     """World and controller synchronise on action labels; in state s, node n the attacker
     picks any received observation t that the cost model allows for O(s) (the initial
@@ -275,19 +270,8 @@ def prism_attacker_mdp(problem: Problem, budget: float | None, unit: float = 0.5
     nondeterministic choice per t. With a budget, a module-level counter r of remaining cost
     units is decreased by the cost of each altered reading."""
     pomdp, ctrl = problem.pomdp, problem.controller
-    lines = ["mdp", "module world", f"  s : [0..{pomdp.n_states - 1}] init {pomdp.initial_state};"]
-    for s in range(pomdp.n_states):
-        for a in range(pomdp.n_actions):
-            if pomdp.absorbing[s]:
-                lines.append(f"  [act{a}] s={s} -> 1:(s'={s});")
-                continue
-            row = pomdp.transition_matrix(a)[s]
-            branches = " + ".join(
-                f"{_exact(p)}:(s'={t})" for t, p in zip(row.indices, row.data, strict=True)
-            )
-            lines.append(f"  [act{a}] s={s} -> {branches};")
+    lines = ["mdp", *world_module(pomdp)]
     lines += [
-        "endmodule",
         "module controller",
         f"  n : [0..{ctrl.n_nodes - 1}] init {ctrl.initial_node};",
     ]
