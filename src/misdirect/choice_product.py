@@ -69,6 +69,7 @@ class ChoiceProduct:
     node: np.ndarray  # (Q,)
     initial: int
     target: np.ndarray  # (Q,) bool, world state is a decoy
+    target_value: np.ndarray  # (Q,) float, its weight (1 for the paper's single decoy set)
     options: Options
     group_state: np.ndarray  # (G,) product state owning each group, sorted
     group_options: sp.csr_matrix  # (G, K) 1 where option k makes the state take this group
@@ -85,6 +86,12 @@ class ChoiceProduct:
     @property
     def groups_per_state(self) -> np.ndarray:
         return np.bincount(self.group_state, minlength=self.n_states)
+
+    def one_step(self, groups: np.ndarray | None = None) -> np.ndarray:
+        """Score collected in one step by each group (all, or ``groups``): the weight of the
+        decoy states it moves into, times the probability of moving there."""
+        rows = self.transitions if groups is None else self.transitions[groups]
+        return np.asarray(rows @ self.target_value).ravel()
 
     def union_graph(self) -> sp.csr_matrix:
         """``q -> q'`` whenever some group of ``q`` can move to ``q'``."""
@@ -165,7 +172,8 @@ def build_choice_product(
         world_state=keep // n_n,
         node=keep % n_n,
         initial=int(renumber[start]),
-        target=problem.decoy[keep // n_n],
+        target=problem.objective.target[keep // n_n],
+        target_value=problem.objective.value[keep // n_n],
         options=options,
         group_state=renumber[g_pair[kept_groups]],
         group_options=group_options[kept_groups],

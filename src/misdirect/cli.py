@@ -359,7 +359,9 @@ def evaluate(
     table.add_row("alteration", _fmt_alteration(result.alteration))
     budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
     table.add_row("cost", f"{result.cost:g}{budget_note}")
-    table.add_row("Pr(reach decoy)", f"[bold]{result.probability:.6f}[/]")
+    table.add_row(_objective_label(problem), f"[bold]{result.probability:.6f}[/]")
+    for name, probability in result.decoy_sets.items():
+        table.add_row(f"  Pr(first decoy in {escape(name)})", f"{probability:.6f}")
     table.add_row("without alteration", f"{baseline:.6f}")
     for state, probability in result.outcomes.items():
         table.add_row(f"  first hits {escape(state)}", f"{probability:.6f}")
@@ -464,7 +466,7 @@ def solve(
     if as_json:
         _print_json(result.to_dict())
     else:
-        _print_solve(result)
+        _print_solve(result, problem)
     if result.warnings:
         for warning in result.warnings:
             err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
@@ -567,12 +569,16 @@ def _print_handovers(done: int, total: int, *, note: str | None = None, **_: obj
         err.print(escape(one_line(note)), highlight=False, soft_wrap=True)
 
 
-def _print_solve(result: SolveResult) -> None:
+def _objective_label(problem: Problem) -> str:
+    return "Pr(reach decoy)" if problem.objective.is_probability else "expected decoy weight"
+
+
+def _print_solve(result: SolveResult, problem: Problem) -> None:
     title = f"{result.problem} — " if result.problem else ""
     table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
     bounded = any(point.status != "optimal" for point in result.curve)
     table.add_column("budget", justify="right")
-    table.add_column("max Pr(reach decoy)", justify="right")
+    table.add_column(f"max {_objective_label(problem)}", justify="right")
     if bounded:
         table.add_column("upper bound", justify="right")
     table.add_column("optimal alteration" if not bounded else "best alteration found")
@@ -811,7 +817,7 @@ def simulate(
         max_steps=max_steps,
         record=samples if trajectories is not None else 0,
     )
-    exact = decoy_probability(problem, alpha)
+    exact = decoy_probability(problem.unweighted(), alpha)  # a run hits a decoy or not
     low, high = result.confidence_interval()
 
     def outcome(hits: int, states: dict[str, int] | None, meaning: str) -> dict[str, Any]:

@@ -79,8 +79,10 @@ def max_reach(
     target: np.ndarray,
     *,
     blocks: np.ndarray | None = None,
+    value: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Maximal reachability of ``target`` in an MDP given by its choices.
+    """Maximal reachability of ``target`` in an MDP given by its choices (with ``value``, a
+    score per target state: the maximal expected score of the first target state entered).
 
     Choice ``g`` belongs to state ``owner[g]`` and moves by row ``g`` of ``transitions``.
     Policy iteration: each policy is evaluated exactly as the *least* fixed point
@@ -104,7 +106,9 @@ def max_reach(
     first = order[np.concatenate([[0], np.flatnonzero(np.diff(owner[order])) + 1])]
     policy = first.copy()  # the lowest-numbered choice of every state
     for evaluations in range(1, MAX_POLICY_ROUNDS + 1):
-        values = reach_probabilities(transitions[policy].tocsr(), target, blocks=blocks)
+        values = reach_probabilities(
+            transitions[policy].tocsr(), target, blocks=blocks, value=value
+        )
         score = np.asarray(transitions @ values).ravel()
         ranked = np.lexsort((-score, owner))
         best = ranked[np.concatenate([[0], np.flatnonzero(np.diff(owner[ranked])) + 1])]
@@ -145,7 +149,11 @@ def online_attack_value(problem: Problem, budget: float | None = None) -> Online
     space = alteration_space(problem.with_budget(math.inf))
     chain = build_choice_product(problem, space)
     values, _, evaluations = max_reach(
-        chain.group_state, chain.transitions, chain.target, blocks=chain.node
+        chain.group_state,
+        chain.transitions,
+        chain.target,
+        blocks=chain.node,
+        value=chain.target_value,
     )
     unlimited = float(values[chain.initial])
     budgeted = unit = None
@@ -176,7 +184,9 @@ def online_attack_value(problem: Problem, budget: float | None = None) -> Online
         group_units[has_option] = np.iinfo(np.int64).max
         np.minimum.at(group_units, membership.row, units[membership.col])
         owner, matrix, target, initial = _budgeted_mdp(chain, group_units, levels)
-        b_values, _, b_evaluations = max_reach(owner, matrix, target)
+        b_values, _, b_evaluations = max_reach(
+            owner, matrix, target, value=np.tile(chain.target_value, levels)
+        )
         budgeted = float(b_values[initial])
         evaluations += b_evaluations
         mdp_states = target.size

@@ -17,7 +17,8 @@ from misdirect.reachability import occupation, reach_probability
 
 
 def decoy_probability(problem: Problem, alteration: Alteration) -> float:
-    """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU)."""
+    """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU); with
+    weighted decoy sets, the expected weight of the first decoy state entered."""
     chain = build_product(problem, alteration)
     return _decoy_probability(problem, chain)
 
@@ -37,8 +38,10 @@ def evaluation_time(problem: Problem, repeats: int = 3) -> float:
 
 
 def _decoy_probability(problem: Problem, chain: ProductChain) -> float:
-    target = problem.decoy[chain.world_state]
-    return reach_probability(chain.matrix, target, chain.initial, blocks=chain.node)
+    objective = problem.objective
+    target = objective.target[chain.world_state]
+    value = None if objective.is_probability else objective.value[chain.world_state]
+    return reach_probability(chain.matrix, target, chain.initial, blocks=chain.node, value=value)
 
 
 @dataclass(frozen=True)
@@ -53,7 +56,7 @@ class Evaluation:
     :func:`misdirect.reachability.solve_certified`); ``None`` after a direct solve.
     """
 
-    probability: float
+    probability: float  # with weighted decoy sets: the expected weight (see `objective`)
     alteration: dict[str, str]
     cost: float
     within_budget: bool
@@ -67,6 +70,9 @@ class Evaluation:
     error_bound: float | None = None
     terminal_states: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, int))
     state_names: tuple[str, ...] = field(repr=False, default=())  # the POMDP's, not a copy
+    # weighted decoys: probability that the first decoy state entered is in each set
+    decoy_sets: dict[str, float] = field(default_factory=dict)
+    objective: str = "probability"  # or "expected_decoy_weight"
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -78,6 +84,7 @@ class Evaluation:
     def to_dict(self, *, all_outcomes: bool = False) -> dict:
         """JSON-ready report; ``all_outcomes`` lists zero-probability terminal states too."""
         return {
+            "objective": self.objective,
             "probability": self.probability,
             "alteration": self.alteration,
             "cost": self.cost,
@@ -88,6 +95,7 @@ class Evaluation:
             "product_states": self.product_states,
             "product_transitions": self.product_transitions,
             "time_s": self.time_s,
+            **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
         }
 
 
@@ -103,18 +111,19 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
     alpha = problem.identity() if alteration is None else np.asarray(alteration, dtype=np.int64)
     chain = build_product(problem, alpha)
 
-    pomdp = problem.pomdp
-    decoy = problem.decoy[chain.world_state]
+    pomdp, objective = problem.pomdp, problem.objective
+    decoy = objective.target[chain.world_state]
     terminal = decoy | pomdp.absorbing[chain.world_state]
     occ = occupation(chain.matrix, terminal, chain.initial, blocks=chain.node)
-    if occ.error_bound is not None:  # a run reaches the decoy iff the first terminal is one
-        probability = float(np.clip(occ.entered[decoy].sum(), 0.0, 1.0))
+    if occ.error_bound is not None:  # a run scores iff the first terminal state is a decoy
+        worth = objective.value[chain.world_state[decoy]]
+        probability = float(np.clip(occ.entered[decoy] @ worth, 0.0, objective.max_value))
     else:
         probability = _decoy_probability(problem, chain)
     first_entry = np.bincount(
         chain.world_state, weights=np.where(terminal, occ.entered, 0.0), minlength=pomdp.n_states
     )
-    terminal_states = np.flatnonzero(problem.decoy | pomdp.absorbing)
+    terminal_states = np.flatnonzero(objective.target | pomdp.absorbing)
     names = pomdp.states
     entered = terminal_states[first_entry[terminal_states] > 0]
     outcomes = dict(zip([names[s] for s in entered], first_entry[entered].tolist(), strict=True))
@@ -135,4 +144,6 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         error_bound=occ.error_bound,
         terminal_states=terminal_states,
         state_names=names,
+        decoy_sets={d.name: float(first_entry[d.states].sum()) for d in objective.sets},
+        objective=objective.kind,
     )

@@ -19,6 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
 from misdirect.errors import ProblemError
+from misdirect.objective import DecoySet, Objective
 
 Alteration = np.ndarray  # int array, alpha[o] = received observation
 
@@ -183,7 +184,12 @@ class CostModel:
 
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """One OSA_DGM instance: maximise Pr(reach decoy) over alterations with cost ≤ budget."""
+    """One OSA_DGM instance: maximise Pr(reach decoy) over alterations with cost ≤ budget.
+
+    With ``decoy_sets`` (weighted decoys) the objective is the expected weight of the first
+    decoy state entered instead; ``decoy`` is then their union. Solvers read the objective
+    through :attr:`objective` only, so both cases are one code path.
+    """
 
     pomdp: Pomdp
     controller: Controller
@@ -192,9 +198,23 @@ class Problem:
     budget: float
     name: str = ""
     source: str | None = None  # file it came from, for error messages
+    decoy_sets: tuple[DecoySet, ...] = ()
+
+    @cached_property
+    def objective(self) -> Objective:
+        if not self.decoy_sets:
+            return Objective.single(self.decoy)
+        objective = Objective.weighted(self.decoy_sets)
+        if not np.array_equal(objective.target, np.asarray(self.decoy, dtype=bool)):
+            raise ProblemError("decoy must be the union of decoy_sets", field="decoy")
+        return objective
 
     def with_budget(self, budget: float) -> Problem:
         return replace(self, budget=float(budget))
+
+    def unweighted(self) -> Problem:
+        """The same problem scoring 1 for every decoy state: Pr(reach any decoy)."""
+        return replace(self, decoy_sets=()) if self.decoy_sets else self
 
     # -- alterations -------------------------------------------------------------------------
     def identity(self) -> Alteration:

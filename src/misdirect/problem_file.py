@@ -38,6 +38,7 @@ from misdirect.io_utils import (
     write_output,
 )
 from misdirect.model import Controller, CostModel, Pomdp, Problem
+from misdirect.objective import DecoySet
 from misdirect.storm_models import load_storm_pomdp
 
 FORMAT = "misdirect/v1"
@@ -77,6 +78,7 @@ Name = Annotated[
 ]
 Probability = Annotated[float, BeforeValidator(_number), Field(ge=0.0, le=1.0)]
 Budget = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
+Weight = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
 Cost = Annotated[
     float,
     BeforeValidator(_cost),
@@ -187,9 +189,32 @@ class DecoyExpressionSpec(_Strict):
     )
 
 
+class WeightedDecoySpec(_Strict):
+    """One weighted decoy set, when its name alone does not say which states it holds."""
+
+    weight: Weight = Field(description="the attacker's reward when this set is entered first")
+    states: list[Name] | None = Field(default=None, min_length=1)
+    label: Name | None = None
+    expression: str | None = Field(default=None, min_length=1)
+
+
+WeightedDecoys = dict[
+    Name,
+    Annotated[
+        Annotated[Weight, Tag("<weight>")] | Annotated[WeightedDecoySpec, Tag("<set>")],
+        Discriminator(lambda value: "<set>" if isinstance(value, dict) else "<weight>"),
+    ],
+]
+
+
 def _decoy_kind(value: Any) -> str:
     if isinstance(value, dict):
-        return "expression" if "expression" in value else "label"
+        for kind in ("expression", "label"):  # {label: trap}, not a set called "label"
+            if set(value) == {kind} and isinstance(value[kind], str):
+                return kind
+        if "expression" in value or "label" in value:
+            return "expression" if "expression" in value else "label"
+        return "weighted"
     return "states"
 
 
@@ -235,14 +260,16 @@ class DeceptionSpec(_Strict):
         Annotated[
             Annotated[list[Name], Field(min_length=1), Tag("states")]
             | Annotated[DecoyLabelSpec, Tag("label")]
-            | Annotated[DecoyExpressionSpec, Tag("expression")],
+            | Annotated[DecoyExpressionSpec, Tag("expression")]
+            | Annotated[WeightedDecoys, Field(min_length=1), Tag("weighted")],
             Discriminator(_decoy_kind),
         ]
         | None
     ) = Field(
         default=None,
-        description="decoy states, {label: ...} or {expression: ...} (grid maps mark them in "
-        "the map instead)",
+        description="decoy states, {label: ...} or {expression: ...}, or weighted decoy sets "
+        "{name: weight} (name: a label or a state) or {name: {weight, states|label|expression}}; "
+        "grid maps mark decoy cells in the map instead",
     )
     budget: Budget = 0.0
     cost: CostSpec = Field(default_factory=CostSpec)
@@ -267,15 +294,20 @@ class ProblemFileV1(_Strict):
 _UNION_TAGS = {
     "pomdp": {"explicit", "storm"},
     "controller": {"rules", "paynt"},
-    "decoy": {"states", "label", "expression"},
+    "decoy": {"states", "label", "expression", "weighted"},
 }
+
+
+_ANYWHERE_TAGS = {"<weight>", "<set>"}  # tags of unions inside user-named maps
 
 
 def _location(loc: tuple[Any, ...]) -> str:
     text = ""
     previous = None
     for part in loc:
-        if isinstance(previous, str) and part in _UNION_TAGS.get(previous, ()):
+        if part in _ANYWHERE_TAGS or (
+            isinstance(previous, str) and part in _UNION_TAGS.get(previous, ())
+        ):
             previous = None
             continue
         previous = part
@@ -345,6 +377,66 @@ def _resolve(name: str, base: Path | None) -> Path:
     return path if base is None or path.is_absolute() else base / path
 
 
+def _compile_weighted_decoys(
+    spec: dict[str, Any], pomdp: Pomdp, labels: dict[str, np.ndarray], condition=None
+) -> tuple[np.ndarray, tuple[DecoySet, ...]]:
+    """Named decoy sets with their weights; a bare name is a label, else a state."""
+    state_index = {name: i for i, name in enumerate(pomdp.states)}
+    sets = []
+    for name, entry in spec.items():
+        field = f"deception.decoy.{name}"
+        if isinstance(entry, WeightedDecoySpec):
+            given = [k for k in ("states", "label", "expression") if getattr(entry, k) is not None]
+            if len(given) > 1:
+                raise ProblemError(f"give one of {', '.join(given)}, not several", field=field)
+            weight = entry.weight
+            if not given:
+                states = _named_set(name, pomdp, labels, state_index, field)
+            elif entry.states is not None:
+                states = np.zeros(pomdp.n_states, dtype=bool)
+                for i, state in enumerate(entry.states):
+                    states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
+            elif entry.label is not None:
+                states = _compile_decoy(DecoyLabelSpec(label=entry.label), pomdp, labels)
+            else:
+                states = _compile_decoy(
+                    DecoyExpressionSpec(expression=entry.expression), pomdp, labels, condition
+                )
+        else:
+            weight, states = float(entry), _named_set(name, pomdp, labels, state_index, field)
+        sets.append(DecoySet(name=name, weight=float(weight), states=states))
+    if all(decoy_set.weight == 0 for decoy_set in sets):
+        raise ProblemError(
+            "every decoy weight is 0: there is nothing to gain", field="deception.decoy"
+        )
+    decoy = np.logical_or.reduce([decoy_set.states for decoy_set in sets])
+    return decoy, tuple(sets)
+
+
+def _named_set(
+    name: str,
+    pomdp: Pomdp,
+    labels: dict[str, np.ndarray],
+    state_index: dict[str, int],
+    field: str,
+) -> np.ndarray:
+    if name in labels:
+        states = labels[name].copy()
+        if not states.any():
+            raise ProblemError(f"no state carries label {name!r}", field=field)
+        return states
+    if name in state_index:
+        states = np.zeros(pomdp.n_states, dtype=bool)
+        states[state_index[name]] = True
+        return states
+    known = ", ".join(sorted(labels)) or "none (explicit models have no labels)"
+    raise ProblemError(
+        f"{name!r} is neither a state label (labels: {known}) nor a state; or give "
+        "{weight: ..., states: [...]}",
+        field=field,
+    )
+
+
 def _compile_decoy(
     spec: Any, pomdp: Pomdp, labels: dict[str, np.ndarray], condition=None
 ) -> np.ndarray:
@@ -384,6 +476,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)
     paynt_view = None  # builds the model as PAYNT does: its observation numbering and labels
     never = np.zeros(0, dtype=np.int64)  # observations a PAYNT controller says never occur
+    decoy_sets: tuple[DecoySet, ...] = ()  # weighted decoys, if the file gives weights
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
     if spec.grid is not None:
@@ -426,7 +519,12 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
                 enabled = world.enabled
         else:
             pomdp, labels, condition = _compile_pomdp(spec.pomdp), {}, None
-        decoy = _compile_decoy(spec.deception.decoy, pomdp, labels, condition)
+        if isinstance(spec.deception.decoy, dict):
+            decoy, decoy_sets = _compile_weighted_decoys(
+                spec.deception.decoy, pomdp, labels, condition
+            )
+        else:
+            decoy = _compile_decoy(spec.deception.decoy, pomdp, labels, condition)
     if isinstance(spec.controller, PayntControllerSpec):
         paynt_file = _resolve(spec.controller.paynt, base)
         if paynt_file.exists():
@@ -451,6 +549,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
         budget=spec.deception.budget,
         name=spec.name,
         source=source,
+        decoy_sets=decoy_sets,
     )
 
 
@@ -614,6 +713,20 @@ def _compile_cost(spec: CostSpec, observations: dict[str, int]) -> CostModel:
 # -- writing ------------------------------------------------------------------------------------
 
 
+def _decoy_document(problem: Problem) -> Any:
+    """The decoy states, or the weighted sets with their states listed."""
+    states = problem.pomdp.states
+    if not problem.decoy_sets:
+        return [states[s] for s in np.flatnonzero(problem.decoy)]
+    return {
+        decoy_set.name: {
+            "weight": decoy_set.weight,
+            "states": [states[s] for s in np.flatnonzero(decoy_set.states)],
+        }
+        for decoy_set in problem.decoy_sets
+    }
+
+
 def problem_to_document(problem: Problem) -> dict[str, Any]:
     """The explicit ``misdirect/v1`` document of ``problem`` (loads back to the same model)."""
     pomdp, controller = problem.pomdp, problem.controller
@@ -677,7 +790,7 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             "rules": rules,
         },
         "deception": {
-            "decoy": [states[s] for s in np.flatnonzero(problem.decoy)],
+            "decoy": _decoy_document(problem),
             "budget": problem.budget,
             "cost": {
                 "default": "forbidden" if math.isinf(cost.default) else cost.default,

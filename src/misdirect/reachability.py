@@ -486,18 +486,52 @@ def solve_certified(
     return Certified(x=x, residual=bound, time_bound=time_bound, transpose=transpose)
 
 
+def _scores(target: np.ndarray, value: np.ndarray | None) -> tuple[float, np.ndarray | None]:
+    """``value`` scaled into ``[0, 1]`` and the scale, or ``None`` when every target state is
+    worth the same (plain reachability, times that worth).
+
+    Scaling keeps every error argument below (stated for probabilities) valid as it is: the
+    weighted problem is the same linear system with a right-hand side in ``[0, 1]``.
+    """
+    target = np.asarray(target, dtype=bool)
+    if value is None or not target.any():
+        return 1.0, None
+    worth = np.asarray(value, dtype=np.float64)[target]
+    top = float(worth.max())
+    if top <= 0.0 or np.all(worth == top):
+        return top, None
+    scaled = np.where(target, np.asarray(value, dtype=np.float64) / top, 0.0)
+    return top, scaled
+
+
 def reach_probability(
-    matrix: sp.csr_matrix, target: np.ndarray, initial: int, blocks: np.ndarray | None = None
+    matrix: sp.csr_matrix,
+    target: np.ndarray,
+    initial: int,
+    blocks: np.ndarray | None = None,
+    value: np.ndarray | None = None,
 ) -> float:
     """Probability of ever reaching ``target`` from ``initial`` alone (least fixed point).
+
+    With ``value`` (a score per target state), the expected score of the first target state
+    entered instead (:mod:`misdirect.objective`).
 
     Where the chain is one wide component this needs only one transposed solve, the
     occupation measure from ``initial``, whose proven error bound needs no second solve
     (:meth:`Certified.functional_error`). Otherwise it is :func:`reach_probabilities` at
     ``initial``.
     """
-    if matrix.shape[0] <= DENSE_MAX_STATES:
-        return float(_reach_dense(matrix, target)[initial])
+    scale, scaled = _scores(target, value)
+    if scale == 0.0:
+        return 0.0
+    if scaled is not None or matrix.shape[0] <= DENSE_MAX_STATES:
+        return float(reach_probabilities(matrix, target, blocks, value)[initial])
+    return scale * _reach_one(matrix, target, initial, blocks)
+
+
+def _reach_one(
+    matrix: sp.csr_matrix, target: np.ndarray, initial: int, blocks: np.ndarray | None
+) -> float:
     prob0, prob1 = prob0_prob1(matrix, target)
     if prob0[initial] or prob1[initial]:
         return float(prob1[initial])
@@ -523,13 +557,47 @@ def reach_probability(
 
 
 def reach_probabilities(
-    matrix: sp.csr_matrix, target: np.ndarray, blocks: np.ndarray | None = None
+    matrix: sp.csr_matrix,
+    target: np.ndarray,
+    blocks: np.ndarray | None = None,
+    value: np.ndarray | None = None,
 ) -> np.ndarray:
     """Probability of ever reaching ``target`` from every state (least fixed point).
 
-    ``blocks`` (e.g. the memory node of each product state) offers :func:`solve_chain` a
-    separator to cut along.
+    With ``value`` (a score per target state), the expected score of the first target state
+    entered. ``blocks`` (e.g. the memory node of each product state) offers
+    :func:`solve_chain` a separator to cut along.
     """
+    scale, scaled = _scores(target, value)
+    if scale == 0.0:
+        return np.zeros(matrix.shape[0])
+    if scaled is not None:
+        return scale * _expected_scores(matrix, np.asarray(target, dtype=bool), scaled, blocks)
+    return scale * _reach_all(matrix, target, blocks)
+
+
+def _expected_scores(
+    matrix: sp.csr_matrix, target: np.ndarray, scaled: np.ndarray, blocks: np.ndarray | None
+) -> np.ndarray:
+    """Expected score in ``[0, 1]`` of the first target state entered, from every state.
+
+    Scores differ, so no state is known in advance to score 1: the unknowns are every state
+    that can reach the target, outside it. From each of them the target stays reachable, so
+    ``I - Q`` on them is non-singular and its solution is the least fixed point.
+    """
+    if matrix.shape[0] <= DENSE_MAX_STATES:
+        return _reach_dense(matrix, target, scaled)
+    values = scaled.copy()
+    can_reach = reachable_from(matrix.T.tocsr(), np.flatnonzero(target))
+    maybe = np.flatnonzero(can_reach & ~target)
+    if maybe.size:
+        rows = matrix[maybe]
+        labels = None if blocks is None else blocks[maybe]
+        values[maybe] = solve_chain(rows[:, maybe], rows @ scaled, labels)
+    return np.clip(values, 0.0, 1.0)
+
+
+def _reach_all(matrix: sp.csr_matrix, target: np.ndarray, blocks: np.ndarray | None) -> np.ndarray:
     if matrix.shape[0] <= DENSE_MAX_STATES:
         return _reach_dense(matrix, target)
     prob0, prob1 = prob0_prob1(matrix, target)
@@ -543,7 +611,9 @@ def reach_probabilities(
     return np.clip(values, 0.0, 1.0)
 
 
-def _reach_dense(matrix: sp.spmatrix, target: np.ndarray) -> np.ndarray:
+def _reach_dense(
+    matrix: sp.spmatrix, target: np.ndarray, scaled: np.ndarray | None = None
+) -> np.ndarray:
     """:func:`reach_probabilities` for a tiny chain, with dense arrays (one LU, LAPACK).
 
     The states that can reach ``target`` (backward search over the dense edge mask) are
@@ -558,11 +628,11 @@ def _reach_dense(matrix: sp.spmatrix, target: np.ndarray) -> np.ndarray:
     while frontier.any():
         frontier = edges[:, frontier].any(axis=1) & ~reach
         reach |= frontier
-    values = target.astype(np.float64)
+    values = target.astype(np.float64) if scaled is None else scaled.copy()
     maybe = np.flatnonzero(reach & ~target)
     if maybe.size:
         system = np.eye(maybe.size) - dense[np.ix_(maybe, maybe)]
-        values[maybe] = np.linalg.solve(system, dense[maybe][:, target].sum(axis=1))
+        values[maybe] = np.linalg.solve(system, dense[maybe][:, target] @ values[target])
     return np.clip(values, 0.0, 1.0)
 
 

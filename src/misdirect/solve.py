@@ -108,6 +108,9 @@ class SolveResult:
     budget_clamped_from: float | None = None
     budget_clamped_to: float | None = None
     interrupted: bool = False  # stopped early on request (Ctrl-C): the best found so far
+    # what `probability` measures: "probability" (of reaching the decoy), or
+    # "expected_decoy_weight" with weighted decoy sets
+    objective: str = "probability"
 
     def to_dict(self) -> dict[str, Any]:
         clamped = (
@@ -121,6 +124,7 @@ class SolveResult:
         return {
             "problem": self.problem,
             "status": self.status,
+            "objective": self.objective,
             "probability": self.probability,
             "alteration": self.alteration,
             "cost": self.cost,
@@ -259,6 +263,7 @@ def solve(
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
+        objective=problem.objective.kind,
     )
 
 

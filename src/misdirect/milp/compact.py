@@ -84,7 +84,10 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     owner = chain.group_state[groups]
     switched = chain.groups_per_state[owner] > 1  # rows that need an on/off term
     transitions = chain.transitions[groups].tocoo()
-    to_target = np.asarray(chain.transitions[groups] @ chain.target.astype(np.float64)).ravel()
+    # z is the value divided by the largest decoy weight (1 for a plain probability), so that
+    # it lies in [0, 1] and 1 is the big-M of a switched-off row
+    top = problem.objective.max_value or 1.0
+    to_target = chain.one_step(groups) / top
     inside = live[transitions.col]
     selectors = chain.group_options[groups].tocoo()
     on = switched[selectors.row]
@@ -112,9 +115,9 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     objective = np.zeros(model.n_columns)
     offset = 0.0
     if live[chain.initial]:
-        objective[z0 + z_of[chain.initial]] = 1.0
+        objective[z0 + z_of[chain.initial]] = top
     elif chain.target[chain.initial]:
-        offset = 1.0
+        offset = float(chain.target_value[chain.initial])
 
     def decode(values: np.ndarray) -> Alteration:
         return options.decode(problem, values[y0 : y0 + options.size])
@@ -127,7 +130,9 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         if cycling.any():
             return binaries
         chosen = chain.selected_groups(alteration)
-        values = reach_probabilities(chain.transitions[chosen].tocsr(), chain.target)
+        values = reach_probabilities(
+            chain.transitions[chosen].tocsr(), chain.target, value=chain.target_value / top
+        )
         return (
             np.concatenate([binaries[0], z0 + np.arange(int(live.sum()))]),
             np.concatenate([binaries[1], values[live]]),

@@ -28,6 +28,7 @@ import numpy as np
 
 from misdirect.alterations import alteration_space
 from misdirect.choice_product import build_choice_product
+from misdirect.errors import SolverError
 from misdirect.milp.model import MilpModel, ModelBuilder
 from misdirect.model import Alteration, Problem
 
@@ -35,6 +36,11 @@ from misdirect.model import Alteration, Problem
 def build_paper(
     problem: Problem, budget: float | None = None, *, pin_unreachable: bool = False
 ) -> MilpModel:
+    if not problem.objective.is_probability:
+        raise SolverError(
+            "the paper's formulation maximises a probability; weighted decoy sets need "
+            "--formulation compact (the default)"
+        )
     started = time.perf_counter()
     budget = problem.budget if budget is None else float(budget)
     pomdp, controller = problem.pomdp, problem.controller

@@ -111,7 +111,9 @@ class _Relaxation:
         """Exact reachability values of the chain that takes group ``policy[q]`` in ``q``."""
         self.evaluations += 1
         chain = self.chain
-        return reach_probabilities(chain.transitions[policy], chain.target, blocks=chain.node)
+        return reach_probabilities(
+            chain.transitions[policy], chain.target, blocks=chain.node, value=chain.target_value
+        )
 
     def optimise(
         self, allowed_groups: np.ndarray, policy: np.ndarray
@@ -362,7 +364,8 @@ class _Search:
 
     def open_bound(self) -> float:
         open_bound = max((n.parent_bound for n in self.stack), default=-np.inf)
-        return float(min(max(self.best_value, self.pruned_bound, open_bound), 1.0))
+        top = self.relax.problem.objective.max_value
+        return float(min(max(self.best_value, self.pruned_bound, open_bound), top))
 
     def run(self, deadline: Deadline | None = None, tick=None) -> Solution:
         relax = self.relax

@@ -86,7 +86,7 @@ class ExhaustiveSolver:
         if not all(complete):
             from misdirect.solvers.branch_and_bound import relaxation_bound
 
-            bound = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget too
+            bound = relaxation_bound(problem, top)  # bounds every smaller budget too
         return [
             Solution(
                 b,

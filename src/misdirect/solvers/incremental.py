@@ -108,7 +108,7 @@ class IncrementalSolver:
         # per state: the group each option selects (single-group states: that group)
         first_option = np.concatenate([[0], np.cumsum([c.size for c in space.choices])])
         group_of_option = _group_of_option(chain, live)
-        to_target = np.asarray(chain.transitions @ chain.target.astype(np.float64)).ravel()
+        to_target = chain.one_step()
         inside = chain.transitions[:, np.flatnonzero(live)].tocsr()  # (G, n_live)
         start = int(live_index[chain.initial]) if live[chain.initial] else -1
         live_node = chain.node[live]  # memory nodes: a separator for solve_chain to cut along
@@ -157,7 +157,7 @@ class IncrementalSolver:
                 raise SolverError(f"more than {self.max_evaluations:,} alterations")
             table, inner_costs = enumerated
             evaluations += len(inner_costs)
-            found = np.full(len(inner_costs), float(chain.target[chain.initial]))
+            found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
             if start >= 0:
                 found[:] = x0[start]
                 blocks = (block_start, d_x0_of, d_w_of, d_b_of)
@@ -173,7 +173,9 @@ class IncrementalSolver:
             done += 1
             report(progress, done, n_outer, stage="incremental")
 
-        costs_a, values_a = np.concatenate(costs), np.clip(np.concatenate(values), 0.0, 1.0)
+        costs_a, values_a = np.concatenate(costs), np.clip(
+            np.concatenate(values), 0.0, problem.objective.max_value
+        )
         offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
         stats = {
             "evaluations": evaluations,
@@ -189,7 +191,7 @@ class IncrementalSolver:
         if not all(complete):
             from misdirect.solvers.branch_and_bound import relaxation_bound
 
-            relaxed = min(relaxation_bound(problem, top), 1.0)  # bounds every smaller budget
+            relaxed = relaxation_bound(problem, top)  # bounds every smaller budget
         solutions = []
         for budget, index, finished in zip(budgets, picked, complete, strict=True):
             within = values_a[costs_a <= budget + 1e-9]

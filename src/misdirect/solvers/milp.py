@@ -169,7 +169,9 @@ class MilpSolver:
             incumbent = None if claimed is None else max(claimed, result.objective or claimed)
             status = stopped = _status(result, incumbent)
             upper_bound = (
-                min(result.bound, 1.0) if model.sound and result.bound is not None else None
+                min(result.bound, problem.objective.max_value)
+                if model.sound and result.bound is not None
+                else None
             )
             exact = decoy_probability(problem, alteration)
             if upper_bound is None and model.sound and status != "optimal":
@@ -178,7 +180,7 @@ class MilpSolver:
                 if relaxed is None:
                     from misdirect.solvers.branch_and_bound import relaxation_bound
 
-                    relaxed = min(relaxation_bound(problem, max(budgets)), 1.0)
+                    relaxed = relaxation_bound(problem, max(budgets))
                 upper_bound = max(relaxed, exact)
             not_certified = None
             if status == "optimal" and (
