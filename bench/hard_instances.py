@@ -75,7 +75,7 @@ def case(n: int, sensors: int, top: int, seed: int, method: str, limit: float, *
                 "status": p.status,
                 "probability": p.probability,
                 "upper_bound": p.upper_bound,
-                "certified_by": p.stats.get("certified_by", method),
+                "certified_by": p.certified_by or method,
             }
             for p in result.curve
         ],

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> list[dict]:
                         "status": point.status,
                         "solver_status": point.stats["status"],
                         "probability": point.probability,
-                        "claimed_probability": point.solver_probability,
+                        "solver_probability": point.solver_probability,
                         "upper_bound": point.upper_bound,
                         "solve_time_s": point.stats["solve_time_s"],
                         "nodes": point.stats["nodes"],
@@ -118,7 +118,7 @@ def write(rows: list[dict], out: Path, args: argparse.Namespace) -> None:
         "budget",
         "status",
         "probability",
-        "claimed_probability",
+        "solver_probability",
         "upper_bound",
         "variables",
         "binaries",
@@ -190,7 +190,7 @@ def _value_cell(row: dict | None) -> str:
     cell = f"{value:.8f}" if value >= 1e-3 else f"{value:.2e}"
     if row["status"] == "time_limit":
         cell += "*"
-    claimed = row.get("claimed_probability")
+    claimed = row.get("solver_probability")
     if claimed is not None and abs(claimed - row["probability"]) > 1e-6:
         cell += f" (claims {claimed:.3f})"
     return cell

@@ -20,7 +20,7 @@ def knapsack_dp(weights, values, capacity):
 
 def test_small_space_is_enumerated():
     result = solve(paper_grid(5), budgets=range(5))
-    assert result.stats["certified_by"] == "incremental"
+    assert result.certified_by == "incremental"
     assert [p.probability for p in result.curve] == pytest.approx(
         [0.084957, 0.719924, 0.860130, 0.862442, 0.863622], abs=5e-7
     )
@@ -33,7 +33,7 @@ def test_sixty_item_knapsack_goes_to_the_milp(seed):
     values = rng.integers(1, 101, size=60).tolist()
     capacity = sum(weights) // 2
     result = solve(knapsack(weights, values, capacity))
-    assert result.stats["certified_by"] == "milp"
+    assert result.certified_by == "milp"
     assert result.status == "optimal"
     best = knapsack_dp(weights, values, capacity)
     assert result.probability == pytest.approx(best / (2 * sum(values)), abs=1e-12)
@@ -56,7 +56,7 @@ def test_auto_equals_exhaustive_on_random_models():
         budgets = [0.0, 1.0, 2.5, 4.0]
         mine = solve(problem, budgets=budgets)
         oracle = solve(problem, method="exhaustive", budgets=budgets)
-        routes.add(mine.stats["certified_by"])
+        routes.add(mine.certified_by)
         assert not mine.warnings, seed
         for a, b in zip(mine.curve, oracle.curve, strict=True):
             assert a.probability == pytest.approx(b.probability, abs=1e-9), (seed, a.budget)

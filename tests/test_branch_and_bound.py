@@ -87,10 +87,10 @@ def test_agrees_with_exhaustive_on_random_models():
         oracle = ExhaustiveSolver().solve(problem, budgets)
         for a, b in zip(mine, oracle, strict=True):
             exact = decoy_probability(problem, a.alteration)
-            assert exact == pytest.approx(b.claimed_probability, abs=1e-7), (seed, a.budget)
-            assert a.claimed_probability == pytest.approx(exact, abs=1e-9)
+            assert exact == pytest.approx(b.solver_probability, abs=1e-7), (seed, a.budget)
+            assert a.solver_probability == pytest.approx(exact, abs=1e-9)
             assert a.status == "optimal"
-            assert a.upper_bound >= b.claimed_probability - 1e-9
+            assert a.upper_bound >= b.solver_probability - 1e-9
             assert problem.alteration_cost(a.alteration) <= a.budget + 1e-9
             problem.check_alteration(a.alteration)
     assert with_cycles >= 20 and protected >= 20 and forbidden >= 100  # the suite has them
@@ -141,11 +141,11 @@ def test_root_bound_is_above_the_brute_force_optimum():
 
 def test_node_limit_reports_feasible_with_a_valid_bound():
     problem = trap_grid(9, budget=2)
-    oracle = ExhaustiveSolver().solve(problem, [2.0])[0].claimed_probability
+    oracle = ExhaustiveSolver().solve(problem, [2.0])[0].solver_probability
     (answer,) = BranchAndBoundSolver(max_nodes=2).solve(problem, [2.0])
     assert answer.status == "feasible"
     exact = decoy_probability(problem, answer.alteration)
-    assert answer.claimed_probability == pytest.approx(exact, abs=1e-9)
+    assert answer.solver_probability == pytest.approx(exact, abs=1e-9)
     assert exact <= oracle + 1e-9 <= answer.upper_bound + 2e-9
     assert problem.alteration_cost(answer.alteration) <= 2.0 + 1e-9
 
@@ -155,7 +155,7 @@ def test_auto_sends_a_knapsack_to_the_milp():
     weights = rng.integers(1, 101, size=60).tolist()
     values = rng.integers(1, 101, size=60).tolist()
     result = solve(knapsack(weights, values, sum(weights) // 2))
-    assert result.stats["certified_by"] == "milp"
+    assert result.certified_by == "milp"
     assert "knapsack-like" in result.stats["auto_reason"]
     assert result.status == "optimal"
 
@@ -171,7 +171,7 @@ def test_auto_sends_a_large_trap_grid_to_branch_and_bound():
     result = solve(problem, budgets=[3.0, 4.0])
     assert not result.warnings
     for point in result.curve:
-        assert point.stats["certified_by"] == "branch-and-bound"
+        assert point.certified_by == "branch-and-bound"
         assert point.status == "optimal"
         assert point.probability == pytest.approx(TRAP9_EXHAUSTIVE[point.budget], abs=1e-7)
         assert point.upper_bound == pytest.approx(point.probability, abs=1e-9)

@@ -265,7 +265,7 @@ def test_auto_hands_an_uncertified_milp_answer_to_branch_and_bound(monkeypatch):
     point = result.curve[0]
     assert point.probability == pytest.approx(0.25, abs=1e-12)
     assert point.status == "optimal" and point.upper_bound - point.probability <= CERTIFY
-    assert point.stats["certified_by"] == "branch-and-bound"
+    assert point.certified_by == "branch-and-bound"
     assert any("knapsack-like" in n for n in notes)
     assert any("did not certify" in n and "branch-and-bound" in n for n in notes)
 
@@ -291,7 +291,7 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
     assert result.status == "optimal"
     assert any("largest observation owns" in n for n in notes)
     assert any("node limit, so the MILP" in n for n in notes)
-    assert result.curve[0].stats["certified_by"] in ("milp", "branch-and-bound")
+    assert result.curve[0].certified_by in ("milp", "branch-and-bound")
 
 
 @pytest.mark.parametrize("method", ["exhaustive", "incremental"])
@@ -375,7 +375,7 @@ def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monk
         progress=lambda d, t, **info: notes.append(info.get("note")),
     )
     oracle = solve(problem, method="exhaustive", budgets=budgets)
-    methods = [p.stats["certified_by"] for p in result.curve]
+    methods = [p.certified_by for p in result.curve]
     assert methods[:2] == ["incremental", "incremental"]
     assert set(methods[2:]) <= {"branch-and-bound", "milp"} and len(methods) == 4
     for mine, best in zip(result.curve, oracle.curve, strict=True):

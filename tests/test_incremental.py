@@ -55,14 +55,14 @@ def test_models_that_can_cycle_are_refused_and_auto_falls_back():
     with pytest.raises(NotApplicableError):
         IncrementalSolver().solve(trap, [1.0])
     result = solve(trap, budgets=[0, 1])
-    assert result.stats["certified_by"] == "exhaustive"
+    assert result.certified_by == "exhaustive"
     assert "no low-rank updates" in result.stats["auto_reason"]
     assert [p.probability for p in result.curve] == pytest.approx([0.1, 0.4], abs=1e-12)
 
 
 def test_auto_uses_updates_on_the_grid():
     result = solve(paper_grid(25), budgets=range(8))
-    assert result.stats["certified_by"] == "incremental"
+    assert result.certified_by == "incremental"
     assert result.stats["factorisations"] == 3  # one per choice for the blank reading
 
 

@@ -99,13 +99,13 @@ def test_paper_formulation_flagged_unverified(results):
     folder, summary, _ = results
     paper = next(r for r in _rows(folder, "reduction") if r["formulation"] == "paper")
     assert paper["status"] == "unverified"
-    assert float(paper["claimed_probability"]) > float(paper["probability"]) + 0.5
+    assert float(paper["solver_probability"]) > float(paper["probability"]) + 0.5
     reduction_md = (folder / "reduction.md").read_text(encoding="utf-8")
     report = (folder / "report.md").read_text(encoding="utf-8")
     for text in (reduction_md, report):
         assert "**Unverified: the paper formulation's answers are wrong.**" in text
     exact = float(paper["probability"])
-    assert f"claims {float(paper['claimed_probability']):g}, exact value {exact:g}" in reduction_md
+    assert f"claims {float(paper['solver_probability']):g}, exact value {exact:g}" in reduction_md
 
     scalability_md = (folder / "scalability.md").read_text(encoding="utf-8")
     wrong = [r for r in _rows(folder, "scalability") if r["status"] == "unverified"]
@@ -195,7 +195,7 @@ def test_timed_out_and_unverified_points_are_drawn_apart(tmp_path, monkeypatch):
                 "solve_time_s": solve_time,
                 "status": status,
                 "solver_status": solver_status,
-                "claimed_probability": claimed,
+                "solver_probability": claimed,
                 "probability": exact,
                 "evaluation_time_s": 0.001 * n,
             }
@@ -207,7 +207,7 @@ def test_timed_out_and_unverified_points_are_drawn_apart(tmp_path, monkeypatch):
                 "status": "optimal",
                 "solver_status": "optimal",
                 "solve_time_s": 0.1 * n,
-                "claimed_probability": 0.5,
+                "solver_probability": 0.5,
                 "probability": 0.5,
             }
         )

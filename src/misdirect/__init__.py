@@ -20,12 +20,14 @@ from misdirect.evaluate import Evaluation, decoy_probability, evaluate
 from misdirect.model import Controller, CostModel, Pomdp, Problem
 from misdirect.problem_file import load_problem, write_problem
 from misdirect.product import ProductChain, build_product
-from misdirect.solve import SolveResult, solve
+from misdirect.solve import BudgetResult, SolveResult, solve
+from misdirect.solvers.base import Status
 
 __version__ = "0.1.0"
 
 __all__ = [
     "AuditResult",
+    "BudgetResult",
     "Controller",
     "CostModel",
     "Evaluation",
@@ -38,6 +40,7 @@ __all__ = [
     "ProductChain",
     "SolveResult",
     "SolverError",
+    "Status",
     "audit",
     "build_product",
     "decoy_probability",

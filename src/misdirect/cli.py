@@ -39,6 +39,7 @@ from misdirect.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solve import SOLVERS, SolveResult
 from misdirect.solve import solve as solve_problem
+from misdirect.solvers.base import Status
 from misdirect.solvers.milp import FORMULATIONS, build_formulation
 
 app = typer.Typer(
@@ -576,7 +577,7 @@ def _objective_label(problem: Problem) -> str:
 def _print_solve(result: SolveResult, problem: Problem) -> None:
     title = f"{result.problem} — " if result.problem else ""
     table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
-    bounded = any(point.status != "optimal" for point in result.curve)
+    bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column(f"max {_objective_label(problem)}", justify="right")
     if bounded:
@@ -607,10 +608,10 @@ def _print_solve(result: SolveResult, problem: Problem) -> None:
             "(no alteration costs more)",
         )
     stats = result.stats
-    if "certified_by" in stats:
-        proven = all(point.status == "optimal" for point in result.curve)
+    if result.certified_by is not None:
+        proven = all(point.status == Status.OPTIMAL for point in result.curve)
         verb = "certified by" if proven else "method"
-        parts.append(f"{verb} {stats['certified_by']} ({stats['auto_reason']})")
+        parts.append(f"{verb} {result.certified_by} ({stats['auto_reason']})")
     if "formulation" in stats:  # a MILP
         nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
         solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)

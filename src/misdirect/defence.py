@@ -32,6 +32,7 @@ from misdirect.errors import ProblemError, SolverError
 from misdirect.model import Problem, reachable_from
 from misdirect.reachability import reach_probabilities
 from misdirect.solve import BudgetResult, default_budgets, solve
+from misdirect.solvers.base import Status
 
 CERTIFY_TOLERANCE = 1e-9  # as everywhere in misdirect: "optimal" means within this
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
@@ -227,14 +228,14 @@ class _Attack:
 
     value: float  # exact value of ``alteration``
     upper: float  # proven bound on the attacker's optimum (== value when certified)
-    status: str
+    status: Status
     alteration: dict[str, str]
     changed: frozenset[int]
     cost: float
 
     @property
     def certified(self) -> bool:
-        return self.status == "optimal"
+        return self.status == Status.OPTIMAL
 
 
 def protect(problem: Problem, observations: Iterable[int]) -> Problem:
@@ -501,7 +502,7 @@ class HardenPoint:
     upper_bound: float  # proven bound on the attacker's optimum under ``protection``
     lower_bound: float  # proven: no protection within d holds the attacker below this
     attack: dict[str, str]
-    status: str  # "optimal" when the min–max is proven, else "time_limit" / "feasible"
+    status: Status  # optimal when the min–max is proven, else time_limit / feasible
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -734,7 +735,11 @@ def harden(
             if proven
             else min(hitting_lower_bound(attacks, frozenset(), d, costs), reply.upper)
         )
-        status = "optimal" if proven else ("time_limit" if not complete[0] else "feasible")
+        status = (
+            Status.OPTIMAL
+            if proven
+            else (Status.TIME_LIMIT if not complete[0] else Status.FEASIBLE)
+        )
         curve.append(
             HardenPoint(
                 protect_budget=d,

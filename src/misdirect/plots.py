@@ -294,9 +294,9 @@ def _count(value: float) -> str:
 def _claims(rows: Sequence[dict]) -> str:
     claimed = sorted(
         {
-            round(float(r["claimed_probability"]), 3)
+            round(float(r["solver_probability"]), 3)
             for r in rows
-            if r.get("claimed_probability") is not None
+            if r.get("solver_probability") is not None
         }
     )
     if not claimed:
@@ -322,7 +322,7 @@ def scalability_panels(
     Rows have ``n``, ``formulation``, ``variables``, ``rows``, ``build_time_s``,
     ``solve_time_s``, ``solver_status`` and ``evaluation_time_s``; optionally ``status``
     (ours: ``unverified`` when the MILP's claimed value is not the exact value of its answer),
-    ``claimed_probability`` and ``probability``. Unverified answers are drawn hollow. Solves
+    ``solver_probability`` and ``probability``. Unverified answers are drawn hollow. Solves
     stopped by the time limit are drawn as upward triangles at the limit, or at the measured
     time if the solver overran it (the true time is longer either way), labelled "timed out",
     and not joined to the measured line; they are never dropped.

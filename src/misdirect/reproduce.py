@@ -168,7 +168,7 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
                 "solver_status": stats["status"],
                 "status": result.status,
                 "probability": result.probability,
-                "claimed_probability": result.curve[-1].solver_probability,
+                "solver_probability": result.curve[-1].solver_probability,
                 "alteration": format_alteration(result.alteration),
             }
         )
@@ -194,7 +194,7 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
             "solver_status",
             "status",
             "probability",
-            "claimed_probability",
+            "solver_probability",
             "alteration",
         ],
         rows,
@@ -339,7 +339,7 @@ def _scalability(
                     "status": result.status,
                     "solver_status": stats["status"],
                     "probability": result.probability,
-                    "claimed_probability": result.curve[-1].solver_probability,
+                    "solver_probability": result.curve[-1].solver_probability,
                     "evaluation_time_s": floor,
                 }
             )
@@ -359,7 +359,7 @@ def _scalability(
             "solver_status",
             "status",
             "probability",
-            "claimed_probability",
+            "solver_probability",
             "evaluation_time_s",
         ],
         rows,
@@ -369,7 +369,7 @@ def _scalability(
         "the exact value of its alteration. The paper reports, for n = 45, more than 1.6 "
         "million variables and more than 6.2 million constraints for its formulation. "
         "`probability` is always the exact value of "
-        "the alteration returned; `claimed_probability` is what the MILP itself believed (the "
+        "the alteration returned; `solver_probability` is what the MILP itself believed (the "
         "paper's formulation can claim 1 on a trap). `evaluation_time_s`: one exact "
         "evaluation of the unaltered chain, the floor of any method.",
     )
@@ -485,7 +485,7 @@ def _flag_lines(rows: Sequence[dict[str, Any]], limit_text: str = "") -> list[st
         if wrong:
             pairs = "; ".join(
                 (f"n={r['n']}: " if "n" in r else "")
-                + f"claims {_value(r['claimed_probability'])}, exact {_value(r['probability'])}"
+                + f"claims {_value(r['solver_probability'])}, exact {_value(r['probability'])}"
                 for r in wrong
             )
             lines.append(f"UNVERIFIED {formulation} MILP answer ({pairs})")
@@ -504,7 +504,7 @@ def _flags(rows: Sequence[dict[str, Any]], limit_text: str) -> str:
             continue
         pairs = "; ".join(
             (f"n = {r['n']}: " if "n" in r else "")
-            + f"claims {_value(r['claimed_probability'])}, exact value "
+            + f"claims {_value(r['solver_probability'])}, exact value "
             f"{_value(r['probability'])}"
             for r in wrong
         )

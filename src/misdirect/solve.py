@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +24,7 @@ from misdirect.solvers.base import (
     CERTIFY_TOLERANCE,
     ProgressCallback,
     Solver,
+    Status,
     clear_stop,
     stop_requested,
 )
@@ -56,14 +57,15 @@ class BudgetResult:
     """The verified answer for one budget."""
 
     budget: float
-    status: str
+    status: Status
     probability: float  # exact value of `alteration`
     alteration: dict[str, str]
     cost: float
     upper_bound: float | None
     solver_probability: float | None  # None when the solver stopped without an incumbent
-    stats: dict[str, Any] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)  # the method's own counters
     alteration_array: Alteration | None = field(default=None, repr=False)
+    certified_by: str | None = None  # auto: the method whose answer (or bound) this is
 
     @property
     def gap(self) -> float | None:
@@ -73,36 +75,25 @@ class BudgetResult:
         return max(self.upper_bound - self.probability, 0.0)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "budget": self.budget,
-            "status": self.status,
-            "probability": self.probability,
-            "alteration": self.alteration,
-            "cost": self.cost,
-            "upper_bound": self.upper_bound,
-            "gap": self.gap,
-            "stats": self.stats,
-        }
+        """JSON fields: the dataclass's own (arrays and the solver's claim left out), the gap,
+        and ``certified_by`` inside ``stats``, where the JSON has always had it."""
+        skip = {"alteration_array", "solver_probability", "certified_by", "stats"}
+        shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
+        extra = {} if self.certified_by is None else {"certified_by": self.certified_by}
+        return {**shown, "gap": self.gap, "stats": {**self.stats, **extra}}
 
 
 @dataclass(frozen=True)
 class SolveResult:
-    """Answer for the largest budget asked for, plus the curve over every budget solved."""
+    """The curve over every budget solved; the answer is its last point (the largest budget
+    asked for), whose fields the result also offers directly."""
 
     problem: str
     method: str
-    status: str
-    probability: float
-    alteration: dict[str, str]
-    cost: float
-    budget: float
     baseline_probability: float
-    upper_bound: float | None
     time_s: float
     curve: list[BudgetResult]
-    stats: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    alteration_array: Alteration | None = field(default=None, repr=False)
     # the largest budget asked for, when it exceeded the most expensive complete alteration:
     # the solvers then ran at that alteration's cost instead (every budget above it is equal)
     budget_clamped_from: float | None = None
@@ -112,34 +103,44 @@ class SolveResult:
     # "expected_decoy_weight" with weighted decoy sets
     objective: str = "probability"
 
+    @property
+    def final(self) -> BudgetResult:
+        return self.curve[-1]
+
+    status = property(lambda self: self.final.status)
+    probability = property(lambda self: self.final.probability)
+    alteration = property(lambda self: self.final.alteration)
+    alteration_array = property(lambda self: self.final.alteration_array)
+    cost = property(lambda self: self.final.cost)
+    budget = property(lambda self: self.final.budget)
+    upper_bound = property(lambda self: self.final.upper_bound)
+    stats = property(lambda self: self.final.stats)
+    certified_by = property(lambda self: self.final.certified_by)
+
     def to_dict(self) -> dict[str, Any]:
-        clamped = (
-            {}
-            if self.budget_clamped_from is None
-            else {
-                "budget_clamped_from": self.budget_clamped_from,
-                "budget_clamped_to": self.budget_clamped_to,
-            }
-        )
-        return {
+        """The answer's fields (the last point's) at the top level, then the run's; clamping
+        and interruption appear only when they happened."""
+        final = self.final.to_dict()
+        document = {
             "problem": self.problem,
-            "status": self.status,
+            "status": final["status"],
             "objective": self.objective,
-            "probability": self.probability,
-            "alteration": self.alteration,
-            "cost": self.cost,
-            "budget": self.budget,
+            **{k: final[k] for k in ("probability", "alteration", "cost", "budget")},
             "baseline_probability": self.baseline_probability,
-            "upper_bound": self.upper_bound,
-            "gap": self.curve[-1].gap,
+            "upper_bound": final["upper_bound"],
+            "gap": final["gap"],
             "method": self.method,
             "time_s": self.time_s,
             "curve": [point.to_dict() for point in self.curve],
-            "stats": self.stats,
+            "stats": final["stats"],
             "warnings": self.warnings,
-            **clamped,
-            **({"interrupted": True} if self.interrupted else {}),
         }
+        if self.budget_clamped_from is not None:
+            document["budget_clamped_from"] = self.budget_clamped_from
+            document["budget_clamped_to"] = self.budget_clamped_to
+        if self.interrupted:
+            document["interrupted"] = True
+        return document
 
 
 def default_budgets(budget: float) -> list[float]:
@@ -203,20 +204,19 @@ def solve(
         problem.check_alteration(alpha, source=f"{solver.name} solver")
         exact = exact_value(alpha)
         cost = problem.alteration_cost(alpha)
-        status = solution.status
-        claimed = solution.claimed_probability
+        status = Status(solution.status)
+        claimed = solution.solver_probability
         stats = dict(solution.stats)
         # An incumbent cut short (time or gap limit, node limit) may claim less than its
         # alteration is worth: its continuous part (or a MILP's witness columns) was not yet
         # pushed to the best for its choices. Only claiming more, or any mismatch at a proven
         # optimum, contradicts the chain.
-        cut_short = status in ("time_limit", "gap_limit", "feasible")
         if (
             claimed is not None
             and abs(exact - claimed) > MISMATCH_TOLERANCE
-            and not (cut_short and claimed < exact)
+            and not (status.cut_short and claimed < exact)
         ):
-            status = "unverified"
+            status = Status.UNVERIFIED
             warnings.append(
                 f"budget {solution.budget:g}: the {solver.name} solver claimed "
                 f"{claimed:.9f} but the chain gives {exact:.9f}; the answer is not optimal "
@@ -228,38 +228,37 @@ def solve(
         if upper_bound is not None and upper_bound < exact:
             # a bound below a value we hold in hand is solver tolerance, or a bug if it is large
             if exact - upper_bound > MISMATCH_TOLERANCE:
-                status = "unverified"
+                status = Status.UNVERIFIED
                 warnings.append(
                     f"budget {solution.budget:g}: the {solver.name} solver's bound "
                     f"{upper_bound:.9f} is below the exact value {exact:.9f}"
                 )
             upper_bound = exact
         curve.append(
-            _Point(solution.budget, status, exact, alpha, cost, upper_bound, claimed, stats)
+            _Point(
+                solution.budget,
+                status,
+                exact,
+                alpha,
+                cost,
+                upper_bound,
+                claimed,
+                stats,
+                solution.certified_by,
+            )
         )
     _make_monotone(curve)
     if interrupted:  # stopped by request (Ctrl-C), not by the time limit
         for point in curve:
-            if point.status == "time_limit":
-                point.status = "interrupted"
-    curve = [point.result(problem) for point in curve]
-    final = curve[-1]
-    curve_alterations = [point.alteration_array for point in curve]
+            if point.status == Status.TIME_LIMIT:
+                point.status = Status.INTERRUPTED
     return SolveResult(
         problem=problem.name,
         method=solver.name,
-        status=final.status,
-        probability=final.probability,
-        alteration=final.alteration,
-        cost=final.cost,
-        budget=final.budget,
         baseline_probability=exact_value(np.asarray(problem.identity(), dtype=np.int64)),
-        upper_bound=final.upper_bound,
         time_s=elapsed,
-        curve=curve,
-        stats=final.stats,
+        curve=[point.result(problem) for point in curve],
         warnings=warnings,
-        alteration_array=curve_alterations[-1],
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
@@ -272,13 +271,14 @@ class _Point:
     """One budget's answer while ``solve`` checks the curve as a whole."""
 
     budget: float
-    status: str
+    status: Status
     probability: float
     alteration: np.ndarray
     cost: float
     upper_bound: float | None
     claimed: float | None
     stats: dict[str, Any]
+    certified_by: str | None
 
     def result(self, problem: Problem) -> BudgetResult:
         return BudgetResult(
@@ -291,6 +291,7 @@ class _Point:
             solver_probability=self.claimed,
             stats=self.stats,
             alteration_array=self.alteration,
+            certified_by=self.certified_by,
         )
 
 
@@ -325,7 +326,7 @@ def _make_monotone(curve: list[_Point]) -> None:
     bound: float | None = None
     for j in reversed(order):
         point = curve[j]
-        if point.status == "unverified":
+        if point.status == Status.UNVERIFIED:
             continue
         if bound is not None and (point.upper_bound is None or bound < point.upper_bound):
             point.upper_bound = max(bound, point.probability)
@@ -335,14 +336,14 @@ def _make_monotone(curve: list[_Point]) -> None:
             point.upper_bound is not None
             and point.upper_bound - point.probability <= CERTIFY_TOLERANCE + 1e-12
         )
-        if point.status == "optimal" and not certified:
+        if point.status == Status.OPTIMAL and not certified:
             point.stats["not_certified"] = (
                 "no proven bound within 1e-9 of the exact value"
                 if point.upper_bound is None
                 else f"proven bound {point.upper_bound:.12f} is "
                 f"{point.upper_bound - point.probability:.2e} above the exact value"
             )
-            point.status = "feasible"
-        elif point.status in ("time_limit", "gap_limit", "feasible") and certified:
+            point.status = Status.FEASIBLE
+        elif point.status.cut_short and certified:
             point.stats["certified_by_bound"] = "a bound at this or a larger budget meets it"
-            point.status = "optimal"
+            point.status = Status.OPTIMAL

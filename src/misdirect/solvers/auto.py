@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,7 @@ from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
+    Status,
     check_time_limit,
     report,
 )
@@ -195,7 +197,7 @@ class AutoSolver:
     def _finish_with(self, stage, problem, budgets, solutions, progress, deadline, *, why):
         """Hand every budget that is not certified to ``stage``, if time is left; keep the
         better answer and the tighter bound of the two."""
-        unfinished = [j for j, s in enumerate(solutions) if s.status != "optimal"]
+        unfinished = [j for j, s in enumerate(solutions) if s.status != Status.OPTIMAL]
         if not unfinished:
             return solutions
         if deadline.expired():
@@ -246,22 +248,22 @@ def _better(problem: Problem, first: Solution, second: Solution, why: str) -> So
     bound = max(min(bounds), value) if bounds else None
     proven = bound is not None and bound - value <= CERTIFY_TOLERANCE
     if proven:
-        status = "optimal"
-    elif "time_limit" in (first.status, second.status):  # the proof ran out of time
-        status = "time_limit"
+        status = Status.OPTIMAL
+    elif Status.TIME_LIMIT in (first.status, second.status):  # the proof ran out of time
+        status = Status.TIME_LIMIT
     else:
         status = pick.status
     stats = {**pick.stats, "auto_reason": why, "stages": [first.stats, second.stats]}
     # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
     closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
-    stats["certified_by"] = (closer if proven else pick).stats.get("certified_by", "auto")
     return Solution(
         budget=pick.budget,
         alteration=pick.alteration,
-        claimed_probability=value,
+        solver_probability=value,
         status=status,
         upper_bound=bound,
         stats=stats,
+        certified_by=(closer if proven else pick).certified_by or "auto",
     )
 
 
@@ -285,13 +287,5 @@ def _largest_observation(problem: Problem, space) -> tuple[int, int]:
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:
     return [
-        Solution(
-            budget=s.budget,
-            alteration=s.alteration,
-            claimed_probability=s.claimed_probability,
-            status=s.status,
-            upper_bound=s.upper_bound,
-            stats={**s.stats, "certified_by": method, "auto_reason": reason},
-        )
-        for s in solutions
+        replace(s, stats={**s.stats, "auto_reason": reason}, certified_by=method) for s in solutions
     ]

@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any, Protocol
 
 import numpy as np
@@ -17,6 +18,22 @@ import numpy as np
 from misdirect.model import Alteration, Problem
 
 CERTIFY_TOLERANCE = 1e-9  # "optimal" means: a proven bound within this of the exact value
+
+
+class Status(StrEnum):
+    """How far one budget's answer got. A ``str``, so JSON and comparisons see the name."""
+
+    OPTIMAL = "optimal"  # a proven bound within CERTIFY_TOLERANCE of the exact value
+    TIME_LIMIT = "time_limit"  # the best found when time ran out, with the bound proven so far
+    GAP_LIMIT = "gap_limit"  # the MILP stopped at the relative gap it was given
+    FEASIBLE = "feasible"  # an allowed alteration, not (yet) proven best
+    UNVERIFIED = "unverified"  # the solver's claim and the exact chain disagree
+    INTERRUPTED = "interrupted"  # stopped on request (Ctrl-C) with the best found so far
+
+    @property
+    def cut_short(self) -> bool:
+        """An incumbent of a search that did not finish: its bound may still be open."""
+        return self in (Status.TIME_LIMIT, Status.GAP_LIMIT, Status.FEASIBLE)
 
 
 class ProgressCallback(Protocol):
@@ -87,10 +104,11 @@ class Solution:
 
     budget: float
     alteration: Alteration
-    claimed_probability: float | None  # the solver's own value for it (None: no incumbent)
-    status: str = "optimal"  # "optimal" | "time_limit" | "feasible" | "gap_limit"
+    solver_probability: float | None  # the solver's own value for it (None: no incumbent)
+    status: Status = Status.OPTIMAL
     upper_bound: float | None = None  # proven bound on the optimum, if the solver has one
-    stats: dict[str, Any] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)  # the method's own counters
+    certified_by: str | None = None  # auto: the method whose answer (or bound) this is
 
 
 class Solver(Protocol):

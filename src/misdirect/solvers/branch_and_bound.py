@@ -41,6 +41,7 @@ from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
+    Status,
     check_time_limit,
     refuse_options,
     report,
@@ -374,9 +375,9 @@ class _Search:
             self.offer(self.best_picks, self.value(self.best_picks))
         while self.stack:
             if self.nodes >= self.max_nodes:
-                return self._solution("feasible")
+                return self._solution(Status.FEASIBLE)
             if deadline is not None and deadline.expired():
-                return self._solution("time_limit")
+                return self._solution(Status.TIME_LIMIT)
             if tick is not None and self.nodes % 64 == 0:
                 tick()
             node = self.stack.pop()
@@ -408,7 +409,7 @@ class _Search:
                         policy,
                     )
                 )
-        return self._solution("optimal")
+        return self._solution(Status.OPTIMAL)
 
     def _round(self, picks: tuple[int, ...], remaining: float, usage: np.ndarray) -> tuple:
         """Complete ``picks`` greedily: each free observation's most used affordable candidate."""
@@ -425,7 +426,7 @@ class _Search:
         return Solution(
             budget=self.budget,
             alteration=self.relax.alteration(self.best_picks),
-            claimed_probability=self.best_value,
+            solver_probability=self.best_value,
             status=status,
             upper_bound=bound,
             stats={

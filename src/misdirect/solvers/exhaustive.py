@@ -20,6 +20,7 @@ from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
+    Status,
     best_per_budget,
     check_time_limit,
     refuse_options,
@@ -92,7 +93,7 @@ class ExhaustiveSolver:
                 b,
                 alterations[i],
                 float(values[i]),
-                status="optimal" if proven else "time_limit",
+                status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
                 upper_bound=float(values[i]) if proven else max(float(values[i]), bound),
                 stats=stats,
             )

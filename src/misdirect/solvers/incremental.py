@@ -34,6 +34,7 @@ from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
+    Status,
     best_per_budget,
     check_time_limit,
     refuse_options,
@@ -173,8 +174,9 @@ class IncrementalSolver:
             done += 1
             report(progress, done, n_outer, stage="incremental")
 
-        costs_a, values_a = np.concatenate(costs), np.clip(
-            np.concatenate(values), 0.0, problem.objective.max_value
+        costs_a, values_a = (
+            np.concatenate(costs),
+            np.clip(np.concatenate(values), 0.0, problem.objective.max_value),
         )
         offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
         stats = {
@@ -202,8 +204,8 @@ class IncrementalSolver:
                 Solution(
                     budget=budget,
                     alteration=self._alpha(problem, space, outer, inner, picks, offsets, index),
-                    claimed_probability=float(values_a[index]),
-                    status="optimal" if finished else "time_limit",
+                    solver_probability=float(values_a[index]),
+                    status=Status.OPTIMAL if finished else Status.TIME_LIMIT,
                     upper_bound=bound,
                     stats=stats,
                 )

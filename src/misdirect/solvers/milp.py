@@ -34,6 +34,7 @@ from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
+    Status,
     check_time_limit,
     report,
 )
@@ -63,7 +64,7 @@ GAP_TOLERANCE = 1e-9  # a bound this close to the incumbent counts as a proof of
 FEASIBILITY_SLACK = 1e-9  # a point further than this from feasible gets its claim recomputed
 
 
-def _status(result: BackendResult, value: float | None) -> str:
+def _status(result: BackendResult, value: float | None) -> Status:
     """The backend's status, except that a solve it calls optimal while its bound lies more
     than 1e-9 above ``value`` (its incumbent's: the better of its objective and the claim) is
     ``gap_limit``, a stop because the gap fell under ``--mip-gap``: optimal means the bound
@@ -74,8 +75,8 @@ def _status(result: BackendResult, value: float | None) -> str:
         and value is not None
         and result.bound - value > GAP_TOLERANCE * max(1.0, abs(result.bound)) + 1e-12
     ):
-        return "gap_limit"
-    return result.status
+        return Status.GAP_LIMIT
+    return Status(result.status)  # optimal or time_limit: checked by the caller
 
 
 class MilpSolver:
@@ -174,7 +175,7 @@ class MilpSolver:
                 else None
             )
             exact = decoy_probability(problem, alteration)
-            if upper_bound is None and model.sound and status != "optimal":
+            if upper_bound is None and model.sound and status != Status.OPTIMAL:
                 # stopped before the solver had a bound: the MDP relaxation's is always proven
                 # (computed once, at the largest budget, which bounds every smaller one)
                 if relaxed is None:
@@ -183,12 +184,12 @@ class MilpSolver:
                     relaxed = relaxation_bound(problem, max(budgets))
                 upper_bound = max(relaxed, exact)
             not_certified = None
-            if status == "optimal" and (
+            if status == Status.OPTIMAL and (
                 upper_bound is None or upper_bound - exact > CERTIFY_TOLERANCE
             ):
                 # within the solver's tolerances, but not proven to 1e-9 for the alteration
                 # it returns (its point may rely on rows or binaries off by 1e-6): not optimal
-                status = "feasible"
+                status = Status.FEASIBLE
                 not_certified = (
                     "the formulation proves no bound"
                     if upper_bound is None
@@ -213,7 +214,7 @@ class MilpSolver:
                 Solution(
                     budget=budget,
                     alteration=alteration,
-                    claimed_probability=claimed,
+                    solver_probability=claimed,
                     status=status,
                     upper_bound=upper_bound,
                     stats=stats,
