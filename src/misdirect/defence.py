@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.alterations import alteration_space
-from misdirect.choice_product import build_choice_product
+from misdirect.attack import prepare
 from misdirect.errors import ProblemError, SolverError
 from misdirect.model import Problem, reachable_from
 from misdirect.reachability import reach_probabilities
@@ -147,8 +147,7 @@ def online_attack_value(problem: Problem, budget: float | None = None) -> Online
     started = time.perf_counter()
     if budget is not None and not (math.isfinite(budget) and budget >= 0):
         raise ProblemError(f"must be a non-negative number, got {budget}", field="budget")
-    space = alteration_space(problem.with_budget(math.inf))
-    chain = build_choice_product(problem, space)
+    chain = prepare(problem, math.inf).chain
     values, _, evaluations = max_reach(
         chain.group_state,
         chain.transitions,

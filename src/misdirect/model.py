@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -211,6 +212,12 @@ class Problem:
 
     def with_budget(self, budget: float) -> Problem:
         return replace(self, budget=float(budget))
+
+    @cached_property
+    def prepared_attacks(self) -> dict[float, Any]:
+        """:class:`misdirect.attack.AttackInstance` s built for this problem, by budget, so
+        that a second solver on the same problem does not build them again."""
+        return {}
 
     def unweighted(self) -> Problem:
         """The same problem scoring 1 for every decoy state: Pr(reach any decoy)."""

@@ -36,8 +36,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from misdirect.alterations import alteration_space
-from misdirect.choice_product import ChoiceProduct, build_choice_product, end_component_states
+from misdirect.attack import prepare
+from misdirect.choice_product import ChoiceProduct
 from misdirect.milp.model import MilpModel, ModelBuilder
 from misdirect.model import Alteration, Problem
 from misdirect.reachability import reach_probabilities
@@ -52,11 +52,9 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     """The compact formulation for ``problem`` (budget row set to ``budget``)."""
     started = time.perf_counter()
     budget = problem.budget if budget is None else float(budget)
-    space = alteration_space(problem.with_budget(budget))
-    chain = build_choice_product(problem, space)
+    instance = prepare(problem, budget)
+    chain, live = instance.chain, instance.live
     options = chain.options
-
-    live = chain.can_reach_target() & ~chain.target
     z_of = np.full(chain.n_states, -1, dtype=np.int64)
     z_of[live] = np.arange(int(live.sum()))
 
@@ -108,7 +106,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         scale=BELLMAN_SCALE,
     )
 
-    cycling = end_component_states(chain.group_state, chain.transitions, live)
+    cycling = instance.cycling
     if cycling.any():
         _add_witness_rows(model, chain, cycling, z0, z_of, y0)
 

@@ -35,8 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from misdirect.alterations import alteration_space
-from misdirect.choice_product import build_choice_product
+from misdirect.attack import AttackInstance, prepare
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
 from misdirect.solvers.base import (
@@ -92,7 +91,8 @@ class AutoSolver:
         """``seeds`` (one alteration per budget, optional) start branch-and-bound."""
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
-        space = alteration_space(problem.with_budget(top))
+        instance = prepare(problem, top)
+        space = instance.space
         count = space.count_within(top, INCREMENTAL_LIMIT)
         reason = (
             f"{count:,} alterations fit the budget"
@@ -151,7 +151,7 @@ class AutoSolver:
                 problem, budgets, progress=progress, deadline=deadline
             )
             return _label(solutions, "exhaustive", reason)
-        largest, product_states = _largest_observation(problem, space)
+        largest, product_states = _largest_observation(instance)
         if largest <= KNAPSACK_STATES:
             reason += (
                 f"; knapsack-like (each observation owns at most {largest} live product "
@@ -274,15 +274,12 @@ def _evaluation_time(problem: Problem) -> float:
     return time.perf_counter() - began
 
 
-def _largest_observation(problem: Problem, space) -> tuple[int, int]:
+def _largest_observation(instance: AttackInstance) -> tuple[int, int]:
     """Live product states owned by the relevant observation that owns the most, and the
     number of states of the choice product."""
-    chain = build_choice_product(problem, space)
-    live = chain.can_reach_target() & ~chain.target
-    observations = np.array([c.observation for c in space.choices], dtype=np.int64)
-    owner = problem.pomdp.observation_of[chain.world_state[live]]
-    counts = np.bincount(owner, minlength=problem.pomdp.n_observations)
-    return int(counts[observations].max(initial=0)), int(chain.n_states)
+    observations = np.array([c.observation for c in instance.space.choices], dtype=np.int64)
+    counts = instance.live_states_per_observation
+    return int(counts[observations].max(initial=0)), int(instance.chain.n_states)
 
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:

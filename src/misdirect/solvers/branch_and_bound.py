@@ -32,8 +32,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from misdirect.alterations import AlterationSpace, alteration_space
-from misdirect.choice_product import ChoiceProduct, build_choice_product
+from misdirect.alterations import AlterationSpace
+from misdirect.attack import prepare
+from misdirect.choice_product import ChoiceProduct
 from misdirect.errors import ProblemError
 from misdirect.model import Alteration, Problem
 from misdirect.reachability import reach_probabilities
@@ -266,9 +267,8 @@ class BranchAndBoundSolver:
         incumbents, that the search starts from."""
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
-        space = alteration_space(problem.with_budget(top))
-        chain = build_choice_product(problem, space)
-        relax = _Relaxation(problem, space, chain)
+        instance = prepare(problem, top)
+        relax = _Relaxation(problem, instance.space, instance.chain)
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
         policy = relax.best_groups(relax.live_groups.astype(np.float64))[0]
         incumbent: tuple[tuple[int, ...], float] | None = None
@@ -441,9 +441,8 @@ class _Search:
 
 def relaxation_bound(problem: Problem, budget: float) -> float:
     """Root bound of the search: the relaxation's optimum with every observation free."""
-    space = alteration_space(problem.with_budget(budget))
-    chain = build_choice_product(problem, space)
-    relax = _Relaxation(problem, space, chain)
+    instance = prepare(problem, budget)
+    relax = _Relaxation(problem, instance.space, instance.chain)
     allowed = relax.allowed_groups(relax.allowed_options((), budget))
     start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
     return relax.optimise(allowed, start)[0]

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from misdirect.alterations import alteration_space
+from misdirect.attack import prepare
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
@@ -50,7 +50,7 @@ class ExhaustiveSolver:
     ) -> list[Solution]:
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
-        space = alteration_space(problem.with_budget(top))
+        space = prepare(problem, top).space
         enumerated = space.within(top, limit=self.max_evaluations)
         if enumerated is None:
             raise SolverError(

@@ -24,8 +24,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from misdirect.alterations import alteration_space
-from misdirect.choice_product import build_choice_product, end_component_states
+from misdirect.attack import prepare
 from misdirect.errors import SolverError
 from misdirect.evaluate import decoy_probability
 from misdirect.model import Problem
@@ -75,10 +74,9 @@ class IncrementalSolver:
     ) -> list[Solution]:
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
-        space = alteration_space(problem.with_budget(top))
-        chain = build_choice_product(problem, space)
-        live = chain.can_reach_target() & ~chain.target
-        if end_component_states(chain.group_state, chain.transitions, live).any():
+        instance = prepare(problem, top)
+        space, chain, live = instance.space, instance.chain, instance.live
+        if instance.cycling.any():
             raise NotApplicableError(
                 "the chain can cycle without reaching the decoy under some alteration, so "
                 "low-rank updates are not safe here; use --method auto, exhaustive or milp"

@@ -1,0 +1,67 @@
+"""One problem as the attacker sees it, prepared once and shared by every solver.
+
+The attacker's real choices (:mod:`misdirect.alterations`), the MDP they span over the product
+states (:mod:`misdirect.choice_product`), which product states can still reach a decoy, how many
+of those each observation owns, and where the chain could cycle: auto measures these to pick a
+method, then the method it picks needs them again, and a curve's fallback stages once more.
+:func:`prepare` builds them once per problem and budget range; every solver asks it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from misdirect.alterations import AlterationSpace, alteration_space
+from misdirect.choice_product import ChoiceProduct, build_choice_product, end_component_states
+from misdirect.model import Problem
+
+
+@dataclass(eq=False)
+class AttackInstance:
+    """Everything about ``problem`` that does not depend on one alteration, for budgets up to
+    ``budget`` (a larger budget's instance serves every smaller one: solvers filter options by
+    the budget they solve for)."""
+
+    problem: Problem
+    budget: float
+    space: AlterationSpace
+
+    @cached_property
+    def chain(self) -> ChoiceProduct:
+        """The attacker's MDP over the product states reachable under some alteration."""
+        return build_choice_product(self.problem, self.space)
+
+    @cached_property
+    def live(self) -> np.ndarray:
+        """Product states outside the decoy from which some alteration can still reach it: the
+        only ones whose value is unknown (elsewhere it is the decoy's weight, or 0)."""
+        return self.chain.can_reach_target() & ~self.chain.target
+
+    @cached_property
+    def live_states_per_observation(self) -> np.ndarray:
+        """How many live product states emit each observation: altering it changes their rows,
+        and only theirs."""
+        emitted = self.problem.pomdp.observation_of[self.chain.world_state[self.live]]
+        return np.bincount(emitted, minlength=self.problem.pomdp.n_observations)
+
+    @cached_property
+    def cycling(self) -> np.ndarray:
+        """Live states in some end component: where an alteration can make the chain cycle
+        forever without reaching the decoy (the MILP's witness rows, incremental's refusal)."""
+        chain = self.chain
+        return end_component_states(chain.group_state, chain.transitions, self.live)
+
+
+def prepare(problem: Problem, budget: float) -> AttackInstance:
+    """The prepared instance of ``problem`` for budgets up to ``budget``: one already built for
+    this or a larger budget, else a new one (kept on the problem for the next solver)."""
+    prepared = problem.prepared_attacks
+    fitting = [b for b in prepared if b >= budget - 1e-12]
+    if fitting:
+        return prepared[min(fitting)]
+    instance = AttackInstance(problem, float(budget), alteration_space(problem.with_budget(budget)))
+    prepared[float(budget)] = instance
+    return instance
