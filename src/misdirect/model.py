@@ -306,6 +306,33 @@ class Controller:
         :meth:`move_entries` (``owner`` indexes the given cells)."""
         return self.move_entries(self.move[node, received])
 
+    def move_table(self, move: int) -> list[tuple[int, int, float]]:
+        """Move ``move`` as ``[(action, next node, probability), ...]`` (for writing it)."""
+        at = slice(int(self.move_ptr[move]), int(self.move_ptr[move + 1]))
+        return list(
+            zip(
+                self.move_action[at].tolist(),
+                self.move_next[at].tolist(),
+                self.move_probability[at].tolist(),
+                strict=True,
+            )
+        )
+
+    def factored_move(self, move: int) -> tuple[dict[int, float], dict[int, float]] | None:
+        """The action and next-node marginals of ``move`` when the move is their product
+        (within 1e-12: the factored form describes it), else None."""
+        table = self.move_table(move)
+        by_action: dict[int, float] = {}
+        by_next: dict[int, float] = {}
+        for a, n, p in table:
+            by_action[a] = by_action.get(a, 0.0) + p
+            by_next[n] = by_next.get(n, 0.0) + p
+        if len(table) != len(by_action) * len(by_next):
+            return None
+        if any(abs(p - by_action[a] * by_next[n]) > 1e-12 for a, n, p in table):
+            return None
+        return by_action, by_next
+
     @cached_property
     def behaviour_class(self) -> np.ndarray:
         """Class id per observation; equal ids mean the same move distribution on every node.
