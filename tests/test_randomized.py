@@ -8,7 +8,6 @@ tests/test_exhaustive.py); PAYNT's own induced chain of a randomized FscFactored
 from __future__ import annotations
 
 import json
-import re
 import textwrap
 from pathlib import Path
 
@@ -79,7 +78,7 @@ def test_tiny_randomized_controller_by_hand(tmp_path):
     assert decoy_probability(problem, problem.identity()) == pytest.approx(57 / 160, abs=1e-15)
     # the factored rule is the product: four (action, next) pairs in node n0
     o = problem.pomdp.observations.index("o")
-    owner, action, nxt, p = problem.controller.entries(np.array([0]), np.array([o]))
+    _, action, nxt, p = problem.controller.entries(np.array([0]), np.array([o]))
     assert sorted(zip(action.tolist(), nxt.tolist(), p.tolist(), strict=True)) == [
         (0, 0, 0.375),
         (0, 1, 0.375),
@@ -320,7 +319,10 @@ BAD_RULES = {  # changes to rule 0 (node n0, observation o), field, words of the
         {
             "action": None,
             "next": None,
-            "moves": [{"action": "a", "next": "n0", "p": 0.3}, {"action": "b", "next": "n1", "p": 0.3}],
+            "moves": [
+                {"action": "a", "next": "n0", "p": 0.3},
+                {"action": "b", "next": "n1", "p": 0.3},
+            ],
         },
         "controller.rules[0].moves",
         "sum to 0.6",
