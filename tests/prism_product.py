@@ -3,7 +3,11 @@
 Two modules synchronise on action labels: ``world`` owns the state ``s`` and moves it with
 ``P(s, a, ·)``; ``controller`` owns the node ``n`` and, reading the observation the altered
 sensor shows in ``s``, enables exactly one action label and updates ``n``. Storm's parallel
-composition is therefore an independent construction of the product chain. Probabilities are
+composition is therefore an independent construction of the product chain. A randomized
+controller takes two steps per world step: an internal command draws the entry ``e`` of its
+move (a distribution over (action, next node)) with the move's probabilities, then the
+synchronised command ``[act<a>] e=k`` plays that entry's action and sets the node; the
+intermediate states add steps, not probability, so Pr(F decoy) is unchanged. Probabilities are
 written as exact fractions where they are ratios of small integers, so Storm can check the
 model in exact rational arithmetic.
 """
@@ -53,11 +57,35 @@ def prism_product(problem: Problem, alteration: np.ndarray) -> str:
     ]
     # Every label must be in the controller's alphabet, or the world would fire it on its own.
     lines += [f"  [act{a}] false -> true;" for a in range(pomdp.n_actions)]
+    if not ctrl.is_deterministic:
+        return _randomized(problem, received, lines)
     for n in range(ctrl.n_nodes):
         behaviour = np.stack([ctrl.action[n, received], ctrl.update[n, received]], axis=1)
         for a, nxt in np.unique(behaviour, axis=0):
             states = np.flatnonzero((behaviour[:, 0] == a) & (behaviour[:, 1] == nxt))
             lines.append(f"  [act{a}] n={n} & {_any('s', states)} -> 1:(n'={nxt});")
+    lines.append("endmodule")
+    lines.append(f'label "decoy" = {_any("s", np.flatnonzero(problem.decoy))};')
+    return "\n".join(lines) + "\n"
+
+
+def _randomized(problem: Problem, received: np.ndarray, lines: list[str]) -> str:
+    """The controller module of a randomized controller: draw an entry, then play it."""
+    ctrl = problem.controller
+    entries = ctrl.move_action.size
+    lines.insert(lines.index("module controller") + 2, f"  e : [-1..{entries - 1}] init -1;")
+    for n in range(ctrl.n_nodes):
+        moves = ctrl.move[n, received]  # the move played in each world state
+        for m in np.unique(moves):
+            states = np.flatnonzero(moves == m)
+            first, last = ctrl.move_ptr[m], ctrl.move_ptr[m + 1]
+            branches = " + ".join(
+                f"{_exact(ctrl.move_probability[k])}:(e'={k})" for k in range(first, last)
+            )
+            lines.append(f"  [] e=-1 & n={n} & {_any('s', states)} -> {branches};")
+    for k in range(entries):
+        a, nxt = ctrl.move_action[k], ctrl.move_next[k]
+        lines.append(f"  [act{a}] e={k} -> 1:(n'={nxt}) & (e'=-1);")
     lines.append("endmodule")
     lines.append(f'label "decoy" = {_any("s", np.flatnonzero(problem.decoy))};')
     return "\n".join(lines) + "\n"

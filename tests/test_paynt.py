@@ -135,10 +135,10 @@ MALFORMED = {
         "update_function[0][1]",
         "empty",
     ),
-    "randomized": (
-        _bad(action_function=[[0, {"0": 0.5, "1": 0.5}, 1], [1, 1, 1]]),
+    "randomized, not summing to 1": (  # randomized ones load (tests/test_randomized.py)
+        _bad(action_function=[[0, {"0": 0.5, "1": 0.4}, 1], [1, 1, 1]]),
         "action_function[0][1]",
-        "randomized",
+        "sum to 0.9",
     ),
     "bad randomized": (
         _bad(action_function=[[0, {"a": 1.0}, 1], [1, 1, 1]]),

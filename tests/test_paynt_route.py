@@ -62,6 +62,13 @@ def _constants(text: str, constants: str | None) -> str:
 
 def _run_paynt(tmp_path: Path, case: str):
     """PAYNT's own API: its JSON of the controller (unedited), its value, its POMDP."""
+    result, factory, _ = _synthesize(tmp_path, case)
+    return json.loads(str(result.fsc)), float(result.value), factory.pomdp
+
+
+def _synthesize(tmp_path: Path, case: str):
+    """PAYNT's result, sketch factory and synthesizer; the controller written as PAYNT
+    writes it to robot.fsc.json."""
     model, constants, prop, memory = CASES[case]
     sketch = tmp_path / f"{model}-sketch.prism"
     text = (DATA / f"{model}.prism").read_text()
@@ -77,7 +84,7 @@ def _run_paynt(tmp_path: Path, case: str):
     result = synthesizer.build_result()
     assert result.fsc is not None
     (tmp_path / "robot.fsc.json").write_text(str(result.fsc))  # PAYNT's own __str__: its JSON
-    return json.loads(str(result.fsc)), float(result.value), factory.pomdp
+    return result, factory, synthesizer
 
 
 def _problem(tmp_path: Path, case: str, decoy: str = "bad", name: str = "p.yaml") -> Path:
@@ -273,20 +280,68 @@ def test_point_distributions_and_joint_form_load(tmp_path):
         assert np.array_equal(problem.controller.update, reference.controller.update)
 
 
-def test_randomized_controllers_are_refused_in_one_line(tmp_path):
-    fsc, _, _ = _run_paynt(tmp_path, "grid")
-    randomized = json.loads(json.dumps(fsc))
-    randomized["action_function"][0][2] = {"0": 0.5, "2": 0.5}
-    joint = {k: v for k, v in fsc.items() if k not in ("action_function", "update_function")}
-    joint["transitions"] = [[[[0, 0, 0.5], [0, 1, 0.5]]] * fsc["num_observations"]]
-    joint["num_nodes"] = 1
-    for variant, field in ((randomized, "action_function[0][2]"), (joint, "transitions[0][0]")):
-        path = _write_fsc(tmp_path, variant)
-        result = runner.invoke(app, ["evaluate", str(path)])
-        assert result.exit_code == 2, result.output
-        assert result.stderr.count("\n") == 1
-        assert f"{field}: randomized" in result.stderr
-        assert "randomized controllers are not supported yet" in result.stderr
+@pytest.mark.parametrize("case", list(CASES))
+def test_randomized_paynt_controllers_agree_with_paynt(tmp_path, case):
+    """PAYNT 0.5's AR synthesis gives deterministic FSCs (its randomized ones come from SAYNT,
+    Storm's belief exploration), so the randomized FSC is built with PAYNT's own FscFactored
+    from the synthesized one: in node 0 the actions enabled at each observation are mixed
+    (weights 3:1:...) and the next node is drawn uniformly; node 1 keeps PAYNT's choice.
+    It is written by PAYNT's own to_json and loaded unedited. The oracle is PAYNT's own
+    induced chain of a randomized FscFactored (paynt.pomdp._utils.get_induced_dtmc_from_fsc,
+    action and update drawn independently), checked by Storm."""
+    import paynt.pomdp._utils as paynt_utils
+    from paynt.pomdp.fsc import FscFactored
+
+    result, _, synthesizer = _synthesize(tmp_path, case)
+    info = synthesizer.colored_mdp.feature_info
+    fsc = result.fsc
+    randomized = FscFactored(fsc.num_nodes, fsc.num_observations, is_deterministic=False)
+    randomized.action_labels, randomized.observation_labels = (
+        fsc.action_labels,
+        fsc.observation_labels,
+    )
+    index = {label: i for i, label in enumerate(fsc.action_labels)}
+    mixed = 0
+    for n in range(fsc.num_nodes):
+        for z in range(fsc.num_observations):
+            if fsc.action_function[n][z] is None:
+                randomized.action_function[n][z] = randomized.update_function[n][z] = None
+                continue
+            enabled = [index[label] for label in info.action_labels_at_observation[z]]
+            if n == 0 and len(enabled) > 1:
+                weights = [3.0] + [1.0] * (len(enabled) - 1)
+                randomized.action_function[n][z] = {
+                    a: w / sum(weights) for a, w in zip(enabled, weights, strict=True)
+                }
+                mixed += 1
+            else:
+                randomized.action_function[n][z] = {fsc.action_function[n][z]: 1.0}
+            randomized.update_function[n][z] = (
+                {m: 1.0 / fsc.num_nodes for m in range(fsc.num_nodes)}
+                if n == 0
+                else {fsc.update_function[n][z]: 1.0}
+            )
+    assert mixed > 0
+    (tmp_path / "robot.fsc.json").write_text(str(randomized))  # PAYNT's own to_json
+    dtmc = paynt_utils.get_induced_dtmc_from_fsc(info, randomized)
+    for label in ("bad", "goal"):
+        formula = stormpy.parse_properties(f'P=? [F "{label}"]')[0]
+        expected = stormpy.model_checking(dtmc, formula).get_value(dtmc.initial_states[0])
+        problem = load_problem(_problem(tmp_path, case, decoy=label, name=f"{label}.yaml"))
+        assert not problem.controller.is_deterministic
+        ours = decoy_probability(problem, problem.identity())
+        assert ours == pytest.approx(expected, abs=1e-6), label  # Storm's default precision
+    # and the attacked robot: misdirect's optimum re-checked by Storm's own product
+    problem = load_problem(_problem(tmp_path, case))
+    best = solve(problem, budgets=[1])
+    alteration = problem.alteration(best.alteration)
+    path = tmp_path / "product.prism"
+    path.write_text(prism_product(problem, alteration))
+    program = stormpy.parse_prism_program(str(path))
+    formula = stormpy.parse_properties('P=? [F "decoy"]', program)
+    model = stormpy.build_model(program, formula)
+    exact = stormpy.model_checking(model, formula[0]).get_value(model.initial_states[0])
+    assert best.probability == pytest.approx(exact, abs=1e-6)
 
 
 def test_controller_of_another_model_is_one_clear_error(tmp_path):

@@ -3,8 +3,10 @@
 In product state ``(s, n)`` the robot receives ``α(O(s))``, and the attacker's candidates for
 ``O(s)`` (one per behaviour class, :mod:`misdirect.alterations`) decide the robot's action and
 next memory node. Different candidates often make the robot do the same thing *at this node*;
-those share one **group** ``(s, n, action, next node)``. A group is a choice of this MDP, and the
-options that select it are recorded so a MILP can switch its Bellman row on and off.
+those share one **group** ``(s, n, move)``, the move being the controller's distribution over
+(action, next node) (one pair for a deterministic controller) and the group's row its mixture.
+A group is a choice of this MDP, and the options that select it are recorded so a MILP can
+switch its Bellman row on and off.
 
 The MDP over-approximates the attacker: it lets every product state choose independently,
 whereas an alteration makes one choice per observation. It is used for what holds under *every*
@@ -137,27 +139,30 @@ def build_choice_product(
     within = np.arange(pair.size) - np.repeat(np.cumsum(counts) - counts, counts)
     cand = cand_start[pair_obs[pair]] + within
     node = pair % n_n
-    action = controller.action[node, cand_target[cand]]
-    next_node = controller.update[node, cand_target[cand]]
+    move = controller.move[node, cand_target[cand]]
 
-    # one group per distinct (pair, action, next node)
-    n_a = pomdp.n_actions
-    keys = (pair.astype(np.int64) * n_a + action) * n_n + next_node  # lexicographic order
+    # one group per distinct (pair, move); its row is the mixture over the move's entries
+    n_m = controller.n_moves
+    keys = pair.astype(np.int64) * n_m + move  # lexicographic order
     unique_keys, group_of = np.unique(keys, return_inverse=True)
     group_of = group_of.reshape(-1)
-    g_pair, g_rest = np.divmod(unique_keys, n_a * n_n)
-    g_action, g_next = np.divmod(g_rest, n_n)
+    g_pair, g_move = np.divmod(unique_keys, n_m)
     n_groups = g_pair.size
     with_option = cand_option[cand] >= 0
     group_options = sp.csr_matrix(
         (np.ones(int(with_option.sum())), (group_of[with_option], cand_option[cand][with_option])),
         shape=(n_groups, options.size),
     )
-    g_world = g_pair // n_n
-    rows = pomdp.transitions[g_action * n_s + g_world]
-    entry_group = np.repeat(np.arange(n_groups), np.diff(rows.indptr))
-    columns = rows.indices.astype(np.int64) * n_n + g_next[entry_group]
-    transitions = sp.csr_matrix((rows.data, columns, rows.indptr), shape=(n_groups, n_s * n_n))
+    owner, g_action, g_next, g_probability = controller.move_entries(g_move)
+    rows = pomdp.transitions[g_action * n_s + g_pair[owner] // n_n]
+    entry = np.repeat(np.arange(owner.size), np.diff(rows.indptr))
+    columns = rows.indices.astype(np.int64) * n_n + g_next[entry]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(owner[entry], minlength=n_groups))])
+    transitions = sp.csr_matrix(
+        (rows.data * g_probability[entry], columns, indptr), shape=(n_groups, n_s * n_n)
+    )
+    if not controller.is_deterministic:
+        transitions.sum_duplicates()  # two entries of a move can lead to the same (s', n')
 
     start = pomdp.initial_state * n_n + controller.initial_node
     if reachable_only:

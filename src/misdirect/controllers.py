@@ -25,11 +25,10 @@ import numpy as np
 
 from misdirect.errors import ProblemError
 from misdirect.io_utils import parse_json, read_text_file
-from misdirect.model import Controller, CostModel, Pomdp
+from misdirect.model import Controller, CostModel, Pomdp, factored_entries
 from misdirect.storm_models import NO_LABEL, PAYNT_NO_LABEL, PayntView, valuation_name
 
 FIELD = "controller.paynt"
-TOLERANCE = 1e-9  # a distribution is deterministic if one entry is 1 within this
 SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking
 _GENERATED = re.compile(r"^\w+_cmd_\d+$")  # PAYNT's name for an unlabelled PRISM command
 _PAIR = re.compile(r"^\s*[(\[]?\s*(\d+)\s*,\s*(\d+)\s*[)\]]?\s*$")
@@ -150,8 +149,8 @@ def read_paynt_controller(
                     "observation)",
                 )
 
-    action = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
-    update = np.full((n_nodes, pomdp.n_observations), -1, dtype=np.int64)
+    # flat entries (node, observation, action, next node, probability) of every cell
+    cells: list[tuple[int, int, int, int, float]] = []
     never: set[int] = set()
     for n in range(n_nodes):
         for k, o in enumerate(obs_columns):
@@ -159,8 +158,7 @@ def read_paynt_controller(
                 continue
             if joint:
                 where = f"transitions[{n}][{k}]"
-                pair = _joint_entry(document["transitions"][n][k], where, fail)
-                chosen, target = pair if pair is not None else (None, None)
+                pairs = _joint_entry(document["transitions"][n][k], where, fail)
                 action_where = update_where = where
             else:
                 action_where, update_where = (
@@ -169,48 +167,65 @@ def read_paynt_controller(
                 )
                 chosen = _point(document["action_function"][n][k], action_where, "action", fail)
                 target = _point(document["update_function"][n][k], update_where, "node", fail)
-            if chosen is None and target is None:
+                if chosen is None and target is not None:
+                    raise fail(
+                        action_where, "empty, but update_function has a node here; fill it in"
+                    )
+                if target is None and chosen is not None:
+                    raise fail(
+                        update_where, "empty, but action_function has an action here; fill it in"
+                    )
+                pairs = (
+                    None
+                    if chosen is None or target is None
+                    else factored_entries(dict(chosen), dict(target))
+                )
+            if pairs is None:
                 if o == pomdp.initial_observation and n == 0:
                     raise fail(
                         action_where,
                         "empty, but the robot starts in node 0 reading this observation",
                     )
                 never.add(o)
-                action[n, o], update[n, o] = action_of[0] if action_of else 0, n
+                cells.append((n, o, action_of[0] if action_of else 0, n, 1.0))
                 continue
-            if chosen is None:
-                raise fail(action_where, "empty, but update_function has a node here; fill it in")
-            if target is None:
-                raise fail(
-                    update_where, "empty, but action_function has an action here; fill it in"
-                )
-            if not 0 <= chosen < len(action_of):
-                raise fail(
-                    action_where,
-                    f"action index {chosen} is out of range (action_labels has "
-                    f"{len(action_of)} entries)",
-                )
-            if not 0 <= target < n_nodes:
-                raise fail(
-                    update_where,
-                    f"node {target} is out of range (the controller has "
-                    f"{n_nodes} nodes, 0..{n_nodes - 1})",
-                )
-            if by_position and view.available[k]:
-                ours = pomdp.actions[action_of[chosen]]
-                enabled = {view.actions.get(label, label) for label in view.available[k]}
-                if ours not in enabled:
+            for chosen, target, p in pairs:
+                if not 0 <= chosen < len(action_of):
                     raise fail(
                         action_where,
-                        f"plays {ours!r}, which PAYNT's observation {k} does not enable in "
-                        f"this model ({', '.join(sorted(enabled))}): PAYNT built another "
-                        "model (other constants, or another property: give its property as "
-                        "pomdp.terminal_from)",
+                        f"action index {chosen} is out of range (action_labels has "
+                        f"{len(action_of)} entries)",
                     )
-            action[n, o] = action_of[chosen]
-            update[n, o] = target
-    controller = Controller(
-        nodes=tuple(f"n{n}" for n in range(n_nodes)), initial_node=0, action=action, update=update
+                if not 0 <= target < n_nodes:
+                    raise fail(
+                        update_where,
+                        f"node {target} is out of range (the controller has "
+                        f"{n_nodes} nodes, 0..{n_nodes - 1})",
+                    )
+                if by_position and view.available[k]:
+                    ours = pomdp.actions[action_of[chosen]]
+                    enabled = {view.actions.get(label, label) for label in view.available[k]}
+                    if ours not in enabled:
+                        raise fail(
+                            action_where,
+                            f"plays {ours!r}, which PAYNT's observation {k} does not enable in "
+                            f"this model ({', '.join(sorted(enabled))}): PAYNT built another "
+                            "model (other constants, or another property: give its property as "
+                            "pomdp.terminal_from)",
+                        )
+                cells.append((n, o, action_of[chosen], target, p))
+    node, observation, action, next_node, probability = (
+        np.array(column) for column in zip(*cells, strict=True)
+    )
+    controller = Controller.from_entries(
+        nodes=tuple(f"n{n}" for n in range(n_nodes)),
+        initial_node=0,
+        n_observations=pomdp.n_observations,
+        node=node,
+        observation=observation,
+        action=action,
+        next_node=next_node,
+        probability=probability,
     )
     return PayntController(controller, np.array(sorted(never), dtype=np.int64))
 
@@ -323,24 +338,13 @@ def _distribution(items: list[tuple[Any, Any]], where: str, fail) -> list[tuple[
             support.append((key, float(p)))
     if abs(total - 1.0) > SUM_TOLERANCE:
         raise fail(where, f"probabilities sum to {total:.12g}, not 1")
-    return support
+    return [(key, p / total) for key, p in support]  # PAYNT's floats, made to sum to 1
 
 
-def _certain(support: list[tuple[Any, float]], where: str, fail) -> Any:
-    """The one outcome of a distribution that is certain; a randomized one is refused."""
-    if len(support) == 1 and abs(support[0][1] - 1.0) <= TOLERANCE:
-        return support[0][0]
-    shown = ", ".join(f"{key}: {p:.6g}" for key, p in support[:4])
-    raise fail(
-        where,
-        f"randomized ({shown}); randomized controllers are not supported yet: misdirect "
-        "needs a deterministic controller",
-    )
-
-
-def _point(entry: Any, where: str, what: str, fail) -> int | None:
-    """One ``action_function``/``update_function`` entry as an index (None when empty): an
-    integer, or a ``{index: probability}`` distribution that puts probability 1 on one."""
+def _point(entry: Any, where: str, what: str, fail) -> list[tuple[int, float]] | None:
+    """One ``action_function``/``update_function`` entry as a distribution
+    ``[(index, probability), ...]`` (None when empty): an integer (probability 1), or a
+    ``{index: probability}`` map (PAYNT's randomized FscFactored)."""
     if entry is None:
         return None
     if isinstance(entry, dict):
@@ -349,16 +353,17 @@ def _point(entry: Any, where: str, what: str, fail) -> int | None:
             if not re.fullmatch(r"\s*\d+\s*", str(key)):
                 raise fail(where, f"a randomized choice must map {what} indices to probabilities")
             items.append((int(key), p))
-        return _certain(_distribution(items, where, fail), where, fail)
+        return _distribution(items, where, fail)
     if not _is_index(entry):
         article = "an" if what[0] in "aeiou" else "a"
         raise fail(where, f"expected {article} {what} index (integer), got {entry!r}")
-    return entry
+    return [(entry, 1.0)]
 
 
-def _joint_entry(entry: Any, where: str, fail) -> tuple[int, int] | None:
+def _joint_entry(entry: Any, where: str, fail) -> list[tuple[int, int, float]] | None:
     """One entry of PAYNT's joint ``Fsc`` (``transitions[node][obs]``, a distribution over
-    (action, next node)) as that pair when it is certain; None when empty. Accepted forms:
+    (action, next node)) as ``[(action, next node, probability), ...]``; None when empty.
+    Accepted forms:
     ``{"(a, m)": p}`` (also ``"a,m"``), ``[[a, m, p], ...]`` and
     ``[{"action": a, "update": m, "probability": p}, ...]`` (``memory``/``node`` for
     ``update``, ``prob`` for ``probability``)."""
@@ -392,25 +397,55 @@ def _joint_entry(entry: Any, where: str, fail) -> tuple[int, int] | None:
         raise fail(where, f"{shape}; got {entry!r}")
     if not items:
         raise fail(where, f"{shape}; got an empty one")
-    return _certain(_distribution(items, where, fail), where, fail)
+    return [(a, m, p) for (a, m), p in _distribution(items, where, fail)]
 
 
 def controller_to_paynt(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:
-    """Our controller in PAYNT's format (initial node first)."""
+    """Our controller in PAYNT's format (initial node first).
+
+    Deterministic: integer ``action_function``/``update_function``. Randomized: PAYNT's
+    randomized ``FscFactored`` (``{index: probability}`` maps) when every move is the product
+    of its action and next-node marginals, as FscFactored means it; otherwise the joint form
+    ``transitions[node][obs]`` = ``{"(action, node)": probability}`` (PAYNT's ``Fsc``)."""
     order = [controller.initial_node] + [
         n for n in range(controller.n_nodes) if n != controller.initial_node
     ]
-    position = {n: i for i, n in enumerate(order)}
-    return {
+    position = np.empty(controller.n_nodes, dtype=np.int64)
+    position[order] = np.arange(controller.n_nodes)
+    document: dict[str, Any] = {
         "num_nodes": controller.n_nodes,
         "num_observations": pomdp.n_observations,
-        "is_deterministic": True,
-        "action_function": [controller.action[n].tolist() for n in order],
-        "update_function": [[position[int(m)] for m in controller.update[n]] for n in order],
-        "action_labels": list(pomdp.actions),
-        "observation_labels": list(pomdp.observations),
-        "node_labels": [controller.nodes[n] for n in order],
+        "is_deterministic": controller.is_deterministic,
     }
+    if controller.is_deterministic:
+        document["action_function"] = [controller.action[n].tolist() for n in order]
+        document["update_function"] = [position[controller.update[n]].tolist() for n in order]
+    else:
+        moves = [_paynt_move(controller, m, position) for m in range(controller.n_moves)]
+        if all(move[0] is not None for move in moves):
+            for key, part in (("action_function", 0), ("update_function", 1)):
+                document[key] = [[moves[m][part] for m in controller.move[n]] for n in order]
+        else:
+            document["transitions"] = [[moves[m][2] for m in controller.move[n]] for n in order]
+    document["action_labels"] = list(pomdp.actions)
+    document["observation_labels"] = list(pomdp.observations)
+    document["node_labels"] = [controller.nodes[n] for n in order]
+    return document
+
+
+def _paynt_move(controller: Controller, m: int, position: np.ndarray) -> tuple[Any, Any, Any]:
+    """Move ``m`` as PAYNT writes it: its action and next-node marginals (None, None when the
+    move is not their product) and its joint ``{"(a, n)": p}`` map; nodes renumbered."""
+    joint = {f"({a}, {position[n]})": p for a, n, p in controller.move_table(m)}
+    factored = controller.factored_move(m)
+    if factored is None:
+        return None, None, joint
+    by_action, by_next = factored
+    return (
+        {str(a): p for a, p in sorted(by_action.items())},
+        {str(position[n]): p for n, p in sorted(by_next.items(), key=lambda x: position[x[0]])},
+        joint,
+    )
 
 
 def forbid_targets(cost: CostModel, targets: np.ndarray) -> CostModel:
@@ -431,7 +466,8 @@ def forbid_disabled_actions(
     decoy: np.ndarray | None = None,
 ) -> CostModel:
     """``disabled_action: forbid``: o -> o' is not allowed if, in some state emitting o, some
-    node's action for o' is not enabled there. The controller's own choices must be enabled.
+    node's move for o' may play an action not enabled there (for a randomized controller, any
+    action of the move's support). The controller's own choices must be enabled.
 
     Decoy and absorbing states are skipped: the run has ended there, so whatever the controller
     would play in them is never played.
@@ -440,17 +476,23 @@ def forbid_disabled_actions(
     if decoy is not None:
         ended |= decoy
     pairs = dict(cost.pairs)
+    owner, move_action, _, _ = controller.move_entries(np.arange(controller.n_moves))
     for o in range(pomdp.n_observations):
         states = np.flatnonzero((pomdp.observation_of == o) & ~ended)
         if states.size == 0:
             continue
-        # ok[t]: every node's action for received t is enabled in every state emitting o
-        ok = enabled[states][:, controller.action].all(axis=(0, 1))
+        disabled = ~enabled[states].all(axis=0)  # (|A|,) disabled in some state emitting o
+        bad_move = np.bincount(owner, weights=disabled[move_action], minlength=controller.n_moves)
+        # ok[t]: every node's move for received t plays only actions enabled here
+        ok = ~(bad_move[controller.move] > 0).any(axis=0)
         if not ok[o]:
-            bad_s, bad_n = np.nonzero(~enabled[states][:, controller.action[:, o]])
-            n, s = int(bad_n[0]), int(states[bad_s[0]])
+            n = int(np.flatnonzero(bad_move[controller.move[:, o]] > 0)[0])
+            m = int(controller.move[n, o])
+            played = controller.move_action[controller.move_ptr[m] : controller.move_ptr[m + 1]]
+            a = int(played[disabled[played]][0])
+            s = int(states[np.flatnonzero(~enabled[states, a])[0]])
             raise ProblemError(
-                f"the controller plays {pomdp.actions[controller.action[n, o]]!r} in state "
+                f"the controller plays {pomdp.actions[a]!r} in state "
                 f"{pomdp.states[s]!r} (observation {pomdp.observations[o]!r}, node "
                 f"{controller.nodes[n]!r}), which the model does not enable there; fix the "
                 "controller or use disabled_action: stay",

@@ -115,32 +115,244 @@ class Pomdp:
         return graph
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, init=False)
 class Controller:
-    """Deterministic finite-state controller.
+    """Finite-state controller, deterministic or randomized.
 
-    ``action[n, o] = γ(n, o)`` and ``update[n, o] = δ(n, o)``.
+    In node ``n`` reading ``o`` the robot plays the *move* ``move[n, o]``: a distribution over
+    (action, next node) pairs, drawn jointly. The moves are one table in CSR form: move ``m``
+    is entries ``move_ptr[m]:move_ptr[m + 1]`` of ``move_action``, ``move_next`` and
+    ``move_probability``. Moves are canonical (no zero entries, no repeated pair, entries
+    sorted by (action, next node), identical distributions share one id), so two cells play
+    the same distribution exactly when they hold the same move id. A deterministic controller
+    is the case where every move has one entry of probability 1; the factored form of the
+    literature (γ(n, o) a distribution over actions, δ(n, o) over next nodes, drawn
+    independently) is the product distribution (:func:`factored_entries`).
+
+    ``Controller(nodes=..., initial_node=..., action=..., update=...)`` builds a deterministic
+    one from ``action[n, o] = γ(n, o)`` and ``update[n, o] = δ(n, o)``;
+    :meth:`from_entries` builds any.
     """
 
     nodes: tuple[str, ...]
     initial_node: int
-    action: np.ndarray  # (|N|, |Ω|) int
-    update: np.ndarray  # (|N|, |Ω|) int
+    move: np.ndarray  # (|N|, |Ω|) int, the move played in node n on reading o
+    move_ptr: np.ndarray  # (M + 1,) int, CSR pointer into the entry arrays
+    move_action: np.ndarray  # (E,) int
+    move_next: np.ndarray  # (E,) int
+    move_probability: np.ndarray  # (E,) float, positive, summing to 1 per move
+
+    def __init__(
+        self,
+        *,
+        nodes: tuple[str, ...],
+        initial_node: int,
+        action: np.ndarray,
+        update: np.ndarray,
+    ) -> None:
+        """A deterministic controller from its action and update tables."""
+        action = np.asarray(action, dtype=np.int64)
+        update = np.asarray(update, dtype=np.int64)
+        n_nodes = len(nodes)
+        keys, move = np.unique(action * n_nodes + update, return_inverse=True)
+        move_action, move_next = np.divmod(keys, n_nodes)
+        self._assign(
+            nodes,
+            initial_node,
+            move.reshape(action.shape),
+            np.arange(keys.size + 1),
+            move_action,
+            move_next,
+            np.ones(keys.size),
+        )
+
+    def _assign(self, nodes, initial_node, move, ptr, action, next_node, probability) -> None:
+        for name, value in (
+            ("nodes", tuple(nodes)),
+            ("initial_node", int(initial_node)),
+            ("move", np.asarray(move, dtype=np.int64)),
+            ("move_ptr", np.asarray(ptr, dtype=np.int64)),
+            ("move_action", np.asarray(action, dtype=np.int64)),
+            ("move_next", np.asarray(next_node, dtype=np.int64)),
+            ("move_probability", np.asarray(probability, dtype=np.float64)),
+        ):
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_entries(
+        cls,
+        *,
+        nodes: tuple[str, ...],
+        initial_node: int,
+        n_observations: int,
+        node: np.ndarray,
+        observation: np.ndarray,
+        action: np.ndarray,
+        next_node: np.ndarray,
+        probability: np.ndarray,
+    ) -> Controller:
+        """Any controller from flat entries: in ``node[i]`` reading ``observation[i]``, play
+        ``action[i]`` and move to ``next_node[i]`` with ``probability[i]``.
+
+        Every (node, observation) needs entries summing to 1 (within 1e-9; they are then
+        normalised exactly); repeated pairs are added up. Callers check their input with
+        their own field names; this is the safety net."""
+        n_nodes = len(nodes)
+        node, observation, action, next_node = (
+            np.asarray(a, dtype=np.int64) for a in (node, observation, action, next_node)
+        )
+        probability = np.asarray(probability, dtype=np.float64)
+        n_actions = int(action.max(initial=-1)) + 1
+        cell = node * n_observations + observation
+        keys, inverse = np.unique(
+            (cell * n_actions + action) * n_nodes + next_node, return_inverse=True
+        )
+        mass = np.bincount(inverse.reshape(-1), weights=probability, minlength=keys.size)
+        keep = mass > 0
+        keys, mass = keys[keep], mass[keep]
+        rest, e_next = np.divmod(keys, n_nodes)
+        e_cell, e_action = np.divmod(rest, n_actions)
+        n_cells = n_nodes * n_observations
+        total = np.bincount(e_cell, weights=mass, minlength=n_cells)
+        if np.any(np.abs(total - 1.0) > 1e-9):
+            bad = int(np.flatnonzero(np.abs(total - 1.0) > 1e-9)[0])
+            raise ProblemError(
+                f"node {nodes[bad // n_observations]!r}, observation {bad % n_observations}: "
+                f"the move's probabilities sum to {total[bad]:.12g}, not 1",
+                field="controller",
+            )
+        mass = mass / total[e_cell]
+        # identical distributions get one move id: cells are compared among those with the
+        # same number of entries, each as one row (action, next, probability, ...)
+        count = np.bincount(e_cell, minlength=n_cells)
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        move = np.empty(n_cells, dtype=np.int64)
+        ptr, m_action, m_next, m_prob = [np.zeros(1, dtype=np.int64)], [], [], []
+        n_moves = 0
+        for k in np.unique(count).tolist():  # a handful of distinct support sizes
+            cells = np.flatnonzero(count == k)
+            at = start[cells][:, None] + np.arange(k)
+            rows = np.concatenate([e_action[at], e_next[at], mass[at]], axis=1)
+            distinct, which = np.unique(rows, axis=0, return_inverse=True)
+            move[cells] = n_moves + which.reshape(-1)
+            n_moves += distinct.shape[0]
+            ptr.append(ptr[-1][-1] + k * np.arange(1, distinct.shape[0] + 1))
+            m_action.append(distinct[:, :k].astype(np.int64).ravel())
+            m_next.append(distinct[:, k : 2 * k].astype(np.int64).ravel())
+            m_prob.append(distinct[:, 2 * k :].ravel())
+        controller = cls.__new__(cls)
+        controller._assign(
+            nodes,
+            initial_node,
+            move.reshape(n_nodes, n_observations),
+            np.concatenate(ptr),
+            np.concatenate(m_action),
+            np.concatenate(m_next),
+            np.concatenate(m_prob),
+        )
+        return controller
 
     @property
     def n_nodes(self) -> int:
         return len(self.nodes)
 
+    @property
+    def n_moves(self) -> int:
+        return int(self.move_ptr.size - 1)
+
+    @cached_property
+    def move_size(self) -> np.ndarray:
+        """Number of (action, next node) entries of each move."""
+        return np.diff(self.move_ptr)
+
+    @cached_property
+    def is_deterministic(self) -> bool:
+        """Every move is one (action, next node) pair played with probability 1."""
+        return bool(np.all(self.move_size[np.unique(self.move)] == 1))
+
+    def _deterministic_table(self, what: str, values: np.ndarray) -> np.ndarray:
+        if not self.is_deterministic:
+            raise ProblemError(
+                f"the controller is randomized: it has no single {what} per (node, "
+                "observation); use its moves (Controller.entries)",
+                field="controller",
+            )
+        return values[self.move_ptr[:-1]][self.move]
+
+    @cached_property
+    def action(self) -> np.ndarray:
+        """``γ(n, o)`` of a deterministic controller, ``(|N|, |Ω|)``."""
+        return self._deterministic_table("action", self.move_action)
+
+    @cached_property
+    def update(self) -> np.ndarray:
+        """``δ(n, o)`` of a deterministic controller, ``(|N|, |Ω|)``."""
+        return self._deterministic_table("next node", self.move_next)
+
+    def move_entries(
+        self, moves: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The entries of ``moves``, concatenated: ``(owner, action, next node, probability)``
+        with ``owner[i]`` the position in ``moves`` the entry belongs to (non-decreasing)."""
+        moves = np.asarray(moves, dtype=np.int64)
+        starts, counts = self.move_ptr[moves], self.move_size[moves]
+        owner = np.repeat(np.arange(moves.size), counts)
+        offsets = np.cumsum(counts) - counts
+        at = np.repeat(starts - offsets, counts) + np.arange(int(counts.sum()))
+        return owner, self.move_action[at], self.move_next[at], self.move_probability[at]
+
+    def entries(
+        self, node: np.ndarray, received: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What the robot may do in ``node[i]`` reading ``received[i]``, as
+        :meth:`move_entries` (``owner`` indexes the given cells)."""
+        return self.move_entries(self.move[node, received])
+
+    def move_table(self, move: int) -> list[tuple[int, int, float]]:
+        """Move ``move`` as ``[(action, next node, probability), ...]`` (for writing it)."""
+        at = slice(int(self.move_ptr[move]), int(self.move_ptr[move + 1]))
+        return list(
+            zip(
+                self.move_action[at].tolist(),
+                self.move_next[at].tolist(),
+                self.move_probability[at].tolist(),
+                strict=True,
+            )
+        )
+
+    def factored_move(self, move: int) -> tuple[dict[int, float], dict[int, float]] | None:
+        """The action and next-node marginals of ``move`` when the move is their product
+        (within 1e-12: the factored form describes it), else None."""
+        table = self.move_table(move)
+        by_action: dict[int, float] = {}
+        by_next: dict[int, float] = {}
+        for a, n, p in table:
+            by_action[a] = by_action.get(a, 0.0) + p
+            by_next[n] = by_next.get(n, 0.0) + p
+        if len(table) != len(by_action) * len(by_next):
+            return None
+        if any(abs(p - by_action[a] * by_next[n]) > 1e-12 for a, n, p in table):
+            return None
+        return by_action, by_next
+
     @cached_property
     def behaviour_class(self) -> np.ndarray:
-        """Class id per observation; equal ids mean γ and δ agree on every node.
+        """Class id per observation; equal ids mean the same move distribution on every node.
 
         Two targets of the same class are interchangeable for the attacker (only the cheaper one
-        matters), which is what makes enumeration and the compact MILP small.
+        matters), which is what makes enumeration and the compact MILP small. Moves are
+        canonical, so comparing move ids compares distributions exactly.
         """
-        signature = np.vstack([self.action, self.update]).T  # one row per observation
-        _, inverse = np.unique(signature, axis=0, return_inverse=True)
+        _, inverse = np.unique(self.move.T, axis=0, return_inverse=True)
         return inverse.reshape(-1).astype(np.int64)
+
+
+def factored_entries(
+    actions: Mapping[int, float], updates: Mapping[int, float]
+) -> list[tuple[int, int, float]]:
+    """The joint move of a factored choice: action and next node drawn independently
+    (as PAYNT's ``FscFactored`` means it), ``[(action, next node, probability), ...]``."""
+    return [(a, m, p * q) for a, p in actions.items() for m, q in updates.items()]
 
 
 @dataclass(frozen=True, eq=False)

@@ -24,6 +24,7 @@ from pydantic import (
     Tag,
     ValidationError,
     WithJsonSchema,
+    model_validator,
 )
 
 from misdirect.controllers import forbid_disabled_actions, forbid_targets, read_paynt_controller
@@ -37,7 +38,7 @@ from misdirect.io_utils import (
     read_text_file,
     write_output,
 )
-from misdirect.model import Controller, CostModel, Pomdp, Problem
+from misdirect.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.objective import DecoySet
 from misdirect.storm_models import load_storm_pomdp
 
@@ -146,11 +147,65 @@ AnyPomdpSpec = Annotated[
 ]
 
 
-class RuleSpec(_Strict):
-    node: Name
-    obs: Name
+def _choice(value: Any) -> Any:
+    """A rule's ``action``/``next``: a name, or a ``{name: probability}`` map (randomized).
+    Probabilities are checked when the rule is compiled, with the rule's field name."""
+    if isinstance(value, dict):
+        if not value:
+            raise ValueError("an empty distribution; give a name or {name: probability, ...}")
+        return {_name(key): p for key, p in value.items()}
+    name = _name(value)
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"expected a name or a {{name: probability}} map, got {value!r}")
+    return name
+
+
+Choice = Annotated[
+    Any,
+    BeforeValidator(_choice),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "string", "minLength": 1},
+                {"type": "integer"},
+                {
+                    "type": "object",
+                    "minProperties": 1,
+                    "additionalProperties": {"type": "number", "minimum": 0, "maximum": 1},
+                    "description": "randomized: {name: probability}, summing to 1",
+                },
+            ]
+        }
+    ),
+]
+
+
+class MoveSpec(_Strict):
+    """One (action, next node) pair of a randomized rule's joint distribution."""
+
     action: Name
     next: Name
+    p: Probability
+
+
+class RuleSpec(_Strict):
+    """``action`` and ``next`` (each a name or a ``{name: probability}`` map, drawn
+    independently), or ``moves``: a joint distribution over (action, next node) pairs."""
+
+    node: Name
+    obs: Name
+    action: Choice | None = None
+    next: Choice | None = None
+    moves: list[MoveSpec] | None = Field(default=None, min_length=1)
+
+    @model_validator(mode="after")
+    def _one_form(self) -> RuleSpec:
+        if self.moves is not None and (self.action is not None or self.next is not None):
+            raise ValueError("give either action and next, or moves, not both")
+        if self.moves is None and (self.action is None or self.next is None):
+            missing = "action" if self.action is None else "next"
+            raise ValueError(f"missing {missing} (or give moves: [{{action, next, p}}, ...])")
+        return self
 
 
 class ControllerSpec(_Strict):
@@ -644,9 +699,9 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
         f"a controller table of {shape[0]:,} nodes x {shape[1]:,} observations",
         field="controller.nodes",
     )
-    action = np.full(shape, -1, dtype=np.int64)
-    update = np.full(shape, -1, dtype=np.int64)
-    compiled = []
+    rule_of = np.full(shape, -1, dtype=np.int64)
+    moves: list[list[tuple[int, int, float]]] = []  # per rule: (action, next node, probability)
+    where = []
     for i, rule in enumerate(spec.rules):
         field = f"controller.rules[{i}]"
         node = slice(None) if rule.node == WILDCARD else _lookup(nodes, rule.node, "node", field)
@@ -655,18 +710,11 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
             if rule.obs == WILDCARD
             else _lookup(observations, rule.obs, "observation", field)
         )
-        compiled.append(
-            (
-                node,
-                obs,
-                _lookup(actions, rule.action, "action", field),
-                _lookup(nodes, rule.next, "node", field),
-            )
-        )
-    for node, obs, act, nxt in reversed(compiled):  # earlier rules overwrite later ones
-        action[node, obs] = act
-        update[node, obs] = nxt
-    uncovered = np.argwhere(action < 0)
+        where.append((node, obs))
+        moves.append(_rule_moves(rule, actions, nodes, field))
+    for i in reversed(range(len(where))):  # earlier rules overwrite later ones
+        rule_of[where[i]] = i
+    uncovered = np.argwhere(rule_of < 0)
     if uncovered.size:
         n, o = uncovered[0]
         raise ProblemError(
@@ -674,7 +722,73 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
             f'{pomdp.observations[o]!r} (add a rule, or a catch-all with node/obs "*")',
             field="controller.rules",
         )
-    return Controller(nodes=tuple(spec.nodes), initial_node=initial, action=action, update=update)
+    # every cell gets its rule's entries
+    size = np.array([len(m) for m in moves])
+    flat = np.array([entry for m in moves for entry in m], dtype=np.float64).reshape(-1, 3)
+    first = np.concatenate([[0], np.cumsum(size)[:-1]])
+    cell = rule_of.ravel()
+    count = size[cell]
+    at = np.repeat(first[cell] - (np.cumsum(count) - count), count) + np.arange(count.sum())
+    cell_index = np.repeat(np.arange(cell.size), count)
+    return Controller.from_entries(
+        nodes=tuple(spec.nodes),
+        initial_node=initial,
+        n_observations=pomdp.n_observations,
+        node=cell_index // pomdp.n_observations,
+        observation=cell_index % pomdp.n_observations,
+        action=flat[at, 0].astype(np.int64),
+        next_node=flat[at, 1].astype(np.int64),
+        probability=flat[at, 2],
+    )
+
+
+def _rule_moves(
+    rule: RuleSpec, actions: dict[str, int], nodes: dict[str, int], field: str
+) -> list[tuple[int, int, float]]:
+    """A rule as its distribution over (action, next node): ``action`` and ``next`` drawn
+    independently, or the joint ``moves``."""
+    if rule.moves is not None:
+        entries = [
+            (
+                _lookup(actions, move.action, "action", f"{field}.moves[{k}]"),
+                _lookup(nodes, move.next, "node", f"{field}.moves[{k}]"),
+                float(move.p),
+            )
+            for k, move in enumerate(rule.moves)
+        ]
+        _check_sum(sum(p for _, _, p in entries), f"{field}.moves")
+        return entries
+    return factored_entries(
+        _rule_distribution(rule.action, actions, "action", f"{field}.action"),
+        _rule_distribution(rule.next, nodes, "node", f"{field}.next"),
+    )
+
+
+def _rule_distribution(
+    value: str | dict[str, Any], index: dict[str, int], kind: str, field: str
+) -> dict[int, float]:
+    """``N`` or ``{N: 0.9, E: 0.1}`` as ``{index: probability}``, checked."""
+    if isinstance(value, str):
+        return {_lookup(index, value, kind, field): 1.0}
+    distribution: dict[int, float] = {}
+    for name, p in value.items():
+        if (
+            isinstance(p, bool)
+            or not isinstance(p, int | float)
+            or not (math.isfinite(p) and 0 <= p <= 1)
+        ):
+            raise ProblemError(
+                f"the probability of {name!r} must be a number in [0, 1], got {p!r}", field=field
+            )
+        i = _lookup(index, name, kind, field)
+        distribution[i] = distribution.get(i, 0.0) + float(p)
+    _check_sum(sum(distribution.values()), field)
+    return distribution
+
+
+def _check_sum(total: float, field: str) -> None:
+    if abs(total - 1.0) > SUM_TOLERANCE:
+        raise ProblemError(f"probabilities sum to {total:.12g}, not 1", field=field)
 
 
 def _compile_cost(spec: CostSpec, observations: dict[str, int]) -> CostModel:
@@ -727,6 +841,28 @@ def _decoy_document(problem: Problem) -> Any:
     }
 
 
+def _move_rule(controller: Controller, move: int, actions: tuple[str, ...]) -> dict[str, Any]:
+    """A move as a rule's body: ``action``/``next`` names, ``{name: probability}`` maps when
+    the move is the product of its marginals, else the joint ``moves``."""
+    nodes = controller.nodes
+    factored = controller.factored_move(int(move))
+    if factored is None:
+        return {
+            "moves": [
+                {"action": actions[a], "next": nodes[n], "p": p}
+                for a, n, p in controller.move_table(int(move))
+            ]
+        }
+    by_action, by_next = factored
+
+    def shown(distribution: dict[int, float], names: tuple[str, ...]) -> Any:
+        if len(distribution) == 1:
+            return names[next(iter(distribution))]
+        return {names[i]: p for i, p in distribution.items()}
+
+    return {"action": shown(by_action, actions), "next": shown(by_next, nodes)}
+
+
 def problem_to_document(problem: Problem) -> dict[str, Any]:
     """The explicit ``misdirect/v1`` document of ``problem`` (loads back to the same model)."""
     pomdp, controller = problem.pomdp, problem.controller
@@ -747,21 +883,14 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
     ]
     rules = []
     for o in range(pomdp.n_observations):
-        column = zip(controller.action[:, o], controller.update[:, o], strict=True)
-        distinct = set(column)
-        if len(distinct) == 1:
-            a, n = distinct.pop()
-            rules.append({"node": WILDCARD, "obs": obs[o], "action": actions[a], "next": nodes[n]})
+        distinct = np.unique(controller.move[:, o])
+        if distinct.size == 1:
+            body = _move_rule(controller, distinct[0], actions)
+            rules.append({"node": WILDCARD, "obs": obs[o], **body})
             continue
         for node in range(controller.n_nodes):
-            rules.append(
-                {
-                    "node": nodes[node],
-                    "obs": obs[o],
-                    "action": actions[controller.action[node, o]],
-                    "next": nodes[controller.update[node, o]],
-                }
-            )
+            body = _move_rule(controller, controller.move[node, o], actions)
+            rules.append({"node": nodes[node], "obs": obs[o], **body})
     cost = problem.cost
     pairs: dict[str, dict[str, float]] = {}
     forbidden = []

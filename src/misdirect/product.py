@@ -3,6 +3,8 @@
 Product state ``(s, n)``: world state ``s``, memory node ``n``. The robot receives
 ``o = α(O(s))``, plays ``γ(n, o)``, moves its memory to ``δ(n, o)`` and the world draws
 ``s' ~ P(s, γ(n, o), ·)``; so ``(s, n) -> (s', δ(n, o))`` with probability ``P(s, γ(n, o), s')``.
+A randomized controller draws (action, next node) from its move ``μ(n, o)``, and the row is
+the mixture ``Σ_{(a, n')} μ(n, o)(a, n') · P(s, a, s')`` into ``(s', n')``.
 
 The construction is vectorised: the full ``|S|·|N|`` chain is one fancy-indexing of the stacked
 transition matrix, then restricted to the states reachable from ``(s0, n0)``.
@@ -54,6 +56,8 @@ def check_product_fits(problem: Problem) -> None:
     states = pomdp.n_states * n_nodes
     rows = max(pomdp.transitions.shape[0], 1)
     transitions = states * pomdp.transitions.nnz / rows
+    if not problem.controller.is_deterministic:  # a row mixes the world rows of a move
+        transitions *= float(problem.controller.move_size[problem.controller.move].mean())
     needed = states * BYTES_PER_PRODUCT_STATE + transitions * BYTES_PER_PRODUCT_TRANSITION
     check_memory(
         needed,
@@ -71,14 +75,25 @@ def full_product_matrix(problem: Problem, alteration: Alteration) -> sp.csr_matr
     received = alteration[pomdp.observation_of]  # (S,) observation the robot gets in s
     world = np.repeat(np.arange(n_states), n_nodes)
     node = np.tile(np.arange(n_nodes), n_states)
-    action = controller.action[node, received[world]]
-    next_node = controller.update[node, received[world]]
-
-    rows = pomdp.transitions[action * n_states + world]  # one world row per product state
-    entry_row = np.repeat(np.arange(world.size), np.diff(rows.indptr))
-    columns = rows.indices.astype(np.int64) * n_nodes + next_node[entry_row]
     size = n_states * n_nodes
-    return sp.csr_matrix((rows.data, columns, rows.indptr), shape=(size, size))
+    if controller.is_deterministic:  # one world row per product state, kept as it is
+        move = controller.move[node, received[world]]
+        first = controller.move_ptr[move]
+        action, next_node = controller.move_action[first], controller.move_next[first]
+        rows = pomdp.transitions[action * n_states + world]
+        entry_row = np.repeat(np.arange(world.size), np.diff(rows.indptr))
+        columns = rows.indices.astype(np.int64) * n_nodes + next_node[entry_row]
+        return sp.csr_matrix((rows.data, columns, rows.indptr), shape=(size, size))
+    # randomized: each product state's row is the mixture over its move's entries
+    owner, action, next_node, probability = controller.entries(node, received[world])
+    rows = pomdp.transitions[action * n_states + world[owner]]
+    lengths = np.diff(rows.indptr)
+    entry = np.repeat(np.arange(owner.size), lengths)
+    columns = rows.indices.astype(np.int64) * n_nodes + next_node[entry]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(owner[entry], minlength=size))])
+    matrix = sp.csr_matrix((rows.data * probability[entry], columns, indptr), shape=(size, size))
+    matrix.sum_duplicates()  # two entries of a move can lead to the same (s', n')
+    return matrix
 
 
 def build_product(problem: Problem, alteration: Alteration) -> ProductChain:

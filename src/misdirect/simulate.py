@@ -1,7 +1,8 @@
 """Monte-Carlo simulation of the attacked robot, straight from the POMDP and the controller.
 
 It does not step through the evaluator's product chain, so it is an independent check of the
-evaluator, and it is vectorised over runs: each step advances every live run with a handful of
+evaluator (a randomized controller's (action, next node) is drawn per run from its move), and
+it is vectorised over runs: each step advances every live run with a handful of
 numpy operations. Only to stop runs that never would stop does it ask which (state, memory
 node) pairs can still reach a decoy or absorbing state, on the product's transition graph.
 """
@@ -70,12 +71,10 @@ def simulate(
     matrix = pomdp.transitions
     # Sampling s' from row r: the first entry of r whose running sum exceeds u. Adding the row
     # number to the within-row running sums makes one sorted key array for all rows.
-    row_of_entry = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
-    running = np.cumsum(matrix.data)
-    running -= np.repeat(
-        np.concatenate([[0.0], running[matrix.indptr[1:-1] - 1]]), np.diff(matrix.indptr)
-    )
-    keys = row_of_entry + running
+    keys = _sampling_keys(matrix.indptr, matrix.data)
+    # the same for the controller's moves: one (action, next node) entry drawn per live run
+    randomized = not controller.is_deterministic
+    move_keys = _sampling_keys(controller.move_ptr, controller.move_probability)
 
     state = np.full(runs, pomdp.initial_state)
     node = np.full(runs, controller.initial_node)
@@ -111,7 +110,12 @@ def simulate(
         if live.size == 0 or step == max_steps:
             break
         seen = alpha[pomdp.observation_of[state[live]]]
-        action = controller.action[node[live], seen]
+        move = controller.move[node[live], seen]
+        entry = controller.move_ptr[move]
+        if randomized:  # deterministic runs draw nothing here, so their streams are unchanged
+            entry = np.searchsorted(move_keys, move + rng.random(live.size), side="right")
+            entry = np.minimum(entry, controller.move_ptr[move + 1] - 1)
+        action = controller.move_action[entry]
         if record:
             for k in np.flatnonzero(live < record):
                 run = int(live[k])
@@ -125,7 +129,7 @@ def simulate(
                         pomdp.actions[action[k]],
                     )
                 )
-        node[live] = controller.update[node[live], seen]
+        node[live] = controller.move_next[entry]
         row = action * pomdp.n_states + state[live]
         pick = np.searchsorted(keys, row + rng.random(live.size), side="right")
         pick = np.minimum(pick, matrix.indptr[row + 1] - 1)
@@ -144,6 +148,15 @@ def simulate(
         decoys={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(problem.decoy)},
         trajectories=sorted(trajectories),
     )
+
+
+def _sampling_keys(indptr: np.ndarray, data: np.ndarray) -> np.ndarray:
+    """Row number plus the within-row running sum of each entry: one sorted key array for
+    all rows, so drawing from row ``r`` is ``searchsorted(keys, r + u)`` (u uniform)."""
+    lengths = np.diff(indptr)
+    running = np.cumsum(data)
+    running -= np.repeat(np.concatenate([[0.0], running[indptr[1:-1] - 1]]), lengths)
+    return np.repeat(np.arange(lengths.size), lengths) + running
 
 
 def _can_stop(problem: Problem, alpha: np.ndarray, stop: np.ndarray) -> np.ndarray:

@@ -88,12 +88,14 @@ def build_paper(
     )
     row = np.arange(s.size)
     decoy = problem.decoy[s]
-    action, next_node = controller.action[n, o], controller.update[n, o]
-    # Bellman: successors s' of s under γ(n, o), summed over o'
+    # Bellman: successors s' of s under γ(n, o), summed over o' (for a randomized controller,
+    # over the entries (a, n', p) of its move too, weighted by p)
     bellman = np.flatnonzero(~decoy)
-    probs = pomdp.transitions[action[bellman] * n_s + s[bellman]].tocoo()
-    b_row = bellman[probs.row]
-    b_s, b_o, b_next = s[b_row], o[b_row], next_node[b_row]
+    owner, action, next_node, weight = controller.entries(n[bellman], o[bellman])
+    probs = pomdp.transitions[action * n_s + s[bellman][owner]].tocoo()
+    b_row = bellman[owner[probs.row]]
+    b_s, b_o, b_next = s[b_row], o[b_row], next_node[probs.row]
+    probs.data *= weight[probs.row]
     edge = _edge_index(edge_from, edge_to, b_s, probs.col.astype(np.int64))
     l_base = ((edge * n_o + b_o) * n_n + b_next) * n_o
     repeat = np.repeat(np.arange(b_row.size), n_o)

@@ -21,8 +21,12 @@ def random_problem(
     observations: int = 4,
     nodes: int = 2,
     budget: float | None = None,
+    randomized: bool = False,
 ) -> Problem:
-    """A random OSA_DGM instance; the same ``seed`` always gives the same problem."""
+    """A random OSA_DGM instance; the same ``seed`` always gives the same problem.
+
+    ``randomized`` draws a randomized controller (:func:`random_moves`) instead of a
+    deterministic one; the rest of the problem is the same as without it."""
     rng = np.random.default_rng(seed)
     core = [f"s{i}" for i in range(states)]
     names = (*core, "goal", "decoy")
@@ -65,6 +69,10 @@ def random_problem(
         action=rng.integers(0, actions, size=(nodes, n_obs)),
         update=rng.integers(0, nodes, size=(nodes, n_obs)),
     )
+    if randomized:  # its own generator, so the rest of the problem does not change
+        controller = random_moves(
+            np.random.default_rng([seed, 1]), controller.nodes, n_obs, actions
+        )
     pairs: dict[tuple[int, int], float] = {}
     for o in range(n_obs):
         for t in range(n_obs):
@@ -92,4 +100,54 @@ def random_problem(
         decoy=decoy,
         budget=float(rng.integers(0, 5)) if budget is None else float(budget),
         name=f"random model (seed {seed})",
+    )
+
+
+def random_moves(
+    rng: np.random.Generator, nodes: tuple[str, ...], n_observations: int, n_actions: int
+) -> Controller:
+    """A randomized controller: per (node, observation) a deterministic pair (about a third of
+    the cells), a factored draw (action and next node independent), or a joint distribution
+    over two or three (action, next node) pairs. Probabilities are ratios of small integers,
+    so an exact checker (Storm with rationals) reads them exactly."""
+    n_nodes = len(nodes)
+    entries: list[tuple[int, int, int, int, float]] = []
+
+    def weights(k: int) -> np.ndarray:
+        w = rng.integers(1, 5, size=k)
+        return w / w.sum()
+
+    for n in range(n_nodes):
+        for o in range(n_observations):
+            kind = rng.integers(0, 3)
+            if kind == 0:
+                moves = [(int(rng.integers(n_actions)), int(rng.integers(n_nodes)), 1.0)]
+            elif kind == 1:
+                a = rng.choice(n_actions, size=min(2, n_actions), replace=False)
+                m = rng.choice(n_nodes, size=min(2, n_nodes), replace=False)
+                pa, pm = weights(a.size), weights(m.size)
+                moves = [
+                    (int(x), int(y), float(p * q))
+                    for x, p in zip(a, pa, strict=True)
+                    for y, q in zip(m, pm, strict=True)
+                ]
+            else:
+                k = int(rng.integers(2, 4))
+                pairs = rng.integers(0, [n_actions, n_nodes], size=(k, 2))
+                moves = [
+                    (int(x), int(y), float(p)) for (x, y), p in zip(pairs, weights(k), strict=True)
+                ]
+            entries += [(n, o, a, m, p) for a, m, p in moves]
+    node, observation, action, next_node, probability = (
+        np.array(column) for column in zip(*entries, strict=True)
+    )
+    return Controller.from_entries(
+        nodes=nodes,
+        initial_node=0,
+        n_observations=n_observations,
+        node=node,
+        observation=observation,
+        action=action,
+        next_node=next_node,
+        probability=probability,
     )
