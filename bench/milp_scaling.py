@@ -23,9 +23,9 @@ from collections import Counter
 from pathlib import Path
 
 from misdirect import solve
-from misdirect.evaluate import evaluation_time
+from misdirect.core.evaluate import evaluation_time
 from misdirect.scenarios import paper_grid
-from misdirect.solvers.milp import build_formulation
+from misdirect.solvers.milp.solver import build_formulation
 
 
 def _ints(text: str) -> list[int]:
@@ -198,7 +198,7 @@ def _value_cell(row: dict | None) -> str:
 
 def plot(rows: list[dict], path: Path) -> None:
     """The reproduce command's scalability panels, with solve time summed over the budgets."""
-    from misdirect.plots import scalability_panels
+    from misdirect.report.plots import scalability_panels
 
     totals = []
     for n, formulation in sorted({(r["n"], r["formulation"]) for r in rows}):

@@ -12,7 +12,7 @@ Each case runs in a fresh process. It builds the product chain, then times, best
 ``--repeats`` and interleaved so that a busy machine hurts both sides alike:
 
 * ours: :func:`misdirect.evaluate` (product, probability, every outcome, expected visits) and
-  :func:`misdirect.evaluate.decoy_probability` (product and probability alone);
+  :func:`misdirect.core.evaluate.decoy_probability` (product and probability alone);
 * Storm (stormpy) model checking ``P=? [F "decoy"]`` on the very same product chain, loaded
   from explicit DRN: its default set-up and each sparse engine (Eigen only where it is not
   slow: it runs GMRES with ILU and takes seconds here).
@@ -72,8 +72,8 @@ def write_drn(matrix, initial: int, decoy: np.ndarray, path: Path) -> None:
 def chain_case(label: str, kwargs: dict, repeats: int) -> dict:
     """Our evaluation and Storm's model checking of one drone chain, interleaved."""
     from misdirect import evaluate
-    from misdirect.evaluate import decoy_probability
-    from misdirect.product import build_product
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.core.product import build_product
     from misdirect.scenarios.drone import drone
 
     began = time.perf_counter()

@@ -68,8 +68,8 @@ def _best_of(repeats: int, function) -> tuple[float, object]:
 def grid_case(n: int, top_budget: int, low_budget: int = 0, separate_calls: bool = False) -> dict:
     """``solve`` (auto) over budgets low..top on grid n, against one evaluation."""
     from misdirect import solve
-    from misdirect.evaluate import decoy_probability
-    from misdirect.product import build_product
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.core.product import build_product
     from misdirect.scenarios import paper_grid
 
     problem = paper_grid(n, budget=top_budget)
@@ -133,8 +133,8 @@ def storm_case(n: int, scratch: str) -> dict:
         from stormpy.developer import EquationSolverType
     except ImportError:
         stormpy = None
-    from misdirect.evaluate import decoy_probability
-    from misdirect.product import build_product
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.core.product import build_product
     from misdirect.scenarios import paper_grid
 
     problem = paper_grid(n)

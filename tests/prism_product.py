@@ -18,7 +18,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from misdirect.model import Problem
+from misdirect.core.model import Problem
 
 
 def _any(var: str, values) -> str:

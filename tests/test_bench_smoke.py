@@ -37,7 +37,7 @@ def test_milp_benchmark_reduced_mode(tmp_path):
         [0.084957, 0.719924], abs=5e-7
     )
     paper = {int(r["n"]): r for r in rows if r["formulation"] == "paper"}
-    for n in (5, 7):  # closed form of misdirect.milp.paper, E = 4n² - 9
+    for n in (5, 7):  # closed form of misdirect.solvers.milp.paper, E = 4n² - 9
         edges = 4 * n * n - 9
         assert int(paper[n]["variables"]) == 64 + 24 * n * n + 192 * edges
         assert int(paper[n]["rows"]) == 10 + 24 * n * n + 4 * 192 * edges

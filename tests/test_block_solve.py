@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-import misdirect.reachability as reachability
-from misdirect.evaluate import decoy_probability
-from misdirect.product import build_product
-from misdirect.reachability import prob0_prob1, solve_topological, solve_with_separator
+import misdirect.core.reachability as reachability
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.product import build_product
+from misdirect.core.reachability import prob0_prob1, solve_topological, solve_with_separator
 from misdirect.scenarios import paper_grid, random_problem
 
 

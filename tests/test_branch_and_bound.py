@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from misdirect import solve
-from misdirect.alterations import alteration_space
-from misdirect.choice_product import build_choice_product, end_component_states
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Controller
+from misdirect.core.alterations import alteration_space
+from misdirect.core.choice_product import build_choice_product, end_component_states
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Controller
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.scenarios.grid import ACTIONS, BLANK, E_TYPE, N_TYPE, OBSERVATIONS, scaled
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver, relaxation_bound

@@ -18,12 +18,12 @@ from typer.testing import CliRunner
 
 from misdirect import solve
 from misdirect.cli import app
-from misdirect.milp import compact
-from misdirect.model import CostModel
+from misdirect.core.model import CostModel
 from misdirect.scenarios import paper_grid, random_problem
-from misdirect.solve import SOLVERS
+from misdirect.solvers import SOLVERS
 from misdirect.solvers.base import Solution
 from misdirect.solvers.incremental import NotApplicableError
+from misdirect.solvers.milp import compact
 
 runner = CliRunner()
 BUDGETS = [0.0, 1.0, 2.0, 3.0, 4.0]
@@ -357,7 +357,7 @@ def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monk
     """When the largest budget has too many alterations to enumerate but the smaller ones do
     not, auto proves the small budgets by enumeration and searches only the large ones (from
     the best enumerated answer); every point still equals the exhaustive optimum."""
-    from misdirect.alterations import alteration_space
+    from misdirect.core.alterations import alteration_space
     from misdirect.solvers import auto
 
     problem = paper_grid(7)

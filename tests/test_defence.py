@@ -13,9 +13,9 @@ from typer.testing import CliRunner
 
 import misdirect
 from misdirect.cli import app
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Controller, CostModel, Pomdp, Problem
-from misdirect.problem_file import write_problem
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+from misdirect.io.problem_file import write_problem
 from misdirect.scenarios import paper_grid, random_problem
 from prism_product import world_module
 

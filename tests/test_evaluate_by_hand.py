@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from misdirect import evaluate, load_problem, solve
+from misdirect.core.simulate import simulate
 from misdirect.scenarios import paper_grid
-from misdirect.simulate import simulate
 
 EXAMPLES = Path(__file__).parents[1] / "examples"
 
@@ -106,7 +106,7 @@ def test_monte_carlo_agrees_with_exact_value(changes, seed):
 def test_expected_visits_two_ways():
     """Expected visits per cell from the LU solve against a Monte-Carlo-free power series:
     visits = Σ_k e0ᵀ A^k over the transient block, summed to convergence."""
-    from misdirect.product import build_product
+    from misdirect.core.product import build_product
 
     problem = paper_grid(5)
     alpha = problem.alteration({"o1": "o3"})

@@ -73,7 +73,7 @@ def test_knapsack_reduction_equals_subset_enumeration(seed):
 def test_counting_alterations_equals_listing_them():
     """AlterationSpace.count_within (a count per distinct total cost) against the length of
     the list ``within`` builds, on random models with fractional and forbidden costs."""
-    from misdirect.alterations import alteration_space
+    from misdirect.core.alterations import alteration_space
     from misdirect.scenarios import random_problem
 
     for seed in range(30):

@@ -21,10 +21,10 @@ from typer.testing import CliRunner
 
 from misdirect import io_utils
 from misdirect.cli import MAX_GRID_SIZE, MAX_RUNS, Terminated, app
+from misdirect.core.product import check_product_fits
 from misdirect.errors import ProblemError, WriteError
-from misdirect.product import check_product_fits
 from misdirect.scenarios import paper_grid
-from misdirect.solve import solve
+from misdirect.solvers.run import solve
 
 runner = CliRunner()
 EXAMPLES = Path(__file__).parent.parent / "examples"

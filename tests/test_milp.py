@@ -21,9 +21,9 @@ from typer.testing import CliRunner
 from misdirect import decoy_probability, load_problem, solve
 from misdirect.cli import app
 from misdirect.errors import SolverError
-from misdirect.milp import backends
 from misdirect.scenarios import knapsack, paper_grid, random_problem
-from misdirect.solvers.milp import build_formulation
+from misdirect.solvers.milp import backends
+from misdirect.solvers.milp.solver import build_formulation
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
 GRID_OPTIMA = [0.084957, 0.719924, 0.860130, 0.862442, 0.863622]  # SPEC §3, budgets 0..4
@@ -165,7 +165,7 @@ def test_each_defence_against_the_tolerance_leak(monkeypatch):
     binaries rounded (and without the Bellman rows scaled), seed 5380 at budget 1 claims
     0.400001 for 0.4. SCIP at its default tolerance overshoots on seed 5105 at budget 4, and at
     1e-9 does not."""
-    from misdirect.milp import compact
+    from misdirect.solvers.milp import compact
 
     monkeypatch.setattr(compact, "BELLMAN_SCALE", 1.0)
     monkeypatch.setattr(backends, "value_with_rounded_binaries", lambda *args: None)
@@ -209,7 +209,7 @@ def test_random_models_exercise_the_witness_rows():
 
 def test_witness_rows_are_what_makes_it_exact(monkeypatch):
     """Without them, maximising the Bellman inequalities overshoots on models that can cycle."""
-    import misdirect.attack as attack
+    import misdirect.core.attack as attack
 
     monkeypatch.setattr(
         attack, "end_component_states", lambda group_state, transitions, live: live & False
@@ -343,7 +343,7 @@ def test_bad_milp_options(args, field):
 
 
 def _paper_counts(n: int) -> tuple[int, int]:
-    """Closed form for the scaled grid (see misdirect.milp.paper): |Ω| = 8, |N| = 3, and
+    """Closed form for the scaled grid (see misdirect.solvers.milp.paper): |Ω| = 8, |N| = 3, and
     E = 4n² - 9 successor pairs (4 per cell; 3 for the three non-goal corners, which can stay
     put and have two neighbours; 1 for the absorbing goal and hazard)."""
     cells, observations, nodes = n * n, 8, 3
@@ -620,7 +620,7 @@ def test_export_rejects_unknown_suffix(tmp_path):
 def test_highs_crash_is_retried_in_a_fresh_worker(monkeypatch):
     import os
 
-    import misdirect.milp.backends as backends
+    import misdirect.solvers.milp.backends as backends
 
     real = backends.run_highs
 
@@ -638,7 +638,7 @@ def test_highs_crash_is_retried_in_a_fresh_worker(monkeypatch):
 def test_highs_crashing_every_time_is_a_clear_error(monkeypatch):
     import os
 
-    import misdirect.milp.backends as backends
+    import misdirect.solvers.milp.backends as backends
 
     monkeypatch.setattr(backends, "run_highs", lambda *args, **kwargs: os._exit(139))
     result = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml"), "--method", "milp"])

@@ -13,11 +13,11 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
-import misdirect.reachability as reachability
+import misdirect.core.reachability as reachability
 from misdirect import evaluate
-from misdirect.evaluate import decoy_probability
-from misdirect.product import build_product
-from misdirect.reachability import (
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.product import build_product
+from misdirect.core.reachability import (
     lu_would_fill,
     occupation,
     reach_probabilities,

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from misdirect import decoy_probability, load_problem, write_problem
 from misdirect.cli import app
-from misdirect.problem_file import json_schema
+from misdirect.io.problem_file import json_schema
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 
 ROOT = Path(__file__).parents[1]

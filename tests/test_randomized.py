@@ -18,12 +18,12 @@ from typer.testing import CliRunner
 
 from misdirect import decoy_probability, load_problem, solve
 from misdirect.cli import app
-from misdirect.controllers import controller_to_paynt
+from misdirect.core.model import Controller
+from misdirect.core.simulate import simulate
 from misdirect.errors import ProblemError
-from misdirect.model import Controller
-from misdirect.problem_file import problem_text
+from misdirect.io.paynt import controller_to_paynt
+from misdirect.io.problem_file import problem_text
 from misdirect.scenarios import random_problem
-from misdirect.simulate import simulate
 from misdirect.solvers.incremental import NotApplicableError
 from prism_product import prism_product
 from test_exhaustive import brute_force_curve

@@ -314,7 +314,7 @@ def test_heat_map_data_two_ways(results, budget):
     folder, _, _ = results
     grid_row = next(r for r in _rows(folder, "grid") if int(r["budget"]) == budget)
     alteration = _parse(grid_row["alteration"])
-    assert "o0" not in alteration  # the initial observation is never altered (SPEC §1)
+    assert "o0" not in alteration  # the initial observation is never altered
     index, q, to_hazard, to_goal = _chain(alteration)
 
     mass = np.zeros(len(index))

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 
 from misdirect import decoy_probability, load_problem, solve
 from misdirect.cli import app
+from misdirect.core.model import CostModel
 from misdirect.errors import ProblemError
-from misdirect.model import CostModel
 from misdirect.scenarios import sensor_grid
 from misdirect.solvers.incremental import NotApplicableError
 
@@ -52,8 +52,10 @@ def test_what_the_generator_promises(n, k, seed):
 
 
 def test_same_seed_same_problem_other_seed_other_problem():
-    one, two, other = sensor_grid(12, 10, seed=5), sensor_grid(12, 10, seed=5), sensor_grid(
-        12, 10, seed=6
+    one, two, other = (
+        sensor_grid(12, 10, seed=5),
+        sensor_grid(12, 10, seed=5),
+        sensor_grid(12, 10, seed=6),
     )
     assert np.array_equal(one.pomdp.observation_of, two.pomdp.observation_of)
     assert np.array_equal(one.decoy, two.decoy)
@@ -101,8 +103,21 @@ def test_cli_writes_a_file_that_loads_to_the_same_problem(tmp_path):
     path = tmp_path / "net.yaml"
     result = runner.invoke(
         app,
-        ["scenario", "sensor-grid", "--size", "10", "--sensors", "8", "--seed", "2",
-         "--costs", "random", "-o", str(path), "--json"],
+        [
+            "scenario",
+            "sensor-grid",
+            "--size",
+            "10",
+            "--sensors",
+            "8",
+            "--seed",
+            "2",
+            "--costs",
+            "random",
+            "-o",
+            str(path),
+            "--json",
+        ],
     )
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["states"] == 100

@@ -115,7 +115,7 @@ def test_simulate_stops_trapped_runs_and_names_outcomes():
 
 def test_simulate_library_counts_add_up():
     from misdirect import load_problem
-    from misdirect.simulate import simulate
+    from misdirect.core.simulate import simulate
 
     problem = load_problem(EXAMPLES / "trap.yaml")
     result = simulate(problem, runs=5000, seed=1, max_steps=1)  # exit runs need 2 steps

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from misdirect.evaluate import decoy_probability
+from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import paper_grid, random_problem
 from prism_product import prism_product
 

@@ -64,7 +64,7 @@ def test_maze_by_hand(tmp_path):
 
 
 def test_prism_and_drn_of_the_maze_agree():
-    from misdirect.storm_models import load_storm_pomdp
+    from misdirect.io.storm import load_storm_pomdp
 
     prism = load_storm_pomdp(SHIPPED / "maze_2.prism", kind="prism").pomdp
     drn = load_storm_pomdp(SHIPPED / "maze.drn", kind="drn").pomdp

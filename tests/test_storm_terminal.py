@@ -309,7 +309,7 @@ def test_observation_names_from_the_states():
     `go` moves to (x+1, min(y+1, 1), !flag) or only flips h. So the observations are
     x=0: !flag, y=-1 -> sum=-1; x=1: flag, y=0 -> sum=1; x=2: !flag, y=1 -> 3;
     x=3: flag, y=1 -> 4; far is x >= 2. Storm itself prints these as e.g. `x=3,sum=1`."""
-    from misdirect.storm_models import load_storm_pomdp
+    from misdirect.io.storm import load_storm_pomdp
 
     world = load_storm_pomdp(DATA / "observables.prism", kind="prism")
     pomdp = world.pomdp
@@ -331,7 +331,7 @@ def test_observation_names_from_the_states():
 
 def test_bulk_reading_matches_stormpys_accessors():
     """The UMB route gives the matrix stormpy's per-entry accessors give."""
-    from misdirect.storm_models import _read_arrays, _read_arrays_slowly
+    from misdirect.io.storm import _read_arrays, _read_arrays_slowly
 
     program = stormpy.parse_prism_program(str(DATA / "drone.prism"))
     program, _ = stormpy.instantiate_constants(program, "N=4,B=6")

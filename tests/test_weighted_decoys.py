@@ -19,11 +19,11 @@ from typer.testing import CliRunner
 
 from misdirect import evaluate, load_problem, solve, write_problem
 from misdirect.cli import app
+from misdirect.core.objective import DecoySet
 from misdirect.errors import ProblemError, SolverError
-from misdirect.objective import DecoySet
 from misdirect.scenarios import random_problem
 from misdirect.solvers.incremental import NotApplicableError
-from misdirect.solvers.milp import build_formulation
+from misdirect.solvers.milp.solver import build_formulation
 
 runner = CliRunner()
 

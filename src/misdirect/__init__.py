@@ -1,12 +1,19 @@
 """misdirect: optimal sensor deception for robots in POMDPs driven by finite-state controllers.
 
-The library in five names::
+The library in a few names (the package layout: docs/architecture.md)::
 
-    problem = misdirect.load_problem("examples/tiny.yaml")   # or misdirect.scenarios.paper_grid(5)
+    import misdirect
+
+    problem = misdirect.scenarios.paper_grid(5)   # or misdirect.load_problem("model.yaml")
     report = misdirect.evaluate(problem, problem.alteration({"o1": "o3"}))
     result = misdirect.solve(problem, method="exhaustive")   # verified optimum + budget curve
+    result.probability, result.status, [point.probability for point in result.curve]
 """
 
+from misdirect import scenarios
+from misdirect.core.evaluate import Evaluation, decoy_probability, evaluate
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+from misdirect.core.product import ProductChain, build_product
 from misdirect.defence import (
     AuditResult,
     HardenResult,
@@ -16,12 +23,9 @@ from misdirect.defence import (
     online_attack_value,
 )
 from misdirect.errors import MisdirectError, ProblemError, SolverError
-from misdirect.evaluate import Evaluation, decoy_probability, evaluate
-from misdirect.model import Controller, CostModel, Pomdp, Problem
-from misdirect.problem_file import load_problem, write_problem
-from misdirect.product import ProductChain, build_product
-from misdirect.solve import BudgetResult, SolveResult, solve
+from misdirect.io.problem_file import load_problem, write_problem
 from misdirect.solvers.base import Status
+from misdirect.solvers.run import BudgetResult, SolveResult, solve
 
 __version__ = "0.1.0"
 
@@ -48,6 +52,7 @@ __all__ = [
     "harden",
     "load_problem",
     "online_attack_value",
+    "scenarios",
     "solve",
     "write_problem",
 ]

@@ -28,19 +28,20 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from misdirect import __version__
-from misdirect.alterations import max_alteration_cost
+from misdirect.core.alterations import max_alteration_cost
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.evaluate import evaluate as evaluate_alteration
+from misdirect.core.model import Problem, format_alteration
 from misdirect.errors import MisdirectError, ProblemError
-from misdirect.evaluate import decoy_probability
-from misdirect.evaluate import evaluate as evaluate_alteration
-from misdirect.io_utils import check_output_path, one_line, prepare_output_dir, write_output
-from misdirect.milp.backends import BACKENDS, write_model
-from misdirect.model import Problem, format_alteration
-from misdirect.problem_file import json_schema, load_problem, write_problem
+from misdirect.io.files import check_output_path, one_line, prepare_output_dir, write_output
+from misdirect.io.problem_file import json_schema, load_problem, write_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem, sensor_grid
-from misdirect.solve import SOLVERS, SolveResult
-from misdirect.solve import solve as solve_problem
+from misdirect.solvers import SOLVERS
 from misdirect.solvers.base import Status
-from misdirect.solvers.milp import FORMULATIONS, build_formulation
+from misdirect.solvers.milp.backends import BACKENDS, write_model
+from misdirect.solvers.milp.solver import FORMULATIONS, build_formulation
+from misdirect.solvers.run import SolveResult
+from misdirect.solvers.run import solve as solve_problem
 
 app = typer.Typer(
     name="misdirect",
@@ -647,7 +648,7 @@ def scenario_paper_grid(
     budget: Annotated[float, typer.Option(help="Budget written into the file.")] = 4,
     as_json: JsonOption = False,
 ) -> None:
-    """The paper's n x n grid world (SPEC §3)."""
+    """The paper's n x n grid world (its Sec. VII-B case study, scaled)."""
     check_output_path(output)
     check_range("--size", size, 5, MAX_GRID_SIZE)
     if not (math.isfinite(budget) and budget >= 0):
@@ -664,7 +665,7 @@ def scenario_knapsack(
     capacity: Annotated[float, typer.Option(help="Knapsack capacity (the budget).")],
     as_json: JsonOption = False,
 ) -> None:
-    """The knapsack reduction of the NP-hardness proof (SPEC §4)."""
+    """The knapsack reduction of the NP-hardness proof (paper Sec. V)."""
     check_output_path(output)
     problem = knapsack(_numbers(weights, "--weights"), _numbers(values, "--values"), capacity)
     _write_scenario(problem, output, as_json)
@@ -739,7 +740,7 @@ def controller_synthesize(
 ) -> None:
     """Synthesize the robot's controller with PAYNT and write PAYNT's JSON of it
     (controller: {paynt: FILE} reads it; give the property as pomdp.terminal_from)."""
-    from misdirect.paynt_synthesis import synthesize
+    from misdirect.io.paynt_synthesis import synthesize
 
     check_output_path(output)
     check_range("--memory", memory, 1, 100)
@@ -793,8 +794,8 @@ def simulate(
 ) -> None:
     """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
     not decoy) or trapped (it can no longer stop), with 95 % intervals."""
-    from misdirect.simulate import simulate as run_simulation
-    from misdirect.simulate import wilson_interval
+    from misdirect.core.simulate import simulate as run_simulation
+    from misdirect.core.simulate import wilson_interval
 
     for option, value, least, most in (
         ("--runs", runs, 1, MAX_RUNS),
@@ -926,7 +927,7 @@ def show(
     as_json: JsonOption = False,
 ) -> None:
     """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
-    from misdirect.pictures import draw
+    from misdirect.report.pictures import draw
 
     check_output_path(output)
     problem = _load_input(file, scenario, size, weights, values, capacity, seed)
@@ -962,7 +963,7 @@ def reproduce(
     as_json: JsonOption = False,
 ) -> None:
     """Run the paper's experiments (Section VII) and write its tables and figures beside ours."""
-    from misdirect.reproduce import reproduce as run_reproduce
+    from misdirect.report.reproduce import reproduce as run_reproduce
 
     size_list = None
     if sizes is not None:
@@ -1051,8 +1052,8 @@ def convert(
     as_json: JsonOption = False,
 ) -> None:
     """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
-    from misdirect.export import drn_text, export_notes, prism_text
-    from misdirect.problem_file import problem_text
+    from misdirect.io.export import drn_text, export_notes, prism_text
+    from misdirect.io.problem_file import problem_text
 
     if output is not None:
         check_output_path(output)
@@ -1105,7 +1106,7 @@ def export_fsc(
     as_json: JsonOption = False,
 ) -> None:
     """Write the controller in PAYNT's JSON format (controller: {paynt: FILE} reads it)."""
-    from misdirect.controllers import controller_to_paynt
+    from misdirect.io.paynt import controller_to_paynt
 
     if output is not None:
         check_output_path(output)
@@ -1282,7 +1283,7 @@ def audit(
     result = run_audit(problem, budget=budget, time_limit=time_limit)
     written: list[str] = []
     if output is not None:
-        from misdirect.defence_report import write_audit_report
+        from misdirect.report.defence import write_audit_report
 
         written = [str(p) for p in write_audit_report(problem, result, output)]
     if as_json:
@@ -1298,9 +1299,7 @@ def audit(
         table.add_column(column, justify="left" if column == "sensor" else "right")
     for s in result.sensors:
         crit = (
-            f"{s.criticality:.6f}"
-            if s.exact
-            else f"{s.criticality:.6f}..{s.criticality_upper:.6f}"
+            f"{s.criticality:.6f}" if s.exact else f"{s.criticality:.6f}..{s.criticality_upper:.6f}"
         )
         table.add_row(
             escape(s.observation),

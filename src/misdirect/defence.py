@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from misdirect.alterations import alteration_space
-from misdirect.attack import prepare
+from misdirect.core.alterations import alteration_space
+from misdirect.core.attack import prepare
+from misdirect.core.model import Problem, reachable_from
+from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import ProblemError, SolverError
-from misdirect.model import Problem, reachable_from
-from misdirect.reachability import reach_probabilities
-from misdirect.solve import BudgetResult, default_budgets, solve
 from misdirect.solvers.base import Status
+from misdirect.solvers.run import BudgetResult, default_budgets, solve
 
 CERTIFY_TOLERANCE = 1e-9  # as everywhere in misdirect: "optimal" means within this
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
@@ -87,7 +87,7 @@ def max_reach(
 
     Choice ``g`` belongs to state ``owner[g]`` and moves by row ``g`` of ``transitions``.
     Policy iteration: each policy is evaluated exactly as the *least* fixed point
-    (:func:`misdirect.reachability.reach_probabilities`), and a state switches only on a
+    (:func:`misdirect.core.reachability.reach_probabilities`), and a state switches only on a
     strict gain. At termination the values are a fixed point of the Bellman operator that some
     policy attains; every fixed point lies above the least one, which is the optimum, and no
     policy lies above the optimum — so they are the optimum (docs/defence.md). Returns
@@ -466,7 +466,7 @@ def audit(
             f"{optimum.value:.12f}"
         )
     certified = optimum.certified and all(r.exact for r in rows)
-    from misdirect.pictures import grid_cells
+    from misdirect.report.pictures import grid_cells
 
     return AuditResult(
         problem=problem.name,

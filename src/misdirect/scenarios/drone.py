@@ -28,8 +28,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
-from misdirect.model import Controller, CostModel, Pomdp, Problem
 
 ACTIONS = ("N", "E", "S", "W", "stay")
 MOVES = np.array([(0, 1), (1, 0), (0, -1), (-1, 0), (0, 0)])  # (dx, dy), same order

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
-from misdirect.model import Controller, CostModel, Pomdp, Problem
 
 ACTIONS = ("N", "E", "S", "W")
 MOVES = np.array([(0, 1), (1, 0), (0, -1), (-1, 0)])  # same order as ACTIONS

@@ -11,8 +11,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
-from misdirect.model import Controller, CostModel, Pomdp, Problem
 
 
 def knapsack(weights: Sequence[float], values: Sequence[float], capacity: float) -> Problem:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from misdirect.model import Controller, CostModel, Pomdp, Problem
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 
 
 def random_problem(

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
-from misdirect.model import Controller, CostModel, Pomdp, Problem
 from misdirect.scenarios.grid import ACTIONS, MOVES, grid_transitions
 
 MAX_COVERED = 0.6  # share of the cells that sensors may cover
@@ -92,7 +92,7 @@ def sensor_grid(
             name=f"sensor grid {n}x{n}, {sensors} sensors (seed {seed})",
         )
 
-    from misdirect.evaluate import decoy_probability
+    from misdirect.core.evaluate import decoy_probability
 
     band = (x >= n // 4) & (x <= n - 1 - n // 4) & (y >= n // 4) & (y <= n - 1 - n // 4)
     candidates = np.flatnonzero(band & (region < 0))

@@ -35,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from misdirect.attack import AttackInstance, prepare
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Problem
+from misdirect.core.attack import AttackInstance, prepare
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Problem
 from misdirect.solvers.base import (
     CERTIFY_TOLERANCE,
     Deadline,
@@ -50,7 +50,7 @@ from misdirect.solvers.base import (
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver, NotApplicableError
-from misdirect.solvers.milp import MilpSolver
+from misdirect.solvers.milp.solver import MilpSolver
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time

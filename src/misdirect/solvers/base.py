@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from misdirect.model import Alteration, Problem
+from misdirect.core.model import Alteration, Problem
 
 CERTIFY_TOLERANCE = 1e-9  # "optimal" means: a proven bound within this of the exact value
 

@@ -9,7 +9,7 @@ completion of the node is one scheduler of that MDP, so its maximal reachability
 bounds the subtree.
 
 The bound is computed exactly by policy iteration: each policy is evaluated by
-:func:`misdirect.reachability.reach_probabilities` (the least fixed point, so policies that
+:func:`misdirect.core.reachability.reach_probabilities` (the least fixed point, so policies that
 cycle forever score 0 and end components need no special care), and a state switches only on a
 strict gain of more than ``IMPROVE_TOLERANCE``. Children start from their parent's policy, so a
 node typically costs one or two evaluations.
@@ -32,12 +32,12 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from misdirect.alterations import AlterationSpace
-from misdirect.attack import prepare
-from misdirect.choice_product import ChoiceProduct
+from misdirect.core.alterations import AlterationSpace
+from misdirect.core.attack import prepare
+from misdirect.core.choice_product import ChoiceProduct
+from misdirect.core.model import Alteration, Problem
+from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import ProblemError
-from misdirect.model import Alteration, Problem
-from misdirect.reachability import reach_probabilities
 from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,

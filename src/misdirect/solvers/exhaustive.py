@@ -12,10 +12,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from misdirect.attack import prepare
+from misdirect.core.attack import prepare
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Problem
 from misdirect.errors import SolverError
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Problem
 from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,

@@ -4,7 +4,7 @@ Altering an observation changes only the rows of the product chain whose world s
 Observations that cover few product states (sensors) are *inner*: for each choice of the
 *outer* ones (the blank reading that covers most of the map), the chain is solved once, for
 its value ``x0`` and for ``W = A⁻¹ E_R`` on the inner rows ``R`` (one call of
-:func:`misdirect.reachability.solve_chain` with all those right-hand sides). An inner
+:func:`misdirect.core.reachability.solve_chain` with all those right-hand sides). An inner
 alteration then replaces a few rows, and Sherman–Morrison–Woodbury gives the new value at the
 start from an ``|C| x |C|`` system, ``C`` the changed rows:
 
@@ -24,11 +24,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from misdirect.attack import prepare
+from misdirect.core.attack import prepare
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Problem
+from misdirect.core.reachability import solve_chain
 from misdirect.errors import SolverError
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Problem
-from misdirect.reachability import solve_chain
 from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,

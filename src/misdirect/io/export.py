@@ -7,12 +7,10 @@ the tests read the files back through Storm and compare evaluated probabilities.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from misdirect.io_utils import one_line
-from misdirect.model import Problem
+from misdirect.core.model import Problem
+from misdirect.io.files import one_line
 
 
 def _rows(problem: Problem):
@@ -66,11 +64,6 @@ def export_notes(problem: Problem, to: str) -> list[str]:
     return notes
 
 
-def write_drn(problem: Problem, path: Path) -> None:
-    """Write :func:`drn_text` to ``path``."""
-    Path(path).write_text(drn_text(problem), encoding="utf-8")
-
-
 def drn_text(problem: Problem) -> str:
     """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours. An action
     name DRN cannot hold (white space, brackets, control characters) is written ``a<k>``."""
@@ -104,11 +97,6 @@ def drn_text(problem: Problem) -> str:
         lines.append(f"\taction {actions[a]}")
         lines += [f"\t\t{t} : {p!r}" for t, p in entries]
     return "\n".join(lines) + "\n"
-
-
-def write_prism(problem: Problem, path: Path) -> None:
-    """Write :func:`prism_text` to ``path``."""
-    Path(path).write_text(prism_text(problem), encoding="utf-8")
 
 
 def prism_text(problem: Problem) -> str:

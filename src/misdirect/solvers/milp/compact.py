@@ -36,11 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from misdirect.attack import prepare
-from misdirect.choice_product import ChoiceProduct
-from misdirect.milp.model import MilpModel, ModelBuilder
-from misdirect.model import Alteration, Problem
-from misdirect.reachability import reach_probabilities
+from misdirect.core.attack import prepare
+from misdirect.core.choice_product import ChoiceProduct
+from misdirect.core.model import Alteration, Problem
+from misdirect.core.reachability import reach_probabilities
+from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 
 # Bellman rows are scaled up so that a solver's feasibility tolerance (1e-6 in HiGHS) allows
 # only 1e-9 of slack in probability: unscaled, random_problem(19) at budget 2 came back with a

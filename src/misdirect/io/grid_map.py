@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from misdirect.core.model import Pomdp
 from misdirect.errors import ProblemError
-from misdirect.model import Pomdp
 
 DIRECTIONS = {"N": (0, 1), "E": (1, 0), "S": (0, -1), "W": (-1, 0)}
 KINDS = ("blank", "goal", "decoy", "wall")
@@ -42,7 +42,6 @@ class GridWorld:
     decoy: np.ndarray  # (|S|,) bool
     width: int
     height: int
-    cell_of_state: np.ndarray  # (|S|, 2) x, y
 
 
 def compile_grid(
@@ -132,7 +131,7 @@ def compile_grid(
         probability=probability,
         absorbing=absorbing,
     )
-    return GridWorld(pomdp, decoy, width, height, np.stack([xs, ys], axis=1))
+    return GridWorld(pomdp, decoy, width, height)
 
 
 def _sensor_order(name: str) -> tuple[int, str]:

@@ -1,7 +1,7 @@
 """The product of POMDP and controller with the attacker's choice left open (a product MDP).
 
 In product state ``(s, n)`` the robot receives ``α(O(s))``, and the attacker's candidates for
-``O(s)`` (one per behaviour class, :mod:`misdirect.alterations`) decide the robot's action and
+``O(s)`` (one per behaviour class, :mod:`misdirect.core.alterations`) decide the robot's action and
 next memory node. Different candidates often make the robot do the same thing *at this node*;
 those share one **group** ``(s, n, move)``, the move being the controller's distribution over
 (action, next node) (one pair for a deterministic controller) and the group's row its mixture.
@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from misdirect.alterations import AlterationSpace
-from misdirect.model import Alteration, Problem, reachable_from
+from misdirect.core.alterations import AlterationSpace
+from misdirect.core.model import Alteration, Problem, reachable_from
 
 
 @dataclass(frozen=True)

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 from misdirect import plots
-from misdirect.evaluate import decoy_probability, evaluate, evaluation_time
-from misdirect.model import format_alteration
+from misdirect.core.evaluate import decoy_probability, evaluate, evaluation_time
+from misdirect.core.model import format_alteration
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
-from misdirect.solve import solve
+from misdirect.solvers.run import solve
 
 # What the paper prints (Section VII). Budgets above 4 "remained the same".
 PAPER_GRID = {0: 0.085, 1: 0.720, 2: 0.861, 3: 0.862, 4: 0.864, 5: 0.864, 6: 0.864, 7: 0.864}
@@ -184,7 +184,8 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
     )
     report.tables["reduction"] = Table(
         "reduction",
-        "Reduction example (SPEC §4): knapsack weights 1..5, values 20..60, capacity 7",
+        "Reduction example (paper Sec. V, Fig. 3): knapsack weights 1..5, values 20..60, "
+        "capacity 7",
         [
             "formulation",
             "variables",
@@ -200,8 +201,9 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
         rows,
         note=_flags(rows[:2], "").strip()
         + "\n\nSizes: our `paper` row builds the paper's formulation with the successor filter "
-        "(l[s,o,s',n',o'] only for s' a successor of s), as SPEC §5 fixes it and as the paper's "
-        "grid experiment does. The paper's printed 59,373 variables / 236,477 rows for this "
+        "(l[s,o,s',n',o'] only for s' a successor of s), as docs/milp.md describes and as "
+        "the paper's grid experiment does. The paper's printed 59,373 variables / 236,477 rows "
+        "for this "
         "example were built without that filter: l over every pair of (s, n, o), i.e. "
         "(9·3·9)² + 81 + 243 = 59,373 variables. We do not rebuild that unfiltered model; the "
         "`paper (as printed)` row quotes the paper. Optimum: (20+30+50)/(2·200) = 0.25.",
@@ -268,7 +270,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
         )
     report.tables["grid"] = Table(
         "grid",
-        "Grid case study (SPEC §3): 5x5 grid, budgets 0..7",
+        "Grid case study (paper Sec. VII-B): 5x5 grid, budgets 0..7",
         [
             "budget",
             "probability",
@@ -284,7 +286,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
         rows,
         note="`probability` is exact for the alteration found; `paper_alteration_value` is the "
         "exact value of the alteration the paper prints. At budget 2 the paper prints 0.861; "
-        "the optimum is 0.860130 (a rounding slip, SPEC §3). Our `o1 → o2` and the paper's "
+        "the optimum is 0.860130 (a rounding slip in the paper). Our `o1 → o2` and the paper's "
         "`o1 → o3` are the same attack: the controller reacts to o2 and o3 identically.",
     )
     mismatched = [r["budget"] for r in rows if not r["rounding_agrees"]]
@@ -510,8 +512,9 @@ def _flags(rows: Sequence[dict[str, Any]], limit_text: str) -> str:
         )
         text += (
             f"**Unverified: the {formulation} formulation's answers are wrong.** Its MILP claims "
-            f"an optimum its own alteration does not reach ({pairs}). SPEC §2 explains why: its "
-            "Bellman equalities admit the value 1 on states that cycle forever without reaching "
+            f"an optimum its own alteration does not reach ({pairs}). docs/milp.md explains why: "
+            "its Bellman equalities admit the value 1 on states that cycle forever without "
+            "reaching "
             "the decoy, so its answer and solve time are those of a wrong optimum. "
         )
     late = [_label(r) for r in rows if r.get("solver_status") == "time_limit"]

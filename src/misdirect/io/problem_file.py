@@ -27,10 +27,10 @@ from pydantic import (
     model_validator,
 )
 
-from misdirect.controllers import forbid_disabled_actions, forbid_targets, read_paynt_controller
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
+from misdirect.core.objective import DecoySet
 from misdirect.errors import ProblemError
-from misdirect.grid_map import LegendEntry, compile_grid
-from misdirect.io_utils import (
+from misdirect.io.files import (
     check_input_file,
     check_memory,
     parse_json,
@@ -38,9 +38,9 @@ from misdirect.io_utils import (
     read_text_file,
     write_output,
 )
-from misdirect.model import Controller, CostModel, Pomdp, Problem, factored_entries
-from misdirect.objective import DecoySet
-from misdirect.storm_models import load_storm_pomdp
+from misdirect.io.grid_map import LegendEntry, compile_grid
+from misdirect.io.paynt import forbid_disabled_actions, forbid_targets, read_paynt_controller
+from misdirect.io.storm import load_storm_pomdp
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
@@ -298,7 +298,7 @@ class GridCellSpec(_Strict):
 
 
 class GridSpec(_Strict):
-    """A grid world drawn as a map (see misdirect.grid_map); replaces ``pomdp``."""
+    """A grid world drawn as a map (see misdirect.io.grid_map); replaces ``pomdp``."""
 
     map: str = Field(description="rows of whitespace-separated cells, north first")
     legend: dict[Name, Annotated[GridCellSpec, BeforeValidator(_legend_entry)]] = Field(
@@ -375,7 +375,7 @@ def _location(loc: tuple[Any, ...]) -> str:
 
 def _read_document(path: Path) -> Any:
     """The parsed file: a regular file within the size limit, JSON by suffix, else YAML, with
-    depth, alias and duplicate-key limits (misdirect.io_utils)."""
+    depth, alias and duplicate-key limits (misdirect.io.files)."""
     text = read_text_file(path)
     if path.suffix.lower() == ".json":
         return parse_json(text, source=str(path))

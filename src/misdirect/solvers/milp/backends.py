@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.errors import ProblemError, SolverError
-from misdirect.milp.model import MilpModel
+from misdirect.solvers.milp.model import MilpModel
 
 # A binary may sit this far from 0 or 1 in a Gurobi or SCIP answer. At their defaults (1e-5 in
 # Gurobi, 1e-6 in SCIP) a binary at 1e-6 loosens a Bellman row by 1e-6, and the claimed value
@@ -633,7 +633,7 @@ def write_model(model: MilpModel, path: Path) -> None:
         raise ProblemError(
             f"cannot write {suffix or 'a file without suffix'}: use .mps or .lp", field="-o"
         )
-    from misdirect.io_utils import write_output
+    from misdirect.io.files import write_output
 
     backend = HighsBackend(SolverOptions())
     backend.load(model)

@@ -20,7 +20,7 @@ from scipy.linalg.lapack import dgbsv
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
-from misdirect.model import reachable_from
+from misdirect.core.model import reachable_from
 
 
 def _without_rows(matrix: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
@@ -514,7 +514,7 @@ def reach_probability(
     """Probability of ever reaching ``target`` from ``initial`` alone (least fixed point).
 
     With ``value`` (a score per target state), the expected score of the first target state
-    entered instead (:mod:`misdirect.objective`).
+    entered instead (:mod:`misdirect.core.objective`).
 
     Where the chain is one wide component this needs only one transposed solve, the
     occupation measure from ``initial``, whose proven error bound needs no second solve

@@ -1,10 +1,11 @@
 """One problem as the attacker sees it, prepared once and shared by every solver.
 
-The attacker's real choices (:mod:`misdirect.alterations`), the MDP they span over the product
-states (:mod:`misdirect.choice_product`), which product states can still reach a decoy, how many
-of those each observation owns, and where the chain could cycle: auto measures these to pick a
-method, then the method it picks needs them again, and a curve's fallback stages once more.
-:func:`prepare` builds them once per problem and budget range; every solver asks it.
+The attacker's real choices (:mod:`misdirect.core.alterations`), the MDP they span over the
+product states (:mod:`misdirect.core.choice_product`), which product states can still reach
+a decoy, how many of those each observation owns, and where the chain could cycle: auto
+measures these to pick a method, then the method it picks needs them again, and a curve's
+fallback stages once more. :func:`prepare` builds them once per problem and budget range;
+every solver asks it.
 """
 
 from __future__ import annotations
@@ -14,9 +15,9 @@ from functools import cached_property
 
 import numpy as np
 
-from misdirect.alterations import AlterationSpace, alteration_space
-from misdirect.choice_product import ChoiceProduct, build_choice_product, end_component_states
-from misdirect.model import Problem
+from misdirect.core.alterations import AlterationSpace, alteration_space
+from misdirect.core.choice_product import ChoiceProduct, build_choice_product, end_component_states
+from misdirect.core.model import Problem
 
 
 @dataclass(eq=False)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from misdirect.model import Alteration
+from misdirect.core.model import Alteration
 
 
 @dataclass(eq=False)
@@ -47,9 +47,6 @@ class MilpModel:
     @property
     def n_rows(self) -> int:
         return int(self.row_lower.size)
-
-    def set_budget(self, budget: float) -> None:
-        self.row_upper[self.budget_row] = budget
 
     def stats(self) -> dict[str, Any]:
         return {

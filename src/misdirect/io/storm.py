@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core.model import Pomdp
 from misdirect.errors import ProblemError
-from misdirect.model import Pomdp
 
 NO_LABEL = "__NOLABEL__"
 SUM_TOLERANCE = 1e-9

@@ -26,11 +26,11 @@ import time
 
 import numpy as np
 
-from misdirect.alterations import alteration_space
-from misdirect.choice_product import build_choice_product
+from misdirect.core.alterations import alteration_space
+from misdirect.core.choice_product import build_choice_product
+from misdirect.core.model import Alteration, Problem
 from misdirect.errors import SolverError
-from misdirect.milp.model import MilpModel, ModelBuilder
-from misdirect.model import Alteration, Problem
+from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 
 
 def build_paper(

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from misdirect.model import Problem
+from misdirect.core.model import Problem
 
 
 @dataclass(frozen=True)

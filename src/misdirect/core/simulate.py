@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from misdirect.model import Alteration, Problem, reachable_from
-from misdirect.product import full_product_matrix
+from misdirect.core.model import Alteration, Problem, reachable_from
+from misdirect.core.product import full_product_matrix
 
 
 @dataclass(frozen=True)
@@ -31,10 +31,6 @@ class Simulation:
     decoys: dict[str, int] = field(default_factory=dict)  # decoy state -> runs that ended there
     trajectories: list[tuple[int, int, str, str, str, str]] = field(default_factory=list)
     # (run, step, state, memory node, observation received, action) for the recorded runs
-
-    @property
-    def decoy_frequency(self) -> float:
-        return self.decoy_hits / self.runs
 
     def confidence_interval(self, z: float = 1.96) -> tuple[float, float]:
         """Wilson score interval for the decoy frequency (z = 1.96: 95 %)."""

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+from misdirect.core.evaluate import evaluate
+from misdirect.core.model import Alteration, Problem
+from misdirect.core.product import build_product
 from misdirect.errors import ProblemError
-from misdirect.evaluate import evaluate
-from misdirect.io_utils import one_line, write_output
-from misdirect.model import Alteration, Problem
-from misdirect.product import build_product
+from misdirect.io.files import one_line, write_output
 
 CELL = re.compile(r"^\((\d+),(\d+)\)$")
 MAX_DOT_STATES = 200
@@ -75,7 +75,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     from matplotlib.colors import ListedColormap, LogNorm, Normalize
     from matplotlib.patches import Rectangle
 
-    from misdirect.plots import SENSOR_COLOURS, grid_frame, mark_cell
+    from misdirect.report.plots import SENSOR_COLOURS, grid_frame, mark_cell
 
     pomdp = problem.pomdp
     report = evaluate(problem, alteration)

@@ -19,8 +19,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
+from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
-from misdirect.objective import DecoySet, Objective
 
 Alteration = np.ndarray  # int array, alpha[o] = received observation
 
@@ -427,7 +427,7 @@ class Problem:
 
     @cached_property
     def prepared_attacks(self) -> dict[float, Any]:
-        """:class:`misdirect.attack.AttackInstance` s built for this problem, by budget, so
+        """:class:`misdirect.core.attack.AttackInstance` s built for this problem, by budget, so
         that a second solver on the same problem does not build them again."""
         return {}
 
@@ -473,7 +473,8 @@ class Problem:
         o_init = self.pomdp.initial_observation
         if alteration[o_init] != o_init:
             raise ProblemError(
-                f"the initial observation {names[o_init]!r} is never altered (SPEC §1)",
+                f"the initial observation {names[o_init]!r} is never altered "
+                "(docs/problem-format.md)",
                 source=source,
                 field=f"{names[o_init]}={names[int(alteration[o_init])]}",
             )

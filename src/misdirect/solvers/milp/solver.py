@@ -21,14 +21,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Problem
 from misdirect.errors import ProblemError, SolverError
-from misdirect.evaluate import decoy_probability
-from misdirect.milp import backends
-from misdirect.milp.backends import BackendResult, SolverOptions, make_backend
-from misdirect.milp.compact import build_compact
-from misdirect.milp.model import MilpModel
-from misdirect.milp.paper import build_paper
-from misdirect.model import Problem
 from misdirect.solvers.base import (
     CERTIFY_TOLERANCE,
     Deadline,
@@ -38,6 +33,11 @@ from misdirect.solvers.base import (
     check_time_limit,
     report,
 )
+from misdirect.solvers.milp import backends
+from misdirect.solvers.milp.backends import BackendResult, SolverOptions, make_backend
+from misdirect.solvers.milp.compact import build_compact
+from misdirect.solvers.milp.model import MilpModel
+from misdirect.solvers.milp.paper import build_paper
 
 FORMULATIONS = {
     "compact": build_compact,

@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from misdirect.model import Alteration, Problem
-from misdirect.product import ProductChain, build_product
-from misdirect.reachability import occupation, reach_probability
+from misdirect.core.model import Alteration, Problem
+from misdirect.core.product import ProductChain, build_product
+from misdirect.core.reachability import occupation, reach_probability
 
 
 def decoy_probability(problem: Problem, alteration: Alteration) -> float:
@@ -53,7 +53,7 @@ class Evaluation:
     ``all_outcomes`` and ``first_entry`` keep every terminal state, zeros included.
     ``error_bound`` is the proven bound on the error of ``probability`` and of each outcome
     when the chain was solved by the certified iterative route (a wide chain, see
-    :func:`misdirect.reachability.solve_certified`); ``None`` after a direct solve.
+    :func:`misdirect.core.reachability.solve_certified`); ``None`` after a direct solve.
     """
 
     probability: float  # with weighted decoy sets: the expected weight (see `objective`)
@@ -103,7 +103,7 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
     """Exact report for ``alteration`` (the identity when ``None``).
 
     One transposed solve gives expected visits and every outcome at once
-    (:func:`misdirect.reachability.occupation`); where it took the certified iterative route,
+    (:func:`misdirect.core.reachability.occupation`); where it took the certified iterative route,
     the probability is read off it too (the mass first entering a decoy state), else it comes
     from the forward solve every solver uses.
     """

@@ -15,41 +15,20 @@ from typing import Any
 
 import numpy as np
 
-from misdirect.alterations import max_alteration_cost
+from misdirect.core.alterations import max_alteration_cost
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Alteration, Problem
 from misdirect.errors import ProblemError
-from misdirect.evaluate import decoy_probability
-from misdirect.model import Alteration, Problem
-from misdirect.solvers.auto import AutoSolver
+from misdirect.solvers import get_solver
 from misdirect.solvers.base import (
     CERTIFY_TOLERANCE,
     ProgressCallback,
-    Solver,
     Status,
     clear_stop,
     stop_requested,
 )
-from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
-from misdirect.solvers.exhaustive import ExhaustiveSolver
-from misdirect.solvers.incremental import IncrementalSolver
-from misdirect.solvers.milp import MilpSolver
 
-SOLVERS: dict[str, type] = {
-    "auto": AutoSolver,
-    "branch-and-bound": BranchAndBoundSolver,
-    "exhaustive": ExhaustiveSolver,
-    "incremental": IncrementalSolver,
-    "milp": MilpSolver,
-}
-MISMATCH_TOLERANCE = 1e-6
-
-
-def get_solver(method: str, **options: Any) -> Solver:
-    try:
-        return SOLVERS[method](**options)
-    except KeyError:
-        raise ProblemError(
-            f"unknown method {method!r} (choose from {', '.join(SOLVERS)})", field="--method"
-        ) from None
+MISMATCH_TOLERANCE = 1e-6  # a solver claim this far from the exact value is "unverified"
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """``misdirect audit -o DIR``: report.md, curve.csv, sensors.csv and the figures.
 
-Every file goes through :func:`misdirect.io_utils.write_output` (atomic: a temporary file
+Every file goes through :func:`misdirect.io.files.write_output` (atomic: a temporary file
 beside the target, moved into place once complete). Figures are drawn from the numbers in the
 :class:`~misdirect.defence.AuditResult`, nothing is recomputed here except the grid layout.
 """
@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from misdirect.core.model import Problem, format_alteration
 from misdirect.defence import AuditResult
-from misdirect.io_utils import write_output
-from misdirect.model import Problem, format_alteration
+from misdirect.io.files import write_output
 
 CURVE_FIELDS = ["budget", "probability", "upper_bound", "status", "cost", "alteration"]
 SENSOR_FIELDS = [
@@ -158,8 +158,8 @@ def map_figure(problem: Problem, result: AuditResult):
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    from misdirect.pictures import grid_arrays, grid_cells
-    from misdirect.plots import grid_frame, mark_cell
+    from misdirect.report.pictures import grid_arrays, grid_cells
+    from misdirect.report.plots import grid_frame, mark_cell
 
     cells = grid_cells(problem)
     assert cells is not None

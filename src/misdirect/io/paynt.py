@@ -7,7 +7,7 @@ PAYNT (the synthesis tool built on Storm) writes a finite-state controller as JS
 to. Node 0 is the initial node.
 
 Which observation a column means: for a model misdirect loads through Storm, PAYNT's
-observation k of the model as PAYNT builds it (see :class:`misdirect.storm_models.PayntView`),
+observation k of the model as PAYNT builds it (see :class:`misdirect.io.storm.PayntView`),
 when the file's labels are exactly PAYNT's for that model; otherwise, and for explicit
 models, the labels are matched by name.
 """
@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core.model import Controller, CostModel, Pomdp, factored_entries
 from misdirect.errors import ProblemError
-from misdirect.io_utils import parse_json, read_text_file
-from misdirect.model import Controller, CostModel, Pomdp, factored_entries
-from misdirect.storm_models import NO_LABEL, PAYNT_NO_LABEL, PayntView, valuation_name
+from misdirect.io.files import parse_json, read_text_file
+from misdirect.io.storm import NO_LABEL, PAYNT_NO_LABEL, PayntView, valuation_name
 
 FIELD = "controller.paynt"
 SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking
