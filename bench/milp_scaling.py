@@ -198,7 +198,7 @@ def _value_cell(row: dict | None) -> str:
 
 def plot(rows: list[dict], path: Path) -> None:
     """The reproduce command's scalability panels, with solve time summed over the budgets."""
-    from misdirect.report.plots import scalability_panels
+    from misdirect.report.figures import scalability_panels
 
     totals = []
     for n, formulation in sorted({(r["n"], r["formulation"]) for r in rows}):

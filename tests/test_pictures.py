@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from misdirect import load_problem
 from misdirect.cli import app
-from misdirect.report.pictures import grid_arrays, grid_cells, grid_figure
+from misdirect.report.figures import grid_arrays, grid_cells, grid_figure
 
 runner = CliRunner()
 # 4 wide, 2 high; the wall at (1,0). Without slip the robot goes N from S (sensor 0) to (0,1),

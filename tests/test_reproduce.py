@@ -16,8 +16,8 @@ from matplotlib.image import imread
 from typer.testing import CliRunner
 
 import misdirect.cli as cli
-from misdirect import plots
 from misdirect.cli import app
+from misdirect.report import figures
 
 ROOT = Path(__file__).resolve().parents[1]
 # SPEC §3: exact optima of the 5x5 grid for budgets 0..7
@@ -211,20 +211,20 @@ def test_timed_out_and_unverified_points_are_drawn_apart(tmp_path, monkeypatch):
                 "probability": 0.5,
             }
         )
-    figures = []
-    real_save = plots.save
+    drawn = []
+    real_save = figures.save
 
     def keep(fig, stem, formats=(".png", ".svg")):
-        figures.append(fig)
+        drawn.append(fig)
         return real_save(fig, stem, formats)
 
-    monkeypatch.setattr(plots, "save", keep)
-    (svg,) = plots.scalability_panels(rows, tmp_path / "scal", formats=(".svg",), time_limit=60)
+    monkeypatch.setattr(figures, "save", keep)
+    (svg,) = figures.scalability_panels(rows, tmp_path / "scal", formats=(".svg",), time_limit=60)
     text = svg.read_text(encoding="utf-8")
     assert 'id="timed-out' in text  # the triangle's group
     assert "<!-- timed out -->" in text
     assert "paper MILP: claimed optimum wrong (claims 1" in text
-    solve_axis = figures[0].axes[3]
+    solve_axis = drawn[0].axes[3]
     (triangle,) = [line for line in solve_axis.lines if line.get_gid() == "timed-out"]
     assert triangle.get_marker() == "^"
     assert list(triangle.get_ydata()) == [60.4]  # HiGHS overran the 60 s limit: the measured time

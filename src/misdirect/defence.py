@@ -466,7 +466,7 @@ def audit(
             f"{optimum.value:.12f}"
         )
     certified = optimum.certified and all(r.exact for r in rows)
-    from misdirect.report.pictures import grid_cells
+    from misdirect.report.figures import grid_cells
 
     return AuditResult(
         problem=problem.name,

@@ -264,10 +264,9 @@ WeightedDecoys = dict[
 
 def _decoy_kind(value: Any) -> str:
     if isinstance(value, dict):
-        for kind in ("expression", "label"):  # {label: trap}, not a set called "label"
-            if set(value) == {kind} and isinstance(value[kind], str):
-                return kind
-        if "expression" in value or "label" in value:
+        # weighted sets map names to numbers or {weight: ...}; a text value is the label or
+        # expression form, misspelt or not ({lable: goal} is "label is missing")
+        if any(isinstance(entry, str) for entry in value.values()):
             return "expression" if "expression" in value else "label"
         return "weighted"
     return "states"

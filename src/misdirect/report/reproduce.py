@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from misdirect import plots
 from misdirect.core.evaluate import decoy_probability, evaluate, evaluation_time
 from misdirect.core.model import format_alteration
+from misdirect.report import figures
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
 from misdirect.solvers.run import solve
@@ -375,7 +375,7 @@ def _scalability(
         "paper's formulation can claim 1 on a trap). `evaluation_time_s`: one exact "
         "evaluation of the unaltered chain, the floor of any method.",
     )
-    report.figures["scalability"] = plots.scalability_panels(
+    report.figures["scalability"] = figures.scalability_panels(
         rows, report.out / "scalability", time_limit=limit
     )
     largest = [r for r in rows if r["n"] == max(sizes)]
@@ -406,7 +406,7 @@ def _attacks(report: ReproduceReport, grid_rows: list[dict[str, Any]], tick: Pro
     n = 5
     sensors = {OBSERVATIONS[k]: cells for k, cells in sensor_cells(n).items()}
     places = {"start": (0, 0), "goal": (n - 1, n - 1), "decoy": hazard_cell(n)}
-    report.figures["grid_layout"] = plots.grid_layout(
+    report.figures["grid_layout"] = figures.grid_layout(
         n, sensors, stem=report.out / "grid_layout", **places
     )
     by_budget = {r["budget"]: r for r in grid_rows}
@@ -428,7 +428,7 @@ def _attacks(report: ReproduceReport, grid_rows: list[dict[str, Any]], tick: Pro
             for y in range(n)
             for x in range(n)
         ]
-    report.figures["attacks"] = plots.attack_heatmaps(
+    report.figures["attacks"] = figures.attack_heatmaps(
         n, sensors, panels=panels, stem=report.out / "attacks", note=CONTROLLER_NOTE, **places
     )
     report.tables["attack_visits"] = Table(

@@ -1,4 +1,5 @@
-"""Figures: the grid with its sensors, the attack as a heat map, and the scalability panels.
+"""Figures: grid worlds (the sensors, the attacks as heat maps, one picture per alteration for
+``show``) and the scalability panels.
 
 Everything is drawn with matplotlib's object API on the Agg backend (no display needed), and
 every function takes the numbers it draws, so the same data can be checked in tests.
@@ -6,6 +7,7 @@ every function takes the numbers it draws, so the same data can be checked in te
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,6 +21,10 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+
+from misdirect.core.evaluate import evaluate
+from misdirect.core.model import Alteration, Problem
+from misdirect.io.files import write_output
 
 SENSOR_COLOURS = plt.get_cmap("tab10").colors
 HEAT_MAP = "viridis"  # perceptual; the busiest cells are bright, never near-black
@@ -466,3 +472,129 @@ def scalability_panels(
         "Scalability on the scaled grid (paper Fig. 4): compact vs the paper's MILP", fontsize=10
     )
     return save(fig, stem, formats)
+
+
+CELL = re.compile(r"^\((\d+),(\d+)\)$")  # grid worlds name their states "(x,y)"
+
+
+def grid_cells(problem: Problem) -> np.ndarray | None:
+    """(|S|, 2) cell coordinates if the problem is a grid world, else None."""
+    matches = [CELL.match(name) for name in problem.pomdp.states]
+    if not all(matches):
+        return None
+    return np.array([(int(m.group(1)), int(m.group(2))) for m in matches])
+
+
+def grid_arrays(
+    problem: Problem, cells: np.ndarray, per_state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(values, walls)``, both ``(height, width)`` indexed ``[y, x]``: ``per_state`` placed
+    at each state's cell (NaN where no state is), and the mask of cells that are no state
+    (walls). Width and height are those of the cells the states occupy."""
+    width, height = (int(v) for v in cells.max(axis=0) + 1)
+    values = np.full((height, width), np.nan)
+    values[cells[:, 1], cells[:, 0]] = per_state
+    walls = np.ones((height, width), dtype=bool)
+    walls[cells[:, 1], cells[:, 0]] = False
+    return values, walls
+
+
+def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
+    """The attack on a grid world: expected visits per cell (heat map), walls, sensor regions
+    (hatched when altered), start S, every goal G and every decoy X."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display needed
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap, LogNorm, Normalize
+    from matplotlib.patches import Rectangle
+
+    pomdp = problem.pomdp
+    report = evaluate(problem, alteration)
+    visits, walls = grid_arrays(problem, cells, report.expected_visits)
+    height, width = visits.shape
+    positive = visits[visits > 0]
+    norm = (
+        LogNorm(vmin=max(positive.min(), 1e-4), vmax=max(positive.max(), 1e-4 * 1.01))
+        if positive.size
+        else Normalize(0.0, 1.0)
+    )
+    scale = 0.9 * max(3.0, min(10.0, 10.0 * max(width, height) / 12)) / max(width, height)
+    fig, ax = plt.subplots(figsize=(max(4.5, width * scale + 1.8), max(3.5, height * scale + 1.6)))
+    extent = (-0.5, width - 0.5, -0.5, height - 0.5)
+    image = ax.imshow(
+        np.where(visits > 0, visits, np.nan),
+        origin="lower",
+        cmap="magma_r",
+        norm=norm,
+        extent=extent,
+        interpolation="nearest",
+    )
+    image.set_label("visits")
+    wall_layer = ax.imshow(
+        np.ma.masked_array(np.ones(walls.shape), mask=~walls),
+        origin="lower",
+        cmap=ListedColormap(["#4d4d4d"]),
+        extent=extent,
+        interpolation="nearest",
+    )
+    wall_layer.set_label("walls")
+    grid_frame(ax, width, height)
+
+    changed = problem.changed_observations(alteration)
+    stop = pomdp.absorbing | problem.decoy
+    sensor_states = (np.array(pomdp.observations)[pomdp.observation_of] != "b") & ~stop
+    sensor_ids = list(dict.fromkeys(pomdp.observation_of[sensor_states].tolist()))
+    for k, o in enumerate(sensor_ids):
+        name = pomdp.observations[o]
+        altered = name in changed
+        where = cells[sensor_states & (pomdp.observation_of == o)]
+        for x, y in where.tolist():
+            ax.add_patch(
+                Rectangle(
+                    (x - 0.5, y - 0.5),
+                    1,
+                    1,
+                    fill=False,
+                    edgecolor=SENSOR_COLOURS[k % 10],
+                    linewidth=3 if altered else 1.2,
+                    hatch="//" if altered else None,
+                )
+            )
+        x, y = where[0].tolist()
+        ax.text(
+            x,
+            y + 0.3,
+            f"{name}→{changed[name]}" if altered else name,
+            ha="center",
+            va="center",
+            fontsize=7,
+            weight="bold" if altered else "normal",
+            bbox={"facecolor": "white", "alpha": 0.8, "pad": 1, "edgecolor": "none"},
+        )
+    goals = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
+    decoys = np.flatnonzero(problem.decoy)
+    marks = [(pomdp.initial_state, "S", "black")]
+    marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
+    for state, text, colour in marks:
+        mark_cell(ax, tuple(cells[state].tolist()), text, colour)
+    goal_probability = sum(report.outcomes.get(pomdp.states[g], 0.0) for g in goals)
+    changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
+    ax.set_title(
+        f"{problem.name or 'problem'}: {changes} (cost {report.cost:g})\n"
+        f"Pr(decoy) = {report.probability:.3f}, Pr(goal) = {goal_probability:.3f}\n"
+        "S start, G goal, X decoy, dark grey: wall, hatched: altered sensor",
+        fontsize=8,
+    )
+    ratio = height / width  # keeps the colour bar as tall as the grid, whatever its shape
+    fig.colorbar(image, ax=ax, fraction=0.046 * ratio, pad=0.04, label="expected visits per cell")
+    return fig
+
+
+def draw_grid(problem: Problem, alteration: Alteration, cells: np.ndarray, output: Path) -> Path:
+    fig = grid_figure(problem, alteration, cells)
+    try:  # atomic, like every output: a temporary file beside it, then os.replace
+        write_output(output, lambda path: fig.savefig(path, dpi=150, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
+    return output
