@@ -126,9 +126,7 @@ class BudgetBound:
     def _live_groups(self, allowed: np.ndarray) -> np.ndarray:
         return np.flatnonzero(allowed & self.live[self.chain.group_state])
 
-    def entries(
-        self, allowed: np.ndarray, observations: np.ndarray
-    ) -> np.ndarray:
+    def entries(self, allowed: np.ndarray, observations: np.ndarray) -> np.ndarray:
         """Per observation in ``observations``: the maximal expected number of entries into its
         live region, from the start, over the schedulers using the ``allowed`` groups."""
         chain, live = self.chain, self.live
@@ -140,9 +138,7 @@ class BudgetBound:
         src_obs = self.state_obs[source_state[keep]]
         dst_obs = self.state_obs[col]
         n_live = self.live_states.size
-        matrix = sp.csr_matrix(
-            (prob, (row, self.live_index[col])), shape=(groups.size, n_live)
-        )
+        matrix = sp.csr_matrix((prob, (row, self.live_index[col])), shape=(groups.size, n_live))
         solver = _PolicyIteration(self.live_index[chain.group_state[groups]], matrix, n_live)
         start = self.live_index[chain.initial]
         result = np.zeros(observations.size)
@@ -265,7 +261,6 @@ class _ModeMdp:
         entry_index = np.full(chain.n_states, -1)
         entry_index[free_states] = n_live + np.arange(free_states.size)
         offset = n_live + free_states.size
-        rows_src, rows_group, rows_layer_index = [], [], []
         layer_maps = []
         for o, groups in layers:
             states = np.flatnonzero(live & (state_obs == o))
@@ -287,7 +282,9 @@ class _ModeMdp:
             """Rows of the given (source state, group) pairs; moves within the source's
             observation go to ``index_of_same``, others to the entry (or default) state."""
             coo = chain.transitions[groups].tocoo()
-            to_target = np.bincount(coo.row, weights=coo.data * target[coo.col], minlength=groups.size)
+            to_target = np.bincount(
+                coo.row, weights=coo.data * target[coo.col], minlength=groups.size
+            )
             keep = live[coo.col]
             r, c, p = coo.row[keep], coo.col[keep], coo.data[keep]
             same = state_obs[sources[r]] == state_obs[c]
@@ -296,18 +293,40 @@ class _ModeMdp:
             return r, dest, p, to_target
 
         parts = []  # (row states, r, dest, p, reward_const, charge)
-        parts.append((live_index[live_states], *rows(live_states, default_group[live_states], live_index), np.zeros(n_live)))
-        for (states, index, groups), charge in zip(layer_maps, charges, strict=True):
+        parts.append(
+            (
+                live_index[live_states],
+                *rows(live_states, default_group[live_states], live_index),
+                np.zeros(n_live),
+            )
+        )
+        for states, index, groups in layer_maps:
             r, dest, p, to_target = rows(states, groups, index)
             parts.append((index[states], r, dest, p, to_target, np.zeros(states.size)))
         # entry choices: the default layer (free) or a layer of its observation (charged)
         entry_states = entry_index[free_states]
         self.entry_rows_start = sum(p[0].size for p in parts)
-        parts.append((entry_states, np.arange(free_states.size), live_index[free_states],
-                      np.ones(free_states.size), np.zeros(free_states.size), np.zeros(free_states.size)))
+        parts.append(
+            (
+                entry_states,
+                np.arange(free_states.size),
+                live_index[free_states],
+                np.ones(free_states.size),
+                np.zeros(free_states.size),
+                np.zeros(free_states.size),
+            )
+        )
         for (states, index, _), charge in zip(layer_maps, charges, strict=True):
-            parts.append((entry_index[states], np.arange(states.size), index[states],
-                          np.ones(states.size), np.zeros(states.size), np.full(states.size, charge)))
+            parts.append(
+                (
+                    entry_index[states],
+                    np.arange(states.size),
+                    index[states],
+                    np.ones(states.size),
+                    np.zeros(states.size),
+                    np.full(states.size, charge),
+                )
+            )
         row_state, r_all, c_all, p_all, const, charge_all = [], [], [], [], [], []
         base = 0
         for row_states, r, dest, p, to_target, charge in parts:
@@ -356,7 +375,9 @@ class _ModeMdp:
         policy = None
         for j, o in enumerate(observations):
             hit = into == o
-            reward = np.bincount(coo.row[hit], weights=coo.data[hit], minlength=self.matrix.shape[0])
+            reward = np.bincount(
+                coo.row[hit], weights=coo.data[hit], minlength=self.matrix.shape[0]
+            )
             first = 1.0 if self.entry_obs[self.start] == o else 0.0
             if not reward.any():
                 result[j] = first
@@ -378,6 +399,12 @@ class SegmentRelaxation:
         self.group_of_option = _group_of_option(chain, relax.live)
         self.order = relax.order  # observations (choice indices) that own live states
         self.entries: dict[int, float] | None = None  # M_o, per choice index
+        live = relax.live
+        self.live_total = int(live.sum())
+        self.region_size = {
+            i: int((live & (self.state_obs == space.choices[i].observation)).sum())
+            for i in self.order
+        }
 
     def complete(self, picks: dict[int, int]) -> tuple[int, ...]:
         """The search's picks (in ``relax.order``) with every unlisted observation unaltered."""
@@ -446,6 +473,7 @@ class SegmentRelaxation:
 
 
 PRUNE_TOLERANCE = 1e-9
+BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
 
 
 class SegmentSearch:
@@ -474,7 +502,14 @@ class SegmentSearch:
         self.nodes = self.pruned = 0
         self.pruned_bound = -np.inf
         self.root_bound: float | None = None
-        self._push({}, budget, np.inf)
+        big = [i for i in seg.order if seg.region_size[i] >= BIG_REGION * seg.live_total]
+        if big:  # branch on the largest region at once: the root with it free is costly, loose
+            i = max(big, key=lambda i: seg.region_size[i])
+            costs = seg.space.choices[i].costs
+            for k in np.flatnonzero(costs <= budget + BUDGET_SLACK)[::-1].tolist():
+                self._push({i: int(k)}, budget - float(costs[k]), np.inf)
+        else:
+            self._push({}, budget, np.inf)
 
     def _push(self, picks, remaining, bound):
         import heapq
@@ -485,7 +520,9 @@ class SegmentSearch:
     def value(self, picks: tuple[int, ...]) -> float:
         if picks not in self.evaluated:
             relax = self.seg.relax
-            self.evaluated[picks] = float(relax.evaluate(relax.policy_of(picks))[relax.chain.initial])
+            self.evaluated[picks] = float(
+                relax.evaluate(relax.policy_of(picks))[relax.chain.initial]
+            )
         return self.evaluated[picks]
 
     def offer(self, picks, value) -> None:
@@ -546,11 +583,26 @@ class SegmentSearch:
             per_obs: dict[int, float] = {}
             for (i, _, _), u in zip(layers, usage, strict=True):
                 per_obs[i] = per_obs.get(i, 0.0) + float(u)
-            branch = max(per_obs, key=lambda i: per_obs[i])
+            big = [i for i in per_obs if seg.region_size[i] >= BIG_REGION * seg.live_total]
+            # a region covering much of the map (the blank reading) first: its layers make the
+            # MDP large and the bound loose; then the observation the scheduler enters most
+            branch = max(
+                big or per_obs,
+                key=lambda i: (seg.region_size[i], per_obs[i]) if big else per_obs[i],
+            )
             ranked = sorted(
-                (k for k in range(choices[branch].size)
-                 if choices[branch].costs[k] <= remaining + BUDGET_SLACK),
-                key=lambda k: -sum(u for (i, kk, _), u in zip(layers, usage) if i == branch and kk == k),
+                (
+                    k
+                    for k in range(choices[branch].size)
+                    if choices[branch].costs[k] <= remaining + BUDGET_SLACK
+                ),
+                key=lambda k: (
+                    -sum(
+                        u
+                        for (i, kk, _), u in zip(layers, usage, strict=True)
+                        if i == branch and kk == k
+                    )
+                ),
             )
             for k in ranked:
                 child = dict(picks)
