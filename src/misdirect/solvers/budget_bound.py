@@ -15,14 +15,16 @@ only makes it tighter.
 
 **The mode MDP.** A run passes through the region of an observation (its live product states)
 in *segments*: maximal stretches of consecutive states of that observation. On entering a
-segment of a free observation ``o`` the scheduler picks a mode: *default* (its states take the
-unaltered group) or *deviate* (its states may take, each on its own, the group of any affordable
-option of ``o``), and deviating costs ``λ · c_o / M_o``, with ``c_o`` the cheapest affordable
-non-trivial option of ``o`` and ``M_o`` an upper bound on the expected number of entries into
+segment of a free observation ``o`` the scheduler picks a layer for the whole segment: the
+default (its states take the unaltered group) or an affordable option ``k`` of ``o`` (every
+state of the segment takes option ``k``'s group; consistent within a segment, free only across
+segments), and option ``k`` costs ``λ · c_k / M_o``, with ``c_k`` its cost and ``M_o`` an upper
+bound on the expected number of entries into
 ``o``'s region under any alteration of the node (the maximal expected number of entries over
-the schedulers of the node's per-state MDP, from the start). An alteration ``α`` is one
-scheduler of it: deviate on every entry into an observation ``α`` alters, and take ``α``'s
-groups. Its charges add up, in expectation, to
+the schedulers of the segment MDP at the search's root, from the start; computed by
+:meth:`SegmentRelaxation.compute_entries`; without it every charge is 0). An alteration
+``α`` is one scheduler of it: on every entry into an observation ``α`` alters, take ``α``'s
+option. Its charges add up, in expectation, to
 ``λ Σ_{o altered} c_o E_α[entries into o] / M_o ≤ λ Σ c_o ≤ λ c_free(α)``.
 
 The run and the charges stop at the decoy and at states that cannot reach it (their value is
