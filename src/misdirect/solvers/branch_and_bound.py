@@ -52,6 +52,7 @@ GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by more than a tie
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
+SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 
 
 @dataclass
@@ -270,6 +271,13 @@ class BranchAndBoundSolver:
         instance = prepare(problem, top)
         relax = _Relaxation(problem, instance.space, instance.chain)
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
+        segments = None
+        if chain.n_states >= SEGMENT_MIN_STATES:
+            from misdirect.solvers.budget_bound import BudgetBound, SegmentRelaxation
+
+            state_obs = problem.pomdp.observation_of[chain.world_state]
+            if BudgetBound.create(chain, state_obs) is not None:
+                segments = SegmentRelaxation(problem, space, chain, relax)
         policy = relax.best_groups(relax.live_groups.astype(np.float64))[0]
         incumbent: tuple[tuple[int, ...], float] | None = None
         answers: dict[int, Solution] = {}
@@ -288,6 +296,8 @@ class BranchAndBoundSolver:
             better, found = relax.improve(search.best_picks, search.best_value, budget, climb)
             search.offer(better, found)
             share = deadline.share(len(order) - done)
+            if segments is not None and share is not None:
+                share /= 2  # the other half for the segment search, if this one does not certify
             limit = None if share is None else Deadline(share)
 
             def tick(search=search, budget=budget, done=done) -> None:
@@ -300,9 +310,62 @@ class BranchAndBoundSolver:
                 )
 
             answers[j] = search.run(limit, tick)
+            if answers[j].status != "optimal" and segments is not None:
+                answers[j] = _segment_phase(
+                    segments,
+                    relax,
+                    search,
+                    answers[j],
+                    budget,
+                    deadline,
+                    len(order) - done,
+                    self.max_nodes,
+                    progress,
+                    done,
+                    len(order),
+                )
             incumbent, policy = (search.best_picks, search.best_value), search.root_policy
             report(progress, done + 1, len(order), stage="branch-and-bound")
         return [answers[j] for j in range(len(budgets))]
+
+
+def _segment_phase(
+    segments, relax, search, answer, budget, deadline, left, max_nodes, progress, done, total
+):
+    """Continue a budget the per-state search did not certify with the segment search
+    (:mod:`misdirect.solvers.budget_bound`), from its incumbent; keep the better answer and
+    the smaller of the two proven bounds."""
+    from misdirect.solvers.budget_bound import SegmentSearch
+
+    second = SegmentSearch(segments, budget, seeds=[search.best_picks])
+    share = deadline.share(left)
+    limit = None if share is None else Deadline(share)
+
+    def tick() -> None:
+        report(
+            progress,
+            done,
+            total,
+            stage=f"segment search, budget {budget:g}",
+            detail=f"incumbent {second.best_value:.6f}, bound {second.open_bound():.6f}"
+            f", {second.nodes:,} nodes",
+        )
+
+    status = second.run(limit, tick, max_nodes=max_nodes)
+    search.offer(second.best_picks, second.best_value)  # carried to the next budget
+    value = max(second.best_value, answer.claimed_probability)
+    picks = second.best_picks if second.best_value > answer.claimed_probability else None
+    bound = max(min(second.open_bound(), answer.upper_bound), value)
+    proven = status == "optimal" or bound - value <= PRUNE_TOLERANCE
+    stats = {**answer.stats, "segment_nodes": second.nodes, "segment_root_bound": second.root_bound}
+    return Solution(
+        budget=answer.budget,
+        alteration=answer.alteration if picks is None else relax.alteration(picks),
+        claimed_probability=value,
+        status="optimal" if proven else answer.status,
+        upper_bound=value if status == "optimal" else bound,
+        stats=stats,
+    )
 
 
 class _Search:

@@ -1,0 +1,640 @@
+"""A budget-aware upper bound: Lagrangian relaxation of the budget, charged once per entry.
+
+The per-state MDP relaxation of :mod:`misdirect.solvers.branch_and_bound` lets every product
+state of a free observation deviate, so with dozens of sensors it lets dozens of them change at
+once, whatever the budget. This module bounds ``max {V(α) : c(α) ≤ r}`` over the alterations
+``α`` of a branch-and-bound node (some observations fixed, the free ones within the remaining
+budget ``r``) by
+
+    UB(λ) = λ r + G(λ)        for any λ ≥ 0,
+
+where ``G(λ)`` is the optimal value of the **mode MDP** below, which is at least
+``V(α) − λ c_free(α)`` for every such ``α`` (``c_free``: the cost of its free observations).
+Since ``c_free(α) ≤ r``, ``UB(λ) ≥ V(α)``: every λ gives a proven bound, the search over λ
+only makes it tighter.
+
+**The mode MDP.** A run passes through the region of an observation (its live product states)
+in *segments*: maximal stretches of consecutive states of that observation. On entering a
+segment of a free observation ``o`` the scheduler picks a layer for the whole segment: the
+default (its states take the unaltered group) or an affordable option ``k`` of ``o`` (every
+state of the segment takes option ``k``'s group; consistent within a segment, free only across
+segments), and option ``k`` costs ``λ · c_k / M_o``, with ``c_k`` its cost and ``M_o`` an upper
+bound on the expected number of entries into
+``o``'s region under any alteration of the node (the maximal expected number of entries over
+the schedulers of the segment MDP at the search's root, from the start; computed by
+:meth:`SegmentRelaxation.compute_entries`; without it every charge is 0). An alteration
+``α`` is one scheduler of it: on every entry into an observation ``α`` alters, take ``α``'s
+option. Its charges add up, in expectation, to
+``λ Σ_{o altered} c_o E_α[entries into o] / M_o ≤ λ Σ c_o ≤ λ c_free(α)``.
+
+The run and the charges stop at the decoy and at states that cannot reach it (their value is
+0 under every scheduler, so a scheduler never pays there). Values are computed exactly by
+policy iteration, which needs every policy to leave the live states with probability 1: the
+bound is offered only when the choice product has no end component among its live states
+(then no scheduler of the mode MDP, whose runs project onto runs of the choice product, has
+one either). Otherwise :meth:`BudgetBound.create` returns None.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from misdirect.choice_product import ChoiceProduct, end_component_states
+
+IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a choice only on a larger gain
+BUDGET_SLACK = 1e-9
+
+
+@dataclass
+class LagrangeResult:
+    bound: float  # min over the multipliers tried of λ r + G(λ)
+    multiplier: float  # the λ that gave it
+    tried: int  # multipliers evaluated
+    evaluations: int  # policy evaluations (linear solves)
+
+
+class _PolicyIteration:
+    """Max expected total reward of a transient MDP given by rows (choices)."""
+
+    def __init__(self, row_state: np.ndarray, matrix: sp.csr_matrix, n_states: int):
+        self.row_state = row_state
+        self.matrix = matrix
+        self.n_states = n_states
+        order = np.lexsort((np.arange(row_state.size), row_state))
+        self.sorted_rows = order
+        ordered = row_state[order]
+        starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+        if not row_state.size:
+            starts = starts[:0]
+        self.state_start = starts  # in sorted order, one per state (every state has a row)
+        if starts.size != n_states:
+            raise AssertionError("every state of the mode MDP needs a choice")
+        self.evaluations = 0
+
+    def first_rows(self) -> np.ndarray:
+        return self.sorted_rows[self.state_start]
+
+    def evaluate(self, policy: np.ndarray, reward: np.ndarray, extra=None):
+        """Values of the chain that takes row ``policy[x]`` in ``x``; ``extra``: further
+        right-hand sides (per row) solved with the same factorisation."""
+        self.evaluations += 1
+        system = (sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc()
+        lu = splu(system)
+        values = lu.solve(reward[policy])
+        if extra is None:
+            return values, None
+        return values, lu.solve(extra[policy])
+
+    def optimise(self, reward: np.ndarray, policy: np.ndarray | None = None):
+        if policy is None:
+            policy = self.first_rows()
+        while True:
+            values, _ = self.evaluate(policy, reward)
+            score = self.matrix @ values + reward
+            order = np.lexsort((-score, self.row_state))
+            best = order[self.state_start]
+            gain = score[best] - score[policy]
+            switch = gain > IMPROVE_TOLERANCE * np.maximum(1.0, np.abs(values))
+            if not switch.any():
+                return values, policy
+            policy = np.where(switch, best, policy)
+
+
+class BudgetBound:
+    """The Lagrangian bound for the nodes of one branch-and-bound search (one choice product)."""
+
+    def __init__(self, chain: ChoiceProduct, state_obs: np.ndarray, live: np.ndarray):
+        self.chain = chain
+        self.state_obs = state_obs
+        self.live = live
+        self.live_index = np.full(chain.n_states, -1)
+        self.live_states = np.flatnonzero(live)
+        self.live_index[self.live_states] = np.arange(self.live_states.size)
+        self.evaluations = 0
+
+    @classmethod
+    def create(cls, chain: ChoiceProduct, state_obs: np.ndarray) -> BudgetBound | None:
+        live = chain.can_reach_target() & ~chain.target
+        cycling = end_component_states(chain.group_state, chain.transitions, live)
+        if cycling.any():
+            return None
+        return cls(chain, state_obs, live)
+
+    # -- the node's MDPs ---------------------------------------------------------------------
+    def _live_groups(self, allowed: np.ndarray) -> np.ndarray:
+        return np.flatnonzero(allowed & self.live[self.chain.group_state])
+
+    def entries(self, allowed: np.ndarray, observations: np.ndarray) -> np.ndarray:
+        """Per observation in ``observations``: the maximal expected number of entries into its
+        live region, from the start, over the schedulers using the ``allowed`` groups."""
+        chain, live = self.chain, self.live
+        groups = self._live_groups(allowed)
+        rows = chain.transitions[groups].tocoo()
+        source_state = chain.group_state[groups][rows.row]
+        keep = live[rows.col]
+        row, col, prob = rows.row[keep], rows.col[keep], rows.data[keep]
+        src_obs = self.state_obs[source_state[keep]]
+        dst_obs = self.state_obs[col]
+        n_live = self.live_states.size
+        matrix = sp.csr_matrix((prob, (row, self.live_index[col])), shape=(groups.size, n_live))
+        solver = _PolicyIteration(self.live_index[chain.group_state[groups]], matrix, n_live)
+        start = self.live_index[chain.initial]
+        result = np.zeros(observations.size)
+        if start < 0:
+            return result
+        policy = None
+        crossing = src_obs != dst_obs
+        for j, o in enumerate(observations.tolist()):
+            hit = crossing & (dst_obs == o)
+            reward = np.bincount(row[hit], weights=prob[hit], minlength=groups.size)
+            if not reward.any():
+                result[j] = 1.0 if self.state_obs[chain.initial] == o else 0.0
+                continue
+            values, policy = solver.optimise(reward, policy)
+            result[j] = values[start] + (1.0 if self.state_obs[chain.initial] == o else 0.0)
+        self.evaluations += solver.evaluations
+        return result
+
+    def lagrangian(
+        self,
+        default_group: np.ndarray,
+        layers,
+        charges,
+        remaining: float,
+        *,
+        stop_below: float = -np.inf,
+        max_multipliers: int = 12,
+    ) -> LagrangeResult:
+        """min over λ ≥ 0 (as found) of ``λ remaining + G(λ)``.
+
+        ``default_allowed``/``deviate_allowed``: groups a state may take in the default and the
+        deviate mode (equal for fixed and irrelevant observations); ``unit``: per product state,
+        the charge per unit of λ for deviating on entering its region (0 where the state's
+        observation is not free). Stops once a bound at most ``stop_below`` is found.
+        """
+        return self.lagrangian_on(
+            _ModeMdp(self, default_group, layers, charges),
+            remaining,
+            stop_below=stop_below,
+            max_multipliers=max_multipliers,
+        )[0]
+
+    def lagrangian_on(self, mdp, remaining, *, stop_below=-np.inf, max_multipliers=12):
+        """(result, policy at the best multiplier) of the Lagrangian on a built segment MDP."""
+        charges = mdp.charge
+        start = mdp.start
+        if start is None:
+            value = float(self.chain.target[self.chain.initial])
+            return LagrangeResult(value, 0.0, 0, 0), None
+        lines: list[tuple[float, float]] = []  # (value at λ, slope) of h at the multipliers tried
+        best = (np.inf, 0.0)
+        policy = best_policy = None
+        lam = 0.0
+        positive = charges[charges > 0]
+        high = 1.0 / max(float(positive.min(initial=1.0)), 1e-300)
+        if not positive.size:
+            max_multipliers = 1  # nothing is charged: λ changes nothing
+        lo_line = hi_line = None
+        for _ in range(max_multipliers):
+            reward = mdp.reward_const - lam * mdp.charge
+            values, policy = mdp.solver.optimise(reward, policy)
+            _, charges = mdp.solver.evaluate(policy, reward, extra=mdp.charge)
+            g = float(values[start])
+            k = float(charges[start])
+            h = lam * remaining + g
+            slope = remaining - k
+            if h < best[0]:
+                best = (h, lam)
+                best_policy = policy
+            if best[0] <= stop_below:
+                break
+            lines.append((lam, h, slope))
+            if slope >= -1e-12:  # h grows from here: the minimum is at or left of λ
+                hi_line = (lam, h, slope) if hi_line is None or lam < hi_line[0] else hi_line
+            else:
+                lo_line = (lam, h, slope) if lo_line is None or lam > lo_line[0] else lo_line
+            if hi_line is None:
+                # no multiplier yet where h grows: jump far right
+                lam = high if lam < high else 2 * lam + 1
+                continue
+            if lo_line is None:
+                break  # slope ≥ 0 at the smallest λ tried (λ = 0 first): minimum there
+            # Kelley step: where the two supporting lines cross
+            (l1, h1, s1), (l2, h2, s2) = lo_line, hi_line
+            if s2 - s1 <= 1e-15:
+                break
+            cross = (h1 - s1 * l1 - (h2 - s2 * l2)) / (s2 - s1)
+            if not l1 < cross < l2:
+                break
+            predicted = h1 + s1 * (cross - l1)
+            if best[0] - predicted <= 1e-12:
+                break
+            lam = cross
+        self.evaluations += mdp.solver.evaluations
+        return LagrangeResult(best[0], best[1], len(lines), mdp.solver.evaluations), best_policy
+
+
+class _ModeMdp:
+    """The segment MDP of a node.
+
+    States: every live product state in the *default layer* (it takes its default group: the
+    node's fixed pick, or option 0 of a free observation), and, for every free observation
+    ``o`` and affordable non-trivial option ``k`` of it, a copy of ``o``'s live states in
+    layer ``(o, k)`` (they take the group of option ``k``). A run that moves into the region
+    of a free observation from another observation's state arrives at an *entry* state, where
+    the scheduler picks the layer of the segment: default (free) or ``(o, k)`` (charged
+    ``λ · charge[(o, k)]``). Within a segment the layer stays; the only choices are at entries.
+    """
+
+    def __init__(self, owner: BudgetBound, default_group: np.ndarray, layers, charges):
+        """``default_group``: per product state, its group in the default layer (-1 if not
+        live); ``layers``: list of (observation, group per product state of it);
+        ``charges``: per layer, the charge per unit of λ."""
+        chain, live, state_obs = owner.chain, owner.live, owner.state_obs
+        live_states, live_index = owner.live_states, owner.live_index
+        n_live = live_states.size
+        free_obs = sorted({o for o, _ in layers})
+        free = live & np.isin(state_obs, free_obs)
+        free_states = np.flatnonzero(free)
+        entry_index = np.full(chain.n_states, -1)
+        entry_index[free_states] = n_live + np.arange(free_states.size)
+        offset = n_live + free_states.size
+        layer_maps = []
+        for o, groups in layers:
+            states = np.flatnonzero(live & (state_obs == o))
+            index = np.full(chain.n_states, -1)
+            index[states] = offset + np.arange(states.size)
+            offset += states.size
+            layer_maps.append((states, index, groups[states]))
+        n = offset
+        self.n = n
+        if not live[chain.initial]:
+            self.start = None
+        else:
+            self.start = int(
+                entry_index[chain.initial] if free[chain.initial] else live_index[chain.initial]
+            )
+        target = chain.target.astype(np.float64)
+
+        def rows(sources, groups, index_of_same):
+            """Rows of the given (source state, group) pairs; moves within the source's
+            observation go to ``index_of_same``, others to the entry (or default) state."""
+            coo = chain.transitions[groups].tocoo()
+            to_target = np.bincount(
+                coo.row, weights=coo.data * target[coo.col], minlength=groups.size
+            )
+            keep = live[coo.col]
+            r, c, p = coo.row[keep], coo.col[keep], coo.data[keep]
+            same = state_obs[sources[r]] == state_obs[c]
+            entry = np.where(free[c], entry_index[c], live_index[c])
+            dest = np.where(same, index_of_same[c], entry)
+            return r, dest, p, to_target
+
+        parts = []  # (row states, r, dest, p, reward_const, charge)
+        parts.append(
+            (
+                live_index[live_states],
+                *rows(live_states, default_group[live_states], live_index),
+                np.zeros(n_live),
+            )
+        )
+        for states, index, groups in layer_maps:
+            r, dest, p, to_target = rows(states, groups, index)
+            parts.append((index[states], r, dest, p, to_target, np.zeros(states.size)))
+        # entry choices: the default layer (free) or a layer of its observation (charged)
+        entry_states = entry_index[free_states]
+        self.entry_rows_start = sum(p[0].size for p in parts)
+        parts.append(
+            (
+                entry_states,
+                np.arange(free_states.size),
+                live_index[free_states],
+                np.ones(free_states.size),
+                np.zeros(free_states.size),
+                np.zeros(free_states.size),
+            )
+        )
+        for (states, index, _), charge in zip(layer_maps, charges, strict=True):
+            parts.append(
+                (
+                    entry_index[states],
+                    np.arange(states.size),
+                    index[states],
+                    np.ones(states.size),
+                    np.zeros(states.size),
+                    np.full(states.size, charge),
+                )
+            )
+        row_state, r_all, c_all, p_all, const, charge_all = [], [], [], [], [], []
+        base = 0
+        for row_states, r, dest, p, to_target, charge in parts:
+            row_state.append(row_states)
+            r_all.append(r + base)
+            c_all.append(dest)
+            p_all.append(p)
+            const.append(to_target)
+            charge_all.append(charge)
+            base += row_states.size
+        self.matrix = sp.csr_matrix(
+            (np.concatenate(p_all), (np.concatenate(r_all), np.concatenate(c_all))),
+            shape=(base, n),
+        )
+        self.reward_const = np.concatenate(const)
+        self.charge = np.concatenate(charge_all)
+        self.solver = _PolicyIteration(np.concatenate(row_state).astype(np.int64), self.matrix, n)
+        self.layer_of_row = np.full(self.matrix.shape[0], -1)
+        position = self.entry_rows_start + free_states.size
+        for j, (states, _, _) in enumerate(layer_maps):
+            self.layer_of_row[position : position + states.size] = j
+            position += states.size
+        self.entry_obs = np.full(n, -1)
+        self.entry_obs[entry_index[free_states]] = state_obs[free_states]
+
+    def layer_usage(self, policy: np.ndarray, n_layers: int) -> np.ndarray:
+        """Per layer: the expected number of entries that choose it, under ``policy``."""
+        if self.start is None:
+            return np.zeros(n_layers)
+        system = (sp.identity(self.n, format="csc") - self.matrix[policy]).T.tocsc()
+        e = np.zeros(self.n)
+        e[self.start] = 1.0
+        visits = splu(system).solve(e)
+        layer = self.layer_of_row[policy]
+        chosen = layer >= 0
+        return np.bincount(layer[chosen], weights=visits[chosen], minlength=n_layers)
+
+    def entries(self, observations) -> np.ndarray:
+        """Per observation: the maximal expected number of entries into its live region over
+        the schedulers of this MDP (every alteration of the node is one), from the start."""
+        coo = self.matrix.tocoo()
+        into = self.entry_obs[coo.col]
+        result = np.zeros(len(observations))
+        if self.start is None:
+            return result
+        policy = None
+        for j, o in enumerate(observations):
+            hit = into == o
+            reward = np.bincount(
+                coo.row[hit], weights=coo.data[hit], minlength=self.matrix.shape[0]
+            )
+            first = 1.0 if self.entry_obs[self.start] == o else 0.0
+            if not reward.any():
+                result[j] = first
+                continue
+            values, policy = self.solver.optimise(reward, policy)
+            result[j] = values[self.start] + first
+        return result
+
+
+class SegmentRelaxation:
+    """Node bounds of :class:`SegmentSearch`: the segment MDP, and its Lagrangian."""
+
+    def __init__(self, problem, space, chain, relax):
+        from misdirect.solvers.incremental import _group_of_option
+
+        self.problem, self.space, self.chain, self.relax = problem, space, chain, relax
+        self.state_obs = problem.pomdp.observation_of[chain.world_state]
+        self.bound = BudgetBound(chain, self.state_obs, relax.live)
+        self.group_of_option = _group_of_option(chain, relax.live)
+        self.order = relax.order  # observations (choice indices) that own live states
+        self.entries: dict[int, float] | None = None  # M_o, per choice index
+        live = relax.live
+        self.live_total = int(live.sum())
+        self.region_size = {
+            i: int((live & (self.state_obs == space.choices[i].observation)).sum())
+            for i in self.order
+        }
+
+    def complete(self, picks: dict[int, int]) -> tuple[int, ...]:
+        """The search's picks (in ``relax.order``) with every unlisted observation unaltered."""
+        return tuple(picks.get(i, 0) for i in self.order)
+
+    def layers_of(self, picks: dict[int, int], remaining: float):
+        """Per free observation: its affordable options that change some live state."""
+        relax, live = self.relax, self.relax.live
+        found = []
+        default = self.group_of_option
+        for i in self.order:
+            if i in picks:
+                continue
+            choice = self.space.choices[i]
+            first = relax.first_option[i]
+            states = np.flatnonzero(live & (self.state_obs == choice.observation))
+            base = default[states, first]
+            for k in range(1, choice.size):
+                if choice.costs[k] > remaining + BUDGET_SLACK:
+                    continue
+                groups = default[:, first + k]
+                if np.array_equal(groups[states], base):
+                    continue
+                found.append((i, k, groups))
+        return found
+
+    def compute_entries(self, remaining: float) -> None:
+        """M_o for every observation, at the root (valid for every node below it)."""
+        layers = self.layers_of({}, remaining)
+        default_group = self.relax.policy_of(self.complete({}))
+        mdp = _ModeMdp(
+            self.bound,
+            default_group,
+            [(self.space.choices[i].observation, g) for i, _, g in layers],
+            [1.0] * len(layers),
+        )
+        observations = sorted({i for i, _, _ in layers})
+        values = mdp.entries([self.space.choices[i].observation for i in observations])
+        self.entries = dict(zip(observations, values.tolist(), strict=True))
+        self.bound.evaluations += mdp.solver.evaluations
+
+    def node(self, picks: dict[int, int], remaining: float, stop_below: float):
+        """(bound, per layer usage, layers) of the node."""
+        layers = self.layers_of(picks, remaining)
+        default_group = self.relax.policy_of(self.complete(picks))
+        if self.entries is None:
+            charges = [0.0] * len(layers)
+        else:
+            charges = [
+                self.space.choices[i].costs[k] / max(self.entries.get(i, 0.0), 1e-300)
+                if self.entries.get(i, 0.0) > 0
+                else 0.0
+                for i, k, _ in layers
+            ]
+        mdp = _ModeMdp(
+            self.bound,
+            default_group,
+            [(self.space.choices[i].observation, g) for i, _, g in layers],
+            charges,
+        )
+        result, policy = self.bound.lagrangian_on(mdp, remaining, stop_below=stop_below)
+        usage = np.zeros(len(layers))
+        if policy is not None and layers:
+            usage = mdp.layer_usage(policy, len(layers))
+        return result, usage, layers
+
+
+PRUNE_TOLERANCE = 1e-9
+BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
+
+
+class SegmentSearch:
+    """Best-first branch-and-bound for one budget, bounded by :class:`SegmentRelaxation`.
+
+    A node fixes some observations to one candidate each (``picks``, by choice index); the
+    rest are free within the ``remaining`` budget. It branches on the free observation whose
+    layers the bound's optimal scheduler enters most, and its incumbent rounds that scheduler
+    (per observation the layer entered most, most-entered first, within the budget).
+    """
+
+    def __init__(self, seg: SegmentRelaxation, budget: float, seeds=()):
+        import heapq  # noqa: F401
+
+        self.seg, self.budget = seg, budget
+        self.best_picks: tuple[int, ...] = seg.complete({})
+        self.best_value = -1.0
+        self.best_cost = 0.0
+        self.evaluated: dict[tuple[int, ...], float] = {}
+        self.offer(self.best_picks, self.value(self.best_picks))
+        for picks in seeds:
+            if picks is not None and seg.relax.cost(picks) <= budget + BUDGET_SLACK:
+                self.offer(picks, self.value(picks))
+        self.heap: list = []
+        self.counter = 0
+        self.nodes = self.pruned = 0
+        self.pruned_bound = -np.inf
+        self.root_bound: float | None = None
+        big = [i for i in seg.order if seg.region_size[i] >= BIG_REGION * seg.live_total]
+        if big:  # branch on the largest region at once: the root with it free is costly, loose
+            i = max(big, key=lambda i: seg.region_size[i])
+            costs = seg.space.choices[i].costs
+            for k in np.flatnonzero(costs <= budget + BUDGET_SLACK)[::-1].tolist():
+                self._push({i: int(k)}, budget - float(costs[k]), np.inf)
+        else:
+            self._push({}, budget, np.inf)
+
+    def _push(self, picks, remaining, bound):
+        import heapq
+
+        self.counter += 1
+        heapq.heappush(self.heap, (-bound, self.counter, picks, remaining))
+
+    def value(self, picks: tuple[int, ...]) -> float:
+        if picks not in self.evaluated:
+            relax = self.seg.relax
+            self.evaluated[picks] = float(
+                relax.evaluate(relax.policy_of(picks))[relax.chain.initial]
+            )
+        return self.evaluated[picks]
+
+    def offer(self, picks, value) -> None:
+        cost = self.seg.relax.cost(picks)
+        better = value > self.best_value + PRUNE_TOLERANCE
+        tied_cheaper = value >= self.best_value - PRUNE_TOLERANCE and cost < self.best_cost - 1e-12
+        if better or tied_cheaper:
+            self.best_picks, self.best_value, self.best_cost = picks, value, cost
+
+    def open_bound(self) -> float:
+        top = -self.heap[0][0] if self.heap else -np.inf
+        return float(min(max(self.best_value, self.pruned_bound, top), 1.0))
+
+    def _prune(self, bound):
+        if bound <= self.best_value + PRUNE_TOLERANCE:
+            self.pruned += 1
+            self.pruned_bound = max(self.pruned_bound, bound)
+            return True
+        return False
+
+    def run(self, deadline=None, tick=None, max_nodes: int | None = None) -> str:
+        import heapq
+
+        seg = self.seg
+        choices = seg.space.choices
+        while self.heap:
+            if deadline is not None and deadline.expired():
+                return "time_limit"
+            if max_nodes is not None and self.nodes >= max_nodes:
+                return "feasible"
+            if tick is not None and self.nodes % 16 == 0:
+                tick()
+            negative, _, picks, remaining = heapq.heappop(self.heap)
+            if self._prune(-negative):
+                continue
+            self.nodes += 1
+            result, usage, layers = seg.node(picks, remaining, self.best_value + PRUNE_TOLERANCE)
+            bound = min(float(result.bound), 1.0)
+            if self.root_bound is None:
+                self.root_bound = bound
+            if not layers:  # nothing affordable changes anything: the node is one alteration
+                self.offer(seg.complete(picks), self.value(seg.complete(picks)))
+                continue
+            # round the scheduler to an alteration within the budget
+            chosen, left = dict(picks), remaining
+            for j in np.argsort(-usage, kind="stable"):
+                if usage[j] <= 0:
+                    break
+                i, k, _ = layers[j]
+                if i in chosen or choices[i].costs[k] > left + BUDGET_SLACK:
+                    continue
+                chosen[i] = k
+                left -= float(choices[i].costs[k])
+            rounded = seg.complete(chosen)
+            self.offer(rounded, self.value(rounded))
+            if self._prune(bound):
+                continue
+            per_obs: dict[int, float] = {}
+            for (i, _, _), u in zip(layers, usage, strict=True):
+                per_obs[i] = per_obs.get(i, 0.0) + float(u)
+            big = [i for i in per_obs if seg.region_size[i] >= BIG_REGION * seg.live_total]
+            # a region covering much of the map (the blank reading) first: its layers make the
+            # MDP large and the bound loose; then the observation the scheduler enters most
+            branch = max(
+                big or per_obs,
+                key=lambda i: (seg.region_size[i], per_obs[i]) if big else per_obs[i],
+            )
+            ranked = sorted(
+                (
+                    k
+                    for k in range(choices[branch].size)
+                    if choices[branch].costs[k] <= remaining + BUDGET_SLACK
+                ),
+                key=lambda k: (
+                    -sum(
+                        u
+                        for (i, kk, _), u in zip(layers, usage, strict=True)
+                        if i == branch and kk == k
+                    )
+                ),
+            )
+            for k in ranked:
+                child = dict(picks)
+                child[branch] = int(k)
+                self._push(child, remaining - float(choices[branch].costs[k]), bound)
+        return "optimal"
+
+
+def segment_relaxation(problem, budget: float) -> SegmentRelaxation | None:
+    """The segment relaxation of ``problem`` for budgets up to ``budget``; None when the choice
+    product has an end component among its live states (policy iteration needs none)."""
+    from misdirect.alterations import alteration_space
+    from misdirect.choice_product import build_choice_product
+    from misdirect.solvers.branch_and_bound import _Relaxation
+
+    space = alteration_space(problem.with_budget(budget))
+    chain = build_choice_product(problem, space)
+    state_obs = problem.pomdp.observation_of[chain.world_state]
+    if BudgetBound.create(chain, state_obs) is None:
+        return None
+    return SegmentRelaxation(problem, space, chain, _Relaxation(problem, space, chain))
+
+
+def segment_bound(problem, budget: float, *, lagrangian: bool = False) -> float | None:
+    """Bound of the root node (every observation free): the segment MDP, with the Lagrangian
+    of the budget when ``lagrangian`` (which first computes M_o, one policy iteration per
+    observation). None where the relaxation does not apply."""
+    seg = segment_relaxation(problem, budget)
+    if seg is None:
+        return None
+    if lagrangian:
+        seg.compute_entries(budget)
+    return min(float(seg.node({}, budget, -np.inf)[0].bound), 1.0)
