@@ -6,7 +6,7 @@ Every expected value comes from the exhaustive solver, never from the module its
 import numpy as np
 import pytest
 
-from misdirect.evaluate import decoy_probability
+from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import random_problem, sensor_grid
 from misdirect.solvers.base import Deadline
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
@@ -15,7 +15,7 @@ from misdirect.solvers.exhaustive import ExhaustiveSolver
 
 
 def optima(problem, budgets):
-    return [s.claimed_probability for s in ExhaustiveSolver().solve(problem, budgets)]
+    return [s.solver_probability for s in ExhaustiveSolver().solve(problem, budgets)]
 
 
 def random_suite(count):
@@ -53,9 +53,10 @@ def check_bounds(problem, budgets):
         return False
     best = optima(problem.with_budget(top), budgets)
     seg = segment_relaxation(problem, top)
-    plain = [min(seg.node({}, b, -np.inf)[0].bound, 1.0) for b in budgets]
+    top_value = problem.objective.max_value
+    plain = [min(seg.node({}, b, -np.inf)[0].bound, top_value) for b in budgets]
     seg.compute_entries(top)  # M_o for the top budget holds for every smaller one
-    charged = [min(seg.node({}, b, -np.inf)[0].bound, 1.0) for b in budgets]
+    charged = [min(seg.node({}, b, -np.inf)[0].bound, top_value) for b in budgets]
     for budget, optimum, p, c in zip(budgets, best, plain, charged, strict=True):
         assert p >= optimum - 1e-9, (problem.name, budget, p, optimum)
         assert c >= optimum - 1e-9, (problem.name, budget, c, optimum)
@@ -96,8 +97,17 @@ def test_branch_and_bound_backed_by_the_segment_search_stays_honest():
     assert any("segment_nodes" in a.stats for a in answers)
     for answer, optimum in zip(answers, best, strict=True):
         value = decoy_probability(problem, np.asarray(answer.alteration))
-        assert abs(value - answer.claimed_probability) <= 1e-9
+        assert abs(value - answer.solver_probability) <= 1e-9
         assert answer.upper_bound >= optimum - 1e-9
         assert value <= optimum + 1e-9
         if answer.status == "optimal":
             assert abs(value - optimum) <= 1e-9
+
+
+def test_bounds_hold_with_weighted_decoys():
+    """Decoy weights up to 3 (tests/test_weighted_decoys.py): the segment bounds still lie
+    above the exhaustive optimum, and the search certifies it exactly."""
+    from test_weighted_decoys import weighted_random
+
+    checked = sum(check_bounds(weighted_random(seed), [0.0, 1.0, 2.0, 3.0]) for seed in range(12))
+    assert checked >= 4

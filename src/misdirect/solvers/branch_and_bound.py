@@ -269,7 +269,8 @@ class BranchAndBoundSolver:
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         instance = prepare(problem, top)
-        relax = _Relaxation(problem, instance.space, instance.chain)
+        space, chain = instance.space, instance.chain
+        relax = _Relaxation(problem, space, chain)
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
         segments = None
         if chain.n_states >= SEGMENT_MIN_STATES:
@@ -310,7 +311,7 @@ class BranchAndBoundSolver:
                 )
 
             answers[j] = search.run(limit, tick)
-            if answers[j].status != "optimal" and segments is not None:
+            if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
                     segments,
                     relax,
@@ -353,16 +354,16 @@ def _segment_phase(
 
     status = second.run(limit, tick, max_nodes=max_nodes)
     search.offer(second.best_picks, second.best_value)  # carried to the next budget
-    value = max(second.best_value, answer.claimed_probability)
-    picks = second.best_picks if second.best_value > answer.claimed_probability else None
+    value = max(second.best_value, answer.solver_probability)
+    picks = second.best_picks if second.best_value > answer.solver_probability else None
     bound = max(min(second.open_bound(), answer.upper_bound), value)
     proven = status == "optimal" or bound - value <= PRUNE_TOLERANCE
     stats = {**answer.stats, "segment_nodes": second.nodes, "segment_root_bound": second.root_bound}
     return Solution(
         budget=answer.budget,
         alteration=answer.alteration if picks is None else relax.alteration(picks),
-        claimed_probability=value,
-        status="optimal" if proven else answer.status,
+        solver_probability=value,
+        status=Status.OPTIMAL if proven else answer.status,
         upper_bound=value if status == "optimal" else bound,
         stats=stats,
     )

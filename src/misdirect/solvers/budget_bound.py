@@ -43,7 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from misdirect.choice_product import ChoiceProduct, end_component_states
+from misdirect.core.choice_product import ChoiceProduct, end_component_states
 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a choice only on a larger gain
 BUDGET_SLACK = 1e-9
@@ -188,7 +188,7 @@ class BudgetBound:
         charges = mdp.charge
         start = mdp.start
         if start is None:
-            value = float(self.chain.target[self.chain.initial])
+            value = float(self.chain.target_value[self.chain.initial])
             return LagrangeResult(value, 0.0, 0, 0), None
         lines: list[tuple[float, float]] = []  # (value at λ, slope) of h at the multipliers tried
         best = (np.inf, 0.0)
@@ -278,7 +278,7 @@ class _ModeMdp:
             self.start = int(
                 entry_index[chain.initial] if free[chain.initial] else live_index[chain.initial]
             )
-        target = chain.target.astype(np.float64)
+        target = chain.target_value  # the decoy's value per state (its weight; 1 by default)
 
         def rows(sources, groups, index_of_same):
             """Rows of the given (source state, group) pairs; moves within the source's
@@ -536,7 +536,8 @@ class SegmentSearch:
 
     def open_bound(self) -> float:
         top = -self.heap[0][0] if self.heap else -np.inf
-        return float(min(max(self.best_value, self.pruned_bound, top), 1.0))
+        ceiling = self.seg.problem.objective.max_value
+        return float(min(max(self.best_value, self.pruned_bound, top), ceiling))
 
     def _prune(self, bound):
         if bound <= self.best_value + PRUNE_TOLERANCE:
@@ -562,7 +563,7 @@ class SegmentSearch:
                 continue
             self.nodes += 1
             result, usage, layers = seg.node(picks, remaining, self.best_value + PRUNE_TOLERANCE)
-            bound = min(float(result.bound), 1.0)
+            bound = min(float(result.bound), seg.problem.objective.max_value)
             if self.root_bound is None:
                 self.root_bound = bound
             if not layers:  # nothing affordable changes anything: the node is one alteration
@@ -616,12 +617,11 @@ class SegmentSearch:
 def segment_relaxation(problem, budget: float) -> SegmentRelaxation | None:
     """The segment relaxation of ``problem`` for budgets up to ``budget``; None when the choice
     product has an end component among its live states (policy iteration needs none)."""
-    from misdirect.alterations import alteration_space
-    from misdirect.choice_product import build_choice_product
+    from misdirect.core.attack import prepare
     from misdirect.solvers.branch_and_bound import _Relaxation
 
-    space = alteration_space(problem.with_budget(budget))
-    chain = build_choice_product(problem, space)
+    instance = prepare(problem, budget)
+    space, chain = instance.space, instance.chain
     state_obs = problem.pomdp.observation_of[chain.world_state]
     if BudgetBound.create(chain, state_obs) is None:
         return None
@@ -637,4 +637,4 @@ def segment_bound(problem, budget: float, *, lagrangian: bool = False) -> float 
         return None
     if lagrangian:
         seg.compute_entries(budget)
-    return min(float(seg.node({}, budget, -np.inf)[0].bound), 1.0)
+    return min(float(seg.node({}, budget, -np.inf)[0].bound), problem.objective.max_value)
