@@ -19,10 +19,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from misdirect import io_utils
 from misdirect.cli import MAX_GRID_SIZE, MAX_RUNS, Terminated, app
 from misdirect.core.product import check_product_fits
 from misdirect.errors import ProblemError, WriteError
+from misdirect.io import files as io_utils
 from misdirect.scenarios import paper_grid
 from misdirect.solvers.run import solve
 

@@ -16,8 +16,8 @@ from matplotlib.image import imread
 from typer.testing import CliRunner
 
 import misdirect.cli as cli
-from misdirect import plots
 from misdirect.cli import app
+from misdirect.report import plots
 
 ROOT = Path(__file__).resolve().parents[1]
 # SPEC §3: exact optima of the 5x5 grid for budgets 0..7

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from misdirect import plots
 from misdirect.core.evaluate import decoy_probability, evaluate, evaluation_time
 from misdirect.core.model import format_alteration
+from misdirect.report import plots
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
 from misdirect.solvers.run import solve
