@@ -469,7 +469,7 @@ def test_interrupt_is_one_line_and_exit_code(monkeypatch, raised, code, words):
     def interrupted(*args, **kwargs):
         raise raised
 
-    monkeypatch.setattr("misdirect.cli.solve_problem", interrupted)
+    monkeypatch.setattr("misdirect.cli.solving.solve_problem", interrupted)
     result = runner.invoke(app, ["solve", str(TINY)])
     assert result.exit_code == code
     assert result.stderr == f"error: {'interrupted' if code == 130 else 'terminated (SIGTERM)'}\n"

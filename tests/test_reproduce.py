@@ -49,7 +49,7 @@ def results(tmp_path_factory):
     folder = tmp_path_factory.mktemp("reproduce")
     _RecordingProgress.calls = []
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(cli, "_Progress", _RecordingProgress)
+        patch.setattr(cli.reproduce, "ProgressBars", _RecordingProgress)
         outcome = runner.invoke(
             app, ["reproduce", "--quick", "--out", str(folder), "--time-limit", "5", "--json"]
         )

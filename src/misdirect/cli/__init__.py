@@ -1,0 +1,137 @@
+"""Command-line interface: a thin layer that parses options, calls the library, formats results.
+
+Every command takes ``--json`` and then prints exactly one JSON object on stdout. Bad input of
+any kind exits with code 2 and one line naming the file (or option), the field and the reason.
+
+The commands live by topic (``solving``: evaluate, solve, simulate, show; ``models``: scenario *,
+controller synthesize, convert, export-fsc, export-milp, schema; ``defence``: audit, harden;
+``reproduce``); ``common`` holds what they share (errors, JSON, signals, progress) and
+``options`` the shared options, declared once (:func:`~misdirect.cli.options.problem_input`).
+This module builds the typer app from them and is the console entry point (:func:`main`).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+
+from misdirect import __version__
+from misdirect.cli import defence, models, reproduce, solving
+from misdirect.cli.common import (
+    INPUT_ERROR,
+    INTERRUPTED,
+    TERMINATED,
+    Terminated,
+    check_range,
+    err,
+    handle_errors,
+    out,
+)
+from misdirect.cli.options import (
+    MAX_GRID_SIZE,
+    MAX_RANDOM,
+    MAX_RUNS,
+    MAX_SAMPLES,
+    MAX_SEED,
+    MAX_STEPS,
+    Scenario,
+    parse_budgets,
+)
+from misdirect.io.files import one_line
+
+__all__ = [
+    "INPUT_ERROR",
+    "INTERRUPTED",
+    "MAX_GRID_SIZE",
+    "MAX_RANDOM",
+    "MAX_RUNS",
+    "MAX_SAMPLES",
+    "MAX_SEED",
+    "MAX_STEPS",
+    "TERMINATED",
+    "Scenario",
+    "Terminated",
+    "app",
+    "check_range",
+    "main",
+    "parse_budgets",
+]
+
+app = typer.Typer(
+    name="misdirect",
+    help="Optimal sensor deception: which sensor readings to alter, within a budget, so that a "
+    "robot driven by a finite-state controller ends up in a decoy state.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True)
+app.add_typer(scenario_app, name="scenario")
+controller_app = typer.Typer(
+    help="The robot's controller: synthesize it with PAYNT.", no_args_is_help=True
+)
+app.add_typer(controller_app, name="controller")
+
+
+def _add(group: typer.Typer, command: Callable[..., None], name: str | None = None) -> None:
+    """Register ``command``, its errors turned into one line and an exit code."""
+    group.command(name)(handle_errors(command))
+
+
+# in the order of misdirect --help
+_add(app, solving.evaluate)
+_add(app, solving.solve)
+_add(app, solving.simulate)
+_add(app, solving.show)
+_add(app, reproduce.reproduce)
+_add(app, models.convert)
+_add(app, models.export_fsc, "export-fsc")
+_add(app, models.export_milp, "export-milp")
+_add(app, models.schema)
+_add(app, defence.audit)
+_add(app, defence.harden)
+_add(scenario_app, models.scenario_paper_grid, "paper-grid")
+_add(scenario_app, models.scenario_knapsack, "knapsack")
+_add(scenario_app, models.scenario_sensor_grid, "sensor-grid")
+_add(scenario_app, models.scenario_random, "random")
+_add(controller_app, models.controller_synthesize, "synthesize")
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"misdirect {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Show version.")
+    ] = False,
+) -> None:
+    """misdirect: optimal sensor deception for POMDP robots with finite-state controllers."""
+
+
+def main() -> None:
+    """The console entry point: usage errors (an option that does not parse, an unknown
+    command) become one line and exit code 2, like every other input error."""
+    # typer may vendor click: take its classes from typer's own exceptions, by name
+    usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+    try:
+        code = app(standalone_mode=False)
+    except usage_error as error:
+        if type(error).__name__ == "NoArgsIsHelpError":  # help, asked for by omission
+            print(error.ctx.get_help())
+            sys.exit(0)
+        where = f"{error.ctx.command_path}: " if error.ctx is not None else ""
+        message = f"error: {escape(one_line(where + error.format_message()))}"
+        err.print(message, highlight=False, soft_wrap=True)
+        sys.exit(INPUT_ERROR)
+    except typer.Abort:
+        err.print("interrupted", highlight=False)
+        sys.exit(INTERRUPTED)
+    sys.exit(code if isinstance(code, int) else 0)

@@ -1,0 +1,271 @@
+"""What every command shares: the consoles, exit codes, error handling, JSON output, signals,
+progress bars and small printing helpers."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from functools import wraps
+from pathlib import Path
+from typing import Any
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from misdirect.core.model import Problem, format_alteration
+from misdirect.errors import MisdirectError, ProblemError
+from misdirect.io.files import one_line, write_output
+
+out = Console()
+err = Console(stderr=True)
+INPUT_ERROR = 2
+INTERRUPTED = 130  # 128 + SIGINT, as a shell reports it
+TERMINATED = 143  # 128 + SIGTERM
+
+
+# -- checks of option values --------------------------------------------------------------------
+
+
+def check_range(option: str, value: int | float, least: int | float, most: int | float) -> None:
+    """A numeric option within its documented range, before anything is built from it."""
+    if not least <= value <= most:
+        raise ProblemError(f"must be between {least:,} and {most:,}, got {value:,}", field=option)
+
+
+def check_seconds(time_limit: float | None) -> None:
+    """``--time-limit``: a positive number of seconds, when given."""
+    if time_limit is not None and not (math.isfinite(time_limit) and time_limit > 0):
+        raise ProblemError("must be a positive number of seconds", field="--time-limit")
+
+
+def check_budget(value: float | None, option: str) -> None:
+    """A budget option: a non-negative number, when given."""
+    if value is not None and not (math.isfinite(value) and value >= 0):
+        raise ProblemError(f"must be a non-negative number, got {value:g}", field=option)
+
+
+# -- output -------------------------------------------------------------------------------------
+
+
+def print_json(payload: dict[str, Any]) -> None:
+    """The one JSON object of ``--json`` on stdout."""
+    sys.stdout.write(json.dumps(payload, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def note(text: str) -> None:
+    """One line on stderr (``wrote ...``), names escaped."""
+    err.print(escape(one_line(text)), highlight=False, soft_wrap=True)
+
+
+def print_notes(notes: list[str]) -> None:
+    """A result's notes on stderr, one line each."""
+    for text in notes:
+        err.print(f"note: {escape(one_line(text))}", highlight=False)
+
+
+def fmt_alteration(alteration: dict[str, str]) -> str:
+    return escape(format_alteration(alteration))
+
+
+def objective_label(problem: Problem) -> str:
+    return "Pr(reach decoy)" if problem.objective.is_probability else "expected decoy weight"
+
+
+def write_text(text: str, output: Path | None, as_json: bool, **about: Any) -> None:
+    """Write ``text`` to ``output``, or to standard output when there is none (with --json,
+    as the ``content`` of the one JSON object)."""
+    if output is not None:
+        write_output(output, text)  # atomic; a bad path or a failed write is one line
+        if as_json:
+            print_json({"written": str(output), **about})
+    elif as_json:
+        print_json({"written": None, **about, "content": text})
+    else:
+        sys.stdout.write(text)
+
+
+# -- errors and signals -------------------------------------------------------------------------
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that the same clean-up (a solver's worker killed, temporary
+    files removed) runs before the command exits with 143."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def _signals_as_exceptions() -> Iterator[None]:
+    """SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` while a command runs
+    (restored afterwards, so an embedding program keeps its own handlers)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
+
+
+@contextlib.contextmanager
+def stop_gracefully() -> Iterator[list[int]]:
+    """While solving, the first Ctrl-C or SIGTERM asks the solvers to stop and hand back their
+    best answers (every deadline expires at once); a second one stops at once, as elsewhere.
+    Yields the list of signals received."""
+    from misdirect.solvers.base import clear_stop, request_stop
+
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def ask(signum: int, frame: Any) -> None:
+        if received:
+            raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+        received.append(signum)
+        request_stop()
+
+    previous = {sig: signal.signal(sig, ask) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        clear_stop()
+
+
+def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
+    """Turn library errors into exit code 2 and one readable line, never a traceback;
+    Ctrl-C and SIGTERM into one line and exit code 130 or 143."""
+
+    @wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> None:
+        as_json = kwargs.get("as_json", False)
+        try:
+            with _signals_as_exceptions():
+                command(*args, **kwargs)
+        except ProblemError as error:
+            fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
+        except MisdirectError as error:
+            fail(str(error), 1, as_json)
+        except (typer.Exit, typer.Abort):
+            raise
+        except Terminated:
+            fail("terminated (SIGTERM)", TERMINATED, as_json)
+        except KeyboardInterrupt:
+            fail("interrupted", INTERRUPTED, as_json)
+        except MemoryError:
+            fail(
+                "out of memory: the model is too large for this machine (see Limits in the README)",
+                1,
+                as_json,
+            )
+        except OSError as error:  # an I/O failure no check foresaw (a disk filling up, ...)
+            where = f"{error.filename}: " if error.filename else ""
+            fail(f"{where}{error.strerror or error}", 1, as_json)
+        except Exception as error:  # a bug: keep the traceback behind an opt-in
+            if os.environ.get("MISDIRECT_DEBUG"):
+                raise
+            fail(
+                f"internal error: {type(error).__name__}: {error} "
+                "(set MISDIRECT_DEBUG=1 for the traceback)",
+                1,
+                as_json,
+            )
+
+    return wrapper
+
+
+def fail(message: str, code: int, as_json: bool, **context: Any) -> None:
+    """One error line on stderr (and the error object on stdout with --json), then exit."""
+    message = one_line(message)  # a name with a newline must not split the one line
+    if as_json:
+        print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+# -- progress -----------------------------------------------------------------------------------
+
+
+class ProgressBars:
+    """Progress bars on stderr, one per named task; silent under --json or without a terminal."""
+
+    def __init__(self, enabled: bool, *, transient: bool = False):
+        self.enabled = enabled and err.is_terminal
+        self.transient = transient
+        self.bar: Progress | None = None
+        self.tasks: dict[str, Any] = {}
+
+    def __enter__(self) -> ProgressBars | None:
+        if not self.enabled:
+            return None
+        self.bar = Progress(
+            TextColumn("{task.description:<20}"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total}"),
+            TimeElapsedColumn(),
+            TextColumn("{task.fields[detail]}"),
+            console=err,
+            transient=self.transient,
+        )
+        self.bar.start()
+        return self
+
+    def track(
+        self,
+        name: str,
+        done: int,
+        total: int,
+        *,
+        stage: str | None = None,
+        detail: str | None = None,
+        note: str | None = None,
+    ) -> None:
+        assert self.bar is not None
+        if note:
+            self.bar.console.print(f"[dim]{escape(note)}[/]", highlight=False)
+        if total <= 0:
+            return
+        if name not in self.tasks:
+            self.tasks[name] = self.bar.add_task(name, total=total, detail="")
+        description = name if stage is None else f"{name}: {stage}"
+        self.bar.update(
+            self.tasks[name],
+            completed=done,
+            total=total,
+            description=description,
+            **({} if detail is None else {"detail": detail}),
+        )
+
+    def task(self, name: str) -> Callable[..., None]:
+        return lambda done, total, **info: self.track(name, done, total, **info)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def print_handovers(done: int, total: int, *, note: str | None = None, **_: object) -> None:
+    """Progress without a terminal: only the hand-overs between methods, one line each."""
+    if note:
+        err.print(escape(one_line(note)), highlight=False, soft_wrap=True)

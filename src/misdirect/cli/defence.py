@@ -1,0 +1,206 @@
+"""The defender's commands (issue 14; docs/defence.md): audit and harden."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from misdirect.cli.common import (
+    check_budget,
+    check_seconds,
+    fmt_alteration,
+    note,
+    out,
+    print_json,
+    print_notes,
+)
+from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
+from misdirect.errors import ProblemError
+from misdirect.io.files import prepare_output_dir
+
+if TYPE_CHECKING:
+    from misdirect.defence import AuditResult, HardenResult
+
+
+# -- audit --------------------------------------------------------------------------------------
+
+
+@problem_input
+def audit(
+    source: ProblemSource,
+    budget: AttackerBudgetOption = None,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "--output", "-o", help="Folder for report.md, curve.csv, sensors.csv and figures."
+        ),
+    ] = None,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(help="Seconds for the whole audit; what is not proven is labelled."),
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
+    criticality and single-sensor value, and the online attacker's value."""
+    from misdirect.defence import audit as run_audit
+
+    check_budget(budget, "--budget")
+    check_seconds(time_limit)
+    if output is not None:
+        prepare_output_dir(output, field="-o")
+    problem = source.load()
+    result = run_audit(problem, budget=budget, time_limit=time_limit)
+    written: list[str] = []
+    if output is not None:
+        from misdirect.report.defence import write_audit_report
+
+        written = [str(p) for p in write_audit_report(problem, result, output)]
+    if as_json:
+        print_json({**result.to_dict(), "written": written})
+    elif output is not None:
+        note(f"wrote {len(written)} files to {output}/ (report.md, curve.csv, sensors.csv, …)")
+    else:
+        _print_audit(result)
+
+
+def _print_audit(result: AuditResult) -> None:
+    title = f"{result.problem or 'problem'}: sensors at budget {result.budget:g}"
+    table = Table(title=escape(title))
+    columns = ("sensor", "criticality", "protected → optimum", "single-sensor value", "in attack")
+    for column in columns:
+        table.add_column(column, justify="left" if column == "sensor" else "right")
+    for s in result.sensors:
+        crit = (
+            f"{s.criticality:.6f}" if s.exact else f"{s.criticality:.6f}..{s.criticality_upper:.6f}"
+        )
+        table.add_row(
+            escape(s.observation),
+            crit,
+            f"{s.protected_probability:.6f}",
+            f"{s.single_probability:.6f}",
+            "yes" if s.in_optimal_attack else "",
+        )
+    out.print(table)
+    online = result.online
+    parts = [
+        f"optimum at B {result.probability:.6f} ({result.status}: "
+        f"{fmt_alteration(result.alteration)})",
+        f"without attack {result.baseline_probability:.6f}",
+        f"online attacker: unlimited {online.unlimited_probability:.6f} (upper bound)",
+    ]
+    if online.budgeted_probability is not None:
+        parts.append(f"paying per reading within B {online.budgeted_probability:.6f}")
+    else:
+        parts.append(f"budgeted online not computed: {escape(result.online_budgeted_note or '')}")
+    parts.append(f"{result.time_s:.2f} s")
+    out.print(" · ".join(parts), highlight=False)
+    print_notes(result.notes)
+
+
+# -- harden -------------------------------------------------------------------------------------
+
+
+def parse_protect_costs(text: str | None) -> dict[str, float]:
+    """``default=1,o3=2`` (split at the last ``=``, so names like Storm's ``o=2`` work)."""
+    costs: dict[str, float] = {}
+    for part in (text or "").split(","):
+        if not part.strip():
+            continue
+        name, sep, value = part.rpartition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ProblemError(
+                f"expected OBS=COST or default=COST (e.g. default=1,o3=2), got {part!r}",
+                field="--protect-cost",
+            )
+        try:
+            costs[name] = float(value)
+        except ValueError:
+            raise ProblemError(
+                f"the cost of {name!r} must be a number, got {value!r}", field="--protect-cost"
+            ) from None
+    return costs
+
+
+@problem_input
+def harden(
+    protect_budget: Annotated[
+        float, typer.Option("--protect-budget", help="Total protection cost D allowed.")
+    ],
+    source: ProblemSource,
+    budget: AttackerBudgetOption = None,
+    protect_cost: Annotated[
+        str | None,
+        typer.Option(
+            "--protect-cost", help="Protection costs, e.g. default=1,o3=2 (default: 1 each)."
+        ),
+    ] = None,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(help="Seconds; then the best protection found and a proven lower bound."),
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Which sensors to protect: the set within cost D that minimises the attacker's optimum
+    at budget B (exact min-max), with the trade-off over every protection budget up to D."""
+    from misdirect.defence import harden as run_harden
+
+    check_budget(protect_budget, "--protect-budget")
+    check_budget(budget, "--budget")
+    check_seconds(time_limit)
+    costs = parse_protect_costs(protect_cost)
+    problem = source.load()
+    try:
+        result = run_harden(
+            problem,
+            protect_budget=protect_budget,
+            budget=budget,
+            protect_costs=costs,
+            time_limit=time_limit,
+        )
+    except ProblemError as error:
+        if error.field == "protect_costs":
+            error.field = "--protect-cost"
+        raise
+    if as_json:
+        print_json(result.to_dict())
+    else:
+        _print_harden(result)
+
+
+def _print_harden(result: HardenResult) -> None:
+    table = Table(
+        title=escape(
+            f"{result.problem or 'problem'}: protection against an attacker with budget "
+            f"{result.budget:g}"
+        )
+    )
+    columns = ("D", "protect", "cost", "attacker's optimum", "lower bound", "best reply", "status")
+    for column in columns:
+        table.add_column(column, justify="left" if column in ("protect", "best reply") else "right")
+    for point in result.curve:
+        table.add_row(
+            f"{point.protect_budget:g}",
+            escape(", ".join(point.protection) or "nothing"),
+            f"{point.protection_cost:g}",
+            f"{point.probability:.6f}",
+            f"{point.lower_bound:.6f}",
+            fmt_alteration(point.attack),
+            point.status,
+        )
+    out.print(table)
+    out.print(
+        escape(
+            f"protect {', '.join(result.protection) or 'nothing'} (cost "
+            f"{result.protection_cost:g}): the attacker's optimum drops from "
+            f"{result.value_before:.6f} to {result.value_after:.6f} ({result.status}) · "
+            f"{result.solves} attacker solves, {result.nodes} nodes · {result.time_s:.2f} s"
+        ),
+        highlight=False,
+    )
+    print_notes(result.notes)

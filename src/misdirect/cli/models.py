@@ -1,0 +1,292 @@
+"""Commands that write models: generated problem files (scenario *), the robot's controller
+(controller synthesize), other formats (convert, export-fsc, export-milp) and the schema."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from enum import StrEnum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+
+from misdirect.cli.common import check_range, note, out, print_json, write_text
+from misdirect.cli.options import (
+    MAX_GRID_SIZE,
+    MAX_RANDOM,
+    MAX_SEED,
+    FormulationOption,
+    JsonOption,
+    ProblemSource,
+    numbers,
+    problem_input,
+)
+from misdirect.core.model import Problem
+from misdirect.errors import ProblemError
+from misdirect.io.files import check_output_path, write_output
+from misdirect.io.problem_file import json_schema, write_problem
+from misdirect.scenarios import knapsack, paper_grid, random_problem, sensor_grid
+from misdirect.solvers.milp.backends import write_model
+from misdirect.solvers.milp.solver import build_formulation
+
+OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
+ScenarioBudgetOption = Annotated[float, typer.Option(help="Budget written into the file.")]
+RandomSeedOption = Annotated[int, typer.Option(help="Random seed.")]
+
+# -- scenario * ---------------------------------------------------------------------------------
+
+
+def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
+    write_problem(problem, output)  # atomic: nothing is reported unless the file is in place
+    if as_json:
+        print_json(
+            {"written": str(output), "problem": problem.name, "states": problem.pomdp.n_states}
+        )
+    else:
+        note(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
+
+
+def scenario_paper_grid(
+    output: OutputOption,
+    size: Annotated[int, typer.Option(help="Grid size n ≥ 5.")] = 5,
+    budget: ScenarioBudgetOption = 4,
+    as_json: JsonOption = False,
+) -> None:
+    """The paper's n x n grid world (its Sec. VII-B case study, scaled)."""
+    check_output_path(output)
+    check_range("--size", size, 5, MAX_GRID_SIZE)
+    if not (math.isfinite(budget) and budget >= 0):
+        raise ProblemError(f"must be a non-negative number, got {budget}", field="--budget")
+    _write_scenario(paper_grid(size, budget=budget), output, as_json)
+
+
+def scenario_knapsack(
+    output: OutputOption,
+    weights: Annotated[str, typer.Option(help="Item weights, e.g. 1,2,3,4,5.")],
+    values: Annotated[str, typer.Option(help="Item values, e.g. 20,30,40,50,60.")],
+    capacity: Annotated[float, typer.Option(help="Knapsack capacity (the budget).")],
+    as_json: JsonOption = False,
+) -> None:
+    """The knapsack reduction of the NP-hardness proof (paper Sec. V)."""
+    check_output_path(output)
+    problem = knapsack(numbers(weights, "--weights"), numbers(values, "--values"), capacity)
+    _write_scenario(problem, output, as_json)
+
+
+def scenario_sensor_grid(
+    output: OutputOption,
+    size: Annotated[int, typer.Option(help="Grid size n (5..1000).")] = 20,
+    sensors: Annotated[
+        int, typer.Option(help="Number of sensors k, each covering 1-6 cells.")
+    ] = 16,
+    seed: RandomSeedOption = 0,
+    memory: Annotated[int, typer.Option(help="Controller memory nodes (3: the paper's).")] = 3,
+    costs: Annotated[
+        str, typer.Option(help="uniform (every alteration 1) or random (1..3 per sensor).")
+    ] = "uniform",
+    budget: ScenarioBudgetOption = 3,
+    as_json: JsonOption = False,
+) -> None:
+    """A sensor network on the paper's slippery grid (docs/sensor-grid.md)."""
+    problem = sensor_grid(size, sensors, seed=seed, memory=memory, costs=costs, budget=budget)
+    _write_scenario(problem, output, as_json)
+
+
+def scenario_random(
+    output: OutputOption,
+    seed: RandomSeedOption = 0,
+    states: Annotated[int, typer.Option(help="Number of non-absorbing states.")] = 6,
+    actions: Annotated[int, typer.Option(help="Number of actions.")] = 2,
+    observations: Annotated[int, typer.Option(help="Number of observations.")] = 4,
+    nodes: Annotated[int, typer.Option(help="Controller memory nodes.")] = 2,
+    as_json: JsonOption = False,
+) -> None:
+    """A seeded random model with traps, absorbing non-decoy states and forbidden pairs."""
+    check_output_path(output)
+    check_range("--seed", seed, 0, MAX_SEED)
+    for option, value in (
+        ("--states", states),
+        ("--actions", actions),
+        ("--observations", observations),
+        ("--nodes", nodes),
+    ):
+        if value < 1:
+            raise ProblemError(f"must be at least 1, got {value}", field=option)
+        check_range(option, value, 1, MAX_RANDOM[option])
+    problem = random_problem(
+        seed, states=states, actions=actions, observations=observations, nodes=nodes
+    )
+    _write_scenario(problem, output, as_json)
+
+
+# -- controller synthesize ----------------------------------------------------------------------
+
+
+def controller_synthesize(
+    model: Annotated[Path, typer.Argument(help="PRISM POMDP (the robot's world).")],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write (PAYNT's own JSON).")
+    ],
+    props: Annotated[
+        str, typer.Option("--props", help='One optimizing property, e.g. Pmax=? [F "goal"].')
+    ],
+    constants: Annotated[
+        str | None, typer.Option(help='Undefined PRISM constants, e.g. "N=5,p=0.1".')
+    ] = None,
+    memory: Annotated[int, typer.Option(help="Memory nodes per observation.")] = 1,
+    timeout: Annotated[float, typer.Option(help="Time limit for PAYNT (s).")] = 60.0,
+    as_json: JsonOption = False,
+) -> None:
+    """Synthesize the robot's controller with PAYNT and write PAYNT's JSON of it
+    (controller: {paynt: FILE} reads it; give the property as pomdp.terminal_from)."""
+    from misdirect.io.paynt_synthesis import synthesize
+
+    check_output_path(output)
+    check_range("--memory", memory, 1, 100)
+    check_range("--timeout", timeout, 1, 10**6)
+    result = synthesize(model, props, constants=constants, memory=memory, timeout=timeout)
+    write_output(output, json.dumps(result.document, indent=4) + "\n")
+    nodes = result.document.get("num_nodes")
+    if as_json:
+        print_json(
+            {
+                "written": str(output),
+                "value": result.value,
+                "property": result.property,
+                "nodes": nodes,
+                "memory": result.memory,
+                "seconds": result.seconds,
+            }
+        )
+        return
+    value = "not reported" if result.value is None else f"{result.value:.6g}"
+    out.print(
+        f"PAYNT's controller: {escape(result.property)} = {value} ({nodes} nodes, "
+        f"{result.seconds:.1f} s)",
+        highlight=False,
+        soft_wrap=True,
+    )
+    note(f"wrote {output}")
+
+
+# -- convert, export-fsc, export-milp, schema ---------------------------------------------------
+
+
+class ConvertTarget(StrEnum):
+    prism = "prism"
+    drn = "drn"
+    json = "json"
+    yaml = "yaml"
+
+
+@problem_input
+def convert(
+    to: Annotated[ConvertTarget, typer.Option("--to", help="Format to write.")],
+    output: Annotated[
+        Path | None,
+        typer.Option("--output", "-o", help="File to write (default: standard output)."),
+    ] = None,
+    *,
+    source: ProblemSource,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
+    if output is not None:
+        check_output_path(output)
+    problem = source.load()
+    if output is not None and to in (ConvertTarget.json, ConvertTarget.yaml):
+        wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
+        if output.suffix.lower() not in wanted:
+            raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
+    write_text(_converted(problem, to), output, as_json, format=to.value)
+    if output is not None and not as_json:
+        note(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
+
+
+def _converted(problem: Problem, to: ConvertTarget) -> str:
+    """The text of ``problem`` in format ``to`` (with a note on stderr for each thing a PRISM
+    or DRN file cannot say)."""
+    from misdirect.io.export import drn_text, export_notes, prism_text
+    from misdirect.io.problem_file import problem_text
+
+    if to in (ConvertTarget.prism, ConvertTarget.drn):
+        for text in export_notes(problem, to.value):
+            note(f"note: {text}")
+    if to is ConvertTarget.prism:
+        return prism_text(problem)
+    if to is ConvertTarget.drn:
+        return drn_text(problem)
+    return problem_text(problem, as_json=to is ConvertTarget.json)
+
+
+@problem_input
+def export_fsc(
+    output: Annotated[
+        Path | None,
+        typer.Option("--output", "-o", help="PAYNT .fsc.json to write (default: standard output)."),
+    ] = None,
+    *,
+    source: ProblemSource,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the controller in PAYNT's JSON format (controller: {paynt: FILE} reads it)."""
+    from misdirect.io.paynt import controller_to_paynt
+
+    if output is not None:
+        check_output_path(output)
+    problem = source.load()
+    text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
+    write_text(text, output, as_json, format="paynt")
+    if output is not None and not as_json:
+        note(f"wrote {output} ({problem.controller.n_nodes} nodes)")
+
+
+@problem_input
+def export_milp(
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Model file to write (.mps or .lp).")
+    ],
+    source: ProblemSource,
+    formulation: FormulationOption = "compact",
+    budget: Annotated[
+        float | None, typer.Option(help="Budget in the budget row (default: the file's).")
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Write the MILP as MPS or LP for any other solver (columns c0, c1, …; maximise)."""
+    check_output_path(output)
+    if output.suffix.lower() not in (".mps", ".lp"):
+        raise ProblemError(
+            f"cannot write {output.suffix or 'a file without suffix'}: use .mps or .lp",
+            field="-o",
+        )
+    problem = source.load()
+    if budget is not None and (not math.isfinite(budget) or budget < 0):
+        raise ProblemError("must be a non-negative number", field="--budget")
+    model = build_formulation(problem, formulation, budget)
+    write_model(model, output)
+    if as_json:
+        print_json({"written": str(output), **model.stats()})
+    else:
+        note(
+            f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
+            f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
+            f"{model.matrix.nnz:,} non-zeros"
+        )
+
+
+def schema(
+    output: Annotated[Path | None, typer.Option("--output", "-o", help="Write to a file.")] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Print the JSON Schema of the problem file format."""
+    text = json.dumps(json_schema(), indent=2) + "\n"
+    if output is None:
+        sys.stdout.write(text)
+    else:
+        write_output(output, text)
+        if as_json:
+            print_json({"written": str(output)})

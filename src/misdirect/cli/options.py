@@ -1,0 +1,258 @@
+"""The options commands share, declared once, and the parsers of their values.
+
+A command that reads a problem is decorated with :func:`problem_input`: it declares only its
+own options and a ``source: ProblemSource`` parameter; the decorator adds the problem FILE
+argument and the ``--scenario --size --weights --values --capacity --seed`` options to the
+signature typer reads, and hands the command their values as one :class:`ProblemSource`.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from enum import StrEnum
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from misdirect.cli.common import check_range
+from misdirect.core.model import Alteration, Problem
+from misdirect.errors import ProblemError
+from misdirect.io.problem_file import load_problem
+from misdirect.scenarios import knapsack, paper_grid, random_problem
+from misdirect.solvers.milp.solver import FORMULATIONS
+
+# Largest values of the numeric options, checked before anything is allocated (README, Limits)
+MAX_GRID_SIZE = 2_000  # paper-grid n: 4 million states, 8 million product states
+MAX_SEED = 2**64 - 1
+MAX_RUNS = 10_000_000  # simulate: about 60 bytes per run are held at once
+MAX_STEPS = 100_000_000
+MAX_SAMPLES = 100_000
+MAX_RANDOM = {"--states": 100_000, "--actions": 100, "--observations": 10_000, "--nodes": 1_000}
+
+
+class Scenario(StrEnum):
+    paper_grid = "paper-grid"
+    knapsack = "knapsack"
+    random = "random"
+
+
+# -- option types -------------------------------------------------------------------------------
+
+JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON object to stdout.")]
+FileArgument = Annotated[
+    Path | None,
+    typer.Argument(help="Problem file (misdirect/v1, YAML or JSON).", show_default=False),
+]
+ScenarioOption = Annotated[
+    Scenario | None, typer.Option(help="Use a generated problem instead of FILE.")
+]
+SizeOption = Annotated[int, typer.Option(help="Grid size n (paper-grid).")]
+WeightsOption = Annotated[str | None, typer.Option(help="Item weights, e.g. 1,2,3 (knapsack).")]
+ValuesOption = Annotated[str | None, typer.Option(help="Item values, e.g. 20,30,40 (knapsack).")]
+CapacityOption = Annotated[float | None, typer.Option(help="Knapsack capacity = budget.")]
+SeedOption = Annotated[int, typer.Option(help="Seed (random scenario).")]
+AlterOption = Annotated[
+    list[str] | None,
+    typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+]
+FormulationOption = Annotated[
+    str,
+    typer.Option(
+        help=f"MILP formulation: {', '.join(FORMULATIONS)} (paper* are the paper's, kept as a "
+        "baseline; they are not exact)."
+    ),
+]
+AttackerBudgetOption = Annotated[
+    float | None, typer.Option(help="Attacker's budget B (default: the file's).")
+]
+
+
+# -- the problem input --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProblemSource:
+    """Where a command's problem comes from: a FILE or a generated ``--scenario``, as given on
+    the command line. Nothing is checked or read until :meth:`load`, so that a command checks
+    its own options first."""
+
+    file: Path | None
+    scenario: Scenario | None
+    size: int
+    weights: str | None
+    values: str | None
+    capacity: float | None
+    seed: int
+
+    def load(self) -> Problem:
+        if (self.file is None) == (self.scenario is None):
+            raise ProblemError("give either a problem FILE or --scenario (exactly one)")
+        check_range("--seed", self.seed, 0, MAX_SEED)
+        if self.size > MAX_GRID_SIZE:
+            check_range("--size", self.size, 5, MAX_GRID_SIZE)
+        if self.file is not None:
+            return load_problem(self.file)
+        if self.scenario is Scenario.paper_grid:
+            return paper_grid(self.size)
+        if self.scenario is Scenario.knapsack:
+            if self.capacity is None:
+                raise ProblemError("is required for the knapsack scenario", field="--capacity")
+            weights = numbers(self.weights, "--weights")
+            return knapsack(weights, numbers(self.values, "--values"), self.capacity)
+        return random_problem(self.seed)
+
+
+def _keyword(name: str, annotation: Any, default: Any) -> inspect.Parameter:
+    return inspect.Parameter(
+        name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation, default=default
+    )
+
+
+# The parameters problem_input adds, with the names of ProblemSource's fields: FILE where the
+# command declares ``source``, the options just before --json.
+_FILE = _keyword("file", FileArgument, None)
+_OPTIONS = (
+    _keyword("scenario", ScenarioOption, None),
+    _keyword("size", SizeOption, 5),
+    _keyword("weights", WeightsOption, None),
+    _keyword("values", ValuesOption, None),
+    _keyword("capacity", CapacityOption, None),
+    _keyword("seed", SeedOption, 0),
+)
+assert [p.name for p in (_FILE, *_OPTIONS)] == [f.name for f in fields(ProblemSource)]
+
+
+def problem_input(command: Callable[..., None]) -> Callable[..., None]:
+    """Give ``command`` the shared problem input: typer sees the FILE argument (in the place
+    of the command's ``source`` parameter) and the ``--scenario/--size/--weights/--values/
+    --capacity/--seed`` options (just before ``--json``) in its signature, and the command
+    receives their values as ``source``, one :class:`ProblemSource`.
+
+    A command that declares its own ``seed`` (``simulate --seed``) keeps it, and the same
+    value seeds the random scenario: there is one ``--seed`` option, not two."""
+    own = inspect.signature(command, eval_str=True)
+    if "source" not in own.parameters:
+        raise TypeError(f"{command.__name__} takes no 'source: ProblemSource' parameter")
+    has_seed = "seed" in own.parameters
+    added = [p for p in _OPTIONS if not (has_seed and p.name == "seed")]
+    kept = [
+        _FILE if p.name == "source" else p.replace(kind=inspect.Parameter.KEYWORD_ONLY)
+        for p in own.parameters.values()
+    ]
+    at = next((i for i, p in enumerate(kept) if p.name == "as_json"), len(kept))
+    parameters = [*kept[:at], *added, *kept[at:]]
+
+    @wraps(command)
+    def wrapper(**kwargs: Any) -> None:
+        given = {p.name: kwargs.pop(p.name) for p in (_FILE, *added)}
+        if has_seed:  # the command's own --seed, which it keeps
+            given["seed"] = kwargs["seed"]
+        command(source=ProblemSource(**given), **kwargs)
+
+    # typer reads inspect.signature (which stops at __signature__) and get_type_hints
+    # (which reads __annotations__): both get the real annotation objects
+    wrapper.__signature__ = own.replace(parameters=parameters)  # type: ignore[attr-defined]
+    wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
+    wrapper.__annotations__["return"] = own.return_annotation
+    return wrapper
+
+
+# -- parsers of option values -------------------------------------------------------------------
+
+
+def numbers(text: str | None, option: str) -> list[float]:
+    """``--weights 1,2,3``: comma-separated numbers."""
+    if text is None:
+        raise ProblemError("is required for the knapsack scenario", field=option)
+    try:
+        return [float(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise ProblemError(
+            f"expected comma-separated numbers, got {text!r}", field=option
+        ) from None
+
+
+def _split_alter(pair: str, observations: tuple[str, ...]) -> tuple[str, str]:
+    """``OBS=OBS`` split at the ``=`` that leaves two known observations, so that names with
+    an ``=`` in them (Storm's ``o=2``) can be altered; if none does, at the first ``=`` (the
+    unknown name is then reported)."""
+    known = set(observations)
+    splits = [(pair[:i].strip(), pair[i + 1 :].strip()) for i, c in enumerate(pair) if c == "="]
+    splits = [(a, b) for a, b in splits if a and b]
+    if not splits:
+        raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
+    matching = [(a, b) for a, b in splits if a in known and b in known]
+    if len(matching) > 1:
+        readings = " or ".join(f"{a!r} -> {b!r}" for a, b in matching)
+        raise ProblemError(
+            f"{pair!r} is ambiguous: {readings} (observations contain '=')", field="--alter"
+        )
+    if matching:
+        return matching[0]
+    # no reading names two known observations: report the one that is unknown
+    return next(((a, b) for a, b in splits if a in known), splits[0])
+
+
+def parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[str, str]:
+    """``--alter o1=o3 --alter o2=o4`` as a mapping (each observation altered at most once)."""
+    changes: dict[str, str] = {}
+    for pair in pairs:
+        original, received = _split_alter(pair, observations)
+        if original in changes:
+            raise ProblemError(f"{original!r} is altered twice", field="--alter")
+        changes[original] = received
+    return changes
+
+
+def alteration(problem: Problem, alter: list[str] | None) -> Alteration:
+    """The alteration ``--alter`` names, checked against ``problem``."""
+    changes = parse_alter(alter or [], problem.pomdp.observations)
+    return problem.alteration(changes, source="--alter")
+
+
+def parse_budgets(
+    budget: str | None, budgets: str | None, cap: float | None = None
+) -> list[float] | None:
+    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``.
+
+    A range is expanded only up to ``cap`` (the most expensive complete alteration: every
+    budget beyond it gives the same answer), then its upper end, which solve clamps and
+    reports; so ``0..1000000000`` never materialises a billion budgets."""
+    if budget is not None and budgets is not None:
+        raise ProblemError("give --budget or --budgets, not both", field="--budgets")
+    option = "--budgets" if budgets is not None else "--budget"
+    try:
+        if budgets is not None:
+            parsed = [float(b) for b in budgets.split(",") if b.strip()]
+        elif budget is not None and ".." in budget:
+            low, high = (int(part) for part in budget.split("..", 1))
+            if low < 0 or high < low:
+                raise ProblemError(
+                    f"expected a range low..high with 0 ≤ low ≤ high, got {budget!r}", field=option
+                )
+            top = high if cap is None else min(high, max(low, math.ceil(cap)))
+            if top - low > 1_000_000:
+                raise ProblemError(
+                    f"a range of {top - low + 1:,} budgets is too many; give fewer", field=option
+                )
+            parsed = [float(b) for b in range(low, top + 1)]
+            if top < high:
+                parsed.append(float(high))
+        elif budget is not None:
+            parsed = [float(budget)]
+        else:
+            return None
+    except (ValueError, OverflowError) as error:
+        if isinstance(error, ProblemError):
+            raise
+        raise ProblemError(
+            "expected a number, a range like 0..7, or a list like 0,1,2", field=option
+        ) from None
+    if not parsed or any(not math.isfinite(b) or b < 0 for b in parsed):
+        raise ProblemError("budgets must be non-negative numbers", field=option)
+    return parsed

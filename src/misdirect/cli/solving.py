@@ -1,0 +1,436 @@
+"""The attacker's commands: evaluate, solve, simulate, show."""
+
+from __future__ import annotations
+
+import csv
+import io
+import signal
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from misdirect.cli.common import (
+    INTERRUPTED,
+    TERMINATED,
+    ProgressBars,
+    check_range,
+    check_seconds,
+    err,
+    fmt_alteration,
+    note,
+    objective_label,
+    out,
+    print_handovers,
+    print_json,
+    stop_gracefully,
+)
+from misdirect.cli.options import (
+    MAX_RUNS,
+    MAX_SAMPLES,
+    MAX_SEED,
+    MAX_STEPS,
+    AlterOption,
+    JsonOption,
+    ProblemSource,
+    alteration,
+    parse_budgets,
+    problem_input,
+)
+from misdirect.core.alterations import max_alteration_cost
+from misdirect.core.evaluate import Evaluation, decoy_probability
+from misdirect.core.evaluate import evaluate as evaluate_alteration
+from misdirect.core.model import Alteration, Problem
+from misdirect.errors import ProblemError
+from misdirect.io.files import check_output_path, one_line, write_output
+from misdirect.solvers import SOLVERS
+from misdirect.solvers.base import Status
+from misdirect.solvers.milp.backends import BACKENDS
+from misdirect.solvers.milp.solver import FORMULATIONS
+from misdirect.solvers.run import SolveResult
+from misdirect.solvers.run import solve as solve_problem
+
+if TYPE_CHECKING:
+    from misdirect.core.simulate import Simulation
+
+# -- evaluate -----------------------------------------------------------------------------------
+
+
+@problem_input
+def evaluate(source: ProblemSource, alter: AlterOption = None, as_json: JsonOption = False) -> None:
+    """Exact probability of reaching the decoy under one alteration (none by default)."""
+    problem = source.load()
+    result = evaluate_alteration(problem, alteration(problem, alter))
+    baseline = (
+        result.probability
+        if not result.alteration
+        else decoy_probability(problem, problem.identity())
+    )
+    if as_json:
+        print_json({"problem": problem.name, **result.to_dict(), "baseline_probability": baseline})
+    else:
+        _print_evaluation(result, baseline, problem)
+
+
+def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> None:
+    table = Table(title=escape(problem.name) or None, show_header=False, box=None)
+    table.add_row("alteration", fmt_alteration(result.alteration))
+    budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
+    table.add_row("cost", f"{result.cost:g}{budget_note}")
+    table.add_row(objective_label(problem), f"[bold]{result.probability:.6f}[/]")
+    for name, probability in result.decoy_sets.items():
+        table.add_row(f"  Pr(first decoy in {escape(name)})", f"{probability:.6f}")
+    table.add_row("without alteration", f"{baseline:.6f}")
+    for state, probability in result.outcomes.items():
+        table.add_row(f"  first hits {escape(state)}", f"{probability:.6f}")
+    if result.never_absorbed > 0:
+        table.add_row("  never absorbed", f"{result.never_absorbed:.6f}")
+    table.add_row(
+        "product chain",
+        f"{result.product_states:,} states, "
+        f"{result.product_transitions:,} transitions ({result.time_s:.3f} s)",
+    )
+    out.print(table)
+
+
+# -- solve --------------------------------------------------------------------------------------
+
+
+@problem_input
+def solve(
+    source: ProblemSource,
+    budget: Annotated[
+        str | None,
+        typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
+    ] = None,
+    budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help=f"Method: {', '.join(SOLVERS)} (auto: enumerate small alteration spaces, "
+            "with low-rank updates where it can, else branch-and-bound, or the MILP on "
+            "knapsack-like models; all exact)."
+        ),
+    ] = "auto",
+    solver: Annotated[
+        str | None, typer.Option(help=f"MILP backend: {', '.join(BACKENDS)} (default highs).")
+    ] = None,
+    formulation: Annotated[
+        str | None,
+        typer.Option(
+            help=f"MILP formulation: {', '.join(FORMULATIONS)} (default compact; the paper "
+            "formulations are baselines and not exact)."
+        ),
+    ] = None,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(
+            help="Seconds for the whole command, every method and budget; then each budget "
+            "reports its best alteration, a proven upper bound and the gap (status time_limit)."
+        ),
+    ] = None,
+    threads: Annotated[
+        int | None, typer.Option(help="MILP: solver threads (SCIP: its concurrent mode if > 1).")
+    ] = None,
+    mip_gap: Annotated[
+        float | None,
+        typer.Option(
+            help="MILP: relative gap to stop at (default 1e-9); a point whose bound is still "
+            "above its value is reported as gap_limit, not optimal."
+        ),
+    ] = None,
+    verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
+    ] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Optimal alteration within the budget, with the best value for every smaller budget."""
+    if threads is not None:
+        check_range("--threads", threads, 1, 1024)
+    check_seconds(time_limit)
+    problem = source.load()
+    requested = parse_budgets(budget, budgets, cap=max_alteration_cost(problem))
+    if requested is not None:
+        problem = problem.with_budget(max(requested))
+        if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
+            requested = None
+    milp_options = {
+        "solver": solver,
+        "formulation": formulation,
+        "time_limit": time_limit,
+        "threads": threads,
+        "mip_gap": mip_gap,
+        "verbose": verbose or None,
+    }
+    if verbose and as_json:
+        raise ProblemError(
+            "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
+        )
+    given = {k: v for k, v in milp_options.items() if v is not None}
+    result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
+    if as_json:
+        print_json(result.to_dict())
+    else:
+        _print_solve(result, problem)
+    _finish_solve(result, received)
+
+
+def _run_solve(
+    problem: Problem,
+    method: str,
+    budgets: list[float] | None,
+    options: dict[str, Any],
+    silent: bool,
+    quiet: bool,
+) -> tuple[SolveResult, list[int]]:
+    """Solve with progress bars on a terminal (none with --quiet), else the hand-overs as
+    lines (none when ``silent``); a first Ctrl-C or SIGTERM keeps the best answers so far."""
+    with ProgressBars(enabled=not quiet, transient=True) as bars:
+        progress = bars.task("solving") if bars else None
+        if progress is None and not silent:
+            progress = print_handovers  # no terminal: hand-overs still get a line each
+        with stop_gracefully() as received:
+            result = solve_problem(
+                problem, method=method, budgets=budgets, progress=progress, **options
+            )
+    return result, received
+
+
+def _finish_solve(result: SolveResult, received: list[int]) -> None:
+    """Warnings on stderr, and the exit code: 1 after a warning, 130/143 after a signal."""
+    for warning in result.warnings:
+        err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
+    if received:  # the best answer so far is printed above, marked interrupted
+        name = "terminated (SIGTERM)" if received[0] == signal.SIGTERM else "interrupted"
+        err.print(f"{name}: the best answers found so far are shown", highlight=False)
+        raise typer.Exit(TERMINATED if received[0] == signal.SIGTERM else INTERRUPTED)
+    if result.warnings:
+        raise typer.Exit(1)
+
+
+def _print_solve(result: SolveResult, problem: Problem) -> None:
+    title = f"{result.problem} — " if result.problem else ""
+    table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
+    bounded = any(point.status != Status.OPTIMAL for point in result.curve)
+    table.add_column("budget", justify="right")
+    table.add_column(f"max {objective_label(problem)}", justify="right")
+    if bounded:
+        table.add_column("upper bound", justify="right")
+    table.add_column("optimal alteration" if not bounded else "best alteration found")
+    table.add_column("cost", justify="right")
+    table.add_column("status")
+    for point in result.curve:
+        bound = (
+            []
+            if not bounded
+            else ["—" if point.upper_bound is None else f"{point.upper_bound:.6f}"]
+        )
+        table.add_row(
+            f"{point.budget:g}",
+            f"{point.probability:.6f}",
+            *bound,
+            fmt_alteration(point.alteration),
+            f"{point.cost:g}",
+            point.status,
+        )
+    out.print(table)
+    out.print(escape(" · ".join(_solve_summary(result))), highlight=False)
+
+
+def _solve_summary(result: SolveResult) -> list[str]:
+    parts = [f"without alteration {result.baseline_probability:.6f}", f"{result.time_s:.2f} s"]
+    if result.budget_clamped_from is not None:
+        parts.insert(
+            0,
+            f"budgets above {result.budget_clamped_to:g} solved as {result.budget_clamped_to:g} "
+            "(no alteration costs more)",
+        )
+    stats = result.stats
+    if result.certified_by is not None:
+        proven = all(point.status == Status.OPTIMAL for point in result.curve)
+        verb = "certified by" if proven else "method"
+        parts.append(f"{verb} {result.certified_by} ({stats['auto_reason']})")
+    if "formulation" in stats:  # a MILP
+        nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
+        solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)
+        parts += [
+            f"{stats['formulation']} MILP on {stats['solver']}: {stats['variables']:,} variables "
+            f"({stats['binaries']:,} binary), {stats['rows']:,} rows, "
+            f"{stats['nonzeros']:,} non-zeros",
+            f"built in {stats['build_time_s']:.2f} s, solved in {solving:.2f} s, {nodes:,} nodes",
+        ]
+    else:
+        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in stats.items() if isinstance(v, int)]
+    return parts
+
+
+# -- simulate -----------------------------------------------------------------------------------
+
+
+@problem_input
+def simulate(
+    source: ProblemSource,
+    alter: AlterOption = None,
+    runs: Annotated[int, typer.Option(help="Number of simulated runs.")] = 100_000,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    max_steps: Annotated[int, typer.Option(help="Stop a run after this many steps.")] = 10_000,
+    trajectories: Annotated[
+        Path | None, typer.Option(help="Write the first --samples runs step by step (CSV).")
+    ] = None,
+    samples: Annotated[int, typer.Option(help="Runs to write with --trajectories.")] = 10,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
+    not decoy) or trapped (it can no longer stop), with 95 % intervals."""
+    from misdirect.core.simulate import simulate as run_simulation
+
+    for option, value, least, most in (
+        ("--runs", runs, 1, MAX_RUNS),
+        ("--max-steps", max_steps, 1, MAX_STEPS),
+        ("--samples", samples, 0, MAX_SAMPLES),
+    ):
+        if value < least:
+            raise ProblemError(f"must be at least {least}, got {value}", field=option)
+        check_range(option, value, least, most)
+    check_range("--seed", seed, 0, MAX_SEED)
+    if trajectories is not None:
+        check_output_path(trajectories, field="--trajectories")
+    problem = source.load()
+    alpha = alteration(problem, alter)
+    record = samples if trajectories is not None else 0
+    result = run_simulation(
+        problem, alpha, runs=runs, seed=seed, max_steps=max_steps, record=record
+    )
+    payload = _simulation_payload(problem, alpha, result, runs, seed, max_steps)
+    if trajectories is not None:
+        _write_trajectories(result.trajectories, trajectories)
+    if as_json:
+        print_json(payload)
+    else:
+        _print_simulation(payload, result, max_steps)
+
+
+def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
+    buffer = io.StringIO(newline="")
+    writer = csv.writer(buffer)
+    writer.writerow(["run", "step", "state", "node", "received", "action"])
+    writer.writerows(rows)
+    write_output(path, buffer.getvalue(), field="--trajectories")
+
+
+def _simulation_payload(
+    problem: Problem, alpha: Alteration, result: Simulation, runs: int, seed: int, max_steps: int
+) -> dict[str, Any]:
+    """The ``--json`` object of simulate: each outcome's count, frequency and 95 % interval,
+    and the exact decoy probability beside the simulated one."""
+    from misdirect.core.simulate import wilson_interval
+
+    exact = decoy_probability(problem.unweighted(), alpha)  # a run hits a decoy or not
+    low, high = result.confidence_interval()
+
+    def outcome(hits: int, states: dict[str, int] | None, meaning: str) -> dict[str, Any]:
+        row: dict[str, Any] = {
+            "runs": hits,
+            "frequency": hits / runs,
+            "interval_95": list(wilson_interval(hits, runs)),
+            "meaning": meaning,
+        }
+        if states is not None:
+            row["states"] = states
+        return row
+
+    outcomes = {
+        "decoy": outcome(
+            result.decoy_hits, result.decoys, "ended in a decoy state (the attacker's target)"
+        ),
+        "goal": outcome(
+            sum(result.absorbed.values()),
+            result.absorbed,
+            "ended in an absorbing state that is not a decoy (the robot's goal)",
+        ),
+        "trapped": outcome(
+            result.trapped,
+            None,
+            "can no longer reach a decoy or goal state: the run would never stop",
+        ),
+        "unfinished": outcome(
+            result.unfinished, None, f"still running after --max-steps {max_steps:,}"
+        ),
+    }
+    outcomes["decoy"]["interval_95"] = [low, high]
+    return {
+        "problem": problem.name,
+        "alteration": problem.changed_observations(alpha),
+        "runs": runs,
+        "seed": seed,
+        "outcomes": outcomes,
+        "unfinished": result.unfinished,
+        "trapped": result.trapped,
+        "mean_steps_finished": result.mean_steps,
+        "exact_decoy_probability": exact,
+        "exact_within_interval": low <= exact <= high,
+    }
+
+
+def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: int) -> None:
+    runs = payload["runs"]
+    table = Table(title=escape(f"{payload['problem']} — {runs:,} runs, seed {payload['seed']}"))
+    for column in ("outcome", "states", "runs", "frequency", "95 % interval"):
+        table.add_column(column, justify="left" if column in ("outcome", "states") else "right")
+    labels = {
+        "decoy": "decoy (attacker's target)",
+        "goal": "goal (absorbing, not decoy)",
+        "trapped": "trapped: never stops",
+        "unfinished": f"unfinished after {max_steps:,} steps",
+    }
+    for name, row in payload["outcomes"].items():
+        if name in ("trapped", "unfinished") and row["runs"] == 0:
+            continue
+        states = row.get("states", {})
+        listed = ", ".join(
+            f"{state} ({hits:,})" if len(states) > 1 else state for state, hits in states.items()
+        )
+        table.add_row(
+            escape(labels[name]),
+            escape(listed),
+            f"{row['runs']:,}",
+            f"{row['frequency']:.4f}",
+            f"[{row['interval_95'][0]:.4f}, {row['interval_95'][1]:.4f}]",
+        )
+    out.print(table)
+    verdict = "inside" if payload["exact_within_interval"] else "[red]outside[/]"
+    finished = result.runs - result.trapped - result.unfinished
+    out.print(
+        f"alteration {fmt_alteration(payload['alteration'])} · mean steps "
+        f"{result.mean_steps:.2f} (over the {finished:,} finished runs, decoy or goal) · "
+        f"exact Pr(decoy) {payload['exact_decoy_probability']:.6f} ({verdict} the interval)",
+        highlight=False,
+    )
+
+
+# -- show ---------------------------------------------------------------------------------------
+
+
+@problem_input
+def show(
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Picture (.png/.svg/.pdf) or graph (.dot).")
+    ],
+    source: ProblemSource,
+    alter: AlterOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
+    from misdirect.report.pictures import draw
+
+    check_output_path(output)
+    problem = source.load()
+    written = draw(problem, alteration(problem, alter), output)
+    if as_json:
+        print_json({"written": str(written)})
+    else:
+        note(f"wrote {written}")
