@@ -425,7 +425,7 @@ def show(
     as_json: JsonOption = False,
 ) -> None:
     """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
-    from misdirect.report.pictures import draw
+    from misdirect.report.show import draw
 
     check_output_path(output)
     problem = source.load()
