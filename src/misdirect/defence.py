@@ -344,10 +344,16 @@ class AuditResult:
     time_s: float
     grid: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
+    objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
+
+    @property
+    def objective_label(self) -> str:
+        return "Pr(reach decoy)" if self.objective == "probability" else "expected decoy weight"
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "problem": self.problem,
+            "objective": self.objective,
             "budget": self.budget,
             "baseline_probability": self.baseline_probability,
             "status": self.status,
@@ -483,6 +489,7 @@ def audit(
         certified=certified,
         notes=notes + list(curve_result.warnings),
         time_s=time.perf_counter() - started,
+        objective=problem.objective.kind,
         grid=grid_cells(problem) is not None,
     )
 

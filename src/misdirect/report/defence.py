@@ -114,7 +114,7 @@ def curve_figure(result: AuditResult):
     )
     ax.axhline(result.baseline_probability, color="0.5", linestyle=":", label="no attack")
     ax.set_xlabel("attacker's budget")
-    ax.set_ylabel("Pr(reach decoy)")
+    ax.set_ylabel(result.objective_label)
     ax.set_ylim(0, 1.02)
     ax.set_title(f"{result.problem or 'problem'}: the attacker's optimum", fontsize=9)
     ax.legend(fontsize=7, loc="lower right")
@@ -218,12 +218,13 @@ def report_text(result: AuditResult) -> str:
     lines = [
         f"# Sensor audit: {result.problem or 'problem'}",
         "",
-        f"Attacker's budget B = {result.budget:g}. Without attack Pr(reach decoy) = "
+        f"Attacker's budget B = {result.budget:g}. Without attack {result.objective_label} = "
         f"{result.baseline_probability:.9f}.",
         "",
         "## The attacker's optimum for every budget",
         "",
-        "| budget | max Pr(reach decoy) | upper bound | status | optimal alteration | cost |",
+        f"| budget | max {result.objective_label} | upper bound | status | optimal alteration "
+        "| cost |",
         "|---|---|---|---|---|---|",
     ]
     for p in result.curve:

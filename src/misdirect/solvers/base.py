@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
@@ -107,7 +107,9 @@ class Solution:
     solver_probability: float | None  # the solver's own value for it (None: no incumbent)
     status: Status = Status.OPTIMAL
     upper_bound: float | None = None  # proven bound on the optimum, if the solver has one
-    stats: dict[str, Any] = field(default_factory=dict)  # the method's own counters
+    # the method's own counters: ExhaustiveStats, IncrementalStats, BranchAndBoundStats,
+    # MilpStats (TypedDicts beside each method), or auto's hand-over record around them
+    stats: Mapping[str, Any] = field(default_factory=dict)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
 
 

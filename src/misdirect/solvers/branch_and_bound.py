@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NotRequired, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
@@ -53,6 +54,18 @@ PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
+
+
+class BranchAndBoundStats(TypedDict):
+    """``stats`` of a branch-and-bound answer (the JSON's ``stats``)."""
+
+    nodes: int
+    pruned: int
+    policy_evaluations: int  # exact linear solves of the relaxation
+    root_bound: float | None
+    relevant_observations: int
+    segment_nodes: NotRequired[int]  # when the segment search took the budget over
+    segment_root_bound: NotRequired[float | None]
 
 
 @dataclass
@@ -358,7 +371,11 @@ def _segment_phase(
     picks = second.best_picks if second.best_value > answer.solver_probability else None
     bound = max(min(second.open_bound(), answer.upper_bound), value)
     proven = status == "optimal" or bound - value <= PRUNE_TOLERANCE
-    stats = {**answer.stats, "segment_nodes": second.nodes, "segment_root_bound": second.root_bound}
+    stats: BranchAndBoundStats = {
+        **answer.stats,
+        "segment_nodes": second.nodes,
+        "segment_root_bound": second.root_bound,
+    }
     return Solution(
         budget=answer.budget,
         alteration=answer.alteration if picks is None else relax.alteration(picks),
@@ -487,19 +504,20 @@ class _Search:
 
     def _solution(self, status: str) -> Solution:
         bound = self.open_bound()
+        stats: BranchAndBoundStats = {
+            "nodes": self.nodes,
+            "pruned": self.pruned,
+            "policy_evaluations": self.relax.evaluations - self.evaluations_before,
+            "root_bound": self.root_bound,
+            "relevant_observations": len(self.relax.order),
+        }
         return Solution(
             budget=self.budget,
             alteration=self.relax.alteration(self.best_picks),
             solver_probability=self.best_value,
             status=status,
             upper_bound=bound,
-            stats={
-                "nodes": self.nodes,
-                "pruned": self.pruned,
-                "policy_evaluations": self.relax.evaluations - self.evaluations_before,
-                "root_bound": self.root_bound,
-                "relevant_observations": len(self.relax.order),
-            },
+            stats=stats,
         )
 
 

@@ -9,6 +9,7 @@ budget curve. Stopped by its deadline, it reports the best alteration seen so fa
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypedDict
 
 import numpy as np
 
@@ -26,6 +27,15 @@ from misdirect.solvers.base import (
     refuse_options,
     report,
 )
+
+
+class ExhaustiveStats(TypedDict):
+    """``stats`` of an exhaustive answer (the JSON's ``stats``)."""
+
+    evaluations: int  # alterations evaluated exactly
+    alterations_within_budget: int
+    relevant_observations: int
+    candidates_per_observation: list[int]
 
 
 class ExhaustiveSolver:
@@ -74,7 +84,7 @@ class ExhaustiveSolver:
             done = i + 1
             report(progress, done, len(costs), stage="exhaustive")
         finished = done == len(costs)
-        stats = {
+        stats: ExhaustiveStats = {
             "evaluations": done,
             "alterations_within_budget": len(costs),
             "relevant_observations": len(space.choices),

@@ -21,6 +21,7 @@ the value reported is then re-computed exactly by :func:`misdirect.solve`, like 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypedDict
 
 import numpy as np
 
@@ -50,6 +51,15 @@ NEAR_TIE = 1e-9  # values this close count as equal: within the updates' roundin
 
 class NotApplicableError(SolverError):
     """The model can cycle without reaching the decoy; use another method."""
+
+
+class IncrementalStats(TypedDict):
+    """``stats`` of an incremental answer (the JSON's ``stats``)."""
+
+    evaluations: int  # alterations valued (by low-rank updates or solves)
+    factorisations: int  # outer choices, each one base solve
+    inner_observations: int
+    outer_observations: int
 
 
 class IncrementalSolver:
@@ -177,7 +187,7 @@ class IncrementalSolver:
             np.clip(np.concatenate(values), 0.0, problem.objective.max_value),
         )
         offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
-        stats = {
+        stats: IncrementalStats = {
             "evaluations": evaluations,
             "factorisations": done,
             "inner_observations": len(inner),

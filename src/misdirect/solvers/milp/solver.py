@@ -19,7 +19,7 @@ from the incumbent), ``time_limit``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypedDict
 
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
@@ -77,6 +77,32 @@ def _status(result: BackendResult, value: float | None) -> Status:
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
+
+
+class MilpStats(TypedDict, total=False):
+    """``stats`` of a MILP answer (the JSON's ``stats``): the model's size (``formulation``,
+    ``variables``, ``binaries``, ``rows``, ``nonzeros``, ``build_time_s``, per-block counts),
+    how the backend stopped, and what its point is worth exactly; plus the backend's own
+    details."""
+
+    formulation: str
+    variables: int
+    binaries: int
+    rows: int
+    nonzeros: int
+    build_time_s: float
+    variables_by_block: dict[str, int]
+    rows_by_block: dict[str, int]
+    solver: str
+    solve_time_s: float
+    status: str  # how the backend stopped; the point's status may be lower
+    objective: float | None
+    bound: float | None
+    nodes: int | None
+    claimed: float | None  # the objective, or its recomputation with rounded binaries
+    violation: float  # how far the backend's point is from feasible
+    exact: float  # the chain's value of the decoded alteration
+    not_certified: str
 
 
 class MilpSolver:
@@ -196,7 +222,7 @@ class MilpSolver:
                     else f"{backend.name} stopped as optimal with its bound {upper_bound:.12f}, "
                     f"{upper_bound - exact:.2e} above the exact value of its answer"
                 )
-            stats: dict[str, Any] = {
+            stats: MilpStats = {
                 **model.stats(),
                 "solver": backend.name,
                 "solve_time_s": result.solve_time_s,
