@@ -54,6 +54,7 @@ PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
+SEGMENT_MIN_SECONDS = 1.0  # ... when at least this much of the time limit is left
 
 
 class BranchAndBoundStats(TypedDict):
@@ -285,13 +286,11 @@ class BranchAndBoundSolver:
         space, chain = instance.space, instance.chain
         relax = _Relaxation(problem, space, chain)
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
+        # the segment search backs a budget up where this search does not certify it: on
+        # large chains without end components among the live states (its policy iteration
+        # needs none), built only when first needed
+        segment_applies = chain.n_states >= SEGMENT_MIN_STATES and not instance.cycling.any()
         segments = None
-        if chain.n_states >= SEGMENT_MIN_STATES:
-            from misdirect.solvers.budget_bound import BudgetBound, SegmentRelaxation
-
-            state_obs = problem.pomdp.observation_of[chain.world_state]
-            if BudgetBound.create(chain, state_obs) is not None:
-                segments = SegmentRelaxation(problem, space, chain, relax)
         policy = relax.best_groups(relax.live_groups.astype(np.float64))[0]
         incumbent: tuple[tuple[int, ...], float] | None = None
         answers: dict[int, Solution] = {}
@@ -310,7 +309,7 @@ class BranchAndBoundSolver:
             better, found = relax.improve(search.best_picks, search.best_value, budget, climb)
             search.offer(better, found)
             share = deadline.share(len(order) - done)
-            if segments is not None and share is not None:
+            if segment_applies and share is not None:
                 share /= 2  # the other half for the segment search, if this one does not certify
             limit = None if share is None else Deadline(share)
 
@@ -324,6 +323,13 @@ class BranchAndBoundSolver:
                 )
 
             answers[j] = search.run(limit, tick)
+            left = deadline.remaining()
+            if left is not None and left < SEGMENT_MIN_SECONDS:
+                segment_applies = False  # too little time left to build and search it
+            if answers[j].status != Status.OPTIMAL and segment_applies and segments is None:
+                from misdirect.solvers.budget_bound import SegmentRelaxation
+
+                segments = SegmentRelaxation(problem, space, chain, relax)
             if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
                     segments,

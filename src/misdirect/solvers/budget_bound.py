@@ -548,11 +548,16 @@ class SegmentSearch:
 
     def run(self, deadline=None, tick=None, max_nodes: int | None = None) -> str:
         import heapq
+        import time
 
         seg = self.seg
         choices = seg.space.choices
+        last_node_s = 0.0  # a node is not started when the time left is less than the last one
         while self.heap:
-            if deadline is not None and deadline.expired():
+            if deadline is not None and (
+                deadline.expired()
+                or (deadline.remaining() is not None and deadline.remaining() < last_node_s)
+            ):
                 return "time_limit"
             if max_nodes is not None and self.nodes >= max_nodes:
                 return "feasible"
@@ -562,7 +567,9 @@ class SegmentSearch:
             if self._prune(-negative):
                 continue
             self.nodes += 1
+            began = time.perf_counter()
             result, usage, layers = seg.node(picks, remaining, self.best_value + PRUNE_TOLERANCE)
+            last_node_s = time.perf_counter() - began
             bound = min(float(result.bound), seg.problem.objective.max_value)
             if self.root_bound is None:
                 self.root_bound = bound
