@@ -20,6 +20,7 @@ the value reported is then re-computed exactly by :func:`misdirect.solve`, like 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import TypedDict
 
@@ -131,9 +132,12 @@ class IncrementalSolver:
         ranked = np.argsort(outer_costs, kind="stable")
         outer_table, outer_costs = outer_table[ranked], outer_costs[ranked]
         n_outer = len(outer_costs)
+        block_s = 0.0  # the last outer block's time: a block is not started with less left
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
-            if done > 0 and deadline.expired():  # the first (unaltered outer) block always runs
-                break
+            left = deadline.remaining()
+            if done > 0 and (deadline.expired() or (left is not None and left < block_s)):
+                break  # the first (unaltered outer) block always runs
+            block_began = time.perf_counter()
             chosen = np.zeros(options.size, dtype=bool)
             for i, k in zip(outer, outer_pick, strict=True):
                 chosen[first_option[i] + k] = True
@@ -180,6 +184,7 @@ class IncrementalSolver:
             values.append(found)
             picks.append((outer_pick, table))
             done += 1
+            block_s = time.perf_counter() - block_began
             report(progress, done, n_outer, stage="incremental")
 
         costs_a, values_a = (
