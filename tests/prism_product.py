@@ -89,3 +89,25 @@ def _randomized(problem: Problem, received: np.ndarray, lines: list[str]) -> str
     lines.append("endmodule")
     lines.append(f'label "decoy" = {_any("s", np.flatnonzero(problem.decoy))};')
     return "\n".join(lines) + "\n"
+
+
+def storm_probability(tmp_path, problem: Problem, alteration: np.ndarray) -> float:
+    """Storm's exact (rational arithmetic) Pr(F decoy) for the PRISM product encoding."""
+    import stormpy
+
+    path = tmp_path / "product.prism"
+    path.write_text(prism_product(problem, alteration))
+    program = stormpy.parse_prism_program(str(path))
+    formula = stormpy.parse_properties('P=? [F "decoy"]', program)
+    model = stormpy.build_model[stormpy.Rational](program, formula)
+    result = stormpy.model_checking(model, formula[0], environment=stormpy.environments.exact())
+    return float(result.get_value(model.initial_states[0]))
+
+
+def random_allowed_alteration(problem: Problem, rng: np.random.Generator) -> np.ndarray:
+    """A random alteration that respects the problem (initial observation, forbidden pairs)."""
+    alpha = problem.identity()
+    for o in range(problem.pomdp.n_observations):
+        if o != problem.pomdp.initial_observation:
+            alpha[o] = rng.choice(np.flatnonzero(np.isfinite(problem.cost.row(o))))
+    return alpha

@@ -25,7 +25,7 @@ from misdirect.io.paynt import controller_to_paynt
 from misdirect.io.problem_file import problem_text
 from misdirect.scenarios import random_problem
 from misdirect.solvers.incremental import NotApplicableError
-from prism_product import prism_product
+from prism_product import random_allowed_alteration, storm_probability
 from test_exhaustive import brute_force_curve
 
 runner = CliRunner()
@@ -141,24 +141,6 @@ def test_behaviour_classes_compare_distributions():
 # -- against Storm ------------------------------------------------------------------------------
 
 stormpy = pytest.importorskip("stormpy")
-
-
-def storm_probability(tmp_path, problem, alteration) -> float:
-    path = tmp_path / "product.prism"
-    path.write_text(prism_product(problem, alteration))
-    program = stormpy.parse_prism_program(str(path))
-    formula = stormpy.parse_properties('P=? [F "decoy"]', program)
-    model = stormpy.build_model[stormpy.Rational](program, formula)
-    result = stormpy.model_checking(model, formula[0], environment=stormpy.environments.exact())
-    return float(result.get_value(model.initial_states[0]))
-
-
-def random_allowed_alteration(problem, rng):
-    alpha = problem.identity()
-    for o in range(problem.pomdp.n_observations):
-        if o != problem.pomdp.initial_observation:
-            alpha[o] = rng.choice(np.flatnonzero(np.isfinite(problem.cost.row(o))))
-    return alpha
 
 
 def test_tiny_agrees_with_storm(tmp_path):

@@ -5,31 +5,9 @@ import pytest
 
 from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import paper_grid, random_problem
-from prism_product import prism_product
+from prism_product import random_allowed_alteration, storm_probability
 
 stormpy = pytest.importorskip("stormpy")
-
-
-def storm_probability(tmp_path, problem, alteration) -> float:
-    """Storm's exact (rational arithmetic) Pr(F decoy) for the PRISM product encoding."""
-    path = tmp_path / "product.prism"
-    path.write_text(prism_product(problem, alteration))
-    program = stormpy.parse_prism_program(str(path))
-    formula = stormpy.parse_properties('P=? [F "decoy"]', program)
-    model = stormpy.build_model[stormpy.Rational](program, formula)
-    result = stormpy.model_checking(model, formula[0], environment=stormpy.environments.exact())
-    return float(result.get_value(model.initial_states[0]))
-
-
-def random_allowed_alteration(problem, rng):
-    """A random alteration that respects the problem (initial observation, forbidden pairs)."""
-    alpha = problem.identity()
-    for o in range(problem.pomdp.n_observations):
-        if o == problem.pomdp.initial_observation:
-            continue
-        allowed = np.flatnonzero(np.isfinite(problem.cost.row(o)))
-        alpha[o] = rng.choice(allowed)
-    return alpha
 
 
 def test_random_chains_agree_with_storm(tmp_path):
