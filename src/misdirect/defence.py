@@ -250,7 +250,8 @@ def _attack_of(point: BudgetResult, problem: Problem) -> _Attack:
         if alpha is not None
         else frozenset()
     )
-    upper = point.upper_bound if point.upper_bound is not None else 1.0
+    # no bound from the method: the largest decoy weight bounds every value (1 for a probability)
+    upper = point.upper_bound if point.upper_bound is not None else problem.objective.max_value
     return _Attack(
         value=point.probability,
         upper=max(upper, point.probability),
