@@ -31,7 +31,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.model import Problem, reachable_from
 from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import ProblemError, SolverError
-from misdirect.solvers.base import Status
+from misdirect.solvers.base import Deadline, Status
 from misdirect.solvers.run import BudgetResult, default_budgets, solve
 
 CERTIFY_TOLERANCE = 1e-9  # as everywhere in misdirect: "optimal" means within this
@@ -262,23 +262,14 @@ def _attack_of(point: BudgetResult, problem: Problem) -> _Attack:
     )
 
 
-class _Clock:
-    """A wall-clock limit shared by every solve of one audit or hardening."""
-
-    def __init__(self, seconds: float | None):
-        if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
-            raise ProblemError(
-                f"must be a positive number of seconds, got {seconds}", field="time_limit"
-            )
-        self.end = None if seconds is None else time.perf_counter() + seconds
-
-    def share(self, parts: int = 1) -> float | None:
-        if self.end is None:
-            return None
-        return max(self.end - time.perf_counter(), 0.0) / max(parts, 1)
-
-    def expired(self) -> bool:
-        return self.end is not None and time.perf_counter() >= self.end
+def _deadline(seconds: float | None) -> Deadline:
+    """The wall-clock limit shared by every solve of one audit or hardening (expired at once
+    on Ctrl-C, like every solver's)."""
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise ProblemError(
+            f"must be a positive number of seconds, got {seconds}", field="time_limit"
+        )
+    return Deadline(seconds)
 
 
 def _solve_at(
@@ -395,7 +386,7 @@ def audit(
     removes alterations), so only the sensors of the optimal attack are re-solved.
     """
     started = time.perf_counter()
-    clock = _Clock(time_limit)
+    clock = _deadline(time_limit)
     budget = problem.budget if budget is None else float(budget)
     if not (math.isfinite(budget) and budget >= 0):
         raise ProblemError(f"must be a non-negative number, got {budget}", field="budget")
@@ -674,7 +665,7 @@ def harden(
     cannot beat the best protection, and solves each protection set once.
     """
     started = time.perf_counter()
-    clock = _Clock(time_limit)
+    clock = _deadline(time_limit)
     if not (math.isfinite(protect_budget) and protect_budget >= 0):
         raise ProblemError(
             f"must be a non-negative number, got {protect_budget}", field="protect_budget"
