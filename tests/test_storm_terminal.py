@@ -205,6 +205,23 @@ def test_decoy_expression_equals_label(tmp_path):
 # -- errors: one line naming file, field and reason ----------------------------------------------
 
 
+def _one_action_problem(tmp_path, pomdp: dict) -> Path:
+    """p.yaml: the model ``pomdp``, a one-node controller playing ``a``, decoy label ``bad``."""
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": pomdp,
+        "controller": {
+            "nodes": ["m"],
+            "initial": "m",
+            "rules": [{"node": "*", "obs": "*", "action": "a", "next": "m"}],
+        },
+        "deception": {"decoy": {"label": "bad"}, "budget": 1},
+    }
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(document))
+    return path
+
+
 def _error(path):
     result = runner.invoke(app, ["evaluate", str(path), "--json"])
     assert result.exit_code == 2, result.output
@@ -261,18 +278,7 @@ def _drn(first: str, second: str, init0: str = " init", init1: str = "") -> str:
 )
 def test_drn_validation(tmp_path, text, words):
     (tmp_path / "m.drn").write_text(text)
-    document = {
-        "format": "misdirect/v1",
-        "pomdp": {"drn": "m.drn"},
-        "controller": {
-            "nodes": ["m"],
-            "initial": "m",
-            "rules": [{"node": "*", "obs": "*", "action": "a", "next": "m"}],
-        },
-        "deception": {"decoy": {"label": "bad"}, "budget": 1},
-    }
-    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
-    error = _error(tmp_path / "p.yaml")
+    error = _error(_one_action_problem(tmp_path, {"drn": "m.drn"}))
     assert error["source"] == str(tmp_path / "p.yaml")
     assert error["field"] == "pomdp.drn"
     assert "m.drn" in error["message"] and words in error["message"], error["message"]
@@ -284,18 +290,7 @@ def test_prism_probabilities_not_summing_to_one(tmp_path):
         "  o : [0..1] init 0;\n  [a] s=0 -> 0.7 : (s'=1) + 0.7 : (s'=2);\n"
         '  [a] s>0 -> true;\nendmodule\nlabel "bad" = s=2;\n'
     )
-    document = {
-        "format": "misdirect/v1",
-        "pomdp": {"prism": "bad.prism"},
-        "controller": {
-            "nodes": ["m"],
-            "initial": "m",
-            "rules": [{"node": "*", "obs": "*", "action": "a", "next": "m"}],
-        },
-        "deception": {"decoy": {"label": "bad"}, "budget": 1},
-    }
-    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
-    error = _error(tmp_path / "p.yaml")
+    error = _error(_one_action_problem(tmp_path, {"prism": "bad.prism"}))
     assert error["field"] == "pomdp.prism"
     assert "bad.prism: state 's=0" in error["message"]
     assert "action 'a': probabilities sum to 1.4, not 1" in error["message"]
