@@ -29,6 +29,7 @@ import scipy.sparse as sp
 from misdirect.core.alterations import alteration_space
 from misdirect.core.attack import prepare
 from misdirect.core.model import Problem, reachable_from
+from misdirect.core.objective import LABELS
 from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.base import Deadline, Status
@@ -340,7 +341,7 @@ class AuditResult:
 
     @property
     def objective_label(self) -> str:
-        return "Pr(reach decoy)" if self.objective == "probability" else "expected decoy weight"
+        return LABELS[self.objective]
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from misdirect.core.model import Problem, format_alteration
+from misdirect.core.model import format_alteration
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import one_line, write_output
 
@@ -79,10 +79,6 @@ def print_notes(notes: list[str]) -> None:
 
 def fmt_alteration(alteration: dict[str, str]) -> str:
     return escape(format_alteration(alteration))
-
-
-def objective_label(problem: Problem) -> str:
-    return "Pr(reach decoy)" if problem.objective.is_probability else "expected decoy weight"
 
 
 def write_text(text: str, output: Path | None, as_json: bool, **about: Any) -> None:

@@ -22,7 +22,6 @@ from misdirect.cli.common import (
     err,
     fmt_alteration,
     note,
-    objective_label,
     out,
     print_handovers,
     print_json,
@@ -80,7 +79,7 @@ def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> 
     table.add_row("alteration", fmt_alteration(result.alteration))
     budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
     table.add_row("cost", f"{result.cost:g}{budget_note}")
-    table.add_row(objective_label(problem), f"[bold]{result.probability:.6f}[/]")
+    table.add_row(problem.objective.label, f"[bold]{result.probability:.6f}[/]")
     for name, probability in result.decoy_sets.items():
         table.add_row(f"  Pr(first decoy in {escape(name)})", f"{probability:.6f}")
     table.add_row("without alteration", f"{baseline:.6f}")
@@ -217,7 +216,7 @@ def _print_solve(result: SolveResult, problem: Problem) -> None:
     table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
     bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
-    table.add_column(f"max {objective_label(problem)}", justify="right")
+    table.add_column(f"max {problem.objective.label}", justify="right")
     if bounded:
         table.add_column("upper bound", justify="right")
     table.add_column("optimal alteration" if not bounded else "best alteration found")

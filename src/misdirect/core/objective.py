@@ -15,6 +15,9 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+# what the number means, by ``Objective.kind`` (the JSON's "objective"), for tables and plots
+LABELS = {"probability": "Pr(reach decoy)", "expected_decoy_weight": "expected decoy weight"}
+
 
 @dataclass(frozen=True, eq=False)
 class DecoySet:
@@ -64,6 +67,11 @@ class Objective:
     def kind(self) -> str:
         """What the number means, as the JSON output names it."""
         return "probability" if self.is_probability else "expected_decoy_weight"
+
+    @property
+    def label(self) -> str:
+        """What the number means, for tables and plots."""
+        return LABELS[self.kind]
 
     def one_step(self, rows: sp.spmatrix, column_state: np.ndarray) -> np.ndarray:
         """Score collected in one step by each row of a product matrix whose column ``j`` is
