@@ -233,6 +233,8 @@ def test_set_forms_and_overlap(tmp_path):
         ("{trap: {weight: 1, states: [trap], label: x}}", "deception.decoy.trap", "not several"),
         ("{trap: {weight: 1, states: [nowhere]}}", "deception.decoy.trap.states[0]", "nowhere"),
         ("{trap: .nan}", "deception.decoy.trap", "expected a number, got NaN"),
+        ("{trap: {weight: 1, label: lava}}", "deception.decoy.trap.label", "no state label"),
+        ("{trap: {weight: 1, expression: x=1}}", "deception.decoy.trap.expression", "PRISM"),
     ],
 )
 def test_bad_weighted_decoys_are_one_clear_error(tmp_path, decoy, field, reason):

@@ -450,12 +450,17 @@ def _compile_weighted_decoys(
                 states = np.zeros(pomdp.n_states, dtype=bool)
                 for i, state in enumerate(entry.states):
                     states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
-            elif entry.label is not None:
-                states = _compile_decoy(DecoyLabelSpec(label=entry.label), pomdp, labels)
-            else:
-                states = _compile_decoy(
-                    DecoyExpressionSpec(expression=entry.expression), pomdp, labels, condition
+            else:  # one set by label or expression, checked as the unweighted forms are
+                kind = "label" if entry.label is not None else "expression"
+                form = (
+                    DecoyLabelSpec(label=entry.label)
+                    if entry.label is not None
+                    else DecoyExpressionSpec(expression=entry.expression)
                 )
+                try:
+                    states = _compile_decoy(form, pomdp, labels, condition)
+                except ProblemError as error:  # named in this set, not in deception.decoy
+                    raise ProblemError(error.reason, field=f"{field}.{kind}") from None
         else:
             weight, states = float(entry), _named_set(name, pomdp, labels, state_index, field)
         sets.append(DecoySet(name=name, weight=float(weight), states=states))
