@@ -524,8 +524,11 @@ def reach_probability(
     scale, scaled = _scores(target, value)
     if scale == 0.0:
         return 0.0
-    if scaled is not None or matrix.shape[0] <= DENSE_MAX_STATES:
-        return float(reach_probabilities(matrix, target, blocks, value)[initial])
+    if scaled is not None:
+        target = np.asarray(target, dtype=bool)
+        return float(scale * _expected_scores(matrix, target, scaled, blocks)[initial])
+    if matrix.shape[0] <= DENSE_MAX_STATES:
+        return float(scale * _reach_dense(matrix, target)[initial])
     return scale * _reach_one(matrix, target, initial, blocks)
 
 
