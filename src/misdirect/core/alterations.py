@@ -51,15 +51,23 @@ class AlterationSpace:
         dropping partial vectors already over the budget; since candidate 0 is free, a
         partial vector always completes, so ``None`` (more than ``limit``) is known early.
         """
-        table = np.zeros((1, 0), dtype=np.int64)
         costs = np.zeros(1)
+        steps = []  # per choice: (row of the previous step each vector extends, its option)
         for i in range(len(self.choices)) if indices is None else indices:
             grown = costs[:, None] + np.asarray(self.choices[i].costs, dtype=np.float64)
             keep_row, keep_option = np.nonzero(grown <= budget + 1e-9)
             if limit is not None and keep_row.size > limit:
                 return None
-            table = np.column_stack([table[keep_row], keep_option])
+            steps.append((keep_row, keep_option))
             costs = grown[keep_row, keep_option]
+        # the table is read back from the last step to the first: growing it column by column
+        # would copy the whole table once per choice
+        table = np.zeros((costs.size, len(steps)), dtype=np.int64)
+        row = np.arange(costs.size)
+        for j in range(len(steps) - 1, -1, -1):
+            keep_row, keep_option = steps[j]
+            table[:, j] = keep_option[row]
+            row = keep_row[row]
         return table, costs
 
     def count_within(self, budget: float, limit: int) -> int:

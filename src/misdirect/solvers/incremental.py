@@ -150,7 +150,8 @@ class IncrementalSolver:
             rhs[:, 0] = to_target[base_groups]
             rhs[local, 1 + np.arange(local.size)] = 1.0
             solved = solve_chain(inside[base_groups], rhs, live_node)
-            x0, W = solved[:, 0], solved[:, 1:]
+            # contiguous copies: sparse @ dense ravels (copies) a strided operand on every call
+            x0, W = np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
             block_start = np.concatenate(
                 [[0], np.cumsum([rows_of[observations[i]].size for i in inner])]
             )
@@ -303,7 +304,8 @@ def _add_corrections(
                 [d_b_of[j][k] for j, k in zip(support, picked, strict=True)], axis=1
             )
             d_w = np.concatenate(
-                [d_w_of[j][k][:, :, cols] for j, k in zip(support, picked, strict=True)], axis=1
+                # the columns first: indexing by ``k`` first would copy every inner column
+                [d_w_of[j][:, :, cols][k] for j, k in zip(support, picked, strict=True)], axis=1
             )
             rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
             system = np.eye(cols.size)[None, :, :] - d_w
