@@ -7,7 +7,8 @@
     H3  at --time-limit 10 on the H1/H2 instances: every budget's incumbent within 1 % of the
         optimum (the best value any run certified or found), its upper bound within 5 %
     H4  time to certify, auto / the plain MILP (compact formulation, HiGHS and SCIP), geometric
-        mean over the instances both certify                                            >= 10x
+        mean over the instances (a MILP gets max(--limit, 10.5x auto's time): one that does
+        not certify within that proves a lower bound on the ratio)                      >= 10x
 
 Each case runs ``misdirect.solve`` in a fresh process with a whole-command ``time_limit``
 (``--limit``, default 60 s, 10 s for H3), so a case that cannot be certified reports how far it
@@ -50,6 +51,7 @@ QUICK = {
     "h4_instances": [(8, 6, 2, 0)],
 }
 TARGETS = {"H1_s": 60.0, "H2_s": 60.0, "H3_value": 0.01, "H3_bound": 0.05, "H4": 10.0}
+H4_MARGIN = 1.05  # the MILP's limit in H4: this times the target ratio times auto's time
 
 
 def case(n: int, sensors: int, top: int, seed: int, method: str, limit: float, **options) -> dict:
@@ -180,8 +182,9 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
             continue
         certified = [m for m in milps if m and "error" not in m and m["certified"]]
         best_milp = min((m["wall_s"] for m in certified), default=None)
-        if best_milp is None:  # no MILP certified within the limit: its time is at least that,
-            best_milp = plan["limit"]  # so the ratio is a lower bound (the row says so)
+        if best_milp is None:  # no MILP certified within its limit: its time is at least
+            # that, so the ratio is a lower bound (the row says so)
+            best_milp = min(m["limit_s"] for m in milps if m and "error" not in m)
             censored += 1
         ratios.append(best_milp / ours["wall_s"])
     geo = math.exp(sum(map(math.log, ratios)) / len(ratios)) if ratios else float("nan")
@@ -190,7 +193,8 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
             "goal": "H4",
             "instance": ", ".join(_name(i) for i in plan["h4_instances"]),
             "measured": f"{'at least ' if censored else ''}{geo:.1f}x (geometric mean of "
-            f"{len(ratios)}; {censored} where no MILP certified within {plan['limit']:g} s)",
+            f"{len(ratios)}; {censored} where no MILP certified within its limit, "
+            f"max({plan['limit']:g} s, {H4_MARGIN * TARGETS['H4']:g}x ours))",
             "target": ">= 10x",
             "pass": geo >= TARGETS["H4"],
         }
@@ -267,9 +271,15 @@ def main() -> None:
     for n, k, top, seed in (plan["h1"], plan["h2"]):
         record(isolated(n, k, top, seed, "auto", args.short_limit))
     for n, k, top, seed in plan["h4_instances"]:
-        record(isolated(n, k, top, seed, "auto", args.limit))
+        ours = isolated(n, k, top, seed, "auto", args.limit)
+        record(ours)
+        # the MILP gets at least the target ratio times our time: if it does not certify
+        # within that, the speed-up is proven to be at least the target, not merely "> limit"
+        milp_limit = args.limit
+        if "error" not in ours and ours["certified"]:
+            milp_limit = max(args.limit, math.ceil(H4_MARGIN * TARGETS["H4"] * ours["wall_s"]))
         for solver in ("highs", "scip"):
-            record(isolated(n, k, top, seed, "milp", args.limit, solver=solver))
+            record(isolated(n, k, top, seed, "milp", milp_limit, solver=solver))
     machine = (
         f"{platform.machine()}, {multiprocessing.cpu_count()} cores, Python "
         f"{platform.python_version()}, {platform.system()}"

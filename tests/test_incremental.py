@@ -66,23 +66,56 @@ def test_auto_uses_updates_on_the_grid():
     assert result.stats["factorisations"] == 3  # one per choice for the blank reading
 
 
-def test_both_ways_of_batching_the_corrections_agree(monkeypatch):
-    """Padded full-size systems and per-pattern systems are the same algebra."""
-    import misdirect.solvers.incremental as incremental
+@pytest.mark.parametrize("chunk_entries", [1, 4_000_000])
+@pytest.mark.parametrize("seed", range(8))
+def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
+    """The Woodbury corrections, against a dense solve of every alteration's chain: one
+    alteration per batch (``chunk_entries=1``) and batches padded to mixed widths."""
+    import itertools
 
-    problems = [paper_grid(7), paper_grid(9)] + [
-        random_problem(seed, states=8) for seed in range(20)
-    ]
-    padded = []
-    for problem in problems:
-        try:
-            padded.append(solve(problem, method="incremental", budgets=[0, 1, 2, 3]))
-        except NotApplicableError:
-            padded.append(None)
-    monkeypatch.setattr(incremental, "PADDED_ROWS", 0)
-    for problem, before in zip(problems, padded, strict=True):
-        if before is None:
-            continue
-        after = solve(problem, method="incremental", budgets=[0, 1, 2, 3])
-        for a, b in zip(after.curve, before.curve, strict=True):
-            assert a.solver_probability == pytest.approx(b.solver_probability, abs=1e-12)
+    import scipy.sparse as sp
+
+    from misdirect.solvers.incremental import _add_corrections, _deltas
+
+    rng = np.random.default_rng(seed)
+    m = 14
+    groups_of = [rng.integers(0, 10**6, size=int(rng.integers(1, 4))) for _ in range(m)]
+    owner = np.repeat(np.arange(m), [len(g) for g in groups_of])
+    rows = rng.random((owner.size, m)) * (rng.random((owner.size, m)) < 0.3)
+    rows *= (0.85 * rng.random(owner.size) / np.maximum(rows.sum(axis=1), 1e-12))[:, None]
+    to_target = 0.95 - rows.sum(axis=1) - 0.1 * rng.random(owner.size)
+    inside = sp.csr_matrix(rows)
+    first_group = np.searchsorted(owner, np.arange(m))
+    base_groups = first_group.copy()  # every state's first group in the base
+    regions = np.split(rng.permutation(m)[:9], [2, 3, 6])  # four inner observations
+    n_options = [int(rng.integers(2, 4)) for _ in regions]
+    groups = []
+    for region, size in zip(regions, n_options, strict=True):
+        table = np.empty((region.size, size), dtype=np.int64)
+        table[:, 0] = base_groups[region]
+        for k in range(1, size):
+            picks = [rng.integers(len(groups_of[q])) for q in region]
+            table[:, k] = first_group[region] + np.array(picks)
+        groups.append(table)
+    inner_rows = np.concatenate(regions)
+
+    def solve_with(groups_per_state):
+        system = np.eye(m) - rows[groups_per_state]
+        return np.linalg.solve(system, to_target[groups_per_state])
+
+    base = np.eye(m) - rows[base_groups]
+    x0 = np.linalg.solve(base, to_target[base_groups])
+    unit = np.zeros((m, inner_rows.size))
+    unit[inner_rows, np.arange(inner_rows.size)] = 1.0
+    W = np.linalg.solve(base, unit)
+    deltas = _deltas(regions, groups, base_groups[inner_rows], inside, to_target, x0, W)
+    table = np.array(list(itertools.product(*(range(size) for size in n_options))))
+    start = int(rng.integers(m))
+    found = np.full(len(table), x0[start])
+    done = _add_corrections(found, table, deltas, W[start], chunk_entries=chunk_entries)
+    assert done.all()
+    for row, value in zip(table, found, strict=True):
+        chosen = base_groups.copy()
+        for region, group, k in zip(regions, groups, row, strict=True):
+            chosen[region] = group[:, k]
+        assert value == pytest.approx(solve_with(chosen)[start], abs=1e-12)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import TypedDict
+from typing import NamedTuple, TypedDict
 
 import numpy as np
 
@@ -45,7 +45,6 @@ from misdirect.solvers.base import (
 INNER_ROWS = 200  # inner observations together may own at least this many product states,
 INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
 INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
-PADDED_ROWS = 48  # up to this many inner rows, every alteration is solved at full size
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
@@ -152,20 +151,19 @@ class IncrementalSolver:
             solved = solve_chain(inside[base_groups], rhs, live_node)
             # contiguous copies: sparse @ dense ravels (copies) a strided operand on every call
             x0, W = np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
-            block_start = np.concatenate(
-                [[0], np.cumsum([rows_of[observations[i]].size for i in inner])]
+            owned = [rows_of[observations[i]] for i in inner]
+            deltas = _deltas(
+                owned,
+                [
+                    group_of_option[r, first_option[i] : first_option[i + 1]]
+                    for r, i in zip(owned, inner, strict=True)
+                ],
+                base_groups[live_index[rows]],
+                inside,
+                to_target,
+                x0,
+                W,
             )
-            # per inner observation j and option k: D x0, D W and Δb on the rows it owns
-            d_x0_of, d_w_of, d_b_of = [], [], []
-            for i in inner:
-                own = rows_of[observations[i]]
-                size = space.choices[i].size
-                base_g = base_groups[live_index[own]]
-                new_g = group_of_option[own, first_option[i] : first_option[i] + size].T
-                delta = inside[new_g.ravel()] - inside[np.tile(base_g, size)]
-                d_x0_of.append(np.asarray(delta @ x0).reshape(size, own.size))
-                d_w_of.append(np.asarray(delta @ W).reshape(size, own.size, W.shape[1]))
-                d_b_of.append(to_target[new_g] - to_target[base_g][None, :])
             enumerated = space.within(top - outer_cost, inner, limit=self.max_evaluations)
             if enumerated is None or evaluations + len(enumerated[1]) > self.max_evaluations:
                 raise SolverError(f"more than {self.max_evaluations:,} alterations")
@@ -174,8 +172,7 @@ class IncrementalSolver:
             found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
             if start >= 0:
                 found[:] = x0[start]
-                blocks = (block_start, d_x0_of, d_w_of, d_b_of)
-                corrected = _add_corrections(found, table, blocks, W[start], deadline)
+                corrected = _add_corrections(found, table, deltas, W[start], deadline)
                 if not corrected.all():  # cut short: those alterations were not evaluated
                     left = float(inner_costs[~corrected].min()) + outer_cost
                     unevaluated = min(unevaluated, left)
@@ -234,84 +231,122 @@ class IncrementalSolver:
         return space.alteration(problem, picked, [*outer, *inner])
 
 
+class _Deltas(NamedTuple):
+    """The rows an inner option changes: per inner observation ``j`` and option ``k``, the
+    rows of its region whose group differs from the base (``flat_length[j, k]`` of them, from
+    ``flat_start[j, k]``), each with its ``D x0``, ``D W`` and ``Δb`` and its column among the
+    inner rows (``column``). Rows a option leaves alone have zero ``D`` and ``Δb``, so the
+    Woodbury system needs only the changed ones. A last all-zero row pads batches."""
+
+    flat_start: np.ndarray
+    flat_length: np.ndarray
+    column: np.ndarray
+    d_x0: np.ndarray
+    d_w: np.ndarray
+    d_b: np.ndarray
+
+
+def _deltas(owned, groups, base_groups, inside, to_target, x0, W) -> _Deltas:
+    """``owned[j]``: the live rows of inner observation ``j``; ``groups[j]``: their group per
+    option of ``j``; ``base_groups``: their group in the base, in the order of ``owned``."""
+    n_options = max((g.shape[1] for g in groups), default=1)
+    flat_start = np.zeros((len(owned), n_options), dtype=np.int64)
+    flat_length = np.zeros((len(owned), n_options), dtype=np.int64)
+    new_rows, old_rows, columns, offset, first = [], [], [], 0, 0
+    for j, g in enumerate(groups):
+        base = base_groups[first : first + g.shape[0]]
+        for k in range(g.shape[1]):
+            changed = np.flatnonzero(g[:, k] != base)
+            flat_start[j, k], flat_length[j, k] = offset, changed.size
+            offset += changed.size
+            new_rows.append(g[changed, k])
+            old_rows.append(base[changed])
+            columns.append(first + changed)
+        first += g.shape[0]
+    pad = np.zeros(1, dtype=np.int64)
+    new_g = np.concatenate([*new_rows, pad]).astype(np.int64)
+    old_g = np.concatenate([*old_rows, pad]).astype(np.int64)
+    delta = inside[new_g] - inside[old_g]  # the pad row: a group minus itself, zero
+    return _Deltas(
+        flat_start,
+        flat_length,
+        np.concatenate([*columns, pad]).astype(np.int64),
+        np.asarray(delta @ x0).ravel(),
+        np.asarray(delta @ W),
+        to_target[new_g] - to_target[old_g],
+    )
+
+
 def _add_corrections(
-    found, table, blocks, w_start, deadline: Deadline | None = None, chunk_entries: int = 4_000_000
+    found,
+    table,
+    deltas: _Deltas,
+    w_start,
+    deadline: Deadline | None = None,
+    chunk_entries: int = 4_000_000,
 ) -> np.ndarray:
     """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked);
     returns which rows got it (all, unless ``deadline`` passed first).
 
-    Option 0 leaves an observation's rows as in the base, so its rows of ``D`` are zero and
-    its rows of the small system are identity rows with a zero right-hand side: padding every
-    alteration to all inner rows gives the same correction. When the inner rows are few that
-    is one batched ``np.linalg.solve`` over all alterations; otherwise alterations that change
-    the same observations are batched together, each with only its own rows.
+    Each alteration solves a system over the rows its options change. Alterations are sorted
+    by how many observations they alter (cut short by the deadline, the small budgets are
+    complete and stay proven), then by their number of rows, and solved in batches padded to
+    the widest system of the batch with the zero row: its unknown is 0 and it adds nothing.
+    Every gather is one fancy index, so the cost is LAPACK's, not Python's per alteration.
     """
-    block_start, d_x0_of, d_w_of, d_b_of = blocks
-    n_rows = int(block_start[-1])
     corrected = np.zeros(table.shape[0], dtype=bool)
-    if n_rows == 0:
-        corrected[:] = True
-        return corrected
-    if n_rows <= PADDED_ROWS:
-        step = max(1, chunk_entries // (n_rows * n_rows))
-        identity = np.eye(n_rows)[None, :, :]
-        for first in range(0, table.shape[0], step):
-            if first > 0 and deadline is not None and deadline.expired():
-                return corrected
-            corrected[first : first + step] = True
-            picked = list(enumerate(table[first : first + step].T))
-            d_x0 = np.concatenate([d_x0_of[j][k] for j, k in picked], axis=1)
-            d_b = np.concatenate([d_b_of[j][k] for j, k in picked], axis=1)
-            d_w = np.concatenate([d_w_of[j][k] for j, k in picked], axis=1)
-            rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
-            correction = np.linalg.solve(identity - d_w, rhs[..., None])[..., 0]
-            found[first : first + step] += (d_b + correction) @ w_start
-        return corrected
-    altered = table != 0
-    if altered.shape[1] <= 62:  # one integer per pattern: far faster to group than rows
-        codes = altered @ (np.int64(1) << np.arange(altered.shape[1], dtype=np.int64))
-    else:  # one byte string per pattern (np.unique over rows sorts 100x slower)
-        packed = np.ascontiguousarray(np.packbits(altered, axis=1))
-        codes = packed.view(np.dtype((np.void, packed.shape[1]))).ravel()
-    _, first, which = np.unique(codes, return_index=True, return_inverse=True)
-    patterns = altered[first]
-    which = which.ravel()
-    grouped = np.argsort(which, kind="stable")  # the rows of each pattern, one slice each
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=len(patterns)))])
-    # fewest altered observations first (the first is "alter none of them"): cut short by the
-    # deadline, the small budgets are complete and stay proven
-    by_size = np.argsort(patterns.sum(axis=1), kind="stable")
-    for step_index, index in enumerate(by_size):
-        pattern = patterns[index]
-        if step_index > 0 and deadline is not None and deadline.expired():
+    which, observation = np.nonzero(table)  # altered entries, grouped by alteration
+    kind = table[which, observation]
+    length = deltas.flat_length[observation, kind]  # rows each altered entry changes
+    width_of = np.bincount(which, weights=length, minlength=table.shape[0]).astype(np.int64)
+    n_altered = np.bincount(which, minlength=table.shape[0])
+    corrected[width_of == 0] = True  # no row changes: the base value
+    first_entry = np.searchsorted(which, np.arange(table.shape[0]))
+    order = np.lexsort((width_of, n_altered))
+    order = order[width_of[order] > 0]
+    pad_row = deltas.d_x0.size - 1
+    position = 0
+    while position < order.size:
+        if deadline is not None and position > 0 and deadline.expired():
             return corrected
-        members = grouped[bounds[index] : bounds[index + 1]]
-        corrected[members] = True
-        support = np.flatnonzero(pattern)
-        if support.size == 0:
-            continue
-        cols = np.concatenate([np.arange(block_start[j], block_start[j + 1]) for j in support])
-        if cols.size == 0:  # the altered observations own no live rows: nothing changes
-            continue
-        step = max(1, chunk_entries // (cols.size * cols.size))
-        for first in range(0, members.size, step):
-            rows = members[first : first + step]
-            picked = [table[rows, j] for j in support]
-            d_x0 = np.concatenate(
-                [d_x0_of[j][k] for j, k in zip(support, picked, strict=True)], axis=1
-            )
-            d_b = np.concatenate(
-                [d_b_of[j][k] for j, k in zip(support, picked, strict=True)], axis=1
-            )
-            d_w = np.concatenate(
-                # the columns first: indexing by ``k`` first would copy every inner column
-                [d_w_of[j][:, :, cols][k] for j, k in zip(support, picked, strict=True)], axis=1
-            )
-            rhs = d_x0 + np.einsum("crk,ck->cr", d_w, d_b)
-            system = np.eye(cols.size)[None, :, :] - d_w
-            correction = np.linalg.solve(system, rhs[..., None])[..., 0]
-            found[rows] += (d_b + correction) @ w_start[cols]
+        width = int(width_of[order[position]])
+        batch = order[position : position + max(1, chunk_entries // (width * width))]
+        # keep the padding small: the batch stops before the first system over 2x as wide
+        wider = np.flatnonzero(width_of[batch] > 2 * width)
+        if wider.size:
+            batch = batch[: wider[0]]
+        position += batch.size
+        # entry e of alteration m fills the slots after the rows of m's earlier entries
+        entries = _entries_of(batch, first_entry, n_altered)
+        member = np.repeat(np.arange(batch.size), n_altered[batch])
+        rows_in = length[entries]
+        rep = np.repeat(np.arange(entries.size), rows_in)
+        within_entry = np.arange(rep.size) - np.repeat(np.cumsum(rows_in) - rows_in, rows_in)
+        widths = width_of[batch]
+        slot = np.arange(rep.size) - np.repeat(np.cumsum(widths) - widths, widths)
+        e = entries[rep]
+        r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
+        r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
+        c_index = deltas.column[r_index]
+        n_columns = deltas.d_w.shape[1]
+        flat = (r_index * n_columns)[:, :, None] + c_index[:, None, :]
+        coupling = np.take(deltas.d_w.reshape(-1), flat)  # D W on the changed rows, (b, w, w)
+        b_rows = deltas.d_b[r_index]
+        rhs = deltas.d_x0[r_index] + np.einsum("crk,ck->cr", coupling, b_rows)
+        np.negative(coupling, out=coupling)
+        diagonal = coupling.reshape(batch.size, -1)[:, :: r_index.shape[1] + 1]
+        diagonal += 1.0  # the system I - D W, in place
+        correction = np.linalg.solve(coupling, rhs[..., None])[..., 0]
+        found[batch] += np.einsum("cr,cr->c", b_rows + correction, w_start[c_index])
+        corrected[batch] = True
     return corrected
+
+
+def _entries_of(batch, first_entry, n_altered) -> np.ndarray:
+    """Indices of the altered entries of the alterations in ``batch``, in batch order."""
+    counts = n_altered[batch]
+    starts = np.repeat(first_entry[batch], counts)
+    return starts + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def _group_of_option(chain, live) -> np.ndarray:
