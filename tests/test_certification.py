@@ -198,10 +198,25 @@ def test_every_method_takes_a_time_limit(method):
 @pytest.mark.parametrize("method", ["exhaustive", "incremental", "branch-and-bound"])
 @pytest.mark.parametrize("flag", [["--threads", "2"], ["--mip-gap", "0.1"], ["--solver", "scip"]])
 def test_milp_options_elsewhere_are_one_clear_error(method, flag):
+    if (method, flag[0]) == ("incremental", "--threads"):
+        pytest.skip("the incremental enumeration honours --threads")
     result = runner.invoke(app, ["solve", "--scenario", "paper-grid", "--method", method, *flag])
     assert result.exit_code == 2
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and flag[0] in lines[0] and "Traceback" not in result.output
+
+
+def test_incremental_honours_threads():
+    """One thread or two: the same curve (the paper's grid: 0.719924 at budget 1)."""
+    curves = []
+    for threads in ("1", "2"):
+        args = ["solve", "--scenario", "paper-grid", "--budget", "0..3"]
+        args += ["--method", "incremental", "--threads", threads, "--json"]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0, result.output
+        curves.append([p["probability"] for p in json.loads(result.stdout)["curve"]])
+    assert curves[0] == curves[1]
+    assert curves[0][1] == pytest.approx(0.719924, abs=5e-7)
 
 
 def test_cli_honours_a_short_time_limit():

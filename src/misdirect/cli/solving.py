@@ -132,7 +132,11 @@ def solve(
         ),
     ] = None,
     threads: Annotated[
-        int | None, typer.Option(help="MILP: solver threads (SCIP: its concurrent mode if > 1).")
+        int | None,
+        typer.Option(
+            help="Threads of the MILP solver (SCIP: its concurrent mode if > 1) and of the "
+            "incremental enumeration (default 2)."
+        ),
     ] = None,
     mip_gap: Annotated[
         float | None,

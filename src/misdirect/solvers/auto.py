@@ -56,7 +56,7 @@ ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time
 INCREMENTAL_SURE = 200_000  # ... and for enumeration with low-rank updates, always
 INCREMENTAL_LIMIT = 2_000_000  # ... and up to this many when the time left allows it: at
-UPDATE_SECONDS = 40e-6  # about this much each (sensor networks; 1.8 GiB for 1.2 million)
+UPDATE_SECONDS = 25e-6  # about this much each (sensor networks; 1.8 GiB for 1.2 million)
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
@@ -78,6 +78,7 @@ class AutoSolver:
         self.time_limit = time_limit
         self.branch_and_bound = BranchAndBoundSolver(max_nodes=node_limit)
         self.milp = MilpSolver(**milp_options)  # validates the options up front
+        self.threads = milp_options.get("threads")  # the enumeration honours --threads too
 
     def solve(
         self,
@@ -113,7 +114,7 @@ class AutoSolver:
             small = [b for b in ordered if enumerable(space.count_within(b, INCREMENTAL_LIMIT))]
             if small:
                 try:
-                    first = IncrementalSolver().solve(
+                    first = IncrementalSolver(threads=self.threads).solve(
                         problem, small, progress=progress, deadline=deadline
                     )
                 except NotApplicableError:
@@ -134,7 +135,7 @@ class AutoSolver:
                     return [found[b] for b in budgets]
         if enumerable(count):
             try:
-                solutions = IncrementalSolver().solve(
+                solutions = IncrementalSolver(threads=self.threads).solve(
                     problem, budgets, progress=progress, deadline=deadline
                 )
                 return _label(solutions, "incremental", reason)

@@ -151,11 +151,11 @@ def refuse_options(method: str, options: dict[str, Any], accepted: Sequence[str]
     for name, value in options.items():
         if value is not None and name not in accepted:
             flag = "--" + name.replace("_", "-")
-            takes = "takes only --time-limit" if "time_limit" in accepted else "takes no options"
+            flags = ", ".join("--" + a.replace("_", "-") for a in accepted)
+            takes = f"takes only {flags}" if accepted else "takes no options"
             raise ProblemError(
                 f"does not apply to --method {method} ({method} {takes}; --solver, "
-                "--threads, --mip-gap and --formulation are MILP options, for --method milp "
-                "or auto)",
+                "--mip-gap and --formulation are MILP options, for --method milp or auto)",
                 field=flag,
             )
 

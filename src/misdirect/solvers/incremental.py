@@ -20,8 +20,10 @@ the value reported is then re-computed exactly by :func:`misdirect.solve`, like 
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, TypedDict
 
 import numpy as np
@@ -30,7 +32,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.core.reachability import solve_chain
-from misdirect.errors import SolverError
+from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
@@ -46,6 +48,7 @@ INNER_ROWS = 200  # inner observations together may own at least this many produ
 INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
 INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
+THREADS = 2  # corrections computed in parallel by default (both cores of the target machine)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
 
@@ -67,12 +70,19 @@ class IncrementalSolver:
     curve_is_free = True
 
     def __init__(
-        self, max_evaluations: int = 5_000_000, time_limit: float | None = None, **options
+        self,
+        max_evaluations: int = 5_000_000,
+        time_limit: float | None = None,
+        threads: int | None = None,
+        **options,
     ):
-        refuse_options(self.name, options, accepted=("time_limit",))
+        refuse_options(self.name, options, accepted=("time_limit", "threads"))
         check_time_limit(time_limit)
+        if threads is not None and threads < 1:
+            raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
         self.max_evaluations = max_evaluations
         self.time_limit = time_limit
+        self.threads = min(threads or THREADS, os.cpu_count() or 1)
 
     def solve(
         self,
@@ -172,7 +182,9 @@ class IncrementalSolver:
             found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
             if start >= 0:
                 found[:] = x0[start]
-                corrected = _add_corrections(found, table, deltas, W[start], deadline)
+                corrected = _add_corrections(
+                    found, table, deltas, W[start], deadline, threads=self.threads
+                )
                 if not corrected.all():  # cut short: those alterations were not evaluated
                     left = float(inner_costs[~corrected].min()) + outer_cost
                     unevaluated = min(unevaluated, left)
@@ -284,6 +296,7 @@ def _add_corrections(
     w_start,
     deadline: Deadline | None = None,
     chunk_entries: int = 4_000_000,
+    threads: int = 1,
 ) -> np.ndarray:
     """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked);
     returns which rows got it (all, unless ``deadline`` passed first).
@@ -304,42 +317,67 @@ def _add_corrections(
     first_entry = np.searchsorted(which, np.arange(table.shape[0]))
     order = np.lexsort((width_of, n_altered))
     order = order[width_of[order] > 0]
-    pad_row = deltas.d_x0.size - 1
+    context = (deltas, observation, kind, length, width_of, n_altered, first_entry, w_start)
+
+    def run(batch: np.ndarray) -> None:
+        if deadline is not None and deadline.expired():
+            return
+        found[batch] += _corrections_of(batch, *context)
+        corrected[batch] = True  # batches are disjoint: threads never write the same entry
+
+    batches = list(_batches(order, width_of, chunk_entries))
+    if threads == 1 or len(batches) == 1:
+        for batch in batches:
+            run(batch)
+    else:  # taken in order, so a cut-short run has still done the smallest alterations
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            list(pool.map(run, batches))  # LAPACK and numpy's gathers release the GIL
+    return corrected
+
+
+def _batches(order: np.ndarray, width_of: np.ndarray, chunk_entries: int):
+    """Consecutive slices of ``order`` of about ``chunk_entries`` system entries each; a
+    slice stops before the first system over twice as wide as its first, to keep the padding
+    small."""
     position = 0
     while position < order.size:
-        if deadline is not None and position > 0 and deadline.expired():
-            return corrected
         width = int(width_of[order[position]])
         batch = order[position : position + max(1, chunk_entries // (width * width))]
-        # keep the padding small: the batch stops before the first system over 2x as wide
         wider = np.flatnonzero(width_of[batch] > 2 * width)
         if wider.size:
             batch = batch[: wider[0]]
         position += batch.size
-        # entry e of alteration m fills the slots after the rows of m's earlier entries
-        entries = _entries_of(batch, first_entry, n_altered)
-        member = np.repeat(np.arange(batch.size), n_altered[batch])
-        rows_in = length[entries]
-        rep = np.repeat(np.arange(entries.size), rows_in)
-        within_entry = np.arange(rep.size) - np.repeat(np.cumsum(rows_in) - rows_in, rows_in)
-        widths = width_of[batch]
-        slot = np.arange(rep.size) - np.repeat(np.cumsum(widths) - widths, widths)
-        e = entries[rep]
-        r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
-        r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
-        c_index = deltas.column[r_index]
-        n_columns = deltas.d_w.shape[1]
-        flat = (r_index * n_columns)[:, :, None] + c_index[:, None, :]
-        coupling = np.take(deltas.d_w.reshape(-1), flat)  # D W on the changed rows, (b, w, w)
-        b_rows = deltas.d_b[r_index]
-        rhs = deltas.d_x0[r_index] + np.einsum("crk,ck->cr", coupling, b_rows)
-        np.negative(coupling, out=coupling)
-        diagonal = coupling.reshape(batch.size, -1)[:, :: r_index.shape[1] + 1]
-        diagonal += 1.0  # the system I - D W, in place
-        correction = np.linalg.solve(coupling, rhs[..., None])[..., 0]
-        found[batch] += np.einsum("cr,cr->c", b_rows + correction, w_start[c_index])
-        corrected[batch] = True
-    return corrected
+        yield batch
+
+
+def _corrections_of(
+    batch, deltas, observation, kind, length, width_of, n_altered, first_entry, w_start
+) -> np.ndarray:
+    """The Woodbury corrections of the alterations in ``batch``, each padded with the zero
+    row to the widest system of the batch."""
+    pad_row = deltas.d_x0.size - 1
+    # entry e of alteration m fills the slots after the rows of m's earlier entries
+    entries = _entries_of(batch, first_entry, n_altered)
+    member = np.repeat(np.arange(batch.size), n_altered[batch])
+    rows_in = length[entries]
+    rep = np.repeat(np.arange(entries.size), rows_in)
+    within_entry = np.arange(rep.size) - np.repeat(np.cumsum(rows_in) - rows_in, rows_in)
+    widths = width_of[batch]
+    slot = np.arange(rep.size) - np.repeat(np.cumsum(widths) - widths, widths)
+    e = entries[rep]
+    r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
+    r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
+    c_index = deltas.column[r_index]
+    n_columns = deltas.d_w.shape[1]
+    flat = (r_index * n_columns)[:, :, None] + c_index[:, None, :]
+    coupling = np.take(deltas.d_w.reshape(-1), flat)  # D W on the changed rows, (b, w, w)
+    b_rows = deltas.d_b[r_index]
+    rhs = deltas.d_x0[r_index] + np.einsum("crk,ck->cr", coupling, b_rows)
+    np.negative(coupling, out=coupling)
+    diagonal = coupling.reshape(batch.size, -1)[:, :: r_index.shape[1] + 1]
+    diagonal += 1.0  # the system I - D W, in place
+    correction = np.linalg.solve(coupling, rhs[..., None])[..., 0]
+    return np.einsum("cr,cr->c", b_rows + correction, w_start[c_index])
 
 
 def _entries_of(batch, first_entry, n_altered) -> np.ndarray:
