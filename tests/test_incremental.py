@@ -108,7 +108,7 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     unit = np.zeros((m, inner_rows.size))
     unit[inner_rows, np.arange(inner_rows.size)] = 1.0
     W = np.linalg.solve(base, unit)
-    deltas = _deltas(regions, groups, base_groups[inner_rows], inside, to_target, x0, W)
+    deltas = _deltas(groups, base_groups[inner_rows], inside, to_target, x0, W)
     table = np.array(list(itertools.product(*(range(size) for size in n_options))))
     start = int(rng.integers(m))
     found = np.full(len(table), x0[start])

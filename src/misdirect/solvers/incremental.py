@@ -161,12 +161,10 @@ class IncrementalSolver:
             solved = solve_chain(inside[base_groups], rhs, live_node)
             # contiguous copies: sparse @ dense ravels (copies) a strided operand on every call
             x0, W = np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
-            owned = [rows_of[observations[i]] for i in inner]
             deltas = _deltas(
-                owned,
                 [
-                    group_of_option[r, first_option[i] : first_option[i + 1]]
-                    for r, i in zip(owned, inner, strict=True)
+                    group_of_option[rows_of[observations[i]], first_option[i] : first_option[i + 1]]
+                    for i in inner
                 ],
                 base_groups[live_index[rows]],
                 inside,
@@ -247,7 +245,7 @@ class _Deltas(NamedTuple):
     """The rows an inner option changes: per inner observation ``j`` and option ``k``, the
     rows of its region whose group differs from the base (``flat_length[j, k]`` of them, from
     ``flat_start[j, k]``), each with its ``D x0``, ``D W`` and ``Δb`` and its column among the
-    inner rows (``column``). Rows a option leaves alone have zero ``D`` and ``Δb``, so the
+    inner rows (``column``). Rows an option leaves alone have zero ``D`` and ``Δb``, so the
     Woodbury system needs only the changed ones. A last all-zero row pads batches."""
 
     flat_start: np.ndarray
@@ -258,12 +256,13 @@ class _Deltas(NamedTuple):
     d_b: np.ndarray
 
 
-def _deltas(owned, groups, base_groups, inside, to_target, x0, W) -> _Deltas:
-    """``owned[j]``: the live rows of inner observation ``j``; ``groups[j]``: their group per
-    option of ``j``; ``base_groups``: their group in the base, in the order of ``owned``."""
+def _deltas(groups, base_groups, inside, to_target, x0, W) -> _Deltas:
+    """``groups[j]``: per live row of inner observation ``j`` (in the order of the inner rows),
+    its group under each option of ``j``; ``base_groups``: every inner row's group in the
+    base."""
     n_options = max((g.shape[1] for g in groups), default=1)
-    flat_start = np.zeros((len(owned), n_options), dtype=np.int64)
-    flat_length = np.zeros((len(owned), n_options), dtype=np.int64)
+    flat_start = np.zeros((len(groups), n_options), dtype=np.int64)
+    flat_length = np.zeros((len(groups), n_options), dtype=np.int64)
     new_rows, old_rows, columns, offset, first = [], [], [], 0, 0
     for j, g in enumerate(groups):
         base = base_groups[first : first + g.shape[0]]
