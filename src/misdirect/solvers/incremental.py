@@ -360,9 +360,9 @@ def _corrections_of(
     member = np.repeat(np.arange(batch.size), n_altered[batch])
     rows_in = length[entries]
     rep = np.repeat(np.arange(entries.size), rows_in)
-    within_entry = np.arange(rep.size) - np.repeat(np.cumsum(rows_in) - rows_in, rows_in)
+    within_entry = _rank_in_group(rows_in)
     widths = width_of[batch]
-    slot = np.arange(rep.size) - np.repeat(np.cumsum(widths) - widths, widths)
+    slot = _rank_in_group(widths)
     e = entries[rep]
     r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
     r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
@@ -382,8 +382,12 @@ def _corrections_of(
 def _entries_of(batch, first_entry, n_altered) -> np.ndarray:
     """Indices of the altered entries of the alterations in ``batch``, in batch order."""
     counts = n_altered[batch]
-    starts = np.repeat(first_entry[batch], counts)
-    return starts + np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    return np.repeat(first_entry[batch], counts) + _rank_in_group(counts)
+
+
+def _rank_in_group(counts: np.ndarray) -> np.ndarray:
+    """0, 1, …, counts[0]-1, 0, 1, …, counts[1]-1, …: each expanded item's place in its group."""
+    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def _group_of_option(chain, live) -> np.ndarray:
