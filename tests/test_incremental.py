@@ -75,6 +75,7 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
 
     import scipy.sparse as sp
 
+    from misdirect.core.alterations import AlteredEntries
     from misdirect.solvers.incremental import _add_corrections, _deltas
 
     rng = np.random.default_rng(seed)
@@ -110,12 +111,46 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     W = np.linalg.solve(base, unit)
     deltas = _deltas(groups, base_groups[inner_rows], inside, to_target, x0, W)
     table = np.array(list(itertools.product(*(range(size) for size in n_options))))
+    which, choice = np.nonzero(table)  # every alteration, zero-width options included
+    altered = AlteredEntries(which, choice, table[which, choice], np.zeros(len(table)))
     start = int(rng.integers(m))
     found = np.full(len(table), x0[start])
-    done = _add_corrections(found, table, deltas, W[start], chunk_entries=chunk_entries)
+    done = _add_corrections(found, altered, deltas, W[start], chunk_entries=chunk_entries)
     assert done.all()
     for row, value in zip(table, found, strict=True):
         chosen = base_groups.copy()
         for region, group, k in zip(regions, groups, row, strict=True):
             chosen[region] = group[:, k]
         assert value == pytest.approx(solve_with(chosen)[start], abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_altered_entries_list_every_affordable_alteration_once(seed):
+    """The sparse listing against itertools.product over the options: the same alterations
+    (each once, with its cost), dropped options left out, and ``limit`` exact."""
+    import itertools
+
+    from misdirect.core.alterations import AlterationSpace, ObservationChoices
+
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(1, 4, size=int(rng.integers(2, 7)))
+    choices = tuple(
+        ObservationChoices(i, np.arange(s), np.r_[0.0, rng.choice([0.0, 0.5, 1.0, 2.0], s - 1)])
+        for i, s in enumerate(sizes)
+    )
+    space = AlterationSpace(choices)
+    indices = list(rng.permutation(len(choices))[: len(choices) - 1])
+    usable = rng.random((len(indices), 3)) < 0.7
+    budget = 2.0
+    expected = {}
+    for picks in itertools.product(*(range(choices[i].size) for i in indices)):
+        cost = sum(choices[i].costs[k] for i, k in zip(indices, picks, strict=True))
+        if cost <= budget and all(k == 0 or usable[j, k] for j, k in enumerate(picks)):
+            expected[picks] = cost
+    altered = space.altered_within(budget, indices, usable=usable)
+    listed = [tuple(altered.picks(a, len(indices))) for a in range(altered.costs.size)]
+    assert sorted(listed) == sorted(expected)
+    assert [expected[p] for p in listed] == pytest.approx(altered.costs.tolist())
+    assert np.all(altered.option >= 1)
+    assert space.altered_within(budget, indices, limit=len(expected) - 1, usable=usable) is None
+    assert space.altered_within(budget, indices, limit=len(expected), usable=usable) is not None

@@ -2,8 +2,9 @@
 
 1. ``incremental`` (one base solve per outer choice, a tiny Woodbury solve per alteration)
    when the chain cannot cycle without reaching the decoy and at most 200,000 alterations
-   fit, or up to 2,000,000 when half the time left covers them at 40 µs each
-   (sensor_grid(40, 64) at budgets 0..3, 1.2 million, in 42 s);
+   fit, or up to ``INCREMENTAL_LIMIT`` (12 million) when half the time left covers them at
+   ``UPDATE_SECONDS`` each (on 2 threads: sensor_grid(40, 64) at budgets 0..3, 1.2 million,
+   in 17 s and 0.9 GiB; sensor_grid(40, 128) at 0..3, 9.6 million, in 105 s and 2 GiB);
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
    (300) fit, or when enumerating them all would take at most ``ENUMERATION_SECONDS`` at the
    measured cost of one evaluation (tiny chains: a few hundred product states evaluate in well
@@ -49,14 +50,18 @@ from misdirect.solvers.base import (
 )
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.exhaustive import ExhaustiveSolver
-from misdirect.solvers.incremental import IncrementalSolver, NotApplicableError
+from misdirect.solvers.incremental import (
+    MAX_ALTERATIONS,
+    IncrementalSolver,
+    NotApplicableError,
+)
 from misdirect.solvers.milp.solver import MilpSolver
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time
 INCREMENTAL_SURE = 200_000  # ... and for enumeration with low-rank updates, always
-INCREMENTAL_LIMIT = 2_000_000  # ... and up to this many when the time left allows it: at
-UPDATE_SECONDS = 25e-6  # about this much each (sensor networks; 1.8 GiB for 1.2 million)
+INCREMENTAL_LIMIT = MAX_ALTERATIONS  # ... and up to this many when the time left allows it:
+UPDATE_SECONDS = 15e-6  # at about this much each (sensor networks, 2 threads)
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)

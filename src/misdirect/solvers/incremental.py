@@ -28,6 +28,7 @@ from typing import NamedTuple, TypedDict
 
 import numpy as np
 
+from misdirect.core.alterations import AlteredEntries, rank_in_group
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
@@ -48,6 +49,7 @@ INNER_ROWS = 200  # inner observations together may own at least this many produ
 INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
 INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
+MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million (3 of 128 sensors)
 THREADS = 2  # corrections computed in parallel by default (both cores of the target machine)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
@@ -71,7 +73,7 @@ class IncrementalSolver:
 
     def __init__(
         self,
-        max_evaluations: int = 5_000_000,
+        max_evaluations: int = MAX_ALTERATIONS,
         time_limit: float | None = None,
         threads: int | None = None,
         **options,
@@ -172,16 +174,22 @@ class IncrementalSolver:
                 x0,
                 W,
             )
-            enumerated = space.within(top - outer_cost, inner, limit=self.max_evaluations)
-            if enumerated is None or evaluations + len(enumerated[1]) > self.max_evaluations:
+            # an option that changes no live row is worth its base value at a higher cost
+            altered = space.altered_within(
+                top - outer_cost,
+                inner,
+                limit=self.max_evaluations - evaluations,
+                usable=deltas.flat_length > 0,
+            )
+            if altered is None:
                 raise SolverError(f"more than {self.max_evaluations:,} alterations")
-            table, inner_costs = enumerated
+            inner_costs = altered.costs
             evaluations += len(inner_costs)
             found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
             if start >= 0:
                 found[:] = x0[start]
                 corrected = _add_corrections(
-                    found, table, deltas, W[start], deadline, threads=self.threads
+                    found, altered, deltas, W[start], deadline, threads=self.threads
                 )
                 if not corrected.all():  # cut short: those alterations were not evaluated
                     left = float(inner_costs[~corrected].min()) + outer_cost
@@ -190,7 +198,7 @@ class IncrementalSolver:
                     inner_costs = np.where(corrected, inner_costs, np.inf)
             costs.append(outer_cost + inner_costs)
             values.append(found)
-            picks.append((outer_pick, table))
+            picks.append((outer_pick, altered))
             done += 1
             block_s = time.perf_counter() - block_began
             report(progress, done, n_outer, stage="incremental")
@@ -199,7 +207,7 @@ class IncrementalSolver:
             np.concatenate(costs),
             np.clip(np.concatenate(values), 0.0, problem.objective.max_value),
         )
-        offsets = np.cumsum([0, *(table.shape[0] for _, table in picks)])
+        offsets = np.cumsum([0, *(altered.costs.size for _, altered in picks)])
         stats: IncrementalStats = {
             "evaluations": evaluations,
             "factorisations": done,
@@ -236,8 +244,8 @@ class IncrementalSolver:
     @staticmethod
     def _alpha(problem, space, outer, inner, picks, offsets, index):
         block = int(np.searchsorted(offsets, index, side="right")) - 1
-        outer_pick, table = picks[block]
-        picked = [*outer_pick, *table[index - offsets[block]]]
+        outer_pick, altered = picks[block]
+        picked = [*outer_pick, *altered.picks(index - offsets[block], len(inner))]
         return space.alteration(problem, picked, [*outer, *inner])
 
 
@@ -290,15 +298,16 @@ def _deltas(groups, base_groups, inside, to_target, x0, W) -> _Deltas:
 
 def _add_corrections(
     found,
-    table,
+    altered: AlteredEntries,
     deltas: _Deltas,
     w_start,
     deadline: Deadline | None = None,
     chunk_entries: int = 4_000_000,
     threads: int = 1,
 ) -> np.ndarray:
-    """Add the Woodbury correction to ``found`` for every row of ``table`` (options picked);
-    returns which rows got it (all, unless ``deadline`` passed first).
+    """Add the Woodbury correction to ``found`` for every alteration of ``altered`` (its
+    choices are the inner observations); returns which got it (all, unless ``deadline`` passed
+    first).
 
     Each alteration solves a system over the rows its options change. Alterations are sorted
     by how many observations they alter (cut short by the deadline, the small budgets are
@@ -306,14 +315,14 @@ def _add_corrections(
     the widest system of the batch with the zero row: its unknown is 0 and it adds nothing.
     Every gather is one fancy index, so the cost is LAPACK's, not Python's per alteration.
     """
-    corrected = np.zeros(table.shape[0], dtype=bool)
-    which, observation = np.nonzero(table)  # altered entries, grouped by alteration
-    kind = table[which, observation]
+    n = altered.costs.size
+    corrected = np.zeros(n, dtype=bool)
+    which, observation, kind = altered.alteration, altered.choice, altered.option
     length = deltas.flat_length[observation, kind]  # rows each altered entry changes
-    width_of = np.bincount(which, weights=length, minlength=table.shape[0]).astype(np.int64)
-    n_altered = np.bincount(which, minlength=table.shape[0])
+    width_of = np.bincount(which, weights=length, minlength=n).astype(np.int64)
+    n_altered = np.bincount(which, minlength=n)
     corrected[width_of == 0] = True  # no row changes: the base value
-    first_entry = np.searchsorted(which, np.arange(table.shape[0]))
+    first_entry = np.searchsorted(which, np.arange(n))
     order = np.lexsort((width_of, n_altered))
     order = order[width_of[order] > 0]
     context = (deltas, observation, kind, length, width_of, n_altered, first_entry, w_start)
@@ -360,9 +369,9 @@ def _corrections_of(
     member = np.repeat(np.arange(batch.size), n_altered[batch])
     rows_in = length[entries]
     rep = np.repeat(np.arange(entries.size), rows_in)
-    within_entry = _rank_in_group(rows_in)
+    within_entry = rank_in_group(rows_in)
     widths = width_of[batch]
-    slot = _rank_in_group(widths)
+    slot = rank_in_group(widths)
     e = entries[rep]
     r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
     r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
@@ -382,12 +391,7 @@ def _corrections_of(
 def _entries_of(batch, first_entry, n_altered) -> np.ndarray:
     """Indices of the altered entries of the alterations in ``batch``, in batch order."""
     counts = n_altered[batch]
-    return np.repeat(first_entry[batch], counts) + _rank_in_group(counts)
-
-
-def _rank_in_group(counts: np.ndarray) -> np.ndarray:
-    """0, 1, …, counts[0]-1, 0, 1, …, counts[1]-1, …: each expanded item's place in its group."""
-    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    return np.repeat(first_entry[batch], counts) + rank_in_group(counts)
 
 
 def _group_of_option(chain, live) -> np.ndarray:
