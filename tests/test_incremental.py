@@ -71,11 +71,9 @@ def test_auto_uses_updates_on_the_grid():
 def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     """The Woodbury corrections, against a dense solve of every alteration's chain: one
     alteration per batch (``chunk_entries=1``) and batches padded to mixed widths."""
-    import itertools
-
     import scipy.sparse as sp
 
-    from misdirect.core.alterations import AlteredEntries
+    from misdirect.core.alterations import AlterationSpace, ObservationChoices
     from misdirect.solvers.incremental import _add_corrections, _deltas
 
     rng = np.random.default_rng(seed)
@@ -110,9 +108,12 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     unit[inner_rows, np.arange(inner_rows.size)] = 1.0
     W = np.linalg.solve(base, unit)
     deltas = _deltas(groups, base_groups[inner_rows], inside, to_target, x0, W)
-    table = np.array(list(itertools.product(*(range(size) for size in n_options))))
-    which, choice = np.nonzero(table)  # every alteration, zero-width options included
-    altered = AlteredEntries(which, choice, table[which, choice], np.zeros(len(table)))
+    free = AlterationSpace(  # every option costs 0: every alteration, each once
+        tuple(ObservationChoices(j, np.arange(k), np.zeros(k)) for j, k in enumerate(n_options))
+    )
+    altered = free.altered_within(0.0)  # options that change no row included
+    table = [altered.picks(a, len(n_options)) for a in range(altered.costs.size)]
+    assert len({tuple(row) for row in table}) == int(np.prod(n_options))
     start = int(rng.integers(m))
     found = np.full(len(table), x0[start])
     done = _add_corrections(found, altered, deltas, W[start], chunk_entries=chunk_entries)
@@ -152,5 +153,11 @@ def test_altered_entries_list_every_affordable_alteration_once(seed):
     assert sorted(listed) == sorted(expected)
     assert [expected[p] for p in listed] == pytest.approx(altered.costs.tolist())
     assert np.all(altered.option >= 1)
+    for a in range(1, altered.costs.size):  # a parent: the alteration without its last entry
+        last = np.searchsorted(altered.alteration, a, side="right") - 1
+        without = altered.picks(a, len(indices))
+        without[altered.choice[last]] = 0
+        assert np.array_equal(altered.picks(altered.parent[a], len(indices)), without)
+    assert np.all(np.diff(altered.parent[1:]) >= 0)  # the children of a parent consecutive
     assert space.altered_within(budget, indices, limit=len(expected) - 1, usable=usable) is None
     assert space.altered_within(budget, indices, limit=len(expected), usable=usable) is not None

@@ -37,12 +37,14 @@ class AlteredEntries(NamedTuple):
     """Alterations as lists of altered entries: entry ``e`` of alteration ``alteration[e]``
     takes option ``option[e]`` (≥ 1) of choice ``choice[e]`` (a position in the ``indices``
     enumerated); entries are grouped by alteration, which are numbered from 0 (the unaltered
-    one, with no entries) and cost ``costs``."""
+    one, with no entries) and cost ``costs``. ``parent[a]``: the alteration ``a`` is without
+    its last entry (-1 for the unaltered one); the children of a parent are consecutive."""
 
     alteration: np.ndarray
     choice: np.ndarray
     option: np.ndarray
     costs: np.ndarray
+    parent: np.ndarray
 
     def picks(self, index: int, n_choices: int) -> np.ndarray:
         """The dense choice vector of alteration ``index`` (0: unaltered)."""
@@ -165,10 +167,12 @@ class AlterationSpace:
             levels.append((parent, cand))
             last, level_cost = cand, level_cost[parent] + cand_cost[cand]
             costs_out.append(level_cost)
-        alteration, entry_cand = [], []
-        offset = 1
+        alteration, entry_cand, parents = [], [], [np.full(1, -1)]
+        offset, parent_offset = 1, 0
         for depth in range(1, len(levels)):
             n = levels[depth][1].size
+            parents.append(levels[depth][0] + parent_offset)
+            parent_offset = offset
             entries = np.empty((n, depth), dtype=np.int64)
             row = np.arange(n)
             for d in range(depth, 0, -1):  # read back along the parents
@@ -184,6 +188,7 @@ class AlterationSpace:
             choice=cand_choice[picked],
             option=cand_option[picked],
             costs=np.concatenate(costs_out),
+            parent=np.concatenate(parents),
         )
 
     def count_within(self, budget: float, limit: int) -> int:

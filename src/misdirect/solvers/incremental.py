@@ -8,9 +8,11 @@ its value ``x0`` and for ``W = A⁻¹ E_R`` on the inner rows ``R`` (one call of
 alteration then replaces a few rows, and Sherman–Morrison–Woodbury gives the new value at the
 start from an ``|C| x |C|`` system, ``C`` the changed rows:
 
-    x'(q0) = x0(q0) + W(q0, C) [Δb + (I − D W_C)⁻¹ (D x0 + D W_C Δb)]
+    x'(q0) = x0(q0) + W(q0, C) (I − D W_C)⁻¹ (D x0 + Δb)
 
-where ``D`` holds the row differences and ``Δb`` the differences in one-step decoy mass.
+where ``D`` holds the row differences and ``Δb`` the differences in one-step decoy mass. An
+alteration with several sensors borders the system of its parent (itself without its last
+sensor), so it solves only the Schur complement on its last sensor's rows.
 
 Applicable when the choice product has no end component among the states that can reach the
 decoy: then ``I − P`` is invertible on them for *every* alteration, and its solution is the
@@ -27,6 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, TypedDict
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from misdirect.core.alterations import AlteredEntries, rank_in_group
 from misdirect.core.attack import prepare
@@ -51,6 +54,7 @@ INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their s
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million (3 of 128 sensors)
 THREADS = 2  # corrections computed in parallel by default (both cores of the target machine)
+WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
 
@@ -254,7 +258,8 @@ class _Deltas(NamedTuple):
     rows of its region whose group differs from the base (``flat_length[j, k]`` of them, from
     ``flat_start[j, k]``), each with its ``D x0``, ``D W`` and ``Δb`` and its column among the
     inner rows (``column``). Rows an option leaves alone have zero ``D`` and ``Δb``, so the
-    Woodbury system needs only the changed ones. A last all-zero row pads batches."""
+    Woodbury system needs only the changed ones. A last row slot pads batches: its row of
+    ``D W``, ``D x0`` and ``Δb`` is zero, and so is its column (the last one of ``d_w``)."""
 
     flat_start: np.ndarray
     flat_length: np.ndarray
@@ -286,12 +291,14 @@ def _deltas(groups, base_groups, inside, to_target, x0, W) -> _Deltas:
     new_g = np.concatenate([*new_rows, pad]).astype(np.int64)
     old_g = np.concatenate([*old_rows, pad]).astype(np.int64)
     delta = inside[new_g] - inside[old_g]  # the pad row: a group minus itself, zero
+    d_w = np.zeros((new_g.size, W.shape[1] + 1))
+    d_w[:, :-1] = delta @ W  # the last column, the pad's, stays zero
     return _Deltas(
         flat_start,
         flat_length,
-        np.concatenate([*columns, pad]).astype(np.int64),
+        np.concatenate([*columns, [W.shape[1]]]).astype(np.int64),
         np.asarray(delta @ x0).ravel(),
-        np.asarray(delta @ W),
+        d_w,
         to_target[new_g] - to_target[old_g],
     )
 
@@ -309,31 +316,36 @@ def _add_corrections(
     choices are the inner observations); returns which got it (all, unless ``deadline`` passed
     first).
 
-    Each alteration solves a system over the rows its options change. Alterations are sorted
-    by how many observations they alter (cut short by the deadline, the small budgets are
-    complete and stay proven), then by their number of rows, and solved in batches padded to
-    the widest system of the batch with the zero row: its unknown is 0 and it adds nothing.
-    Every gather is one fancy index, so the cost is LAPACK's, not Python's per alteration.
+    An alteration is its parent (the same without its last entry) bordered by one entry's
+    rows. Per batch of parents, each parent's system ``A`` is inverted once, with
+    ``G = A⁻¹ F(P, ·)`` (its coupling to every later row, one matrix product); each child then
+    solves only the Schur complement on its last entry's rows (:func:`_children_of`), a system
+    as wide as one sensor's region instead of all its sensors'. Parents go by number of entries,
+    so a run cut short by the deadline has finished the smaller alterations, whose budgets stay
+    proven.
     """
     n = altered.costs.size
     corrected = np.zeros(n, dtype=bool)
-    which, observation, kind = altered.alteration, altered.choice, altered.option
-    length = deltas.flat_length[observation, kind]  # rows each altered entry changes
-    width_of = np.bincount(which, weights=length, minlength=n).astype(np.int64)
-    n_altered = np.bincount(which, minlength=n)
-    corrected[width_of == 0] = True  # no row changes: the base value
-    first_entry = np.searchsorted(which, np.arange(n))
-    order = np.lexsort((width_of, n_altered))
-    order = order[width_of[order] > 0]
-    context = (deltas, observation, kind, length, width_of, n_altered, first_entry, w_start)
+    corrected[altered.parent < 0] = True  # the unaltered one: the base value
+    tree = _Tree.of(altered, deltas)
+    weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
+    parents, first_child, n_children = np.unique(
+        altered.parent[altered.parent >= 0], return_index=True, return_counts=True
+    )
+    first_child += 1  # children are numbered after the unaltered alteration, by parent
+    order = np.lexsort((tree.width[parents], tree.depth[parents]))
 
     def run(batch: np.ndarray) -> None:
         if deadline is not None and deadline.expired():
             return
-        found[batch] += _corrections_of(batch, *context)
-        corrected[batch] = True  # batches are disjoint: threads never write the same entry
+        counts = n_children[batch]
+        kids = np.repeat(first_child[batch], counts) + rank_in_group(counts)
+        local = np.repeat(np.arange(batch.size), counts)
+        found[kids] += _children_of(parents[batch], kids, local, tree, deltas, weight)
+        corrected[kids] = True  # batches are disjoint: threads never write the same entry
 
-    batches = list(_batches(order, width_of, chunk_entries))
+    n_slots = deltas.d_x0.size - 1
+    batches = list(_batches(order, tree.width[parents], n_children, n_slots, chunk_entries))
     if threads == 1 or len(batches) == 1:
         for batch in batches:
             run(batch)
@@ -343,55 +355,114 @@ def _add_corrections(
     return corrected
 
 
-def _batches(order: np.ndarray, width_of: np.ndarray, chunk_entries: int):
-    """Consecutive slices of ``order`` of about ``chunk_entries`` system entries each; a
-    slice stops before the first system over twice as wide as its first, to keep the padding
-    small."""
+class _Tree(NamedTuple):
+    """Per alteration, its number of entries, of changed rows (``width``) and its first entry;
+    per entry, its row slots; per option width, the blocks of ``F`` on the options' rows."""
+
+    depth: np.ndarray
+    width: np.ndarray
+    first_entry: np.ndarray
+    entry_slot: np.ndarray  # per entry: its first row slot
+    entry_width: np.ndarray  # per entry: its number of row slots
+    entry_blocks: dict  # width w: first slots of the options this wide, and their F blocks
+
+    @staticmethod
+    def of(altered: AlteredEntries, deltas: _Deltas) -> _Tree:
+        n = altered.costs.size
+        entry_width = deltas.flat_length[altered.choice, altered.option]
+        entry_blocks = {}  # F = I - D W on each option's own rows, shared by its entries
+        for w in np.unique(deltas.flat_length[deltas.flat_length > 0]):
+            starts = np.unique(deltas.flat_start[deltas.flat_length == w])
+            rows = starts[:, None] + np.arange(w)
+            coupling = deltas.d_w[rows[:, :, None], deltas.column[rows][:, None, :]]
+            entry_blocks[int(w)] = (starts, np.eye(w) - coupling)
+        return _Tree(
+            depth=np.bincount(altered.alteration, minlength=n),
+            width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
+                np.int64
+            ),
+            first_entry=np.searchsorted(altered.alteration, np.arange(n)),
+            entry_slot=deltas.flat_start[altered.choice, altered.option],
+            entry_width=entry_width,
+            entry_blocks=entry_blocks,
+        )
+
+    def slots(self, alterations: np.ndarray, pad: int) -> np.ndarray:
+        """(alterations, widest) row slots of each alteration's entries, padded with ``pad``."""
+        counts = self.depth[alterations]
+        entries = np.repeat(self.first_entry[alterations], counts) + rank_in_group(counts)
+        rows_in = self.entry_width[entries]
+        owner = np.repeat(np.repeat(np.arange(alterations.size), counts), rows_in)
+        widths = self.width[alterations]
+        slots = np.full((alterations.size, int(widths.max(initial=0))), pad, dtype=np.int64)
+        slots[owner, rank_in_group(widths)] = np.repeat(
+            self.entry_slot[entries], rows_in
+        ) + rank_in_group(rows_in)
+        return slots
+
+
+def _batches(order, width, n_children, n_slots, chunk_entries):
+    """Consecutive slices of the parents in ``order`` holding about ``chunk_entries`` numbers
+    (per parent: ``G``, its width times the row slots, and its children's blocks, its width
+    times theirs, at most ``WIDEST_ENTRY``); a slice stops before a parent over 1.5 times as
+    wide as its first, to keep the padding small."""
     position = 0
     while position < order.size:
-        width = int(width_of[order[position]])
-        batch = order[position : position + max(1, chunk_entries // (width * width))]
-        wider = np.flatnonzero(width_of[batch] > 2 * width)
+        widest = max(int(width[order[position]]), 1)
+        cost = np.cumsum(widest * (n_slots + WIDEST_ENTRY * n_children[order[position:]]))
+        size = max(1, int(np.searchsorted(cost, chunk_entries, side="right")))
+        batch = order[position : position + size]
+        wider = np.flatnonzero(width[batch] * 2 > widest * 3)
         if wider.size:
-            batch = batch[: wider[0]]
+            batch = batch[: max(1, wider[0])]
         position += batch.size
         yield batch
 
 
-def _corrections_of(
-    batch, deltas, observation, kind, length, width_of, n_altered, first_entry, w_start
-) -> np.ndarray:
-    """The Woodbury corrections of the alterations in ``batch``, each padded with the zero
-    row to the widest system of the batch."""
-    pad_row = deltas.d_x0.size - 1
-    # entry e of alteration m fills the slots after the rows of m's earlier entries
-    entries = _entries_of(batch, first_entry, n_altered)
-    member = np.repeat(np.arange(batch.size), n_altered[batch])
-    rows_in = length[entries]
-    rep = np.repeat(np.arange(entries.size), rows_in)
-    within_entry = rank_in_group(rows_in)
-    widths = width_of[batch]
-    slot = rank_in_group(widths)
-    e = entries[rep]
-    r_index = np.full((batch.size, int(widths.max())), pad_row, dtype=np.int64)
-    r_index[member[rep], slot] = deltas.flat_start[observation[e], kind[e]] + within_entry
-    c_index = deltas.column[r_index]
-    n_columns = deltas.d_w.shape[1]
-    flat = (r_index * n_columns)[:, :, None] + c_index[:, None, :]
-    coupling = np.take(deltas.d_w.reshape(-1), flat)  # D W on the changed rows, (b, w, w)
-    b_rows = deltas.d_b[r_index]
-    rhs = deltas.d_x0[r_index] + np.einsum("crk,ck->cr", coupling, b_rows)
-    np.negative(coupling, out=coupling)
-    diagonal = coupling.reshape(batch.size, -1)[:, :: r_index.shape[1] + 1]
-    diagonal += 1.0  # the system I - D W, in place
-    correction = np.linalg.solve(coupling, rhs[..., None])[..., 0]
-    return np.einsum("cr,cr->c", b_rows + correction, w_start[c_index])
+def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> np.ndarray:
+    """The corrections of the alterations ``kids``, each the parent ``parents[local]`` plus its
+    last entry, by the Schur complement of the parent's system ``A`` (rows ``P``):
 
+        s = s_P + (g_E − Yᵀ g_P)ᵀ S⁻¹ (r_E − F_EP y),   Y = A⁻¹ F_PE,   S = F_EE − F_EP Y,
 
-def _entries_of(batch, first_entry, n_altered) -> np.ndarray:
-    """Indices of the altered entries of the alterations in ``batch``, in batch order."""
-    counts = n_altered[batch]
-    return np.repeat(first_entry[batch], counts) + rank_in_group(counts)
+    with ``y = A⁻¹ r_P`` and ``s_P = g_Pᵀ y`` the parent's own correction, ``F = I − D W`` on
+    the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``."""
+    d_w, column = deltas.d_w, deltas.column
+    pad = deltas.d_x0.size - 1
+    rhs = deltas.d_x0 + deltas.d_b
+    slots_p = tree.slots(parents, pad)
+    wp = slots_p.shape[1]
+    coupling = d_w[slots_p[:, :, None], column[slots_p][:, None, :]]
+    system = np.eye(wp) - coupling
+    inverse = np.linalg.inv(system) if wp else system
+    y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
+    g_p = weight[slots_p]
+    s_p = np.einsum("pi,pi->p", g_p, y)
+    last = tree.first_entry[kids] + tree.depth[kids] - 1
+    first_slot = tree.entry_slot[last]
+    begin = int(first_slot.min())
+    later = column[begin:pad]
+    # G = A⁻¹ F(P, later rows): one product per parent (BLAS), read by each child
+    g_matrix = np.matmul(inverse, -d_w[slots_p[:, :, None], later[None, None, :]])
+    out = s_p[local].copy()
+    widths = tree.entry_width[last]
+    for w in np.unique(widths):
+        if w == 0:
+            continue  # the last entry changes nothing: the parent's value
+        pick = np.flatnonzero(widths == w)
+        who = local[pick]
+        rows_e = first_slot[pick][:, None] + np.arange(w)  # an entry's slots are consecutive
+        # Y = G on the entry's rows: a window of w consecutive columns of the parent's G
+        y_block = sliding_window_view(g_matrix, w, axis=2)[who, :, first_slot[pick] - begin]
+        f_ep = -d_w[rows_e[:, :, None], column[slots_p[who]][:, None, :]]
+        starts, blocks = tree.entry_blocks[w]
+        f_ee = blocks[np.searchsorted(starts, first_slot[pick])]
+        schur = f_ee - np.matmul(f_ep, y_block)
+        right = rhs[rows_e] - np.einsum("nij,nj->ni", f_ep, y[who])
+        grad = weight[rows_e] - np.einsum("nij,ni->nj", y_block, g_p[who])
+        z = np.linalg.solve(schur, right[..., None])[..., 0]
+        out[pick] += np.einsum("nj,nj->n", grad, z)
+    return out
 
 
 def _group_of_option(chain, live) -> np.ndarray:
