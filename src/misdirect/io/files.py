@@ -328,6 +328,8 @@ def parse_yaml(text: str, *, source: str) -> Any:
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         reason = getattr(error, "problem", None) or str(error)
+        if "maximum nesting depth" in reason:  # PyYAML 6.0.4 stops at its own, deeper limit
+            reason = f"nested deeper than {MAX_DEPTH} levels"
         raise ProblemError(f"invalid YAML: {reason}", source=source, field=_where(mark)) from None
     except RecursionError:  # pragma: no cover - the depth limit comes first
         raise ProblemError(
