@@ -402,3 +402,43 @@ def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monk
         assert mine.status == "optimal"
         assert mine.probability == pytest.approx(best.probability, abs=1e-9)
     assert any(n and "budgets up to 1 enumerated" in n for n in notes)
+
+
+def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(monkeypatch):
+    """Where enumerating would likely finish in the time left but not with half of it to
+    spare, branch-and-bound goes first with the time the enumeration leaves it, and the
+    enumeration then takes every budget the search did not certify (here: a search that
+    proves nothing). Every point must still be the exhaustive optimum, certified."""
+    from misdirect.core.alterations import alteration_space
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.solvers import auto
+    from misdirect.solvers.base import Solution, Status
+
+    problem = paper_grid(7)
+    budgets = [0.0, 1.0, 2.0, 3.0]
+    count = alteration_space(problem.with_budget(3)).count_within(3.0, 10**6)
+    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)
+    monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # the search below, not an unlimited one
+    monkeypatch.setattr(auto, "ENUMERATION_SECONDS", 0.0)  # nor one-by-one enumeration
+    # within 100 s, enumerating the top budget "takes" 70 s: over half, under 90 %
+    monkeypatch.setattr(auto, "UPDATE_SECONDS", 70.0 / count)
+    given = []
+
+    class NoProof:
+        def solve(self, problem, budgets, *, progress=None, deadline=None, seeds=None):
+            given.append(deadline.remaining())
+            value = decoy_probability(problem, problem.identity())
+            return [
+                Solution(b, problem.identity(), value, Status.TIME_LIMIT, upper_bound=1.0)
+                for b in budgets
+            ]
+
+    solver = auto.AutoSolver(time_limit=100, enumeration_limit=0)
+    solver.branch_and_bound = NoProof()
+    result = solver.solve(problem, budgets)
+    oracle = solve(problem, method="exhaustive", budgets=budgets)
+    assert len(given) == 1 and given[0] < 100 - 70 / auto.ENUMERATION_RESERVE + 1
+    assert result[-1].certified_by == "incremental"
+    for mine, best in zip(result, oracle.curve, strict=True):
+        assert mine.status == Status.OPTIMAL
+        assert mine.solver_probability == pytest.approx(best.probability, abs=1e-9)

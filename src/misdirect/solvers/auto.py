@@ -4,7 +4,11 @@
    when the chain cannot cycle without reaching the decoy and at most 200,000 alterations
    fit, or up to ``INCREMENTAL_LIMIT`` (12 million) when half the time left covers them at
    ``UPDATE_SECONDS`` each (on 2 threads: sensor_grid(40, 64) at budgets 0..3, 1.2 million,
-   in 17 s and 0.9 GiB; sensor_grid(40, 128) at 0..3, 9.6 million, in 105 s and 2 GiB);
+   in 3.4 s and 0.6 GiB; sensor_grid(40, 128) at 0..3, 9.5 million, in 30 s and 2.2 GiB).
+   When they would take over half but under ``ENUMERATION_RESERVE`` of the time left,
+   branch-and-bound (4.) goes first with the time the enumeration leaves, and the
+   enumeration takes the budgets it did not certify. A curve whose top budget is too large
+   has its small budgets enumerated first, and the rest searched from their best answer;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
    (300) fit, or when enumerating them all would take at most ``ENUMERATION_SECONDS`` at the
    measured cost of one evaluation (tiny chains: a few hundred product states evaluate in well
@@ -61,7 +65,9 @@ ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time
 INCREMENTAL_SURE = 200_000  # ... and for enumeration with low-rank updates, always
 INCREMENTAL_LIMIT = MAX_ALTERATIONS  # ... and up to this many when the time left allows it:
-UPDATE_SECONDS = 15e-6  # at about this much each (sensor networks, 2 threads)
+UPDATE_SECONDS = 5e-6  # at about this much each (sensor networks, 2 threads: 2.8-3.1 us)
+ENUMERATION_FIRST = 0.5  # enumerate first when this share of the time left covers it; else
+ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating what is left
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
@@ -106,10 +112,10 @@ class AutoSolver:
             else f"more than {INCREMENTAL_LIMIT:,} alterations fit the budget"
         )
 
-        def enumerable(n: int) -> bool:
+        def enumerable(n: int, share: float = ENUMERATION_FIRST) -> bool:
             left = deadline.remaining()
             return n <= INCREMENTAL_SURE or (
-                n <= INCREMENTAL_LIMIT and (left is None or n * UPDATE_SECONDS <= left / 2)
+                n <= INCREMENTAL_LIMIT and (left is None or n * UPDATE_SECONDS <= share * left)
             )
 
         if not enumerable(count) and len(budgets) > 1:
@@ -184,12 +190,35 @@ class AutoSolver:
             # a node costs microseconds here, while the MILP's start-up alone costs more
             reason += f"; a tiny chain ({product_states:,} product states): no node limit"
             search = BranchAndBoundSolver(max_nodes=10**9)
+        search_deadline, left = deadline, deadline.remaining()
+        if (
+            left is not None
+            and not instance.cycling.any()
+            and enumerable(count, ENUMERATION_RESERVE)
+        ):
+            # the enumeration would likely finish, but not with half the time to spare: the
+            # search goes first (it often certifies in seconds), with what the enumeration
+            # leaves, and then the enumeration takes what the search did not certify
+            search_deadline = Deadline(max(left - count * UPDATE_SECONDS / ENUMERATION_RESERVE, 0))
+            reason += f"; {count:,} alterations kept for enumeration after the search"
         report(progress, 0, len(budgets), stage="branch-and-bound", note=f"auto: {reason}")
         solutions = _label(
-            search.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds),
+            search.solve(
+                problem, budgets, progress=progress, deadline=search_deadline, seeds=seeds
+            ),
             "branch-and-bound",
             reason,
         )
+        if search_deadline is not deadline:
+            solutions = self._finish_with(
+                self._incremental_after,
+                problem,
+                budgets,
+                solutions,
+                progress,
+                deadline,
+                why=f"{reason}; branch-and-bound did not certify it, so enumeration",
+            )
         return self._finish_with(
             self._milp_after,
             problem,
@@ -225,6 +254,15 @@ class AutoSolver:
         for j, second in zip(unfinished, fallback, strict=True):
             solutions[j] = _better(problem, solutions[j], second, why)
         return solutions
+
+    def _incremental_after(self, problem, budgets, earlier, progress, deadline):
+        try:
+            solutions = IncrementalSolver(threads=self.threads).solve(
+                problem, budgets, progress=progress, deadline=deadline
+            )
+        except NotApplicableError:
+            return earlier
+        return _label(solutions, "incremental", "")
 
     def _milp_after(self, problem, budgets, earlier, progress, deadline):
         del earlier  # the MILP warm-starts from its own previous budget

@@ -31,7 +31,7 @@ from typing import NamedTuple, TypedDict
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from misdirect.core.alterations import AlteredEntries, rank_in_group
+from misdirect.core.alterations import AlterationSpace, AlteredEntries, rank_in_group
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
@@ -147,10 +147,15 @@ class IncrementalSolver:
         ranked = np.argsort(outer_costs, kind="stable")
         outer_table, outer_costs = outer_table[ranked], outer_costs[ranked]
         n_outer = len(outer_costs)
-        block_s = 0.0  # the last outer block's time: a block is not started with less left
+        # a block is not started with less time left than it would take at the last one's
+        # cost: its factorisation, and per alteration (later blocks cost more outside, so
+        # they have fewer alterations: the first block of H2 has 9.5 million, the next 75,000)
+        factor_s, per_alteration, last_count = 0.0, 0.0, 0
+        inner_space = AlterationSpace(tuple(space.choices[i] for i in inner))
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
-            left = deadline.remaining()
-            if done > 0 and (deadline.expired() or (left is not None and left < block_s)):
+            if done > 0 and not self._block_fits(
+                deadline, factor_s, per_alteration, last_count, inner_space, top - outer_cost
+            ):
                 break  # the first (unaltered outer) block always runs
             block_began = time.perf_counter()
             chosen = np.zeros(options.size, dtype=bool)
@@ -178,6 +183,7 @@ class IncrementalSolver:
                 x0,
                 W,
             )
+            factored = time.perf_counter()
             # an option that changes no live row is worth its base value at a higher cost
             altered = space.altered_within(
                 top - outer_cost,
@@ -204,7 +210,8 @@ class IncrementalSolver:
             values.append(found)
             picks.append((outer_pick, altered))
             done += 1
-            block_s = time.perf_counter() - block_began
+            factor_s, last_count = factored - block_began, len(inner_costs)
+            per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
             report(progress, done, n_outer, stage="incremental")
 
         costs_a, values_a = (
@@ -244,6 +251,17 @@ class IncrementalSolver:
                 )
             )
         return solutions
+
+    def _block_fits(self, deadline, factor_s, per_alteration, last_count, space, budget) -> bool:
+        """Whether the next outer block likely ends before ``deadline``: at most the last
+        block's count of alterations (its outer cost is no smaller), else counted exactly."""
+        left = deadline.remaining()
+        if deadline.expired():
+            return False
+        if left is None or left >= factor_s + per_alteration * last_count:
+            return True
+        count = space.count_within(budget, self.max_evaluations)
+        return left >= factor_s + per_alteration * count
 
     @staticmethod
     def _alpha(problem, space, outer, inner, picks, offsets, index):
@@ -365,6 +383,7 @@ class _Tree(NamedTuple):
     entry_slot: np.ndarray  # per entry: its first row slot
     entry_width: np.ndarray  # per entry: its number of row slots
     entry_blocks: dict  # width w: first slots of the options this wide, and their F blocks
+    d_w_t: np.ndarray  # D W transposed (columns, row slots): a child's rows are consecutive
 
     @staticmethod
     def of(altered: AlteredEntries, deltas: _Deltas) -> _Tree:
@@ -385,6 +404,7 @@ class _Tree(NamedTuple):
             entry_slot=deltas.flat_start[altered.choice, altered.option],
             entry_width=entry_width,
             entry_blocks=entry_blocks,
+            d_w_t=np.ascontiguousarray(deltas.d_w.T),
         )
 
     def slots(self, alterations: np.ndarray, pad: int) -> np.ndarray:
@@ -441,9 +461,13 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
     last = tree.first_entry[kids] + tree.depth[kids] - 1
     first_slot = tree.entry_slot[last]
     begin = int(first_slot.min())
-    later = column[begin:pad]
-    # G = A⁻¹ F(P, later rows): one product per parent (BLAS), read by each child
-    g_matrix = np.matmul(inverse, -d_w[slots_p[:, :, None], later[None, None, :]])
+    # G = A⁻¹ D W(P, later rows), kept transposed (later rows, P): a child's rows of it are
+    # then consecutive. Rows gathered first, then columns: one fancy index over three axes
+    # costs several times more
+    gathered = np.take(d_w[slots_p.reshape(-1)], column[begin:pad], axis=1)
+    gathered = gathered.reshape(parents.size, wp, pad - begin)
+    g_t = np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2))
+    columns_p = column[slots_p]
     out = s_p[local].copy()
     widths = tree.entry_width[last]
     for w in np.unique(widths):
@@ -451,15 +475,18 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
             continue  # the last entry changes nothing: the parent's value
         pick = np.flatnonzero(widths == w)
         who = local[pick]
-        rows_e = first_slot[pick][:, None] + np.arange(w)  # an entry's slots are consecutive
-        # Y = G on the entry's rows: a window of w consecutive columns of the parent's G
-        y_block = sliding_window_view(g_matrix, w, axis=2)[who, :, first_slot[pick] - begin]
-        f_ep = -d_w[rows_e[:, :, None], column[slots_p[who]][:, None, :]]
+        first = first_slot[pick]
+        rows_e = first[:, None] + np.arange(w)  # an entry's slots are consecutive
+        g_block = g_t[who[:, None], rows_e - begin]  # (w, wp): Gᵀ on the entry's rows
+        # D W(E, P) transposed, (wp, w): a window of w consecutive slots per parent column
+        windows = sliding_window_view(tree.d_w_t, w, axis=1)
+        dw_ep_t = windows[columns_p[who], first[:, None]]
         starts, blocks = tree.entry_blocks[w]
-        f_ee = blocks[np.searchsorted(starts, first_slot[pick])]
-        schur = f_ee - np.matmul(f_ep, y_block)
-        right = rhs[rows_e] - np.einsum("nij,nj->ni", f_ep, y[who])
-        grad = weight[rows_e] - np.einsum("nij,ni->nj", y_block, g_p[who])
+        f_ee = blocks[np.searchsorted(starts, first)]
+        # with Y = −G and F_EP = −D W(E, P), the signs cancel: S = F_EE − D W(E, P) G
+        schur = f_ee - np.swapaxes(np.matmul(g_block, dw_ep_t), 1, 2)
+        right = rhs[rows_e] + np.einsum("nji,nj->ni", dw_ep_t, y[who])
+        grad = weight[rows_e] + np.einsum("nij,nj->ni", g_block, g_p[who])
         z = np.linalg.solve(schur, right[..., None])[..., 0]
         out[pick] += np.einsum("nj,nj->n", grad, z)
     return out
