@@ -404,11 +404,15 @@ def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monk
     assert any(n and "budgets up to 1 enumerated" in n for n in notes)
 
 
-def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(monkeypatch):
+@pytest.mark.parametrize(("time_limit", "search_s"), [(100.0, 100 - 70 / 0.9), (None, 0.2 * 70)])
+def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
+    monkeypatch, time_limit, search_s
+):
     """Where enumerating would likely finish in the time left but not with half of it to
-    spare, branch-and-bound goes first with the time the enumeration leaves it, and the
-    enumeration then takes every budget the search did not certify (here: a search that
-    proves nothing). Every point must still be the exhaustive optimum, certified."""
+    spare, branch-and-bound goes first with the time the enumeration leaves it (with no
+    limit: a fifth of the enumeration's time), and the enumeration then takes every budget
+    the search did not certify (here: a search that proves nothing). Every point must still
+    be the exhaustive optimum, certified."""
     from misdirect.core.alterations import alteration_space
     from misdirect.core.evaluate import decoy_probability
     from misdirect.solvers import auto
@@ -433,11 +437,11 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(monk
                 for b in budgets
             ]
 
-    solver = auto.AutoSolver(time_limit=100, enumeration_limit=0)
+    solver = auto.AutoSolver(time_limit=time_limit, enumeration_limit=0)
     solver.branch_and_bound = NoProof()
     result = solver.solve(problem, budgets)
     oracle = solve(problem, method="exhaustive", budgets=budgets)
-    assert len(given) == 1 and given[0] < 100 - 70 / auto.ENUMERATION_RESERVE + 1
+    assert len(given) == 1 and search_s - 1 < given[0] <= search_s
     assert result[-1].certified_by == "incremental"
     for mine, best in zip(result, oracle.curve, strict=True):
         assert mine.status == Status.OPTIMAL

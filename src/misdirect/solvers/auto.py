@@ -3,12 +3,14 @@
 1. ``incremental`` (one base solve per outer choice, a tiny Woodbury solve per alteration)
    when the chain cannot cycle without reaching the decoy and at most 200,000 alterations
    fit, or up to ``INCREMENTAL_LIMIT`` (12 million) when half the time left covers them at
-   ``UPDATE_SECONDS`` each (on 2 threads: sensor_grid(40, 64) at budgets 0..3, 1.2 million,
-   in 3.4 s and 0.6 GiB; sensor_grid(40, 128) at 0..3, 9.5 million, in 30 s and 2.2 GiB).
-   When they would take over half but under ``ENUMERATION_RESERVE`` of the time left,
-   branch-and-bound (4.) goes first with the time the enumeration leaves, and the
-   enumeration takes the budgets it did not certify. A curve whose top budget is too large
-   has its small budgets enumerated first, and the rest searched from their best answer;
+   ``UPDATE_SECONDS`` each, or with no time limit when that is at most ``UNLIMITED_FIRST``
+   (on 2 threads: sensor_grid(40, 64) at budgets 0..3, 1.2 million, in 3.4 s and 0.6 GiB;
+   sensor_grid(40, 128) at 0..3, 9.5 million, in 30 s and 2.2 GiB). When they would take
+   longer (but under ``ENUMERATION_RESERVE`` of the time left), branch-and-bound (4.) goes
+   first, with the time the enumeration leaves (with no limit: ``UNLIMITED_SEARCH`` of the
+   enumeration's time), and the enumeration takes the budgets it did not certify. A curve
+   whose top budget is too large has its small budgets enumerated first, and the rest
+   searched from their best answer;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
    (300) fit, or when enumerating them all would take at most ``ENUMERATION_SECONDS`` at the
    measured cost of one evaluation (tiny chains: a few hundred product states evaluate in well
@@ -68,6 +70,8 @@ INCREMENTAL_LIMIT = MAX_ALTERATIONS  # ... and up to this many when the time lef
 UPDATE_SECONDS = 5e-6  # at about this much each (sensor networks, 2 threads: 2.8-3.1 us)
 ENUMERATION_FIRST = 0.5  # enumerate first when this share of the time left covers it; else
 ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating what is left
+UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
+UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
@@ -112,11 +116,10 @@ class AutoSolver:
             else f"more than {INCREMENTAL_LIMIT:,} alterations fit the budget"
         )
 
-        def enumerable(n: int, share: float = ENUMERATION_FIRST) -> bool:
+        def enumerable(n: int) -> bool:
             left = deadline.remaining()
-            return n <= INCREMENTAL_SURE or (
-                n <= INCREMENTAL_LIMIT and (left is None or n * UPDATE_SECONDS <= share * left)
-            )
+            first = UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
+            return n <= INCREMENTAL_SURE or (n <= INCREMENTAL_LIMIT and n * UPDATE_SECONDS <= first)
 
         if not enumerable(count) and len(budgets) > 1:
             # the smaller budgets of a curve may still be enumerable: prove those first, and
@@ -190,16 +193,11 @@ class AutoSolver:
             # a node costs microseconds here, while the MILP's start-up alone costs more
             reason += f"; a tiny chain ({product_states:,} product states): no node limit"
             search = BranchAndBoundSolver(max_nodes=10**9)
-        search_deadline, left = deadline, deadline.remaining()
-        if (
-            left is not None
-            and not instance.cycling.any()
-            and enumerable(count, ENUMERATION_RESERVE)
-        ):
-            # the enumeration would likely finish, but not with half the time to spare: the
-            # search goes first (it often certifies in seconds), with what the enumeration
-            # leaves, and then the enumeration takes what the search did not certify
-            search_deadline = Deadline(max(left - count * UPDATE_SECONDS / ENUMERATION_RESERVE, 0))
+        search_deadline, search_s = deadline, _search_before_enumerating(count, deadline)
+        if search_s is not None and not instance.cycling.any():
+            # the enumeration would likely finish, but not soon: the search goes first (it
+            # often certifies in seconds) and the enumeration takes what it did not certify
+            search_deadline = Deadline(search_s)
             reason += f"; {count:,} alterations kept for enumeration after the search"
         report(progress, 0, len(budgets), stage="branch-and-bound", note=f"auto: {reason}")
         solutions = _label(
@@ -278,6 +276,20 @@ class AutoSolver:
             "branch-and-bound",
             "",
         )
+
+
+def _search_before_enumerating(count: int, deadline: Deadline) -> float | None:
+    """Seconds for the search before enumerating ``count`` alterations, or None if they are
+    not to be enumerated: within a limit, what the enumeration leaves of the time (if it
+    needs under ``ENUMERATION_RESERVE`` of it); without one, ``UNLIMITED_SEARCH`` of the
+    enumeration's time, so a search that certifies at once saves it, at worst costing that."""
+    if count > INCREMENTAL_LIMIT:
+        return None
+    needed = count * UPDATE_SECONDS
+    left = deadline.remaining()
+    if left is None:
+        return UNLIMITED_SEARCH * needed
+    return left - needed / ENUMERATION_RESERVE if needed <= ENUMERATION_RESERVE * left else None
 
 
 def _better(problem: Problem, first: Solution, second: Solution, why: str) -> Solution:
