@@ -274,17 +274,22 @@ class IncrementalSolver:
 class _Deltas(NamedTuple):
     """The rows an inner option changes: per inner observation ``j`` and option ``k``, the
     rows of its region whose group differs from the base (``flat_length[j, k]`` of them, from
-    ``flat_start[j, k]``), each with its ``D x0``, ``D W`` and ``Δb`` and its column among the
-    inner rows (``column``). Rows an option leaves alone have zero ``D`` and ``Δb``, so the
-    Woodbury system needs only the changed ones. A last row slot pads batches: its row of
-    ``D W``, ``D x0`` and ``Δb`` is zero, and so is its column (the last one of ``d_w``)."""
+    ``flat_start[j, k]``), each with its ``D W``, its right-hand side ``D x0 + Δb`` and its
+    column among the inner rows (``column``). Rows an option leaves alone have zero ``D`` and
+    ``Δb``, so the Woodbury system needs only the changed ones. A last row slot pads batches:
+    its row of ``D W`` and its right-hand side are zero, and so is its column (the last one of
+    ``d_w``)."""
 
     flat_start: np.ndarray
     flat_length: np.ndarray
     column: np.ndarray
-    d_x0: np.ndarray
+    rhs: np.ndarray
     d_w: np.ndarray
-    d_b: np.ndarray
+
+    def system(self, slots: np.ndarray) -> np.ndarray:
+        """``F = I − D W`` on each row of row ``slots`` (n, k): (n, k, k)."""
+        coupling = self.d_w[slots[:, :, None], self.column[slots][:, None, :]]
+        return np.eye(slots.shape[1]) - coupling
 
 
 def _deltas(groups, base_groups, inside, to_target, x0, W) -> _Deltas:
@@ -315,9 +320,8 @@ def _deltas(groups, base_groups, inside, to_target, x0, W) -> _Deltas:
         flat_start,
         flat_length,
         np.concatenate([*columns, [W.shape[1]]]).astype(np.int64),
-        np.asarray(delta @ x0).ravel(),
+        np.asarray(delta @ x0).ravel() + (to_target[new_g] - to_target[old_g]),
         d_w,
-        to_target[new_g] - to_target[old_g],
     )
 
 
@@ -362,7 +366,7 @@ def _add_corrections(
         found[kids] += _children_of(parents[batch], kids, local, tree, deltas, weight)
         corrected[kids] = True  # batches are disjoint: threads never write the same entry
 
-    n_slots = deltas.d_x0.size - 1
+    n_slots = deltas.rhs.size - 1
     batches = list(_batches(order, tree.width[parents], n_children, n_slots, chunk_entries))
     if threads == 1 or len(batches) == 1:
         for batch in batches:
@@ -392,9 +396,7 @@ class _Tree(NamedTuple):
         entry_blocks = {}  # F = I - D W on each option's own rows, shared by its entries
         for w in np.unique(deltas.flat_length[deltas.flat_length > 0]):
             starts = np.unique(deltas.flat_start[deltas.flat_length == w])
-            rows = starts[:, None] + np.arange(w)
-            coupling = deltas.d_w[rows[:, :, None], deltas.column[rows][:, None, :]]
-            entry_blocks[int(w)] = (starts, np.eye(w) - coupling)
+            entry_blocks[int(w)] = (starts, deltas.system(starts[:, None] + np.arange(w)))
         return _Tree(
             depth=np.bincount(altered.alteration, minlength=n),
             width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
@@ -447,13 +449,11 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
 
     with ``y = A⁻¹ r_P`` and ``s_P = g_Pᵀ y`` the parent's own correction, ``F = I − D W`` on
     the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``."""
-    d_w, column = deltas.d_w, deltas.column
-    pad = deltas.d_x0.size - 1
-    rhs = deltas.d_x0 + deltas.d_b
+    d_w, column, rhs = deltas.d_w, deltas.column, deltas.rhs
+    pad = rhs.size - 1
     slots_p = tree.slots(parents, pad)
     wp = slots_p.shape[1]
-    coupling = d_w[slots_p[:, :, None], column[slots_p][:, None, :]]
-    system = np.eye(wp) - coupling
+    system = deltas.system(slots_p)
     inverse = np.linalg.inv(system) if wp else system
     y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
     g_p = weight[slots_p]
