@@ -66,7 +66,17 @@ def check_bounds(problem, budgets):
         assert search.run(Deadline(60)) == "optimal"
         assert abs(search.best_value - optimum) <= 1e-9, (problem.name, budget)
         assert search.open_bound() >= optimum - 1e-9
+        # small subtrees enumerated (low-rank updates) instead of bounded: still exact
+        mixed = SegmentSearch(seg, budget, enumerate_at=ENUMERATE_AT)
+        assert mixed.run(Deadline(60)) == "optimal"
+        assert abs(mixed.best_value - optimum) <= 1e-9, (problem.name, budget)
+        assert abs(mixed.open_bound() - optimum) <= 1e-9, (problem.name, budget)
+        ENUMERATED.append(mixed.enumerated)
     return True
+
+
+ENUMERATE_AT = 100  # small, so that searches both bound and enumerate nodes
+ENUMERATED: list[int] = []
 
 
 def test_bound_is_at_least_the_optimum_on_random_models():
@@ -80,6 +90,14 @@ def test_bound_is_at_least_the_optimum_on_small_sensor_grids(index):
     if index >= len(grids):
         pytest.skip("no decoy for this seed")
     assert check_bounds(grids[index], [0.0, 1.0, 2.0, 3.0])
+
+
+def test_searches_enumerated_some_subtrees():
+    """The mixed searches above really enumerated: some nodes, not all of them."""
+    ENUMERATED.clear()
+    for grid in list(small_grids())[1:5]:
+        check_bounds(grid, [3.0])
+    assert sum(ENUMERATED) > 0
 
 
 def test_root_bound_helper_matches_the_node_bound():

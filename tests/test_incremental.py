@@ -161,3 +161,52 @@ def test_altered_entries_list_every_affordable_alteration_once(seed):
     assert np.all(np.diff(altered.parent[1:]) >= 0)  # the children of a parent consecutive
     assert space.altered_within(budget, indices, limit=len(expected) - 1, usable=usable) is None
     assert space.altered_within(budget, indices, limit=len(expected), usable=usable) is not None
+
+
+def brute_force_with(problem, instance, budget, fixed):
+    """Best exact value over the alterations within ``budget`` that agree with ``fixed``,
+    each evaluated by a full solve (no updates)."""
+    from misdirect.core.evaluate import decoy_probability
+
+    table, costs = instance.space.within(budget)
+    agree = np.ones(len(costs), dtype=bool)
+    for i, k in fixed.items():
+        agree &= table[:, i] == k
+    return max(
+        decoy_probability(problem, instance.space.alteration(problem, row)) for row in table[agree]
+    )
+
+
+@pytest.mark.parametrize(
+    "n, k, seed, costs", [(7, 6, 1, "uniform"), (8, 8, 2, "random"), (9, 10, 4, "random")]
+)
+def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
+    """Subtrees of a search, enumerated with bases kept between calls (a later call updates
+    a kept base in low rank): each best equals the brute-force best of that subtree."""
+    from misdirect.core.attack import prepare
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.scenarios import sensor_grid
+    from misdirect.solvers.base import Deadline
+
+    problem = sensor_grid(n, k, seed=seed, costs=costs, memory=3 + seed % 3)
+    budget = 3.0
+    instance = prepare(problem, budget)
+    choices = instance.space.choices
+    rng = np.random.default_rng(seed)
+    bases: dict = {}
+    solver = IncrementalSolver()
+    checked = 0
+    for _ in range(12):
+        picked = rng.choice(len(choices), size=min(2, len(choices)), replace=False)
+        fixed = {int(i): int(rng.integers(choices[i].size)) for i in picked}
+        if sum(choices[i].costs[o] for i, o in fixed.items()) > budget:
+            continue
+        value, vector = solver.best_with(instance, budget, fixed, Deadline(None), bases)
+        assert all(vector[i] == o for i, o in fixed.items())
+        assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget + 1e-9
+        exact = decoy_probability(problem, instance.space.alteration(problem, vector))
+        assert value == pytest.approx(exact, abs=1e-9)
+        assert value == pytest.approx(brute_force_with(problem, instance, budget, fixed), abs=1e-9)
+        checked += 1
+    assert checked >= 4
+    assert bases  # the bases were kept and reused

@@ -94,6 +94,13 @@ class Deadline:
         left = self.remaining()
         return None if left is None else left / max(parts, 1)
 
+    def front_share(self, parts: int) -> float | None:
+        """Twice the share of each later piece (``2 / (parts + 1)`` of what is left): for a
+        curve's budgets, smallest first, where the next one is the likelier to finish (a
+        sensor network's budget 4 certifies in 30 s, its budget 5 needs minutes)."""
+        left = self.remaining()
+        return None if left is None else 2 * left / (max(parts, 1) + 1)
+
 
 NO_DEADLINE = Deadline(None)
 

@@ -55,6 +55,8 @@ IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger 
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_MIN_SECONDS = 1.0  # ... when at least this much of the time limit is left
+SEGMENT_SHARE = 0.9  # ... and takes this share of a budget's time (its bound is the tighter)
+SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
 
 
 class BranchAndBoundStats(TypedDict):
@@ -67,6 +69,8 @@ class BranchAndBoundStats(TypedDict):
     relevant_observations: int
     segment_nodes: NotRequired[int]  # when the segment search took the budget over
     segment_root_bound: NotRequired[float | None]
+    segment_enumerated: NotRequired[int]  # nodes of it enumerated (low-rank updates)
+    segment_enumerated_alterations: NotRequired[int]
 
 
 @dataclass
@@ -308,9 +312,9 @@ class BranchAndBoundSolver:
             climb = None if share is None else Deadline(share / 4)
             better, found = relax.improve(search.best_picks, search.best_value, budget, climb)
             search.offer(better, found)
-            share = deadline.share(len(order) - done)
+            share = deadline.front_share(len(order) - done)
             if segment_applies and share is not None:
-                share /= 2  # the other half for the segment search, if this one does not certify
+                share *= 1 - SEGMENT_SHARE  # the rest for the segment search, if this one fails
             limit = None if share is None else Deadline(share)
 
             def tick(search=search, budget=budget, done=done) -> None:
@@ -329,7 +333,7 @@ class BranchAndBoundSolver:
             if answers[j].status != Status.OPTIMAL and segment_applies and segments is None:
                 from misdirect.solvers.budget_bound import SegmentRelaxation
 
-                segments = SegmentRelaxation(problem, space, chain, relax)
+                segments = SegmentRelaxation(problem, space, chain, relax, instance)
             if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
                     segments,
@@ -357,8 +361,10 @@ def _segment_phase(
     the smaller of the two proven bounds."""
     from misdirect.solvers.budget_bound import SegmentSearch
 
-    second = SegmentSearch(segments, budget, seeds=[search.best_picks])
-    share = deadline.share(left)
+    second = SegmentSearch(
+        segments, budget, seeds=[search.best_picks], enumerate_at=SEGMENT_ENUMERATE_AT
+    )
+    share = deadline.front_share(left)
     limit = None if share is None else Deadline(share)
 
     def tick() -> None:
@@ -368,7 +374,7 @@ def _segment_phase(
             total,
             stage=f"segment search, budget {budget:g}",
             detail=f"incumbent {second.best_value:.6f}, bound {second.open_bound():.6f}"
-            f", {second.nodes:,} nodes",
+            f", {second.nodes:,} nodes, {second.enumerated:,} enumerated",
         )
 
     status = second.run(limit, tick, max_nodes=max_nodes)
@@ -381,6 +387,8 @@ def _segment_phase(
         **answer.stats,
         "segment_nodes": second.nodes,
         "segment_root_bound": second.root_bound,
+        "segment_enumerated": second.enumerated,
+        "segment_enumerated_alterations": second.enumerated_alterations,
     }
     return Solution(
         budget=answer.budget,

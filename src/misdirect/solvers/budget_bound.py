@@ -43,6 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from misdirect.core.alterations import AlterationSpace
 from misdirect.core.choice_product import ChoiceProduct, end_component_states
 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a choice only on a larger gain
@@ -392,10 +393,13 @@ class _ModeMdp:
 class SegmentRelaxation:
     """Node bounds of :class:`SegmentSearch`: the segment MDP, and its Lagrangian."""
 
-    def __init__(self, problem, space, chain, relax):
+    def __init__(self, problem, space, chain, relax, instance=None):
         from misdirect.solvers.incremental import _group_of_option
 
         self.problem, self.space, self.chain, self.relax = problem, space, chain, relax
+        self.instance = instance  # the prepared attack: subtrees can then be enumerated
+        self.bases: dict = {}  # their base chains, solved once (incremental's _Basis)
+        self.outer: list[int] | None = None  # choices outer to the enumeration
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
         self.bound = BudgetBound(chain, self.state_obs, relax.live)
         self.group_of_option = _group_of_option(chain, relax.live)
@@ -407,6 +411,35 @@ class SegmentRelaxation:
             i: int((live & (self.state_obs == space.choices[i].observation)).sum())
             for i in self.order
         }
+
+    def completions(self, picks: dict[int, int], remaining: float, limit: int) -> int:
+        """How many alterations of the free observations fit ``remaining`` (``limit + 1``
+        once more than ``limit``)."""
+        free = tuple(self.space.choices[i] for i in self.order if i not in picks)
+        return AlterationSpace(free).count_within(remaining, limit)
+
+    def basis_ready(self, picks: dict[int, int]) -> bool:
+        """Whether enumerating below ``picks`` needs no new base solve: its outer choices are
+        fixed and their base is kept (else the node is bounded first: it may be pruned)."""
+        from misdirect.solvers.incremental import inner_choices
+
+        if self.outer is None:
+            inner = set(inner_choices(self.instance))
+            self.outer = [i for i in range(len(self.space.choices)) if i not in inner]
+        if any(i not in picks for i in self.outer):
+            return False
+        return tuple(picks[i] for i in self.outer) in self.bases
+
+    def enumerate(self, picks: dict[int, int], budget: float, deadline):
+        """The best completion of ``picks`` within ``budget`` (value, picks), enumerated
+        exhaustively with low-rank updates; None when cut by ``deadline``."""
+        from misdirect.solvers.incremental import IncrementalSolver
+
+        found = IncrementalSolver().best_with(self.instance, budget, picks, deadline, self.bases)
+        if found is None:
+            return None
+        value, vector = found
+        return value, tuple(int(vector[i]) for i in self.order)
 
     def complete(self, picks: dict[int, int]) -> tuple[int, ...]:
         """The search's picks (in ``relax.order``) with every unlisted observation unaltered."""
@@ -485,12 +518,25 @@ class SegmentSearch:
     rest are free within the ``remaining`` budget. It branches on the free observation whose
     layers the bound's optimal scheduler enters most, and its incumbent rounds that scheduler
     (per observation the layer entered most, most-entered first, within the budget).
+
+    With ``enumerate_at``, a node with at most that many completions is not bounded but
+    enumerated exactly (:meth:`IncrementalSolver.best_with`, low-rank updates of a base kept
+    per outer pick). The bound cannot see the budget, but it does see which sensors are left:
+    on sensor networks a few sensors carry the value (H1: with its top sensor fixed unaltered
+    the unlimited attacker gets 0.182, under budget 3's optimum 0.206), so a node that leaves
+    a strong sensor out is pruned, and one that alters it has a budget one smaller, soon small
+    enough to enumerate. A node that would need a new base solve is bounded first.
     """
 
-    def __init__(self, seg: SegmentRelaxation, budget: float, seeds=()):
+    def __init__(self, seg: SegmentRelaxation, budget: float, seeds=(), enumerate_at: int = 0):
         import heapq  # noqa: F401
 
         self.seg, self.budget = seg, budget
+        # a node with at most this many completions is enumerated instead of bounded
+        enumerable = seg.instance is not None and not seg.instance.cycling.any()
+        self.enumerate_at = enumerate_at if enumerable else 0
+        self.enumerated = 0  # nodes
+        self.enumerated_alterations = 0
         self.best_picks: tuple[int, ...] = seg.complete({})
         self.best_value = -1.0
         self.best_cost = 0.0
@@ -513,11 +559,24 @@ class SegmentSearch:
         else:
             self._push({}, budget, np.inf)
 
-    def _push(self, picks, remaining, bound):
+    def _push(self, picks, remaining, bound, bounded=False):
+        """``bounded``: ``bound`` is the node's own (not its parent's)."""
         import heapq
 
         self.counter += 1
-        heapq.heappush(self.heap, (-bound, self.counter, picks, remaining))
+        heapq.heappush(self.heap, (-bound, self.counter, picks, remaining, bounded))
+
+    def _enumerate(self, picks, remaining, count, bound, deadline) -> bool:
+        """Enumerate the node's completions; False (the node left open) if cut short."""
+        found = self.seg.enumerate(picks, self.budget, deadline)
+        if found is None:
+            self._push(picks, remaining, bound, bounded=True)
+            return False
+        self.enumerated += 1
+        self.enumerated_alterations += count
+        if found[0] > self.best_value + PRUNE_TOLERANCE:  # then re-evaluated exactly
+            self.offer(found[1], self.value(found[1]))
+        return True
 
     def value(self, picks: tuple[int, ...]) -> float:
         if picks not in self.evaluated:
@@ -563,9 +622,17 @@ class SegmentSearch:
                 return "feasible"
             if tick is not None and self.nodes % 16 == 0:
                 tick()
-            negative, _, picks, remaining = heapq.heappop(self.heap)
+            negative, _, picks, remaining, bounded = heapq.heappop(self.heap)
             if self._prune(-negative):
                 continue
+            count = self.enumerate_at + 1
+            if self.enumerate_at:
+                count = seg.completions(picks, remaining, self.enumerate_at)
+                # a node needing a new base solve is bounded first (it may be pruned)
+                if count <= self.enumerate_at and (bounded or seg.basis_ready(picks)):
+                    if not self._enumerate(picks, remaining, count, -negative, deadline):
+                        return "time_limit"
+                    continue
             self.nodes += 1
             began = time.perf_counter()
             result, usage, layers = seg.node(picks, remaining, self.best_value + PRUNE_TOLERANCE)
@@ -589,6 +656,10 @@ class SegmentSearch:
             rounded = seg.complete(chosen)
             self.offer(rounded, self.value(rounded))
             if self._prune(bound):
+                continue
+            if count <= self.enumerate_at:  # bounded, not pruned: enumerated now
+                if not self._enumerate(picks, remaining, count, bound, deadline):
+                    return "time_limit"
                 continue
             per_obs: dict[int, float] = {}
             for (i, _, _), u in zip(layers, usage, strict=True):
@@ -632,7 +703,8 @@ def segment_relaxation(problem, budget: float) -> SegmentRelaxation | None:
     state_obs = problem.pomdp.observation_of[chain.world_state]
     if BudgetBound.create(chain, state_obs) is None:
         return None
-    return SegmentRelaxation(problem, space, chain, _Relaxation(problem, space, chain))
+    relax = _Relaxation(problem, space, chain)
+    return SegmentRelaxation(problem, space, chain, relax, instance)
 
 
 def segment_bound(problem, budget: float, *, lagrangian: bool = False) -> float | None:

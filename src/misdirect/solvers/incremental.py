@@ -31,8 +31,13 @@ from typing import NamedTuple, TypedDict
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from misdirect.core.alterations import AlterationSpace, AlteredEntries, rank_in_group
-from misdirect.core.attack import prepare
+from misdirect.core.alterations import (
+    AlterationSpace,
+    AlteredEntries,
+    ObservationChoices,
+    rank_in_group,
+)
+from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.core.reachability import solve_chain
@@ -71,6 +76,36 @@ class IncrementalStats(TypedDict):
     outer_observations: int
 
 
+class _Enumerated(NamedTuple):
+    """What :meth:`IncrementalSolver._enumerate` valued: per alteration its cost and value,
+    listed block by block (one block per outer choice vector, ``offsets`` where each begins)."""
+
+    costs: np.ndarray
+    values: np.ndarray
+    blocks: list  # per block: (outer choice vector, AlteredEntries of the inner ones)
+    offsets: np.ndarray
+    outer: list[int]
+    inner: list[int]
+    n_choices: int
+    blocks_done: int
+    next_outer_cost: float  # cost of the first outer vector not reached (inf: all were)
+    unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
+    evaluations: int
+
+    def complete_for(self, budget: float) -> bool:
+        """Whether every alteration within ``budget`` was valued."""
+        return self.next_outer_cost > budget + 1e-9 and self.unevaluated > budget + 1e-9
+
+    def picks(self, index: int) -> np.ndarray:
+        """The choice vector of alteration ``index``."""
+        block = int(np.searchsorted(self.offsets, index, side="right")) - 1
+        outer_pick, altered = self.blocks[block]
+        picked = np.zeros(self.n_choices, dtype=np.int64)
+        picked[self.outer] = outer_pick
+        picked[self.inner] = altered.picks(index - self.offsets[block], len(self.inner))
+        return picked
+
+
 class IncrementalSolver:
     name = "incremental"
     curve_is_free = True
@@ -101,34 +136,86 @@ class IncrementalSolver:
         deadline = deadline or Deadline(self.time_limit)
         top = max(budgets)
         instance = prepare(problem, top)
-        space, chain, live = instance.space, instance.chain, instance.live
+        space = instance.space
+        self._check_applies(instance)
+        if not space.choices:
+            value = decoy_probability(problem, problem.identity())
+            return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
+        found = self._enumerate(instance, top, {}, deadline, progress)
+        stats: IncrementalStats = {
+            "evaluations": found.evaluations,
+            "factorisations": found.blocks_done,
+            "inner_observations": len(found.inner),
+            "outer_observations": len(found.outer),
+        }
+        picked = best_per_budget(found.costs, found.values, budgets, tolerance=NEAR_TIE)
+        complete = [found.complete_for(b) for b in budgets]
+        if not all(complete):
+            from misdirect.solvers.branch_and_bound import relaxation_bound
+
+            relaxed = relaxation_bound(problem, top)  # bounds every smaller budget
+        solutions = []
+        for budget, index, finished in zip(budgets, picked, complete, strict=True):
+            within = found.values[found.costs <= budget + 1e-9]
+            bound = float(within.max())  # every alteration within the budget was enumerated
+            if not finished:
+                bound = max(bound, relaxed)
+            solutions.append(
+                Solution(
+                    budget=budget,
+                    alteration=space.alteration(problem, found.picks(index)),
+                    solver_probability=float(found.values[index]),
+                    status=Status.OPTIMAL if finished else Status.TIME_LIMIT,
+                    upper_bound=bound,
+                    stats=stats,
+                )
+            )
+        return solutions
+
+    @staticmethod
+    def _check_applies(instance: AttackInstance) -> None:
         if instance.cycling.any():
             raise NotApplicableError(
                 "the chain can cycle without reaching the decoy under some alteration, so "
                 "low-rank updates are not safe here; use --method auto, exhaustive or milp"
             )
+
+    def best_with(
+        self,
+        instance: AttackInstance,
+        budget: float,
+        fixed: dict[int, int],
+        deadline: Deadline,
+        bases: dict | None = None,
+    ) -> tuple[float, np.ndarray] | None:
+        """The best alteration within ``budget`` that takes option ``fixed[i]`` for choice
+        ``i`` (value, choice vector), enumerated exhaustively; None when cut by ``deadline``.
+        A search hands over the subtrees small enough to enumerate (:mod:`.budget_bound`).
+        ``bases`` (kept by the caller between calls): each base chain is solved once, and a
+        subtree's base is that one with its fixed sensors' rows updated in (low rank)."""
+        self._check_applies(instance)
+        found = self._enumerate(instance, budget, fixed, deadline, None, bases)
+        if not found.complete_for(budget):
+            return None
+        index = int(best_per_budget(found.costs, found.values, [budget], tolerance=NEAR_TIE)[0])
+        return float(found.values[index]), found.picks(index)
+
+    def _enumerate(self, instance, top, fixed, deadline, progress, bases=None) -> _Enumerated:
+        """Every alteration within ``top`` that agrees with ``fixed``, valued at the start."""
+        problem, space = instance.problem, instance.space
+        chain, live = instance.chain, instance.live
         options = chain.options
         observations = [c.observation for c in space.choices]
-        if not observations:
-            value = decoy_probability(problem, problem.identity())
-            return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
-
         live_index = np.full(chain.n_states, -1)
         live_index[live] = np.arange(int(live.sum()))
-        n_live = int(live.sum())
         state_obs = problem.pomdp.observation_of[chain.world_state]
         rows_of = {o: np.flatnonzero(live & (state_obs == o)) for o in observations}
-        order = sorted(range(len(observations)), key=lambda i: rows_of[observations[i]].size)
-        # every inner row saves the outer enumeration a factor; W's memory caps them
-        inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
-        inner, total = [], 0
-        for i in order:
-            size = rows_of[observations[i]].size
-            if total + size > inner_rows or size > INNER_BLOCK:
-                break
-            inner.append(i)
-            total += size
+        natural = inner_choices(instance)
+        inner = [i for i in natural if i not in fixed]  # fixed ones: outer, with one option
         outer = [i for i in range(len(observations)) if i not in inner]
+        # outer choices that are outer by size: a block's base is the basis of their picks
+        # with the fixed inner ones updated in (when ``bases`` keeps those bases)
+        by_size = [column for column, i in enumerate(outer) if i not in natural]
 
         # per state: the group each option selects (single-group states: that group)
         first_option = np.concatenate([[0], np.cumsum([c.size for c in space.choices])])
@@ -141,7 +228,19 @@ class IncrementalSolver:
         costs, values, picks = [], [], []
         unevaluated = np.inf  # cheapest alteration left unevaluated by the deadline
         done, evaluations = 0, 0
-        outer_table, outer_costs = space.within(top, outer)
+        # fixed choices are outer ones with their one option
+        outer_space = AlterationSpace(
+            tuple(
+                ObservationChoices(c.observation, c.targets[[fixed[i]]], c.costs[[fixed[i]]])
+                if i in fixed
+                else c
+                for i, c in enumerate(space.choices)
+            )
+        )
+        outer_table, outer_costs = outer_space.within(top, outer)
+        for column, i in enumerate(outer):
+            if i in fixed:
+                outer_table[:, column] = fixed[i]
         # cheapest outer choices first: cut short, every budget below the first outer choice
         # not reached has all its alterations enumerated, so it is still proven
         ranked = np.argsort(outer_costs, kind="stable")
@@ -164,14 +263,26 @@ class IncrementalSolver:
             for i in inner:
                 chosen[first_option[i]] = True  # inner observations unaltered in the base
             base_groups = _selected(chain, live, group_of_option, chosen)
-            rows = np.concatenate([rows_of[observations[i]] for i in inner]).astype(np.int64)
+            rows = np.concatenate(
+                [np.zeros(0, dtype=np.int64), *(rows_of[observations[i]] for i in inner)]
+            ).astype(np.int64)
             local = live_index[rows]
-            rhs = np.zeros((n_live, 1 + local.size))  # b, then one unit column per inner row
-            rhs[:, 0] = to_target[base_groups]
-            rhs[local, 1 + np.arange(local.size)] = 1.0
-            solved = solve_chain(inside[base_groups], rhs, live_node)
-            # contiguous copies: sparse @ dense ravels (copies) a strided operand on every call
-            x0, W = np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
+            if bases is None:
+                x0, W = _base_solve(inside, to_target, base_groups, local, live_node)
+            else:
+                key = tuple(int(outer_pick[column]) for column in by_size)
+                if key not in bases:
+                    for i in natural:
+                        chosen[first_option[i] : first_option[i + 1]] = False
+                        chosen[first_option[i]] = True
+                    root_groups = _selected(chain, live, group_of_option, chosen)
+                    root_rows = np.concatenate(
+                        [np.zeros(0, dtype=np.int64), *(rows_of[observations[i]] for i in natural)]
+                    ).astype(np.int64)
+                    bases[key] = _Basis.of(
+                        inside, to_target, root_groups, live_index[root_rows], live_node
+                    )
+                x0, W = bases[key].updated(inside, to_target, base_groups, local)
             deltas = _deltas(
                 [
                     group_of_option[rows_of[observations[i]], first_option[i] : first_option[i + 1]]
@@ -214,43 +325,21 @@ class IncrementalSolver:
             per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
             report(progress, done, n_outer, stage="incremental")
 
-        costs_a, values_a = (
-            np.concatenate(costs),
-            np.clip(np.concatenate(values), 0.0, problem.objective.max_value),
+        return _Enumerated(
+            costs=np.concatenate([np.zeros(0), *costs]),
+            values=np.clip(
+                np.concatenate([np.zeros(0), *values]), 0.0, problem.objective.max_value
+            ),
+            blocks=picks,
+            offsets=np.cumsum([0, *(altered.costs.size for _, altered in picks)]),
+            outer=outer,
+            inner=inner,
+            n_choices=len(space.choices),
+            blocks_done=done,
+            next_outer_cost=float(outer_costs[done]) if done < n_outer else np.inf,
+            unevaluated=unevaluated,
+            evaluations=evaluations,
         )
-        offsets = np.cumsum([0, *(altered.costs.size for _, altered in picks)])
-        stats: IncrementalStats = {
-            "evaluations": evaluations,
-            "factorisations": done,
-            "inner_observations": len(inner),
-            "outer_observations": len(outer),
-        }
-        picked = best_per_budget(costs_a, values_a, budgets, tolerance=NEAR_TIE)
-        complete = [
-            (done == n_outer or outer_costs[done] > b + 1e-9) and unevaluated > b + 1e-9
-            for b in budgets
-        ]
-        if not all(complete):
-            from misdirect.solvers.branch_and_bound import relaxation_bound
-
-            relaxed = relaxation_bound(problem, top)  # bounds every smaller budget
-        solutions = []
-        for budget, index, finished in zip(budgets, picked, complete, strict=True):
-            within = values_a[costs_a <= budget + 1e-9]
-            bound = float(within.max())  # every alteration within the budget was enumerated
-            if not finished:
-                bound = max(bound, relaxed)
-            solutions.append(
-                Solution(
-                    budget=budget,
-                    alteration=self._alpha(problem, space, outer, inner, picks, offsets, index),
-                    solver_probability=float(values_a[index]),
-                    status=Status.OPTIMAL if finished else Status.TIME_LIMIT,
-                    upper_bound=bound,
-                    stats=stats,
-                )
-            )
-        return solutions
 
     def _block_fits(self, deadline, factor_s, per_alteration, last_count, space, budget) -> bool:
         """Whether the next outer block likely ends before ``deadline``: at most the last
@@ -263,12 +352,70 @@ class IncrementalSolver:
         count = space.count_within(budget, self.max_evaluations)
         return left >= factor_s + per_alteration * count
 
+
+def inner_choices(instance: AttackInstance) -> list[int]:
+    """The choices enumerated inside a block (the others are outer: one base solve per pick):
+    the smallest regions first, while ``W`` (live states x their rows) stays small."""
+    space, chain, live = instance.space, instance.chain, instance.live
+    state_obs = instance.problem.pomdp.observation_of[chain.world_state[live]]
+    sizes = np.bincount(state_obs, minlength=instance.problem.pomdp.n_observations)
+    size_of = [int(sizes[c.observation]) for c in space.choices]
+    n_live = int(live.sum())
+    # every inner row saves the outer enumeration a factor; W's memory caps them
+    inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
+    inner, total = [], 0
+    for i in sorted(range(len(size_of)), key=lambda i: size_of[i]):
+        if total + size_of[i] > inner_rows or size_of[i] > INNER_BLOCK:
+            break
+        inner.append(i)
+        total += size_of[i]
+    return inner
+
+
+def _base_solve(inside, to_target, base_groups, local, live_node):
+    """``x0`` and ``W`` (the base chain's solution for ``b`` and for a unit column per inner
+    row ``local``), as contiguous arrays: sparse @ dense copies a strided operand per call."""
+    rhs = np.zeros((inside.shape[1], 1 + local.size))
+    rhs[:, 0] = to_target[base_groups]
+    rhs[local, 1 + np.arange(local.size)] = 1.0
+    solved = solve_chain(inside[base_groups], rhs, live_node)
+    return np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
+
+
+class _Basis(NamedTuple):
+    """A base chain solved for every row that may be altered, so that a chain differing from
+    it in a few of those rows needs no solve: Woodbury on the rows that differ."""
+
+    groups: np.ndarray
+    x0: np.ndarray
+    W: np.ndarray
+    position: np.ndarray  # per live state: its column of W (-1: none)
+
     @staticmethod
-    def _alpha(problem, space, outer, inner, picks, offsets, index):
-        block = int(np.searchsorted(offsets, index, side="right")) - 1
-        outer_pick, altered = picks[block]
-        picked = [*outer_pick, *altered.picks(index - offsets[block], len(inner))]
-        return space.alteration(problem, picked, [*outer, *inner])
+    def of(inside, to_target, groups, local, live_node) -> _Basis:
+        x0, W = _base_solve(inside, to_target, groups, local, live_node)
+        position = np.full(inside.shape[1], -1)
+        position[local] = np.arange(local.size)
+        return _Basis(groups, x0, W, position)
+
+    def updated(self, inside, to_target, groups, local) -> tuple[np.ndarray, np.ndarray]:
+        """``x0`` and ``W`` on the rows ``local`` of the chain that takes ``groups``."""
+        changed = np.flatnonzero(groups != self.groups)
+        columns = self.position[local]
+        if not changed.size:
+            return self.x0, np.ascontiguousarray(self.W[:, columns])
+        own = self.position[changed]
+        if (own < 0).any() or (columns < 0).any():
+            raise AssertionError("a basis covers every row that may be altered")
+        d = inside[groups[changed]] - inside[self.groups[changed]]  # (changed, n_live)
+        d_b = to_target[groups[changed]] - to_target[self.groups[changed]]
+        reach = self.W[:, own]
+        system = np.eye(changed.size) - d @ reach
+        right = np.column_stack([d @ self.x0 + d_b, d @ self.W[:, columns]])
+        z = np.linalg.solve(system, right)
+        x0 = self.x0 + reach @ z[:, 0]
+        W = self.W[:, columns] + reach @ z[:, 1:]
+        return np.ascontiguousarray(x0), np.ascontiguousarray(W)
 
 
 class _Deltas(NamedTuple):
