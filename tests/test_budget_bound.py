@@ -111,8 +111,9 @@ def test_branch_and_bound_backed_by_the_segment_search_stays_honest():
     problem = sensor_grid(20, 8, seed=0)
     budgets = [0.0, 1.0, 2.0]
     best = optima(problem.with_budget(2.0), budgets)
-    answers = BranchAndBoundSolver(max_nodes=2).solve(problem, budgets)
+    answers = BranchAndBoundSolver(max_nodes=2, threads=1).solve(problem, budgets)
     assert any("segment_nodes" in a.stats for a in answers)
+    assert any("segment_enumerated" in a.stats for a in answers)
     for answer, optimum in zip(answers, best, strict=True):
         value = decoy_probability(problem, np.asarray(answer.alteration))
         assert abs(value - answer.solver_probability) <= 1e-9
@@ -129,3 +130,15 @@ def test_bounds_hold_with_weighted_decoys():
 
     checked = sum(check_bounds(weighted_random(seed), [0.0, 1.0, 2.0, 3.0]) for seed in range(12))
     assert checked >= 4
+
+
+def test_threads_are_checked_and_shares_favour_the_next_budget():
+    from misdirect.errors import ProblemError
+
+    with pytest.raises(ProblemError, match="at least 1"):
+        BranchAndBoundSolver(threads=0)
+    assert Deadline(None).front_share(3) is None
+    clock = Deadline(100.0)
+    # the next of 3 pieces gets twice each later one's: 2/4 of what is left, then 1/4 each
+    assert clock.front_share(3) == pytest.approx(50.0, abs=0.5)
+    assert clock.front_share(1) == pytest.approx(100.0, abs=0.5)

@@ -7,8 +7,9 @@
    (on 2 threads: sensor_grid(40, 64) at budgets 0..3, 1.2 million, in 3.4 s and 0.6 GiB;
    sensor_grid(40, 128) at 0..3, 9.5 million, in 30 s and 2.2 GiB). When they would take
    longer (but under ``ENUMERATION_RESERVE`` of the time left), branch-and-bound (4.) goes
-   first, with the time the enumeration leaves (with no limit: ``UNLIMITED_SEARCH`` of the
-   enumeration's time), and the enumeration takes the budgets it did not certify. A curve
+   first, with the time the enumeration leaves (at least ``SEARCH_FIRST`` of it; with no
+   limit: ``UNLIMITED_SEARCH`` of the enumeration's time), and the enumeration takes the
+   budgets it did not certify. A curve
    whose top budget is too large has its small budgets enumerated first, and the rest
    searched from their best answer;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
@@ -70,6 +71,8 @@ INCREMENTAL_LIMIT = MAX_ALTERATIONS  # ... and up to this many when the time lef
 UPDATE_SECONDS = 5e-6  # at about this much each (sensor networks, 2 threads: 2.8-3.1 us)
 ENUMERATION_FIRST = 0.5  # enumerate first when this share of the time left covers it; else
 ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating what is left
+SEARCH_FIRST = 0.25  # ... but giving the search at least this share (H2 at --time-limit 60:
+# its segment search certifies budget 3 in 8 s, the enumeration needs 30 s)
 UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
 UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
@@ -91,9 +94,9 @@ class AutoSolver:
         check_time_limit(time_limit)
         self.enumeration_limit = enumeration_limit
         self.time_limit = time_limit
-        self.branch_and_bound = BranchAndBoundSolver(max_nodes=node_limit)
         self.milp = MilpSolver(**milp_options)  # validates the options up front
-        self.threads = milp_options.get("threads")  # the enumeration honours --threads too
+        self.threads = milp_options.get("threads")  # the enumerations honour --threads too
+        self.branch_and_bound = BranchAndBoundSolver(max_nodes=node_limit, threads=self.threads)
 
     def solve(
         self,
@@ -192,7 +195,7 @@ class AutoSolver:
         if product_states < TINY_CHAIN:
             # a node costs microseconds here, while the MILP's start-up alone costs more
             reason += f"; a tiny chain ({product_states:,} product states): no node limit"
-            search = BranchAndBoundSolver(max_nodes=10**9)
+            search = BranchAndBoundSolver(max_nodes=10**9, threads=self.threads)
         search_deadline, search_s = deadline, _search_before_enumerating(count, deadline)
         if search_s is not None and not instance.cycling.any():
             # the enumeration would likely finish, but not soon: the search goes first (it
@@ -269,7 +272,8 @@ class AutoSolver:
         )
 
     def _branch_and_bound_after(self, problem, budgets, earlier, progress, deadline):
-        solver = BranchAndBoundSolver(max_nodes=10**9)  # the deadline is the only limit now
+        # the deadline is the only limit now
+        solver = BranchAndBoundSolver(max_nodes=10**9, threads=self.threads)
         seeds = [s.alteration for s in earlier]
         return _label(
             solver.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds),
@@ -281,15 +285,18 @@ class AutoSolver:
 def _search_before_enumerating(count: int, deadline: Deadline) -> float | None:
     """Seconds for the search before enumerating ``count`` alterations, or None if they are
     not to be enumerated: within a limit, what the enumeration leaves of the time (if it
-    needs under ``ENUMERATION_RESERVE`` of it); without one, ``UNLIMITED_SEARCH`` of the
-    enumeration's time, so a search that certifies at once saves it, at worst costing that."""
+    needs under ``ENUMERATION_RESERVE`` of it), at least ``SEARCH_FIRST`` of it; without one,
+    ``UNLIMITED_SEARCH`` of the enumeration's time, so a search that certifies at once saves
+    it, at worst costing that."""
     if count > INCREMENTAL_LIMIT:
         return None
     needed = count * UPDATE_SECONDS
     left = deadline.remaining()
     if left is None:
         return UNLIMITED_SEARCH * needed
-    return left - needed / ENUMERATION_RESERVE if needed <= ENUMERATION_RESERVE * left else None
+    if needed > ENUMERATION_RESERVE * left:
+        return None
+    return max(left - needed / ENUMERATION_RESERVE, SEARCH_FIRST * left)
 
 
 def _better(problem: Problem, first: Solution, second: Solution, why: str) -> Solution:

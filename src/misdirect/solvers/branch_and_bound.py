@@ -55,7 +55,7 @@ IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger 
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_MIN_SECONDS = 1.0  # ... when at least this much of the time limit is left
-SEGMENT_SHARE = 0.9  # ... and takes this share of a budget's time (its bound is the tighter)
+SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, this one gets this long first (on H1
 # budget 4 it spent 91 s reaching its node limit; where it certifies, it takes under 1 s)
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
@@ -267,13 +267,22 @@ class BranchAndBoundSolver:
     name = "branch-and-bound"
     curve_is_free = False
 
-    def __init__(self, max_nodes: int = 20_000, time_limit: float | None = None, **options: object):
-        refuse_options(self.name, options, accepted=("time_limit",))
+    def __init__(
+        self,
+        max_nodes: int = 20_000,
+        time_limit: float | None = None,
+        threads: int | None = None,
+        **options: object,
+    ):
+        refuse_options(self.name, options, accepted=("time_limit", "threads"))
         check_time_limit(time_limit)
         if max_nodes < 1:
             raise ProblemError(f"must be at least 1, got {max_nodes}", field="max_nodes")
+        if threads is not None and threads < 1:
+            raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
         self.max_nodes = max_nodes
         self.time_limit = time_limit
+        self.threads = threads  # the segment search's enumerations (default: incremental's)
 
     def solve(
         self,
@@ -336,6 +345,7 @@ class BranchAndBoundSolver:
                 from misdirect.solvers.budget_bound import SegmentRelaxation
 
                 segments = SegmentRelaxation(problem, space, chain, relax, instance)
+                segments.threads = self.threads
             if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
                     segments,

@@ -400,6 +400,7 @@ class SegmentRelaxation:
         self.instance = instance  # the prepared attack: subtrees can then be enumerated
         self.bases: dict = {}  # their base chains, solved once (incremental's _Basis)
         self.outer: list[int] | None = None  # choices outer to the enumeration
+        self.threads: int | None = None  # the enumeration's (None: incremental's default)
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
         self.bound = BudgetBound(chain, self.state_obs, relax.live)
         self.group_of_option = _group_of_option(chain, relax.live)
@@ -435,7 +436,8 @@ class SegmentRelaxation:
         exhaustively with low-rank updates; None when cut by ``deadline``."""
         from misdirect.solvers.incremental import IncrementalSolver
 
-        found = IncrementalSolver().best_with(self.instance, budget, picks, deadline, self.bases)
+        solver = IncrementalSolver(threads=self.threads)
+        found = solver.best_with(self.instance, budget, picks, deadline, self.bases)
         if found is None:
             return None
         value, vector = found

@@ -60,6 +60,7 @@ INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as a
 MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million (3 of 128 sensors)
 THREADS = 2  # corrections computed in parallel by default (both cores of the target machine)
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
+BASES_KEPT = 8  # base chains kept by a search between its enumerations (one per blank pick)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
 
 
@@ -272,6 +273,8 @@ class IncrementalSolver:
             else:
                 key = tuple(int(outer_pick[column]) for column in by_size)
                 if key not in bases:
+                    while len(bases) >= BASES_KEPT:  # the oldest goes (W: up to 400 MB each)
+                        bases.pop(next(iter(bases)))
                     for i in natural:
                         chosen[first_option[i] : first_option[i + 1]] = False
                         chosen[first_option[i]] = True
@@ -410,12 +413,14 @@ class _Basis(NamedTuple):
         d = inside[groups[changed]] - inside[self.groups[changed]]  # (changed, n_live)
         d_b = to_target[groups[changed]] - to_target[self.groups[changed]]
         reach = self.W[:, own]
-        system = np.eye(changed.size) - d @ reach
-        right = np.column_stack([d @ self.x0 + d_b, d @ self.W[:, columns]])
+        d_w = d @ self.W  # (changed, all columns): one pass, no copy of W's columns
+        system = np.eye(changed.size) - d_w[:, own]
+        right = np.column_stack([d @ self.x0 + d_b, d_w[:, columns]])
         z = np.linalg.solve(system, right)
         x0 = self.x0 + reach @ z[:, 0]
-        W = self.W[:, columns] + reach @ z[:, 1:]
-        return np.ascontiguousarray(x0), np.ascontiguousarray(W)
+        W = self.W[:, columns]  # a copy, updated in place
+        W += reach @ z[:, 1:]
+        return x0, W
 
 
 class _Deltas(NamedTuple):
