@@ -16,6 +16,7 @@ alteration (which states can never reach the decoy, which can cycle forever), ne
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -88,6 +89,20 @@ class ChoiceProduct:
     @property
     def groups_per_state(self) -> np.ndarray:
         return np.bincount(self.group_state, minlength=self.n_states)
+
+    @cached_property
+    def group_of_option(self) -> np.ndarray:
+        """(Q, K) group each option selects in each state (its only group if it has one; -1
+        where the state's choice belongs to another observation). Built once per chain: the
+        enumeration, the local search and every node of the segment search read it."""
+        table = np.full((self.n_states, max(self.options.size, 1)), -1, dtype=np.int64)
+        single = self.groups_per_state == 1
+        first = np.zeros(self.n_states, dtype=np.int64)
+        first[self.group_state[::-1]] = np.arange(self.n_groups)[::-1]
+        table[single] = first[single][:, None]
+        coo = self.group_options.tocoo()
+        table[self.group_state[coo.row], coo.col] = coo.row
+        return table
 
     def one_step(self, groups: np.ndarray | None = None) -> np.ndarray:
         """Score collected in one step by each group (all, or ``groups``): the weight of the

@@ -9,9 +9,8 @@
    longer (but under ``ENUMERATION_RESERVE`` of the time left), branch-and-bound (4.) goes
    first, with the time the enumeration leaves (at least ``SEARCH_FIRST`` of it; with no
    limit: ``UNLIMITED_SEARCH`` of the enumeration's time), and the enumeration takes the
-   budgets it did not certify. A curve
-   whose top budget is too large has its small budgets enumerated first, and the rest
-   searched from their best answer;
+   budgets it did not certify. A curve whose top budget is too large has its small budgets
+   enumerated first, and the rest searched from their best answer;
 2. ``exhaustive`` (one exact evaluation per alteration) when at most ``ENUMERATION_LIMIT``
    (300) fit, or when enumerating them all would take at most ``ENUMERATION_SECONDS`` at the
    measured cost of one evaluation (tiny chains: a few hundred product states evaluate in well
@@ -130,12 +129,7 @@ class AutoSolver:
             ordered = sorted(budgets)
             small = [b for b in ordered if enumerable(space.count_within(b, INCREMENTAL_LIMIT))]
             if small:
-                try:
-                    first = IncrementalSolver(threads=self.threads).solve(
-                        problem, small, progress=progress, deadline=deadline
-                    )
-                except NotApplicableError:
-                    first = None
+                first = self._enumerated(problem, small, progress, deadline)
                 if first is not None:
                     note = f"auto: budgets up to {small[-1]:g} enumerated, the rest searched"
                     report(progress, 0, 0, note=note)
@@ -151,13 +145,10 @@ class AutoSolver:
                     found.update(zip(rest, later, strict=True))
                     return [found[b] for b in budgets]
         if enumerable(count):
-            try:
-                solutions = IncrementalSolver(threads=self.threads).solve(
-                    problem, budgets, progress=progress, deadline=deadline
-                )
+            solutions = self._enumerated(problem, budgets, progress, deadline)
+            if solutions is not None:
                 return _label(solutions, "incremental", reason)
-            except NotApplicableError:
-                reason += "; no low-rank updates: the chain can cycle without reaching the decoy"
+            reason += "; no low-rank updates: the chain can cycle without reaching the decoy"
         if count <= self.enumeration_limit or (
             count <= INCREMENTAL_LIMIT and count * _evaluation_time(problem) <= ENUMERATION_SECONDS
         ):
@@ -256,14 +247,18 @@ class AutoSolver:
             solutions[j] = _better(problem, solutions[j], second, why)
         return solutions
 
-    def _incremental_after(self, problem, budgets, earlier, progress, deadline):
+    def _enumerated(self, problem, budgets, progress, deadline) -> list[Solution] | None:
+        """The enumeration's answers, or None where it does not apply (the chain can cycle)."""
         try:
-            solutions = IncrementalSolver(threads=self.threads).solve(
+            return IncrementalSolver(threads=self.threads).solve(
                 problem, budgets, progress=progress, deadline=deadline
             )
         except NotApplicableError:
-            return earlier
-        return _label(solutions, "incremental", "")
+            return None
+
+    def _incremental_after(self, problem, budgets, earlier, progress, deadline):
+        solutions = self._enumerated(problem, budgets, progress, deadline)
+        return earlier if solutions is None else _label(solutions, "incremental", "")
 
     def _milp_after(self, problem, budgets, earlier, progress, deadline):
         del earlier  # the MILP warm-starts from its own previous budget

@@ -109,7 +109,6 @@ class _Relaxation:
         self.live_groups = self.live[chain.group_state]
         # live states whose group says which candidates they use (for rounding policies)
         self.choosing = self.live & (chain.groups_per_state > 1)
-        self.group_of_option: np.ndarray | None = None  # built on first use (local search)
         self.evaluations = 0
 
     def allowed_options(self, picks: Sequence[int], remaining: float) -> np.ndarray:
@@ -193,10 +192,6 @@ class _Relaxation:
         for the pruning and for answers cut short by the time limit.
         """
         chain, live = self.chain, self.live
-        if self.group_of_option is None:
-            from misdirect.solvers.incremental import _group_of_option
-
-            self.group_of_option = _group_of_option(chain, live)
         inner = np.flatnonzero(live)
         if inner.size == 0 or not self.order:
             return picks, value
@@ -227,7 +222,7 @@ class _Relaxation:
                 for k in np.flatnonzero(spent - costs[current] + costs <= budget + BUDGET_SLACK):
                     if k == current:
                         continue
-                    groups = self.group_of_option[owned, first + k]
+                    groups = chain.group_of_option[owned, first + k]
                     gain = visits[position[owned]] @ (score[groups] - values[owned])
                     moves.append((float(gain), position_in_order, int(k)))
             moves.sort(reverse=True)
@@ -344,8 +339,9 @@ class BranchAndBoundSolver:
             if answers[j].status != Status.OPTIMAL and segment_applies and segments is None:
                 from misdirect.solvers.budget_bound import SegmentRelaxation
 
-                segments = SegmentRelaxation(problem, space, chain, relax, instance)
-                segments.threads = self.threads
+                segments = SegmentRelaxation(
+                    problem, space, chain, relax, instance, threads=self.threads
+                )
             if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
                     segments,

@@ -393,17 +393,14 @@ class _ModeMdp:
 class SegmentRelaxation:
     """Node bounds of :class:`SegmentSearch`: the segment MDP, and its Lagrangian."""
 
-    def __init__(self, problem, space, chain, relax, instance=None):
-        from misdirect.solvers.incremental import _group_of_option
-
+    def __init__(self, problem, space, chain, relax, instance=None, threads=None):
         self.problem, self.space, self.chain, self.relax = problem, space, chain, relax
         self.instance = instance  # the prepared attack: subtrees can then be enumerated
         self.bases: dict = {}  # their base chains, solved once (incremental's _Basis)
         self.outer: list[int] | None = None  # choices outer to the enumeration
-        self.threads: int | None = None  # the enumeration's (None: incremental's default)
+        self.threads = threads  # the enumeration's (None: incremental's default)
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
         self.bound = BudgetBound(chain, self.state_obs, relax.live)
-        self.group_of_option = _group_of_option(chain, relax.live)
         self.order = relax.order  # observations (choice indices) that own live states
         self.entries: dict[int, float] | None = None  # M_o, per choice index
         live = relax.live
@@ -451,7 +448,7 @@ class SegmentRelaxation:
         """Per free observation: its affordable options that change some live state."""
         relax, live = self.relax, self.relax.live
         found = []
-        default = self.group_of_option
+        default = self.chain.group_of_option
         for i in self.order:
             if i in picks:
                 continue

@@ -211,6 +211,12 @@ class IncrementalSolver:
         live_index[live] = np.arange(int(live.sum()))
         state_obs = problem.pomdp.observation_of[chain.world_state]
         rows_of = {o: np.flatnonzero(live & (state_obs == o)) for o in observations}
+
+        def rows_within(choices: list[int]) -> np.ndarray:
+            """The live product states of ``choices``' observations, choice by choice."""
+            parts = (rows_of[observations[i]] for i in choices)
+            return np.concatenate([np.zeros(0, dtype=np.int64), *parts]).astype(np.int64)
+
         natural = inner_choices(instance)
         inner = [i for i in natural if i not in fixed]  # fixed ones: outer, with one option
         outer = [i for i in range(len(observations)) if i not in inner]
@@ -220,7 +226,7 @@ class IncrementalSolver:
 
         # per state: the group each option selects (single-group states: that group)
         first_option = np.concatenate([[0], np.cumsum([c.size for c in space.choices])])
-        group_of_option = _group_of_option(chain, live)
+        group_of_option = chain.group_of_option
         to_target = chain.one_step()
         inside = chain.transitions[:, np.flatnonzero(live)].tocsr()  # (G, n_live)
         start = int(live_index[chain.initial]) if live[chain.initial] else -1
@@ -264,9 +270,7 @@ class IncrementalSolver:
             for i in inner:
                 chosen[first_option[i]] = True  # inner observations unaltered in the base
             base_groups = _selected(chain, live, group_of_option, chosen)
-            rows = np.concatenate(
-                [np.zeros(0, dtype=np.int64), *(rows_of[observations[i]] for i in inner)]
-            ).astype(np.int64)
+            rows = rows_within(inner)
             local = live_index[rows]
             if bases is None:
                 x0, W = _base_solve(inside, to_target, base_groups, local, live_node)
@@ -275,15 +279,13 @@ class IncrementalSolver:
                 if key not in bases:
                     while len(bases) >= BASES_KEPT:  # the oldest goes (W: up to 400 MB each)
                         bases.pop(next(iter(bases)))
+                    unaltered = chosen.copy()  # the fixed inner ones too
                     for i in natural:
-                        chosen[first_option[i] : first_option[i + 1]] = False
-                        chosen[first_option[i]] = True
-                    root_groups = _selected(chain, live, group_of_option, chosen)
-                    root_rows = np.concatenate(
-                        [np.zeros(0, dtype=np.int64), *(rows_of[observations[i]] for i in natural)]
-                    ).astype(np.int64)
+                        unaltered[first_option[i] : first_option[i + 1]] = False
+                        unaltered[first_option[i]] = True
+                    root_groups = _selected(chain, live, group_of_option, unaltered)
                     bases[key] = _Basis.of(
-                        inside, to_target, root_groups, live_index[root_rows], live_node
+                        inside, to_target, root_groups, live_index[rows_within(natural)], live_node
                     )
                 x0, W = bases[key].updated(inside, to_target, base_groups, local)
             deltas = _deltas(
@@ -359,11 +361,9 @@ class IncrementalSolver:
 def inner_choices(instance: AttackInstance) -> list[int]:
     """The choices enumerated inside a block (the others are outer: one base solve per pick):
     the smallest regions first, while ``W`` (live states x their rows) stays small."""
-    space, chain, live = instance.space, instance.chain, instance.live
-    state_obs = instance.problem.pomdp.observation_of[chain.world_state[live]]
-    sizes = np.bincount(state_obs, minlength=instance.problem.pomdp.n_observations)
-    size_of = [int(sizes[c.observation]) for c in space.choices]
-    n_live = int(live.sum())
+    sizes = instance.live_states_per_observation
+    size_of = [int(sizes[c.observation]) for c in instance.space.choices]
+    n_live = int(instance.live.sum())
     # every inner row saves the outer enumeration a factor; W's memory caps them
     inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
     inner, total = [], 0
@@ -406,7 +406,7 @@ class _Basis(NamedTuple):
         changed = np.flatnonzero(groups != self.groups)
         columns = self.position[local]
         if not changed.size:
-            return self.x0, np.ascontiguousarray(self.W[:, columns])
+            return self.x0, self.W[:, columns]  # a fancy index: a contiguous copy
         own = self.position[changed]
         if (own < 0).any() or (columns < 0).any():
             raise AssertionError("a basis covers every row that may be altered")
@@ -642,20 +642,6 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
         z = np.linalg.solve(schur, right[..., None])[..., 0]
         out[pick] += np.einsum("nj,nj->n", grad, z)
     return out
-
-
-def _group_of_option(chain, live) -> np.ndarray:
-    """(Q, K) group index each option selects in each state (its only group if it has one)."""
-    n_states, n_options = chain.n_states, chain.options.size
-    table = np.full((n_states, max(n_options, 1)), -1, dtype=np.int64)
-    single = chain.groups_per_state == 1
-    first = np.zeros(n_states, dtype=np.int64)
-    first[chain.group_state[::-1]] = np.arange(chain.n_groups)[::-1]
-    table[single] = first[single][:, None]
-    coo = chain.group_options.tocoo()
-    table[chain.group_state[coo.row], coo.col] = coo.row
-    # options of other observations leave a multi-group state's choice to its own observation
-    return table
 
 
 def _selected(chain, live, group_of_option, chosen) -> np.ndarray:
