@@ -79,29 +79,26 @@ class _PolicyIteration:
     def first_rows(self) -> np.ndarray:
         return self.sorted_rows[self.state_start]
 
-    def evaluate(self, policy: np.ndarray, reward: np.ndarray, extra=None):
-        """Values of the chain that takes row ``policy[x]`` in ``x``; ``extra``: further
-        right-hand sides (per row) solved with the same factorisation."""
+    def factorise(self, policy: np.ndarray):
+        """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves
+        for any reward on it (``solve``), and for visits (``solve(·, trans="T")``)."""
         self.evaluations += 1
-        system = (sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc()
-        lu = splu(system)
-        values = lu.solve(reward[policy])
-        if extra is None:
-            return values, None
-        return values, lu.solve(extra[policy])
+        return splu((sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc())
 
     def optimise(self, reward: np.ndarray, policy: np.ndarray | None = None):
+        """(values, optimal policy, its factorisation), from ``policy`` (default: first rows)."""
         if policy is None:
             policy = self.first_rows()
         while True:
-            values, _ = self.evaluate(policy, reward)
+            lu = self.factorise(policy)
+            values = lu.solve(reward[policy])
             score = self.matrix @ values + reward
             order = np.lexsort((-score, self.row_state))
             best = order[self.state_start]
             gain = score[best] - score[policy]
             switch = gain > IMPROVE_TOLERANCE * np.maximum(1.0, np.abs(values))
             if not switch.any():
-                return values, policy
+                return values, policy, lu
             policy = np.where(switch, best, policy)
 
 
@@ -115,6 +112,19 @@ class BudgetBound:
         self.live_index = np.full(chain.n_states, -1)
         self.live_states = np.flatnonzero(live)
         self.live_index[self.live_states] = np.arange(self.live_states.size)
+        # each observation's region (its live states, ascending) and every live state's rank
+        # in its region: a layer copy of the region keeps that order
+        by_obs = self.live_states[np.argsort(state_obs[self.live_states], kind="stable")]
+        obs_sorted = state_obs[by_obs]
+        bounds = np.flatnonzero(np.concatenate([[True], obs_sorted[1:] != obs_sorted[:-1]]))
+        bounds = bounds[: by_obs.size]  # none without live states
+        ends = np.append(bounds[1:], by_obs.size)[: bounds.size]
+        self.region = {
+            int(obs_sorted[b]): by_obs[b:e]
+            for b, e in zip(bounds.tolist(), ends.tolist(), strict=True)
+        }
+        self.rank_in_region = np.full(chain.n_states, -1)
+        self.rank_in_region[by_obs] = np.arange(by_obs.size) - np.repeat(bounds, ends - bounds)
         self.evaluations = 0
 
     @classmethod
@@ -125,92 +135,32 @@ class BudgetBound:
             return None
         return cls(chain, state_obs, live)
 
-    # -- the node's MDPs ---------------------------------------------------------------------
-    def _live_groups(self, allowed: np.ndarray) -> np.ndarray:
-        return np.flatnonzero(allowed & self.live[self.chain.group_state])
-
-    def entries(self, allowed: np.ndarray, observations: np.ndarray) -> np.ndarray:
-        """Per observation in ``observations``: the maximal expected number of entries into its
-        live region, from the start, over the schedulers using the ``allowed`` groups."""
-        chain, live = self.chain, self.live
-        groups = self._live_groups(allowed)
-        rows = chain.transitions[groups].tocoo()
-        source_state = chain.group_state[groups][rows.row]
-        keep = live[rows.col]
-        row, col, prob = rows.row[keep], rows.col[keep], rows.data[keep]
-        src_obs = self.state_obs[source_state[keep]]
-        dst_obs = self.state_obs[col]
-        n_live = self.live_states.size
-        matrix = sp.csr_matrix((prob, (row, self.live_index[col])), shape=(groups.size, n_live))
-        solver = _PolicyIteration(self.live_index[chain.group_state[groups]], matrix, n_live)
-        start = self.live_index[chain.initial]
-        result = np.zeros(observations.size)
-        if start < 0:
-            return result
-        policy = None
-        crossing = src_obs != dst_obs
-        for j, o in enumerate(observations.tolist()):
-            hit = crossing & (dst_obs == o)
-            reward = np.bincount(row[hit], weights=prob[hit], minlength=groups.size)
-            if not reward.any():
-                result[j] = 1.0 if self.state_obs[chain.initial] == o else 0.0
-                continue
-            values, policy = solver.optimise(reward, policy)
-            result[j] = values[start] + (1.0 if self.state_obs[chain.initial] == o else 0.0)
-        self.evaluations += solver.evaluations
-        return result
-
-    def lagrangian(
-        self,
-        default_group: np.ndarray,
-        layers,
-        charges,
-        remaining: float,
-        *,
-        stop_below: float = -np.inf,
-        max_multipliers: int = 12,
-    ) -> LagrangeResult:
-        """min over λ ≥ 0 (as found) of ``λ remaining + G(λ)``.
-
-        ``default_allowed``/``deviate_allowed``: groups a state may take in the default and the
-        deviate mode (equal for fixed and irrelevant observations); ``unit``: per product state,
-        the charge per unit of λ for deviating on entering its region (0 where the state's
-        observation is not free). Stops once a bound at most ``stop_below`` is found.
-        """
-        return self.lagrangian_on(
-            _ModeMdp(self, default_group, layers, charges),
-            remaining,
-            stop_below=stop_below,
-            max_multipliers=max_multipliers,
-        )[0]
-
-    def lagrangian_on(self, mdp, remaining, *, stop_below=-np.inf, max_multipliers=12):
-        """(result, policy at the best multiplier) of the Lagrangian on a built segment MDP."""
-        charges = mdp.charge
+    def lagrangian_on(self, mdp, remaining, *, stop_below=-np.inf, max_multipliers=12, policy=None):
+        """(result, policy at the best multiplier, its factorisation) of the Lagrangian on a
+        built segment MDP; policy iteration starts from ``policy`` (a parent's, say)."""
         start = mdp.start
         if start is None:
             value = float(self.chain.target_value[self.chain.initial])
-            return LagrangeResult(value, 0.0, 0, 0), None
+            return LagrangeResult(value, 0.0, 0, 0), None, None
         lines: list[tuple[float, float]] = []  # (value at λ, slope) of h at the multipliers tried
         best = (np.inf, 0.0)
-        policy = best_policy = None
+        best_policy = best_lu = None
         lam = 0.0
-        positive = charges[charges > 0]
+        positive = mdp.charge[mdp.charge > 0]
         high = 1.0 / max(float(positive.min(initial=1.0)), 1e-300)
         if not positive.size:
             max_multipliers = 1  # nothing is charged: λ changes nothing
         lo_line = hi_line = None
         for _ in range(max_multipliers):
             reward = mdp.reward_const - lam * mdp.charge
-            values, policy = mdp.solver.optimise(reward, policy)
-            _, charges = mdp.solver.evaluate(policy, reward, extra=mdp.charge)
+            values, policy, lu = mdp.solver.optimise(reward, policy)
             g = float(values[start])
-            k = float(charges[start])
+            k = float(lu.solve(mdp.charge[policy])[start]) if positive.size else 0.0
             h = lam * remaining + g
             slope = remaining - k
             if h < best[0]:
                 best = (h, lam)
-                best_policy = policy
+                best_policy, best_lu = policy, lu
             if best[0] <= stop_below:
                 break
             lines.append((lam, h, slope))
@@ -236,7 +186,8 @@ class BudgetBound:
                 break
             lam = cross
         self.evaluations += mdp.solver.evaluations
-        return LagrangeResult(best[0], best[1], len(lines), mdp.solver.evaluations), best_policy
+        result = LagrangeResult(best[0], best[1], len(lines), mdp.solver.evaluations)
+        return result, best_policy, best_lu
 
 
 class _ModeMdp:
@@ -249,29 +200,31 @@ class _ModeMdp:
     of a free observation from another observation's state arrives at an *entry* state, where
     the scheduler picks the layer of the segment: default (free) or ``(o, k)`` (charged
     ``λ · charge[(o, k)]``). Within a segment the layer stays; the only choices are at entries.
+
+    Rows, in order: the default layer's, the layer copies', the entries' default choices, the
+    entries' layer choices (layer by layer, each in its region's order).
     """
 
-    def __init__(self, owner: BudgetBound, default_group: np.ndarray, layers, charges):
+    def __init__(self, owner: BudgetBound, default_group: np.ndarray, layers, charges, keys=None):
         """``default_group``: per product state, its group in the default layer (-1 if not
         live); ``layers``: list of (observation, group per product state of it);
-        ``charges``: per layer, the charge per unit of λ."""
+        ``charges``: per layer, the charge per unit of λ; ``keys``: per layer, a number naming
+        it across nodes (for :meth:`entry_choices` and :meth:`policy_from`)."""
         chain, live, state_obs = owner.chain, owner.live, owner.state_obs
-        live_states, live_index = owner.live_states, owner.live_index
+        live_states, live_index, rank = owner.live_states, owner.live_index, owner.rank_in_region
         n_live = live_states.size
-        free_obs = sorted({o for o, _ in layers})
-        free = live & np.isin(state_obs, free_obs)
+        layer_obs = np.array([o for o, _ in layers], dtype=np.int64)
+        free = live & np.isin(state_obs, layer_obs)
         free_states = np.flatnonzero(free)
         entry_index = np.full(chain.n_states, -1)
         entry_index[free_states] = n_live + np.arange(free_states.size)
-        offset = n_live + free_states.size
-        layer_maps = []
-        for o, groups in layers:
-            states = np.flatnonzero(live & (state_obs == o))
-            index = np.full(chain.n_states, -1)
-            index[states] = offset + np.arange(states.size)
-            offset += states.size
-            layer_maps.append((states, index, groups[states]))
-        n = offset
+        regions = [owner.region[o] for o, _ in layers]
+        sizes = np.array([r.size for r in regions], dtype=np.int64)
+        layer_of = np.repeat(np.arange(len(layers)), sizes)  # per layer copy state
+        layer_states = np.concatenate([np.zeros(0, dtype=np.int64), *regions])
+        first_copy = n_live + free_states.size + np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        copy_index = first_copy[layer_of] + rank[layer_states]  # per layer copy state
+        n = n_live + free_states.size + layer_states.size
         self.n = n
         if not live[chain.initial]:
             self.start = None
@@ -281,88 +234,84 @@ class _ModeMdp:
             )
         target = chain.target_value  # the decoy's value per state (its weight; 1 by default)
 
-        def rows(sources, groups, index_of_same):
-            """Rows of the given (source state, group) pairs; moves within the source's
-            observation go to ``index_of_same``, others to the entry (or default) state."""
-            coo = chain.transitions[groups].tocoo()
-            to_target = np.bincount(
-                coo.row, weights=coo.data * target[coo.col], minlength=groups.size
-            )
-            keep = live[coo.col]
-            r, c, p = coo.row[keep], coo.col[keep], coo.data[keep]
-            same = state_obs[sources[r]] == state_obs[c]
-            entry = np.where(free[c], entry_index[c], live_index[c])
-            dest = np.where(same, index_of_same[c], entry)
-            return r, dest, p, to_target
-
-        parts = []  # (row states, r, dest, p, reward_const, charge)
-        parts.append(
-            (
-                live_index[live_states],
-                *rows(live_states, default_group[live_states], live_index),
-                np.zeros(n_live),
-            )
-        )
-        for states, index, groups in layer_maps:
-            r, dest, p, to_target = rows(states, groups, index)
-            parts.append((index[states], r, dest, p, to_target, np.zeros(states.size)))
+        # the default layer's and the copies' rows, all at once: a move within the source's
+        # observation stays in its layer, another goes to the entry (or default) state
+        sources = np.concatenate([live_states, layer_states])
+        groups = np.concatenate(
+            [
+                default_group[live_states],
+                *(g[r] for (_, g), r in zip(layers, regions, strict=True)),
+            ]
+        ).astype(np.int64)
+        same_layer = np.concatenate([np.full(n_live, -1), first_copy[layer_of]])
+        coo = chain.transitions[groups].tocoo()
+        to_target = np.bincount(coo.row, weights=coo.data * target[coo.col], minlength=groups.size)
+        keep = live[coo.col]
+        r, c, p = coo.row[keep], coo.col[keep], coo.data[keep]
+        same = state_obs[sources[r]] == state_obs[c]
+        within = np.where(same_layer[r] >= 0, same_layer[r] + rank[c], live_index[c])
+        elsewhere = np.where(free[c], entry_index[c], live_index[c])
+        dest = np.where(same, within, elsewhere)
+        n_moving = groups.size
         # entry choices: the default layer (free) or a layer of its observation (charged)
-        entry_states = entry_index[free_states]
-        self.entry_rows_start = sum(p[0].size for p in parts)
-        parts.append(
-            (
-                entry_states,
-                np.arange(free_states.size),
-                live_index[free_states],
-                np.ones(free_states.size),
-                np.zeros(free_states.size),
-                np.zeros(free_states.size),
-            )
-        )
-        for (states, index, _), charge in zip(layer_maps, charges, strict=True):
-            parts.append(
-                (
-                    entry_index[states],
-                    np.arange(states.size),
-                    index[states],
-                    np.ones(states.size),
-                    np.zeros(states.size),
-                    np.full(states.size, charge),
-                )
-            )
-        row_state, r_all, c_all, p_all, const, charge_all = [], [], [], [], [], []
-        base = 0
-        for row_states, r, dest, p, to_target, charge in parts:
-            row_state.append(row_states)
-            r_all.append(r + base)
-            c_all.append(dest)
-            p_all.append(p)
-            const.append(to_target)
-            charge_all.append(charge)
-            base += row_states.size
+        self.entry_rows_start = n_moving
+        self.layer_entry_start = n_moving + free_states.size + (first_copy - first_copy[:1])
+        entry_source = np.concatenate([entry_index[free_states], entry_index[layer_states]])
+        entry_dest = np.concatenate([live_index[free_states], copy_index])
+        n_entries = entry_source.size
+        entry_rows = n_moving + np.arange(n_entries)
         self.matrix = sp.csr_matrix(
-            (np.concatenate(p_all), (np.concatenate(r_all), np.concatenate(c_all))),
-            shape=(base, n),
+            (
+                np.concatenate([p, np.ones(n_entries)]),
+                (np.concatenate([r, entry_rows]), np.concatenate([dest, entry_dest])),
+            ),
+            shape=(n_moving + n_entries, n),
         )
-        self.reward_const = np.concatenate(const)
-        self.charge = np.concatenate(charge_all)
-        self.solver = _PolicyIteration(np.concatenate(row_state).astype(np.int64), self.matrix, n)
+        self.reward_const = np.concatenate([to_target, np.zeros(n_entries)])
+        charge = np.asarray(charges, dtype=float)
+        self.charge = np.concatenate(
+            [np.zeros(n_moving + free_states.size), charge[layer_of] if layers else []]
+        )
+        row_state = np.concatenate([np.arange(n_live), copy_index, entry_source]).astype(np.int64)
+        self.solver = _PolicyIteration(row_state, self.matrix, n)
         self.layer_of_row = np.full(self.matrix.shape[0], -1)
-        position = self.entry_rows_start + free_states.size
-        for j, (states, _, _) in enumerate(layer_maps):
-            self.layer_of_row[position : position + states.size] = j
-            position += states.size
+        self.layer_of_row[n_moving + free_states.size :] = layer_of
         self.entry_obs = np.full(n, -1)
         self.entry_obs[entry_index[free_states]] = state_obs[free_states]
+        self.free_states, self.entry_index = free_states, entry_index
+        self.keys = np.arange(len(layers)) if keys is None else np.asarray(keys, dtype=np.int64)
+        self.rank = rank
 
-    def layer_usage(self, policy: np.ndarray, n_layers: int) -> np.ndarray:
-        """Per layer: the expected number of entries that choose it, under ``policy``."""
+    def entry_choices(self, policy: np.ndarray) -> dict[int, np.ndarray]:
+        """Per layer key chosen somewhere: the product states whose entries choose it."""
+        layer = self.layer_of_row[policy[self.entry_index[self.free_states]]]
+        chosen = layer >= 0
+        states, layer = self.free_states[chosen], layer[chosen]
+        return {int(self.keys[j]): states[layer == j] for j in np.unique(layer).tolist()}
+
+    def policy_from(self, choices: dict[int, np.ndarray] | None) -> np.ndarray | None:
+        """A policy that makes the entry choices of ``choices`` (another node's, from
+        :meth:`entry_choices`) where this MDP has them, the default elsewhere."""
+        if not choices:
+            return None
+        policy = self.solver.first_rows()  # the lowest row: an entry's default choice
+        position = {int(key): j for j, key in enumerate(self.keys.tolist())}
+        for key, states in choices.items():
+            j = position.get(key)
+            if j is None:
+                continue
+            states = states[self.entry_index[states] >= 0]
+            policy[self.entry_index[states]] = self.layer_entry_start[j] + self.rank[states]
+        return policy
+
+    def layer_usage(self, policy: np.ndarray, lu, n_layers: int) -> np.ndarray:
+        """Per layer: the expected number of entries that choose it, under ``policy`` (``lu``
+        its factorisation: the visits solve the transposed system)."""
         if self.start is None:
             return np.zeros(n_layers)
-        system = (sp.identity(self.n, format="csc") - self.matrix[policy]).T.tocsc()
         e = np.zeros(self.n)
         e[self.start] = 1.0
-        visits = splu(system).solve(e)
+        visits = lu.solve(e, trans="T")
         layer = self.layer_of_row[policy]
         chosen = layer >= 0
         return np.bincount(layer[chosen], weights=visits[chosen], minlength=n_layers)
@@ -385,7 +334,7 @@ class _ModeMdp:
             if not reward.any():
                 result[j] = first
                 continue
-            values, policy = self.solver.optimise(reward, policy)
+            values, policy, _ = self.solver.optimise(reward, policy)
             result[j] = values[self.start] + first
         return result
 
@@ -446,7 +395,7 @@ class SegmentRelaxation:
 
     def layers_of(self, picks: dict[int, int], remaining: float):
         """Per free observation: its affordable options that change some live state."""
-        relax, live = self.relax, self.relax.live
+        relax = self.relax
         found = []
         default = self.chain.group_of_option
         for i in self.order:
@@ -454,7 +403,7 @@ class SegmentRelaxation:
                 continue
             choice = self.space.choices[i]
             first = relax.first_option[i]
-            states = np.flatnonzero(live & (self.state_obs == choice.observation))
+            states = self.bound.region[choice.observation]
             base = default[states, first]
             for k in range(1, choice.size):
                 if choice.costs[k] > remaining + BUDGET_SLACK:
@@ -480,8 +429,9 @@ class SegmentRelaxation:
         self.entries = dict(zip(observations, values.tolist(), strict=True))
         self.bound.evaluations += mdp.solver.evaluations
 
-    def node(self, picks: dict[int, int], remaining: float, stop_below: float):
-        """(bound, per layer usage, layers) of the node."""
+    def node(self, picks: dict[int, int], remaining: float, stop_below: float, warm=None):
+        """(bound, per layer usage, layers, entry choices) of the node; its policy iteration
+        starts from ``warm``, the entry choices of another node (its parent's, say)."""
         layers = self.layers_of(picks, remaining)
         default_group = self.relax.policy_of(self.complete(picks))
         if self.entries is None:
@@ -498,12 +448,17 @@ class SegmentRelaxation:
             default_group,
             [(self.space.choices[i].observation, g) for i, _, g in layers],
             charges,
+            keys=[self.relax.first_option[i] + k for i, k, _ in layers],
         )
-        result, policy = self.bound.lagrangian_on(mdp, remaining, stop_below=stop_below)
+        result, policy, lu = self.bound.lagrangian_on(
+            mdp, remaining, stop_below=stop_below, policy=mdp.policy_from(warm)
+        )
         usage = np.zeros(len(layers))
+        choices = None
         if policy is not None and layers:
-            usage = mdp.layer_usage(policy, len(layers))
-        return result, usage, layers
+            usage = mdp.layer_usage(policy, lu, len(layers))
+            choices = mdp.entry_choices(policy)
+        return result, usage, layers, choices
 
 
 PRUNE_TOLERANCE = 1e-9
@@ -558,12 +513,13 @@ class SegmentSearch:
         else:
             self._push({}, budget, np.inf)
 
-    def _push(self, picks, remaining, bound, bounded=False):
-        """``bounded``: ``bound`` is the node's own (not its parent's)."""
+    def _push(self, picks, remaining, bound, bounded=False, warm=None):
+        """``bounded``: ``bound`` is the node's own (not its parent's); ``warm``: the entry
+        choices of its parent's bound, where its policy iteration starts."""
         import heapq
 
         self.counter += 1
-        heapq.heappush(self.heap, (-bound, self.counter, picks, remaining, bounded))
+        heapq.heappush(self.heap, (-bound, self.counter, picks, remaining, bounded, warm))
 
     def _enumerate(self, picks, remaining, count, bound, deadline) -> bool:
         """Enumerate the node's completions; False (the node left open) if cut short."""
@@ -621,7 +577,7 @@ class SegmentSearch:
                 return "feasible"
             if tick is not None and self.nodes % 16 == 0:
                 tick()
-            negative, _, picks, remaining, bounded = heapq.heappop(self.heap)
+            negative, _, picks, remaining, bounded, warm = heapq.heappop(self.heap)
             if self._prune(-negative):
                 continue
             count = self.enumerate_at + 1
@@ -634,7 +590,9 @@ class SegmentSearch:
                     continue
             self.nodes += 1
             began = time.perf_counter()
-            result, usage, layers = seg.node(picks, remaining, self.best_value + PRUNE_TOLERANCE)
+            result, usage, layers, entry_choices = seg.node(
+                picks, remaining, self.best_value + PRUNE_TOLERANCE, warm
+            )
             last_node_s = time.perf_counter() - began
             bound = min(float(result.bound), seg.problem.objective.max_value)
             if self.root_bound is None:
@@ -687,7 +645,9 @@ class SegmentSearch:
             for k in ranked:
                 child = dict(picks)
                 child[branch] = int(k)
-                self._push(child, remaining - float(choices[branch].costs[k]), bound)
+                self._push(
+                    child, remaining - float(choices[branch].costs[k]), bound, warm=entry_choices
+                )
         return "optimal"
 
 
