@@ -269,11 +269,24 @@ class IncrementalSolver:
                 chosen[first_option[i] + k] = True
             for i in inner:
                 chosen[first_option[i]] = True  # inner observations unaltered in the base
-            base_groups = _selected(chain, live, group_of_option, chosen)
-            rows = rows_within(inner)
-            local = live_index[rows]
             if bases is None:
-                x0, W = _base_solve(inside, to_target, base_groups, local, live_node)
+                base_groups = _selected(chain, live, group_of_option, chosen)
+                rows = rows_within(inner)
+                x0, W = _base_solve(inside, to_target, base_groups, live_index[rows], live_node)
+                deltas = _deltas(
+                    [
+                        group_of_option[
+                            rows_of[observations[i]], first_option[i] : first_option[i + 1]
+                        ]
+                        for i in inner
+                    ],
+                    base_groups[live_index[rows]],
+                    inside,
+                    to_target,
+                    x0,
+                    W,
+                )
+                x_start, w_start = (x0[start], W[start]) if start >= 0 else (0.0, None)
             else:
                 key = tuple(int(outer_pick[column]) for column in by_size)
                 if key not in bases:
@@ -285,20 +298,23 @@ class IncrementalSolver:
                         unaltered[first_option[i]] = True
                     root_groups = _selected(chain, live, group_of_option, unaltered)
                     bases[key] = _Basis.of(
-                        inside, to_target, root_groups, live_index[rows_within(natural)], live_node
+                        inside,
+                        to_target,
+                        root_groups,
+                        [rows_of[observations[i]] for i in natural],
+                        [
+                            group_of_option[:, first_option[i] : first_option[i + 1]]
+                            for i in natural
+                        ],
+                        live_index,
+                        live_node,
                     )
-                x0, W = bases[key].updated(inside, to_target, base_groups, local)
-            deltas = _deltas(
-                [
-                    group_of_option[rows_of[observations[i]], first_option[i] : first_option[i + 1]]
-                    for i in inner
-                ],
-                base_groups[live_index[rows]],
-                inside,
-                to_target,
-                x0,
-                W,
-            )
+                position = {i: j for j, i in enumerate(natural)}
+                x_start, w_start, deltas = bases[key].with_fixed(
+                    [(position[i], fixed[i]) for i in natural if i in fixed],
+                    [position[i] for i in inner],
+                    start,
+                )
             factored = time.perf_counter()
             # an option that changes no live row is worth its base value at a higher cost
             altered = space.altered_within(
@@ -313,9 +329,9 @@ class IncrementalSolver:
             evaluations += len(inner_costs)
             found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
             if start >= 0:
-                found[:] = x0[start]
+                found[:] = x_start
                 corrected = _add_corrections(
-                    found, altered, deltas, W[start], deadline, threads=self.threads
+                    found, altered, deltas, w_start, deadline, threads=self.threads
                 )
                 if not corrected.all():  # cut short: those alterations were not evaluated
                     left = float(inner_costs[~corrected].min()) + outer_cost
@@ -386,41 +402,67 @@ def _base_solve(inside, to_target, base_groups, local, live_node):
 
 
 class _Basis(NamedTuple):
-    """A base chain solved for every row that may be altered, so that a chain differing from
-    it in a few of those rows needs no solve: Woodbury on the rows that differ."""
+    """A base chain (every sensor unaltered) solved for every row that may be altered, with
+    the row differences of every option (:class:`_Deltas`, over every inner choice): a chain
+    that fixes some sensors' options needs no solve, nor any pass over the chain's states.
+    Woodbury on the fixed sensors' rows updates the options' table in low rank."""
 
-    groups: np.ndarray
     x0: np.ndarray
     W: np.ndarray
-    position: np.ndarray  # per live state: its column of W (-1: none)
+    options: _Deltas
 
     @staticmethod
-    def of(inside, to_target, groups, local, live_node) -> _Basis:
+    def of(inside, to_target, groups, regions, option_groups, live_index, live_node) -> _Basis:
+        """``groups``: per live state, its group in the base; ``regions``: per inner choice,
+        its live states; ``option_groups``: per inner choice, per state its group under each
+        option."""
+        rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
+        local = live_index[rows]
         x0, W = _base_solve(inside, to_target, groups, local, live_node)
-        position = np.full(inside.shape[1], -1)
-        position[local] = np.arange(local.size)
-        return _Basis(groups, x0, W, position)
+        options = _deltas(
+            [g[region] for g, region in zip(option_groups, regions, strict=True)],
+            groups[local],
+            inside,
+            to_target,
+            x0,
+            W,
+        )
+        return _Basis(x0, W, options)
 
-    def updated(self, inside, to_target, groups, local) -> tuple[np.ndarray, np.ndarray]:
-        """``x0`` and ``W`` on the rows ``local`` of the chain that takes ``groups``."""
-        changed = np.flatnonzero(groups != self.groups)
-        columns = self.position[local]
+    def with_fixed(self, fixed, inner, start: int):
+        """(value at the start, its row of ``W``, options' table of the ``inner`` choices) of
+        the chain whose choices ``fixed`` (position, option) take those options: with ``F``
+        their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``, every row
+        difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its right-hand
+        side likewise) and the start's row ``W' = W + W_F Z``."""
+        table = self.options
+        if fixed:
+            changed = np.concatenate(
+                [table.flat_start[j, k] + np.arange(table.flat_length[j, k]) for j, k in fixed]
+            ).astype(np.int64)
+        else:
+            changed = np.zeros(0, dtype=np.int64)
+        inner = np.asarray(inner, dtype=np.int64)
+        flat_start, flat_length = table.flat_start[inner], table.flat_length[inner]
+        if start < 0:
+            return 0.0, None, table._replace(flat_start=flat_start, flat_length=flat_length)
+        x_start, w_start = float(self.x0[start]), self.W[start]
         if not changed.size:
-            return self.x0, self.W[:, columns]  # a fancy index: a contiguous copy
-        own = self.position[changed]
-        if (own < 0).any() or (columns < 0).any():
-            raise AssertionError("a basis covers every row that may be altered")
-        d = inside[groups[changed]] - inside[self.groups[changed]]  # (changed, n_live)
-        d_b = to_target[groups[changed]] - to_target[self.groups[changed]]
-        reach = self.W[:, own]
-        d_w = d @ self.W  # (changed, all columns): one pass, no copy of W's columns
-        system = np.eye(changed.size) - d_w[:, own]
-        right = np.column_stack([d @ self.x0 + d_b, d_w[:, columns]])
-        z = np.linalg.solve(system, right)
-        x0 = self.x0 + reach @ z[:, 0]
-        W = self.W[:, columns]  # a copy, updated in place
-        W += reach @ z[:, 1:]
-        return x0, W
+            return x_start, w_start, table._replace(flat_start=flat_start, flat_length=flat_length)
+        own = table.column[changed]
+        d_w = table.d_w[:, :-1]  # without the pad's column
+        system = np.eye(changed.size) - d_w[np.ix_(changed, own)]
+        z = np.linalg.solve(system, np.column_stack([table.rhs[changed], d_w[changed]]))
+        reach = d_w[:, own]  # D W_F for every row slot (the pad's: zero)
+        updated_d_w = table.d_w.copy()
+        updated_d_w[:, :-1] += reach @ z[:, 1:]
+        return (
+            x_start + float(w_start[own] @ z[:, 0]),
+            w_start + w_start[own] @ z[:, 1:],
+            _Deltas(
+                flat_start, flat_length, table.column, table.rhs + reach @ z[:, 0], updated_d_w
+            ),
+        )
 
 
 class _Deltas(NamedTuple):
