@@ -25,6 +25,7 @@ unexplored node, never below the incumbent.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NotRequired, TypedDict
@@ -277,7 +278,13 @@ class BranchAndBoundSolver:
             raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
         self.max_nodes = max_nodes
         self.time_limit = time_limit
-        self.threads = threads  # the segment search's enumerations (default: incremental's)
+        self.threads = threads  # the segment search's workers (default: incremental's)
+
+    def workers(self) -> int:
+        """Threads of the segment search: ``threads``, else both cores."""
+        from misdirect.solvers.incremental import THREADS
+
+        return min(self.threads or THREADS, os.cpu_count() or 1)
 
     def solve(
         self,
@@ -340,7 +347,12 @@ class BranchAndBoundSolver:
                 from misdirect.solvers.budget_bound import SegmentRelaxation
 
                 segments = SegmentRelaxation(
-                    problem, space, chain, relax, instance, threads=self.threads
+                    problem,
+                    space,
+                    chain,
+                    relax,
+                    instance,
+                    threads=1,  # one per worker
                 )
             if answers[j].status != Status.OPTIMAL and segments is not None:
                 answers[j] = _segment_phase(
@@ -355,6 +367,7 @@ class BranchAndBoundSolver:
                     progress,
                     done,
                     len(order),
+                    self.workers(),
                 )
             incumbent, policy = (search.best_picks, search.best_value), search.root_policy
             report(progress, done + 1, len(order), stage="branch-and-bound")
@@ -362,7 +375,18 @@ class BranchAndBoundSolver:
 
 
 def _segment_phase(
-    segments, relax, search, answer, budget, deadline, left, max_nodes, progress, done, total
+    segments,
+    relax,
+    search,
+    answer,
+    budget,
+    deadline,
+    left,
+    max_nodes,
+    progress,
+    done,
+    total,
+    workers,
 ):
     """Continue a budget the per-state search did not certify with the segment search
     (:mod:`misdirect.solvers.budget_bound`), from its incumbent; keep the better answer and
@@ -385,7 +409,7 @@ def _segment_phase(
             f", {second.nodes:,} nodes, {second.enumerated:,} enumerated",
         )
 
-    status = second.run(limit, tick, max_nodes=max_nodes)
+    status = second.run(limit, tick, max_nodes=max_nodes, workers=workers)
     search.offer(second.best_picks, second.best_value)  # carried to the next budget
     value = max(second.best_value, answer.solver_probability)
     picks = second.best_picks if second.best_value > answer.solver_probability else None

@@ -37,14 +37,20 @@ one either). Otherwise :meth:`BudgetBound.create` returns None.
 
 from __future__ import annotations
 
+import contextlib
+import heapq
+import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
+from threadpoolctl import threadpool_limits
 
 from misdirect.core.alterations import AlterationSpace
 from misdirect.core.choice_product import ChoiceProduct, end_component_states
+from misdirect.solvers.base import Deadline
 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a choice only on a larger gain
 BUDGET_SLACK = 1e-9
@@ -346,6 +352,7 @@ class SegmentRelaxation:
         self.problem, self.space, self.chain, self.relax = problem, space, chain, relax
         self.instance = instance  # the prepared attack: subtrees can then be enumerated
         self.bases: dict = {}  # their base chains, solved once (incremental's _Basis)
+        self.basis_lock = threading.Lock()
         self.outer: list[int] | None = None  # choices outer to the enumeration
         self.threads = threads  # the enumeration's (None: incremental's default)
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
@@ -383,7 +390,9 @@ class SegmentRelaxation:
         from misdirect.solvers.incremental import IncrementalSolver
 
         solver = IncrementalSolver(threads=self.threads)
-        found = solver.best_with(self.instance, budget, picks, deadline, self.bases)
+        # a worker that needs a new base builds it alone (the others wait, or use theirs)
+        with contextlib.nullcontext() if self.basis_ready(picks) else self.basis_lock:
+            found = solver.best_with(self.instance, budget, picks, deadline, self.bases)
         if found is None:
             return None
         value, vector = found
@@ -462,6 +471,7 @@ class SegmentRelaxation:
 
 
 PRUNE_TOLERANCE = 1e-9
+NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most this many
 BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
 
 
@@ -483,11 +493,13 @@ class SegmentSearch:
     """
 
     def __init__(self, seg: SegmentRelaxation, budget: float, seeds=(), enumerate_at: int = 0):
-        import heapq  # noqa: F401
-
         self.seg, self.budget = seg, budget
         # a node with at most this many completions is enumerated instead of bounded
-        enumerable = seg.instance is not None and not seg.instance.cycling.any()
+        enumerable = (
+            seg.instance is not None
+            and not seg.instance.cycling.any()
+            and len(seg.space.choices) > 0
+        )
         self.enumerate_at = enumerate_at if enumerable else 0
         self.enumerated = 0  # nodes
         self.enumerated_alterations = 0
@@ -495,6 +507,11 @@ class SegmentSearch:
         self.best_value = -1.0
         self.best_cost = 0.0
         self.evaluated: dict[tuple[int, ...], float] = {}
+        self._lock = threading.Condition(threading.RLock())  # the heap and the incumbent
+        self._error: BaseException | None = None
+        self._in_flight: dict[int, float] = {}
+        self.searched: set = set()  # neighbourhoods the local search has enumerated
+        self.improved = True  # the incumbent changed since the last local search
         self.offer(self.best_picks, self.value(self.best_picks))
         for picks in seeds:
             if picks is not None and seg.relax.cost(picks) <= budget + BUDGET_SLACK:
@@ -516,22 +533,42 @@ class SegmentSearch:
     def _push(self, picks, remaining, bound, bounded=False, warm=None):
         """``bounded``: ``bound`` is the node's own (not its parent's); ``warm``: the entry
         choices of its parent's bound, where its policy iteration starts."""
-        import heapq
-
         self.counter += 1
         heapq.heappush(self.heap, (-bound, self.counter, picks, remaining, bounded, warm))
 
-    def _enumerate(self, picks, remaining, count, bound, deadline) -> bool:
-        """Enumerate the node's completions; False (the node left open) if cut short."""
-        found = self.seg.enumerate(picks, self.budget, deadline)
-        if found is None:
-            self._push(picks, remaining, bound, bounded=True)
-            return False
-        self.enumerated += 1
-        self.enumerated_alterations += count
-        if found[0] > self.best_value + PRUNE_TOLERANCE:  # then re-evaluated exactly
-            self.offer(found[1], self.value(found[1]))
-        return True
+    def local_search(self, deadline) -> None:
+        """Enumerate the incumbent's neighbourhoods: its altered sensors fixed (what one more
+        sensor adds), and all of them but one (swap one); again from a better one.
+
+        Good incumbents early make the search: H1's budget-5 optimum is budget 4's plus one
+        sensor, found here in 9 ms; the search itself, from budget 4's, found it at its
+        last node (105 s), having pruned every node against the lower value."""
+        seg = self.seg
+        if not self.enumerate_at:
+            return
+        seg.basis_ready({})  # lists the outer choices
+        while True:
+            with self._lock:
+                if not self.improved or self._status is not None:
+                    return
+                self.improved = False
+                picks = dict(zip(seg.order, self.best_picks, strict=True))
+            outer = {i: picks.get(i, 0) for i in seg.outer}  # one block each
+            altered = {i: k for i, k in picks.items() if k and i not in outer}
+            for drop in [None, *altered]:
+                fixed = {**outer, **{i: k for i, k in altered.items() if i != drop}}
+                key = tuple(sorted(fixed.items()))
+                remaining = self.budget - seg.relax.cost(seg.complete(fixed))
+                if key in self.searched or remaining < -BUDGET_SLACK:
+                    continue
+                self.searched.add(key)
+                if seg.completions(fixed, remaining, NEIGHBOURHOOD) > NEIGHBOURHOOD:
+                    continue
+                found = seg.enumerate(fixed, self.budget, deadline)
+                if found is None or self._status is not None:
+                    return  # out of time, or the search is over
+                if found[0] > self.best_value + PRUNE_TOLERANCE:
+                    self.offer(found[1], self.value(found[1]))
 
     def value(self, picks: tuple[int, ...]) -> float:
         if picks not in self.evaluated:
@@ -543,13 +580,20 @@ class SegmentSearch:
 
     def offer(self, picks, value) -> None:
         cost = self.seg.relax.cost(picks)
-        better = value > self.best_value + PRUNE_TOLERANCE
-        tied_cheaper = value >= self.best_value - PRUNE_TOLERANCE and cost < self.best_cost - 1e-12
-        if better or tied_cheaper:
-            self.best_picks, self.best_value, self.best_cost = picks, value, cost
+        with self._lock:
+            better = value > self.best_value + PRUNE_TOLERANCE
+            tied = value >= self.best_value - PRUNE_TOLERANCE
+            # among ties the cheapest, then the first in the picks' order: the same answer
+            # whichever worker finds it first
+            cheaper = cost < self.best_cost - 1e-12
+            same_cost = abs(cost - self.best_cost) <= 1e-12
+            if better or (tied and (cheaper or (same_cost and picks < self.best_picks))):
+                self.best_picks, self.best_value, self.best_cost = picks, value, cost
+                self.improved = self.improved or better
 
     def open_bound(self) -> float:
         top = -self.heap[0][0] if self.heap else -np.inf
+        top = max([top, *self._in_flight.values()])
         ceiling = self.seg.problem.objective.max_value
         return float(min(max(self.best_value, self.pruned_bound, top), ceiling))
 
@@ -560,47 +604,129 @@ class SegmentSearch:
             return True
         return False
 
-    def run(self, deadline=None, tick=None, max_nodes: int | None = None) -> str:
-        import heapq
-        import time
+    def run(self, deadline=None, tick=None, max_nodes: int | None = None, workers: int = 1) -> str:
+        """Search until every node is pruned or enumerated ("optimal"), the deadline passes
+        ("time_limit") or ``max_nodes`` were bounded ("feasible"). ``workers`` threads take
+        nodes from the one heap: the bounds' factorisations and the enumeration's compiled
+        loop release the GIL, so two workers use both cores."""
+        deadline = deadline or Deadline(None)
+        self._status: str | None = None
+        self._in_flight: dict[int, float] = {}  # bound of every node a worker holds
+        self._local_running = False
+        self._last_node_s = 0.0  # a node is not started with less time left than the last one
+        if workers <= 1:
+            self._work(deadline, tick, max_nodes)
+        else:
+            threads = [
+                threading.Thread(target=self._work, args=(deadline, tick, max_nodes))
+                for _ in range(workers)
+            ]
+            # one BLAS thread per worker: OpenBLAS's own threads would spin on the cores the
+            # workers need (H1 budget 4: 8.6 s on two workers with them, 6.1 s without)
+            with threadpool_limits(limits=1, user_api="blas"):
+                for thread in threads:
+                    thread.start()
+                for thread in threads:
+                    thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._status or "optimal"
 
+    def _work(self, deadline, tick, max_nodes) -> None:
+        """One worker: take a task, do it outside the lock, apply its result under it."""
+        try:
+            while (task := self._next_task(deadline, tick, max_nodes)) is not None:
+                kind, entry = task
+                try:
+                    if kind == "local":
+                        self.local_search(deadline)
+                    elif kind == "enumerate":
+                        self._do_enumerate(entry, deadline)
+                    else:
+                        self._do_node(entry)
+                finally:
+                    with self._lock:
+                        self._in_flight.pop(entry[1] if entry else -1, None)
+                        if kind == "local":
+                            self._local_running = False
+                        self._lock.notify_all()
+        except BaseException as error:  # re-raised by run, in the caller's thread
+            with self._lock:
+                self._error = error
+                self._status = self._status or "error"
+                self._lock.notify_all()
+
+    def _next_task(self, deadline, tick, max_nodes):
+        """Under the lock: the next node to bound or enumerate (pruned ones are dropped), a
+        local search, or None when the search is over (``_status`` then says why)."""
+        with self._lock:
+            while True:
+                if self._status is not None:
+                    return None
+                left = deadline.remaining()
+                if deadline.expired() or (left is not None and left < self._last_node_s):
+                    self._status = "time_limit"
+                    self._lock.notify_all()
+                    return None
+                if max_nodes is not None and self.nodes >= max_nodes:
+                    self._status = "feasible"
+                    self._lock.notify_all()
+                    return None
+                if self.improved and self.enumerate_at and not self._local_running:
+                    self._local_running = True
+                    return "local", None
+                if self.heap:
+                    entry = heapq.heappop(self.heap)
+                    negative, token, picks, remaining, bounded, _ = entry
+                    if self._prune(-negative):
+                        continue
+                    kind = "node"
+                    if self.enumerate_at:
+                        count = self.seg.completions(picks, remaining, self.enumerate_at)
+                        # a node needing a new base solve is bounded first (it may be pruned)
+                        if count <= self.enumerate_at and (bounded or self.seg.basis_ready(picks)):
+                            kind = "enumerate"
+                            entry = (*entry, count)
+                    if kind == "node":
+                        self.nodes += 1
+                        if tick is not None and self.nodes % 16 == 0:
+                            tick()
+                    self._in_flight[token] = -negative
+                    return kind, entry
+                if not self._in_flight and not self._local_running:
+                    self._status = "optimal"
+                    self._lock.notify_all()
+                    return None
+                self._lock.wait(0.05)  # another worker's node may branch
+
+    def _do_enumerate(self, entry, deadline) -> None:
+        negative, _, picks, remaining, _, _, count = entry
+        found = self.seg.enumerate(picks, self.budget, deadline)
+        exact = None
+        if found is not None and found[0] > self.best_value + PRUNE_TOLERANCE:
+            exact = self.value(found[1])  # re-evaluated exactly, outside the lock
+        with self._lock:
+            if found is None:  # cut by the deadline: the node stays open
+                self._push(picks, remaining, -negative, bounded=True)
+                self._status = self._status or "time_limit"
+                return
+            self.enumerated += 1
+            self.enumerated_alterations += count
+            if exact is not None:
+                self.offer(found[1], exact)
+
+    def _do_node(self, entry) -> None:
         seg = self.seg
         choices = seg.space.choices
-        last_node_s = 0.0  # a node is not started when the time left is less than the last one
-        while self.heap:
-            if deadline is not None and (
-                deadline.expired()
-                or (deadline.remaining() is not None and deadline.remaining() < last_node_s)
-            ):
-                return "time_limit"
-            if max_nodes is not None and self.nodes >= max_nodes:
-                return "feasible"
-            if tick is not None and self.nodes % 16 == 0:
-                tick()
-            negative, _, picks, remaining, bounded, warm = heapq.heappop(self.heap)
-            if self._prune(-negative):
-                continue
-            count = self.enumerate_at + 1
-            if self.enumerate_at:
-                count = seg.completions(picks, remaining, self.enumerate_at)
-                # a node needing a new base solve is bounded first (it may be pruned)
-                if count <= self.enumerate_at and (bounded or seg.basis_ready(picks)):
-                    if not self._enumerate(picks, remaining, count, -negative, deadline):
-                        return "time_limit"
-                    continue
-            self.nodes += 1
-            began = time.perf_counter()
-            result, usage, layers, entry_choices = seg.node(
-                picks, remaining, self.best_value + PRUNE_TOLERANCE, warm
-            )
-            last_node_s = time.perf_counter() - began
-            bound = min(float(result.bound), seg.problem.objective.max_value)
-            if self.root_bound is None:
-                self.root_bound = bound
-            if not layers:  # nothing affordable changes anything: the node is one alteration
-                self.offer(seg.complete(picks), self.value(seg.complete(picks)))
-                continue
-            # round the scheduler to an alteration within the budget
+        _, _, picks, remaining, _, warm = entry
+        began = time.perf_counter()
+        result, usage, layers, entry_choices = seg.node(
+            picks, remaining, self.best_value + PRUNE_TOLERANCE, warm
+        )
+        bound = min(float(result.bound), seg.problem.objective.max_value)
+        if not layers:  # nothing affordable changes anything: the node is one alteration
+            rounded = seg.complete(picks)
+        else:  # round the scheduler to an alteration within the budget
             chosen, left = dict(picks), remaining
             for j in np.argsort(-usage, kind="stable"):
                 if usage[j] <= 0:
@@ -611,13 +737,20 @@ class SegmentSearch:
                 chosen[i] = k
                 left -= float(choices[i].costs[k])
             rounded = seg.complete(chosen)
-            self.offer(rounded, self.value(rounded))
-            if self._prune(bound):
-                continue
-            if count <= self.enumerate_at:  # bounded, not pruned: enumerated now
-                if not self._enumerate(picks, remaining, count, bound, deadline):
-                    return "time_limit"
-                continue
+        value = self.value(rounded)
+        with self._lock:
+            self._last_node_s = time.perf_counter() - began
+            if self.root_bound is None:
+                self.root_bound = bound
+            self.offer(rounded, value)
+            if not layers or self._prune(bound):
+                return
+            count = self.enumerate_at + 1
+            if self.enumerate_at:
+                count = seg.completions(picks, remaining, self.enumerate_at)
+            if count <= self.enumerate_at:  # bounded, not pruned: enumerated next
+                self._push(picks, remaining, bound, bounded=True)
+                return
             per_obs: dict[int, float] = {}
             for (i, _, _), u in zip(layers, usage, strict=True):
                 per_obs[i] = per_obs.get(i, 0.0) + float(u)
@@ -648,7 +781,6 @@ class SegmentSearch:
                 self._push(
                     child, remaining - float(choices[branch].costs[k]), bound, warm=entry_choices
                 )
-        return "optimal"
 
 
 def segment_relaxation(problem, budget: float) -> SegmentRelaxation | None:

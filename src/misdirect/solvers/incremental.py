@@ -28,8 +28,8 @@ from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, TypedDict
 
+import numba
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from misdirect.core.alterations import (
     AlterationSpace,
@@ -580,17 +580,11 @@ class _Tree(NamedTuple):
     first_entry: np.ndarray
     entry_slot: np.ndarray  # per entry: its first row slot
     entry_width: np.ndarray  # per entry: its number of row slots
-    entry_blocks: dict  # width w: first slots of the options this wide, and their F blocks
-    d_w_t: np.ndarray  # D W transposed (columns, row slots): a child's rows are consecutive
 
     @staticmethod
     def of(altered: AlteredEntries, deltas: _Deltas) -> _Tree:
         n = altered.costs.size
         entry_width = deltas.flat_length[altered.choice, altered.option]
-        entry_blocks = {}  # F = I - D W on each option's own rows, shared by its entries
-        for w in np.unique(deltas.flat_length[deltas.flat_length > 0]):
-            starts = np.unique(deltas.flat_start[deltas.flat_length == w])
-            entry_blocks[int(w)] = (starts, deltas.system(starts[:, None] + np.arange(w)))
         return _Tree(
             depth=np.bincount(altered.alteration, minlength=n),
             width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
@@ -599,8 +593,6 @@ class _Tree(NamedTuple):
             first_entry=np.searchsorted(altered.alteration, np.arange(n)),
             entry_slot=deltas.flat_start[altered.choice, altered.option],
             entry_width=entry_width,
-            entry_blocks=entry_blocks,
-            d_w_t=np.ascontiguousarray(deltas.d_w.T),
         )
 
     def slots(self, alterations: np.ndarray, pad: int) -> np.ndarray:
@@ -642,48 +634,110 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
         s = s_P + (g_E − Yᵀ g_P)ᵀ S⁻¹ (r_E − F_EP y),   Y = A⁻¹ F_PE,   S = F_EE − F_EP Y,
 
     with ``y = A⁻¹ r_P`` and ``s_P = g_Pᵀ y`` the parent's own correction, ``F = I − D W`` on
-    the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``."""
-    d_w, column, rhs = deltas.d_w, deltas.column, deltas.rhs
+    the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``. The parents' part
+    is batched in numpy; each child's (a few small products and a solve as wide as its last
+    entry) is one compiled loop, :func:`_schur_corrections`."""
+    rhs = deltas.rhs
     pad = rhs.size - 1
     slots_p = tree.slots(parents, pad)
-    wp = slots_p.shape[1]
     system = deltas.system(slots_p)
-    inverse = np.linalg.inv(system) if wp else system
+    inverse = np.linalg.inv(system) if slots_p.shape[1] else system
     y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
-    g_p = weight[slots_p]
-    s_p = np.einsum("pi,pi->p", g_p, y)
+    s_p = np.einsum("pi,pi->p", weight[slots_p], y)
     last = tree.first_entry[kids] + tree.depth[kids] - 1
-    first_slot = tree.entry_slot[last]
-    begin = int(first_slot.min())
-    # G = A⁻¹ D W(P, later rows), kept transposed (later rows, P): a child's rows of it are
-    # then consecutive. Rows gathered first, then columns: one fancy index over three axes
-    # costs several times more
-    gathered = np.take(d_w[slots_p.reshape(-1)], column[begin:pad], axis=1)
-    gathered = gathered.reshape(parents.size, wp, pad - begin)
-    g_t = np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2))
-    columns_p = column[slots_p]
-    out = s_p[local].copy()
-    widths = tree.entry_width[last]
-    for w in np.unique(widths):
-        if w == 0:
-            continue  # the last entry changes nothing: the parent's value
-        pick = np.flatnonzero(widths == w)
-        who = local[pick]
-        first = first_slot[pick]
-        rows_e = first[:, None] + np.arange(w)  # an entry's slots are consecutive
-        g_block = g_t[who[:, None], rows_e - begin]  # (w, wp): Gᵀ on the entry's rows
-        # D W(E, P) transposed, (wp, w): a window of w consecutive slots per parent column
-        windows = sliding_window_view(tree.d_w_t, w, axis=1)
-        dw_ep_t = windows[columns_p[who], first[:, None]]
-        starts, blocks = tree.entry_blocks[w]
-        f_ee = blocks[np.searchsorted(starts, first)]
-        # with Y = −G and F_EP = −D W(E, P), the signs cancel: S = F_EE − D W(E, P) G
-        schur = f_ee - np.swapaxes(np.matmul(g_block, dw_ep_t), 1, 2)
-        right = rhs[rows_e] + np.einsum("nji,nj->ni", dw_ep_t, y[who])
-        grad = weight[rows_e] + np.einsum("nij,nj->ni", g_block, g_p[who])
-        z = np.linalg.solve(schur, right[..., None])[..., 0]
-        out[pick] += np.einsum("nj,nj->n", grad, z)
+    out = np.empty(kids.size)
+    _schur_corrections(
+        slots_p,
+        # (A⁻¹ D W(P, ·))ᵀ, every column: a child reads a column's wp numbers at once
+        np.matmul(np.swapaxes(deltas.d_w[slots_p], 1, 2), np.swapaxes(inverse, 1, 2)),
+        y,
+        s_p,
+        local.astype(np.int64),
+        tree.entry_slot[last].astype(np.int64),
+        tree.entry_width[last].astype(np.int64),
+        deltas.d_w,
+        deltas.column,
+        rhs,
+        weight,
+        out,
+    )
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _schur_corrections(
+    slots_p, reach, y, s_p, local, first, width, d_w, column, rhs, weight, out
+):  # pragma: no cover (compiled; its results are tested against dense solves)
+    """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
+    ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
+    ``reach[p] = (A⁻¹ D W(P, ·))ᵀ``, ``Y = A⁻¹ F_PE = −reach[p][E]ᵀ``, so the signs cancel:
+    ``S = F_EE − D W(E, P) G`` with ``G = reach[p][E]ᵀ``. Padded parent slots have zero
+    rows, columns and weights."""
+    wp = slots_p.shape[1]
+    widest = max(1, width.max()) if width.size else 1
+    g = np.empty((widest, wp))  # Gᵀ = (A⁻¹ D W(P, E))ᵀ, one row per slot of E
+    row_p = np.empty(wp)  # D W(i, P) of one row i of E
+    columns_p = np.empty(wp, dtype=np.int64)
+    schur = np.empty((widest, widest))
+    right = np.empty(widest)
+    grad = np.empty(widest)
+    parent = -1
+    for c in range(local.size):
+        p = local[c]
+        w = width[c]
+        f = first[c]
+        total = s_p[p]
+        if w == 0:
+            out[c] = total
+            continue
+        if p != parent:  # children come grouped by parent
+            parent = p
+            for j in range(wp):
+                columns_p[j] = column[slots_p[p, j]]
+        for e in range(w):
+            col = column[f + e]
+            for j in range(wp):
+                g[e, j] = reach[p, col, j]
+        for i in range(w):
+            row = f + i
+            r = rhs[row]
+            h = weight[row]
+            for j in range(wp):
+                row_p[j] = d_w[row, columns_p[j]]
+                r += row_p[j] * y[p, j]
+                h += g[i, j] * weight[slots_p[p, j]]
+            right[i] = r
+            grad[i] = h
+            for e in range(w):
+                v = -d_w[row, column[f + e]]
+                if i == e:
+                    v += 1.0
+                for j in range(wp):
+                    v -= row_p[j] * g[e, j]
+                schur[i, e] = v
+        # Gaussian elimination with partial pivoting: S z = right
+        for k in range(w):
+            pivot = k
+            for i in range(k + 1, w):
+                if abs(schur[i, k]) > abs(schur[pivot, k]):
+                    pivot = i
+            if pivot != k:
+                for e in range(w):
+                    schur[k, e], schur[pivot, e] = schur[pivot, e], schur[k, e]
+                right[k], right[pivot] = right[pivot], right[k]
+            for i in range(k + 1, w):
+                factor = schur[i, k] / schur[k, k]
+                for e in range(k, w):
+                    schur[i, e] -= factor * schur[k, e]
+                right[i] -= factor * right[k]
+        for k in range(w - 1, -1, -1):
+            acc = right[k]
+            for e in range(k + 1, w):
+                acc -= schur[k, e] * right[e]
+            right[k] = acc / schur[k, k]
+        for i in range(w):
+            total += grad[i] * right[i]
+        out[c] = total
 
 
 def _selected(chain, live, group_of_option, chosen) -> np.ndarray:
