@@ -72,6 +72,11 @@ def check_bounds(problem, budgets):
         assert abs(mixed.best_value - optimum) <= 1e-9, (problem.name, budget)
         assert abs(mixed.open_bound() - optimum) <= 1e-9, (problem.name, budget)
         ENUMERATED.append(mixed.enumerated)
+        # two workers on one heap: the same optimum, and a bound that closes on it
+        shared = SegmentSearch(seg, budget, enumerate_at=ENUMERATE_AT)
+        assert shared.run(Deadline(60), workers=2) == "optimal"
+        assert abs(shared.best_value - optimum) <= 1e-9, (problem.name, budget)
+        assert abs(shared.open_bound() - optimum) <= 1e-9, (problem.name, budget)
     return True
 
 
@@ -142,3 +147,40 @@ def test_threads_are_checked_and_shares_favour_the_next_budget():
     # the next of 3 pieces gets twice each later one's: 2/4 of what is left, then 1/4 each
     assert clock.front_share(3) == pytest.approx(50.0, abs=0.5)
     assert clock.front_share(1) == pytest.approx(100.0, abs=0.5)
+
+
+def test_local_search_finds_the_best_one_sensor_extension_of_its_seed():
+    """From a seed, the local search reaches at least the best alteration that adds one
+    sensor to it, found here by evaluating every such extension exactly."""
+    problem = sensor_grid(9, 10, seed=4, costs="random", memory=5)
+    seg = segment_relaxation(problem, 3.0)
+    space = seg.space
+    seed = SegmentSearch(seg, 1.0, enumerate_at=10**6)
+    assert seed.run(Deadline(60)) == "optimal"
+    picks = dict(zip(seg.order, seed.best_picks, strict=True))
+    best_extension = seed.best_value
+    for i in seg.order:
+        if picks[i]:
+            continue
+        for k in range(1, space.choices[i].size):
+            extended = {**picks, i: k}
+            vector = np.zeros(len(space.choices), dtype=np.int64)
+            for j, option in extended.items():
+                vector[j] = option
+            cost = sum(float(space.choices[j].costs[o]) for j, o in enumerate(vector))
+            if cost > 3.0 + 1e-9:
+                continue
+            value = decoy_probability(problem, space.alteration(problem, vector))
+            best_extension = max(best_extension, value)
+    search = SegmentSearch(seg, 3.0, seeds=[seed.best_picks], enumerate_at=10**6)
+    search.local_search(Deadline(60))
+    assert best_extension > seed.best_value + 1e-6  # one more sensor does help here
+    assert search.best_value >= best_extension - 1e-9
+    assert abs(search.best_value - decoy_probability(problem, _alteration(seg, search))) <= 1e-9
+
+
+def _alteration(seg, search):
+    vector = np.zeros(len(seg.space.choices), dtype=np.int64)
+    for i, option in zip(seg.order, search.best_picks, strict=True):
+        vector[i] = option
+    return seg.space.alteration(seg.problem, vector)

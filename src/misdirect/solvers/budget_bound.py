@@ -509,7 +509,10 @@ class SegmentSearch:
         self.evaluated: dict[tuple[int, ...], float] = {}
         self._lock = threading.Condition(threading.RLock())  # the heap and the incumbent
         self._error: BaseException | None = None
-        self._in_flight: dict[int, float] = {}
+        self._in_flight: dict[int, float] = {}  # bound of every node a worker holds
+        self._status: str | None = None  # set when the search is over: why
+        self._local_running = False
+        self._last_node_s = 0.0  # a node is not started with less time left than the last one
         self.searched: set = set()  # neighbourhoods the local search has enumerated
         self.improved = True  # the incumbent changed since the last local search
         self.offer(self.best_picks, self.value(self.best_picks))
@@ -610,10 +613,7 @@ class SegmentSearch:
         nodes from the one heap: the bounds' factorisations and the enumeration's compiled
         loop release the GIL, so two workers use both cores."""
         deadline = deadline or Deadline(None)
-        self._status: str | None = None
-        self._in_flight: dict[int, float] = {}  # bound of every node a worker holds
-        self._local_running = False
-        self._last_node_s = 0.0  # a node is not started with less time left than the last one
+        self._status = None
         if workers <= 1:
             self._work(deadline, tick, max_nodes)
         else:
