@@ -56,7 +56,7 @@ IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger 
 BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_MIN_SECONDS = 1.0  # ... when at least this much of the time limit is left
-SEGMENT_SHARE = 0.98  # ... and takes this share of a budget's time (its bound is the tighter)
+SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, this one gets this long first (on H1
 # budget 4 it spent 91 s reaching its node limit; where it certifies, it takes under 1 s)
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions

@@ -490,6 +490,11 @@ class SegmentSearch:
     the unlimited attacker gets 0.182, under budget 3's optimum 0.206), so a node that leaves
     a strong sensor out is pruned, and one that alters it has a budget one smaller, soon small
     enough to enumerate. A node that would need a new base solve is bounded first.
+
+    Each node's policy iteration starts from its parent's entry choices (mostly one
+    factorisation, against about five from scratch). Whenever the incumbent improves, a local
+    search enumerates its neighbourhoods (:meth:`local_search`). ``run(workers=2)`` bounds and
+    enumerates two nodes at once from the one heap.
     """
 
     def __init__(self, seg: SegmentRelaxation, budget: float, seeds=(), enumerate_at: int = 0):

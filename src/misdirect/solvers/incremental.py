@@ -645,15 +645,22 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
     y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
     s_p = np.einsum("pi,pi->p", weight[slots_p], y)
     last = tree.first_entry[kids] + tree.depth[kids] - 1
+    first = tree.entry_slot[last].astype(np.int64)
+    begin = int(first.min(initial=pad))
+    # (A⁻¹ D W(P, E))ᵀ for every later slot E (a child's entry comes after its parent's, so
+    # deep parents need few), one row per slot: a child reads its wp numbers at once. Rows
+    # gathered first, then columns: one fancy index over three axes costs several times more
+    gathered = np.take(deltas.d_w[slots_p.reshape(-1)], deltas.column[begin:pad], axis=1)
+    gathered = gathered.reshape(parents.size, slots_p.shape[1], pad - begin)
     out = np.empty(kids.size)
     _schur_corrections(
         slots_p,
-        # (A⁻¹ D W(P, ·))ᵀ, every column: a child reads a column's wp numbers at once
-        np.matmul(np.swapaxes(deltas.d_w[slots_p], 1, 2), np.swapaxes(inverse, 1, 2)),
+        np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2)),
+        begin,
         y,
         s_p,
         local.astype(np.int64),
-        tree.entry_slot[last].astype(np.int64),
+        first,
         tree.entry_width[last].astype(np.int64),
         deltas.d_w,
         deltas.column,
@@ -666,12 +673,13 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
 
 @numba.njit(cache=True, nogil=True)
 def _schur_corrections(
-    slots_p, reach, y, s_p, local, first, width, d_w, column, rhs, weight, out
+    slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
 ):  # pragma: no cover (compiled; its results are tested against dense solves)
     """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
     ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
-    ``reach[p] = (A⁻¹ D W(P, ·))ᵀ``, ``Y = A⁻¹ F_PE = −reach[p][E]ᵀ``, so the signs cancel:
-    ``S = F_EE − D W(E, P) G`` with ``G = reach[p][E]ᵀ``. Padded parent slots have zero
+    ``reach[p]`` the rows ``(A⁻¹ D W(P, s))ᵀ`` of the slots ``s`` from ``begin`` on,
+    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][E − begin]ᵀ``, so the signs cancel:
+    ``S = F_EE − D W(E, P) G``. Padded parent slots have zero
     rows, columns and weights."""
     wp = slots_p.shape[1]
     widest = max(1, width.max()) if width.size else 1
@@ -695,9 +703,8 @@ def _schur_corrections(
             for j in range(wp):
                 columns_p[j] = column[slots_p[p, j]]
         for e in range(w):
-            col = column[f + e]
             for j in range(wp):
-                g[e, j] = reach[p, col, j]
+                g[e, j] = reach[p, f + e - begin, j]
         for i in range(w):
             row = f + i
             r = rhs[row]
