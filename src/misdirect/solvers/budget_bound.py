@@ -38,6 +38,7 @@ one either). Otherwise :meth:`BudgetBound.create` returns None.
 from __future__ import annotations
 
 import contextlib
+import functools
 import heapq
 import threading
 import time
@@ -48,7 +49,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from threadpoolctl import threadpool_limits
 
-from misdirect.core.alterations import AlterationSpace
+from misdirect.core.alterations import AlterationSpace, rank_in_group
 from misdirect.core.choice_product import ChoiceProduct, end_component_states
 from misdirect.solvers.base import Deadline
 
@@ -121,16 +122,15 @@ class BudgetBound:
         # each observation's region (its live states, ascending) and every live state's rank
         # in its region: a layer copy of the region keeps that order
         by_obs = self.live_states[np.argsort(state_obs[self.live_states], kind="stable")]
-        obs_sorted = state_obs[by_obs]
-        bounds = np.flatnonzero(np.concatenate([[True], obs_sorted[1:] != obs_sorted[:-1]]))
-        bounds = bounds[: by_obs.size]  # none without live states
-        ends = np.append(bounds[1:], by_obs.size)[: bounds.size]
+        observations, firsts, counts = np.unique(
+            state_obs[by_obs], return_index=True, return_counts=True
+        )
         self.region = {
-            int(obs_sorted[b]): by_obs[b:e]
-            for b, e in zip(bounds.tolist(), ends.tolist(), strict=True)
+            int(o): by_obs[first : first + count]
+            for o, first, count in zip(observations, firsts, counts, strict=True)
         }
         self.rank_in_region = np.full(chain.n_states, -1)
-        self.rank_in_region[by_obs] = np.arange(by_obs.size) - np.repeat(bounds, ends - bounds)
+        self.rank_in_region[by_obs] = rank_in_group(counts)
         self.evaluations = 0
 
     @classmethod
@@ -260,7 +260,6 @@ class _ModeMdp:
         dest = np.where(same, within, elsewhere)
         n_moving = groups.size
         # entry choices: the default layer (free) or a layer of its observation (charged)
-        self.entry_rows_start = n_moving
         self.layer_entry_start = n_moving + free_states.size + (first_copy - first_copy[:1])
         entry_source = np.concatenate([entry_index[free_states], entry_index[layer_states]])
         entry_dest = np.concatenate([live_index[free_states], copy_index])
@@ -353,7 +352,6 @@ class SegmentRelaxation:
         self.instance = instance  # the prepared attack: subtrees can then be enumerated
         self.bases: dict = {}  # their base chains, solved once (incremental's _Basis)
         self.basis_lock = threading.Lock()
-        self.outer: list[int] | None = None  # choices outer to the enumeration
         self.threads = threads  # the enumeration's (None: incremental's default)
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
         self.bound = BudgetBound(chain, self.state_obs, relax.live)
@@ -362,8 +360,7 @@ class SegmentRelaxation:
         live = relax.live
         self.live_total = int(live.sum())
         self.region_size = {
-            i: int((live & (self.state_obs == space.choices[i].observation)).sum())
-            for i in self.order
+            i: self.bound.region[space.choices[i].observation].size for i in self.order
         }
 
     def completions(self, picks: dict[int, int], remaining: float, limit: int) -> int:
@@ -372,14 +369,17 @@ class SegmentRelaxation:
         free = tuple(self.space.choices[i] for i in self.order if i not in picks)
         return AlterationSpace(free).count_within(remaining, limit)
 
+    @functools.cached_property
+    def outer(self) -> list[int]:
+        """The choices outer to the enumeration (one base solve per pick of theirs)."""
+        from misdirect.solvers.incremental import inner_choices
+
+        inner = set(inner_choices(self.instance))
+        return [i for i in range(len(self.space.choices)) if i not in inner]
+
     def basis_ready(self, picks: dict[int, int]) -> bool:
         """Whether enumerating below ``picks`` needs no new base solve: its outer choices are
         fixed and their base is kept (else the node is bounded first: it may be pruned)."""
-        from misdirect.solvers.incremental import inner_choices
-
-        if self.outer is None:
-            inner = set(inner_choices(self.instance))
-            self.outer = [i for i in range(len(self.space.choices)) if i not in inner]
         if any(i not in picks for i in self.outer):
             return False
         return tuple(picks[i] for i in self.outer) in self.bases
@@ -554,7 +554,6 @@ class SegmentSearch:
         seg = self.seg
         if not self.enumerate_at:
             return
-        seg.basis_ready({})  # lists the outer choices
         while True:
             with self._lock:
                 if not self.improved or self._status is not None:
@@ -685,13 +684,13 @@ class SegmentSearch:
                     negative, token, picks, remaining, bounded, _ = entry
                     if self._prune(-negative):
                         continue
-                    kind = "node"
+                    kind, count = "node", self.enumerate_at + 1
                     if self.enumerate_at:
                         count = self.seg.completions(picks, remaining, self.enumerate_at)
                         # a node needing a new base solve is bounded first (it may be pruned)
                         if count <= self.enumerate_at and (bounded or self.seg.basis_ready(picks)):
                             kind = "enumerate"
-                            entry = (*entry, count)
+                    entry = (*entry, count)
                     if kind == "node":
                         self.nodes += 1
                         if tick is not None and self.nodes % 16 == 0:
@@ -723,7 +722,7 @@ class SegmentSearch:
     def _do_node(self, entry) -> None:
         seg = self.seg
         choices = seg.space.choices
-        _, _, picks, remaining, _, warm = entry
+        _, _, picks, remaining, _, warm, count = entry
         began = time.perf_counter()
         result, usage, layers, entry_choices = seg.node(
             picks, remaining, self.best_value + PRUNE_TOLERANCE, warm
@@ -750,9 +749,6 @@ class SegmentSearch:
             self.offer(rounded, value)
             if not layers or self._prune(bound):
                 return
-            count = self.enumerate_at + 1
-            if self.enumerate_at:
-                count = seg.completions(picks, remaining, self.enumerate_at)
             if count <= self.enumerate_at:  # bounded, not pruned: enumerated next
                 self._push(picks, remaining, bound, bounded=True)
                 return

@@ -573,7 +573,7 @@ def _add_corrections(
 
 class _Tree(NamedTuple):
     """Per alteration, its number of entries, of changed rows (``width``) and its first entry;
-    per entry, its row slots; per option width, the blocks of ``F`` on the options' rows."""
+    per entry, its row slots."""
 
     depth: np.ndarray
     width: np.ndarray
