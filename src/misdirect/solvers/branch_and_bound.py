@@ -311,6 +311,10 @@ class BranchAndBoundSolver:
         policy = relax.best_groups(relax.live_groups.astype(np.float64))[0]
         incumbent: tuple[tuple[int, ...], float] | None = None
         answers: dict[int, Solution] = {}
+        # once this search fails a budget the segment search had to take, it fails the larger
+        # ones too (its bound only loosens with the budget): they go to the segment search at
+        # once (H1 budget 5: 2.4 s of 119 nodes that never certify)
+        per_state_failed = False
         for done, j in enumerate(order):
             budget = float(budgets[j])
             search = _Search(relax, budget, self.max_nodes, incumbent, policy)
@@ -328,6 +332,8 @@ class BranchAndBoundSolver:
             share = deadline.front_share(len(order) - done)
             if segment_applies:  # the rest for the segment search, if this one fails
                 share = SEGMENT_FIRST_SECONDS if share is None else share * (1 - SEGMENT_SHARE)
+                if per_state_failed:
+                    share = 0.0
             limit = None if share is None else Deadline(share)
 
             def tick(search=search, budget=budget, done=done) -> None:
@@ -355,6 +361,7 @@ class BranchAndBoundSolver:
                     threads=1,  # one per worker
                 )
             if answers[j].status != Status.OPTIMAL and segments is not None:
+                per_state_failed = True
                 answers[j] = _segment_phase(
                     segments,
                     relax,

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.linalg import splu
 from threadpoolctl import threadpool_limits
 
@@ -54,6 +55,8 @@ from misdirect.core.choice_product import ChoiceProduct, end_component_states
 from misdirect.solvers.base import Deadline
 
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a choice only on a larger gain
+LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
+# solved by Woodbury from that factorisation (a few solves, against a new LU of 13 ms on H1)
 BUDGET_SLACK = 1e-9
 
 
@@ -63,6 +66,29 @@ class LagrangeResult:
     multiplier: float  # the λ that gave it
     tried: int  # multipliers evaluated
     evaluations: int  # policy evaluations (linear solves)
+
+
+class _UpdatedLU:
+    """Solves ``A' = A + U Vᵀ`` from the LU of ``A`` (Woodbury): ``U`` the unit columns of the
+    ``rows`` whose choice changed, ``Vᵀ = A'[rows] − A[rows]``. A policy improvement switches
+    a few entries' choices; their rows are all that changes."""
+
+    def __init__(self, base, rows: np.ndarray, delta: sp.csr_matrix):
+        self.base, self.rows, self.delta = base, rows, delta
+        units = np.zeros((delta.shape[1], rows.size))
+        units[rows, np.arange(rows.size)] = 1.0
+        self.z = base.solve(units)  # A⁻¹ U
+        self.capacitance = lu_factor(np.eye(rows.size) + delta @ self.z)  # I + Vᵀ A⁻¹ U
+        self.q = None  # A⁻ᵀ V, for transposed solves
+
+    def solve(self, b: np.ndarray, trans: str = "N") -> np.ndarray:
+        if trans == "N":
+            y = self.base.solve(b)
+            return y - self.z @ lu_solve(self.capacitance, self.delta @ y)
+        if self.q is None:
+            self.q = self.base.solve(self.delta.T.toarray(), trans="T")
+        y = self.base.solve(b, trans="T")
+        return y - self.q @ lu_solve(self.capacitance, y[self.rows], trans=1)
 
 
 class _PolicyIteration:
@@ -92,12 +118,23 @@ class _PolicyIteration:
         self.evaluations += 1
         return splu((sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc())
 
+    def updated(self, base, base_policy: np.ndarray, policy: np.ndarray):
+        """A solver for ``policy``'s system from ``base``, the factorisation of
+        ``base_policy``'s: Woodbury on the rows that differ, if few; else None."""
+        rows = np.flatnonzero(policy != base_policy)
+        if rows.size > LOW_RANK:
+            return None
+        self.evaluations += 1
+        delta = self.matrix[base_policy[rows]] - self.matrix[policy[rows]]  # of I − P
+        return _UpdatedLU(base, rows, delta.tocsr())
+
     def optimise(self, reward: np.ndarray, policy: np.ndarray | None = None):
         """(values, optimal policy, its factorisation), from ``policy`` (default: first rows)."""
         if policy is None:
             policy = self.first_rows()
+        lu = base = self.factorise(policy)
+        base_policy = policy
         while True:
-            lu = self.factorise(policy)
             values = lu.solve(reward[policy])
             score = self.matrix @ values + reward
             order = np.lexsort((-score, self.row_state))
@@ -107,6 +144,10 @@ class _PolicyIteration:
             if not switch.any():
                 return values, policy, lu
             policy = np.where(switch, best, policy)
+            lu = self.updated(base, base_policy, policy)
+            if lu is None:
+                lu = base = self.factorise(policy)
+                base_policy = policy
 
 
 class BudgetBound:

@@ -59,6 +59,10 @@ INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their s
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million (3 of 128 sensors)
 THREADS = 2  # corrections computed in parallel by default (both cores of the target machine)
+BATCH_ENTRIES = 4_000_000  # numbers per batch of parents when threads share the batches
+CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay in cache while
+# its children read them (an H1 budget-5 subtree: 35.5 -> 31.5 ms; on two threads the pool's
+# overhead per batch outweighs it: H2 budgets 0..3 33 -> 39 s)
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
 BASES_KEPT = 8  # base chains kept by a search between its enumerations (one per blank pick)
 NEAR_TIE = 1e-9  # values this close count as equal: within the updates' rounding error
@@ -525,7 +529,7 @@ def _add_corrections(
     deltas: _Deltas,
     w_start,
     deadline: Deadline | None = None,
-    chunk_entries: int = 4_000_000,
+    chunk_entries: int | None = None,
     threads: int = 1,
 ) -> np.ndarray:
     """Add the Woodbury correction to ``found`` for every alteration of ``altered`` (its
@@ -540,6 +544,8 @@ def _add_corrections(
     so a run cut short by the deadline has finished the smaller alterations, whose budgets stay
     proven.
     """
+    if chunk_entries is None:
+        chunk_entries = BATCH_ENTRIES if threads > 1 else CACHED_BATCH_ENTRIES
     n = altered.costs.size
     corrected = np.zeros(n, dtype=bool)
     corrected[altered.parent < 0] = True  # the unaltered one: the base value
@@ -671,7 +677,7 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _schur_corrections(
     slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
 ):  # pragma: no cover (compiled; its results are tested against dense solves)
