@@ -184,3 +184,37 @@ def _alteration(seg, search):
     for i, option in zip(seg.order, search.best_picks, strict=True):
         vector[i] = option
     return seg.space.alteration(seg.problem, vector)
+
+
+@pytest.mark.parametrize("changed", [1, 5, 32])
+def test_a_few_switched_rows_are_solved_exactly_from_the_old_factorisation(changed):
+    """Woodbury from the LU of one policy's system solves a policy that switches a few rows,
+    both ways, as a fresh sparse solve does (the bound is this policy's value)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    from misdirect.solvers.budget_bound import _PolicyIteration
+
+    rng = np.random.default_rng(changed)
+    n, choices = 60, 2
+    rows = []
+    for _ in range(n * choices):  # substochastic rows: every policy's chain is transient
+        row = np.zeros(n)
+        hit = rng.choice(n, 3, replace=False)
+        row[hit] = rng.dirichlet(np.ones(3)) * 0.9
+        rows.append(row)
+    matrix = sp.csr_matrix(np.array(rows))
+    row_state = np.repeat(np.arange(n), choices)
+    iteration = _PolicyIteration(row_state, matrix, n)
+    first = iteration.first_rows()
+    other = first.copy()
+    switched = rng.choice(n, changed, replace=False)
+    other[switched] += 1
+    solver = iteration.updated(iteration.factorise(first), first, other)
+    system = (sp.identity(n, format="csc") - matrix[other]).tocsc()
+    b = rng.random(n)
+    assert np.allclose(solver.solve(b), spsolve(system, b), rtol=0, atol=1e-12)
+    assert np.allclose(solver.solve(b, trans="T"), spsolve(system.T.tocsc(), b), atol=1e-12)
+    many = other.copy()
+    many[rng.choice(np.setdiff1d(np.arange(n), switched), 33 - changed, replace=False)] += 1
+    assert iteration.updated(iteration.factorise(first), first, many) is None  # refactorise
