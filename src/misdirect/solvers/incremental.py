@@ -677,6 +677,8 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: _Deltas, weight) -> 
     return out
 
 
+# reassociated sums: LLVM splits the short dot products into parallel chains (10 % on H1); the
+# values stay within rounding of a dense solve (tested at 1e-12)
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _schur_corrections(
     slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
