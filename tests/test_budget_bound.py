@@ -218,3 +218,35 @@ def test_a_few_switched_rows_are_solved_exactly_from_the_old_factorisation(chang
     many = other.copy()
     many[rng.choice(np.setdiff1d(np.arange(n), switched), 33 - changed, replace=False)] += 1
     assert iteration.updated(iteration.factorise(first), first, many) is None  # refactorise
+
+
+def test_policy_iteration_stops_only_above_the_threshold_and_below_the_optimum():
+    """Stopping early (the node cannot be pruned) returns a policy worth more than the
+    threshold and at most the optimum; without a threshold it returns the optimum, checked
+    against value iteration run to convergence."""
+    import scipy.sparse as sp
+
+    from misdirect.solvers.budget_bound import _PolicyIteration
+
+    rng = np.random.default_rng(3)
+    n, choices = 40, 3
+    matrix = sp.csr_matrix(
+        np.array(
+            [rng.dirichlet(np.ones(n)) * 0.9 * (rng.random(n) < 0.2) for _ in range(n * choices)]
+        )
+    )
+    reward = rng.random(n * choices)
+    row_state = np.repeat(np.arange(n), choices)
+    values, _, _, optimal = _PolicyIteration(row_state, matrix, n).optimise(reward)
+    assert optimal
+    iterate = np.zeros(n)
+    for _ in range(2000):
+        iterate = (matrix @ iterate + reward).reshape(n, choices).max(axis=1)
+    assert np.allclose(values, iterate, atol=1e-9)
+    start = 0
+    worst = _PolicyIteration(row_state, matrix, n).optimise(reward, start=start, enough=-1.0)
+    assert worst[3] is False and -1.0 < worst[0][start] <= values[start] + 1e-12
+    never = _PolicyIteration(row_state, matrix, n).optimise(
+        reward, start=start, enough=values[start] + 1e-6
+    )
+    assert never[3] is True and never[0][start] == pytest.approx(values[start], abs=1e-12)

@@ -193,19 +193,42 @@ class AlterationSpace:
 
     def count_within(self, budget: float, limit: int) -> int:
         """How many choice vectors cost at most ``budget`` (``limit + 1`` once it is more than
-        ``limit``), without listing them: a count per distinct total cost."""
-        counts = {0.0: 1}
-        for choice in self.choices:
-            grown: dict[float, int] = {}
-            for total, count in counts.items():
-                for cost in np.asarray(choice.costs, dtype=np.float64).tolist():
-                    key = round(total + cost, 9)
+        ``limit``), without listing them: a count per distinct total cost, the polynomial of
+        each group of alike choices raised to its size by squaring (a search counts every node
+        it takes, under its lock: 64 sensors one by one took 0.7 ms). Counts are capped at
+        ``limit + 1``: ``min(a·b, cap)`` and ``min(a + b, cap)`` only need capped terms."""
+        cap = limit + 1
+
+        def times(a: dict[float, int], b: dict[float, int]) -> dict[float, int]:
+            product: dict[float, int] = {}
+            for cost_a, count_a in a.items():
+                for cost_b, count_b in b.items():
+                    key = round(cost_a + cost_b, 9)
                     if key <= budget + 1e-9:
-                        grown[key] = grown.get(key, 0) + count
-            counts = grown
-            if sum(counts.values()) > limit:
-                return limit + 1
-        return sum(counts.values())
+                        product[key] = min(product.get(key, 0) + count_a * count_b, cap)
+            return product
+
+        alike: dict[tuple[float, ...], int] = {}
+        for choice in self.choices:
+            costs = tuple(sorted(round(c, 9) for c in np.asarray(choice.costs).tolist()))
+            alike[costs] = alike.get(costs, 0) + 1
+        total = {0.0: 1}
+        for costs, size in alike.items():
+            one: dict[float, int] = {}  # one choice of the group: options per cost
+            for c in costs:
+                if c <= budget + 1e-9:
+                    one[c] = min(one.get(c, 0) + 1, cap)
+            power = {0.0: 1}
+            while size:
+                if size & 1:
+                    power = times(power, one)
+                size >>= 1
+                if size:
+                    one = times(one, one)
+            total = times(total, power)
+            if not total:
+                return 0
+        return min(sum(total.values()), cap)
 
     def alteration(self, problem: Problem, picked: Sequence[int], indices=None) -> np.ndarray:
         """The alteration that takes candidate ``picked[j]`` for the ``j``-th choice."""

@@ -128,21 +128,32 @@ class _PolicyIteration:
         delta = self.matrix[base_policy[rows]] - self.matrix[policy[rows]]  # of I − P
         return _UpdatedLU(base, rows, delta.tocsr())
 
-    def optimise(self, reward: np.ndarray, policy: np.ndarray | None = None):
-        """(values, optimal policy, its factorisation), from ``policy`` (default: first rows)."""
+    def optimise(
+        self,
+        reward: np.ndarray,
+        policy: np.ndarray | None = None,
+        *,
+        start: int | None = None,
+        enough: float = np.inf,
+    ):
+        """(values, policy, its factorisation, whether optimal), from ``policy`` (default:
+        first rows). Stops early at a policy worth more than ``enough`` at ``start``: the
+        optimum is above it too (each improvement only raises the values)."""
         if policy is None:
             policy = self.first_rows()
         lu = base = self.factorise(policy)
         base_policy = policy
         while True:
             values = lu.solve(reward[policy])
+            if start is not None and values[start] > enough:
+                return values, policy, lu, False
             score = self.matrix @ values + reward
             order = np.lexsort((-score, self.row_state))
             best = order[self.state_start]
             gain = score[best] - score[policy]
             switch = gain > IMPROVE_TOLERANCE * np.maximum(1.0, np.abs(values))
             if not switch.any():
-                return values, policy, lu
+                return values, policy, lu, True
             policy = np.where(switch, best, policy)
             lu = self.updated(base, base_policy, policy)
             if lu is None:
@@ -182,9 +193,23 @@ class BudgetBound:
             return None
         return cls(chain, state_obs, live)
 
-    def lagrangian_on(self, mdp, remaining, *, stop_below=-np.inf, max_multipliers=12, policy=None):
+    def lagrangian_on(
+        self,
+        mdp,
+        remaining,
+        *,
+        stop_below=-np.inf,
+        max_multipliers=12,
+        policy=None,
+        known_bound=np.inf,
+    ):
         """(result, policy at the best multiplier, its factorisation) of the Lagrangian on a
-        built segment MDP; policy iteration starts from ``policy`` (a parent's, say)."""
+        built segment MDP; policy iteration starts from ``policy`` (a parent's, say).
+
+        With ``known_bound`` (a bound proven before, e.g. the parent's) and nothing charged,
+        policy iteration stops at the first policy worth more than ``stop_below``: the node
+        cannot be pruned, and ``known_bound`` stands as its bound (H1: most nodes, saving the
+        improvement steps)."""
         start = mdp.start
         if start is None:
             value = float(self.chain.target_value[self.chain.initial])
@@ -200,8 +225,11 @@ class BudgetBound:
         lo_line = hi_line = None
         for _ in range(max_multipliers):
             reward = mdp.reward_const - lam * mdp.charge
-            values, policy, lu = mdp.solver.optimise(reward, policy)
-            g = float(values[start])
+            cut = np.isfinite(known_bound) and not positive.size
+            values, policy, lu, optimal = mdp.solver.optimise(
+                reward, policy, start=start, enough=stop_below if cut else np.inf
+            )
+            g = float(values[start]) if optimal else float(known_bound)
             k = float(lu.solve(mdp.charge[policy])[start]) if positive.size else 0.0
             h = lam * remaining + g
             slope = remaining - k
@@ -380,7 +408,7 @@ class _ModeMdp:
             if not reward.any():
                 result[j] = first
                 continue
-            values, policy, _ = self.solver.optimise(reward, policy)
+            values, policy, _, _ = self.solver.optimise(reward, policy)
             result[j] = values[self.start] + first
         return result
 
@@ -479,9 +507,17 @@ class SegmentRelaxation:
         self.entries = dict(zip(observations, values.tolist(), strict=True))
         self.bound.evaluations += mdp.solver.evaluations
 
-    def node(self, picks: dict[int, int], remaining: float, stop_below: float, warm=None):
+    def node(
+        self,
+        picks: dict[int, int],
+        remaining: float,
+        stop_below: float,
+        warm=None,
+        known_bound: float = np.inf,
+    ):
         """(bound, per layer usage, layers, entry choices) of the node; its policy iteration
-        starts from ``warm``, the entry choices of another node (its parent's, say)."""
+        starts from ``warm``, the entry choices of another node (its parent's, say), and
+        stops once the node cannot be pruned when ``known_bound`` (its parent's) is finite."""
         layers = self.layers_of(picks, remaining)
         default_group = self.relax.policy_of(self.complete(picks))
         if self.entries is None:
@@ -501,7 +537,11 @@ class SegmentRelaxation:
             keys=[self.relax.first_option[i] + k for i, k, _ in layers],
         )
         result, policy, lu = self.bound.lagrangian_on(
-            mdp, remaining, stop_below=stop_below, policy=mdp.policy_from(warm)
+            mdp,
+            remaining,
+            stop_below=stop_below,
+            policy=mdp.policy_from(warm),
+            known_bound=known_bound,
         )
         usage = np.zeros(len(layers))
         choices = None
@@ -763,12 +803,13 @@ class SegmentSearch:
     def _do_node(self, entry) -> None:
         seg = self.seg
         choices = seg.space.choices
-        _, _, picks, remaining, _, warm, count = entry
+        negative, _, picks, remaining, _, warm, count = entry
         began = time.perf_counter()
         result, usage, layers, entry_choices = seg.node(
-            picks, remaining, self.best_value + PRUNE_TOLERANCE, warm
+            picks, remaining, self.best_value + PRUNE_TOLERANCE, warm, known_bound=-negative
         )
-        bound = min(float(result.bound), seg.problem.objective.max_value)
+        # both proven: the node's own and the one it was pushed with (its parent's)
+        bound = min(float(result.bound), -negative, seg.problem.objective.max_value)
         if not layers:  # nothing affordable changes anything: the node is one alteration
             rounded = seg.complete(picks)
         else:  # round the scheduler to an alteration within the budget
