@@ -10,7 +10,13 @@ from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import random_problem, sensor_grid
 from misdirect.solvers.base import Deadline
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
-from misdirect.solvers.budget_bound import SegmentSearch, segment_bound, segment_relaxation
+from misdirect.solvers.budget_bound import (
+    LOW_RANK,
+    SegmentSearch,
+    _PolicyIteration,
+    segment_bound,
+    segment_relaxation,
+)
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 
 
@@ -186,14 +192,12 @@ def _alteration(seg, search):
     return seg.space.alteration(seg.problem, vector)
 
 
-@pytest.mark.parametrize("changed", [1, 5, 32])
+@pytest.mark.parametrize("changed", [1, 5, LOW_RANK])
 def test_a_few_switched_rows_are_solved_exactly_from_the_old_factorisation(changed):
     """Woodbury from the LU of one policy's system solves a policy that switches a few rows,
     both ways, as a fresh sparse solve does (the bound is this policy's value)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import spsolve
-
-    from misdirect.solvers.budget_bound import _PolicyIteration
 
     rng = np.random.default_rng(changed)
     n, choices = 60, 2
@@ -216,7 +220,8 @@ def test_a_few_switched_rows_are_solved_exactly_from_the_old_factorisation(chang
     assert np.allclose(solver.solve(b), spsolve(system, b), rtol=0, atol=1e-12)
     assert np.allclose(solver.solve(b, trans="T"), spsolve(system.T.tocsc(), b), atol=1e-12)
     many = other.copy()
-    many[rng.choice(np.setdiff1d(np.arange(n), switched), 33 - changed, replace=False)] += 1
+    unswitched = np.setdiff1d(np.arange(n), switched)
+    many[rng.choice(unswitched, LOW_RANK + 1 - changed, replace=False)] += 1
     assert iteration.updated(iteration.factorise(first), first, many) is None  # refactorise
 
 
@@ -225,8 +230,6 @@ def test_policy_iteration_stops_only_above_the_threshold_and_below_the_optimum()
     threshold and at most the optimum; without a threshold it returns the optimum, checked
     against value iteration run to convergence."""
     import scipy.sparse as sp
-
-    from misdirect.solvers.budget_bound import _PolicyIteration
 
     rng = np.random.default_rng(3)
     n, choices = 40, 3

@@ -6,6 +6,7 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -174,6 +175,18 @@ def check_time_limit(time_limit: float | None) -> None:
         raise ProblemError(
             f"must be a positive number of seconds, got {time_limit}", field="--time-limit"
         )
+
+
+def check_threads(threads: int | None) -> None:
+    from misdirect.errors import ProblemError
+
+    if threads is not None and threads < 1:
+        raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
+
+
+def thread_count(threads: int | None, default: int) -> int:
+    """Threads to use: ``threads``, else ``default``, never more than the machine's cores."""
+    return min(threads or default, os.cpu_count() or 1)
 
 
 def best_per_budget(

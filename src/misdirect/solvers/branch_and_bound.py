@@ -25,7 +25,6 @@ unexplored node, never below the incumbent.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NotRequired, TypedDict
@@ -45,9 +44,11 @@ from misdirect.solvers.base import (
     ProgressCallback,
     Solution,
     Status,
+    check_threads,
     check_time_limit,
     refuse_options,
     report,
+    thread_count,
 )
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
@@ -274,8 +275,7 @@ class BranchAndBoundSolver:
         check_time_limit(time_limit)
         if max_nodes < 1:
             raise ProblemError(f"must be at least 1, got {max_nodes}", field="max_nodes")
-        if threads is not None and threads < 1:
-            raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
+        check_threads(threads)
         self.max_nodes = max_nodes
         self.time_limit = time_limit
         self.threads = threads  # the segment search's workers (default: incremental's)
@@ -284,7 +284,7 @@ class BranchAndBoundSolver:
         """Threads of the segment search: ``threads``, else both cores."""
         from misdirect.solvers.incremental import THREADS
 
-        return min(self.threads or THREADS, os.cpu_count() or 1)
+        return thread_count(self.threads, THREADS)
 
     def solve(
         self,

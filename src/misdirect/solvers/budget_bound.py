@@ -224,9 +224,9 @@ class BudgetBound:
         if not positive.size:
             max_multipliers = 1  # nothing is charged: λ changes nothing
         lo_line = hi_line = None
+        cut = np.isfinite(known_bound) and not positive.size  # one multiplier, λ = 0
         for _ in range(max_multipliers):
             reward = mdp.reward_const - lam * mdp.charge
-            cut = np.isfinite(known_bound) and not positive.size
             values, policy, lu, optimal = mdp.solver.optimise(
                 reward, policy, start=start, enough=stop_below if cut else np.inf
             )

@@ -22,7 +22,6 @@ the value reported is then re-computed exactly by :func:`misdirect.solve`, like 
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -41,16 +40,18 @@ from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.core.reachability import solve_chain
-from misdirect.errors import ProblemError, SolverError
+from misdirect.errors import SolverError
 from misdirect.solvers.base import (
     Deadline,
     ProgressCallback,
     Solution,
     Status,
     best_per_budget,
+    check_threads,
     check_time_limit,
     refuse_options,
     report,
+    thread_count,
 )
 
 INNER_ROWS = 200  # inner observations together may own at least this many product states,
@@ -124,11 +125,10 @@ class IncrementalSolver:
     ):
         refuse_options(self.name, options, accepted=("time_limit", "threads"))
         check_time_limit(time_limit)
-        if threads is not None and threads < 1:
-            raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
+        check_threads(threads)
         self.max_evaluations = max_evaluations
         self.time_limit = time_limit
-        self.threads = min(threads or THREADS, os.cpu_count() or 1)
+        self.threads = thread_count(threads, THREADS)
 
     def solve(
         self,

@@ -30,6 +30,7 @@ from misdirect.solvers.base import (
     ProgressCallback,
     Solution,
     Status,
+    check_threads,
     check_time_limit,
     report,
 )
@@ -122,8 +123,7 @@ class MilpSolver:
         check_time_limit(time_limit)
         if mip_gap is not None and not mip_gap >= 0:
             raise ProblemError(f"must be a non-negative number, got {mip_gap}", field="--mip-gap")
-        if threads is not None and threads < 1:
-            raise ProblemError(f"must be at least 1, got {threads}", field="--threads")
+        check_threads(threads)
         self.backend_name = solver
         self.formulation = formulation
         self.options = SolverOptions(
