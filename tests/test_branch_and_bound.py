@@ -17,7 +17,8 @@ from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Controller
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.scenarios.grid import ACTIONS, BLANK, E_TYPE, N_TYPE, OBSERVATIONS, scaled
-from misdirect.solvers.branch_and_bound import BranchAndBoundSolver, relaxation_bound
+from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
+from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 
 SPEC_N5 = [0.084957, 0.719924, 0.860130, 0.862442, 0.863622, 0.863622]

@@ -20,10 +20,11 @@ from misdirect import solve
 from misdirect.cli import app
 from misdirect.core.model import CostModel
 from misdirect.scenarios import paper_grid, random_problem
-from misdirect.solvers import SOLVERS
+from misdirect.solvers import SOLVERS, schedule
 from misdirect.solvers.base import Solution
 from misdirect.solvers.incremental import NotApplicableError
 from misdirect.solvers.milp import compact
+from misdirect.solvers.options import SolveOptions
 
 runner = CliRunner()
 BUDGETS = [0.0, 1.0, 2.0, 3.0, 4.0]
@@ -128,9 +129,10 @@ class _Scripted:
 
     name = "scripted"
     curve_is_free = False
+    accepts = ()
     answers: ClassVar[list] = []
 
-    def __init__(self, **_):
+    def __init__(self, options=None):
         pass
 
     def solve(self, problem, budgets, **_):
@@ -264,8 +266,9 @@ def test_auto_hands_an_uncertified_milp_answer_to_branch_and_bound(monkeypatch):
     from misdirect.solvers import auto
     from misdirect.solvers import milp as milp_module
 
-    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)  # no enumeration: the MILP's route
+    monkeypatch.setattr(schedule, "INCREMENTAL_SURE", 0)  # no enumeration: the MILP's route
     monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)
+    monkeypatch.setattr(auto, "ENUMERATION_LIMIT", 0)
     real = milp_module.MilpSolver.solve
 
     def loose(self, problem, budgets, **kwargs):
@@ -282,7 +285,7 @@ def test_auto_hands_an_uncertified_milp_answer_to_branch_and_bound(monkeypatch):
             notes.append(note)
 
     problem = knapsack([1, 2, 3, 4, 5], [20, 30, 40, 50, 60], 7)
-    result = solve(problem, budgets=[7], progress=watch, enumeration_limit=0)
+    result = solve(problem, budgets=[7], progress=watch)
     point = result.curve[0]
     assert point.probability == pytest.approx(0.25, abs=1e-12)
     assert point.status == "optimal" and point.upper_bound - point.probability <= CERTIFY
@@ -297,8 +300,10 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
     from misdirect.solvers import auto
 
     monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # no tiny-chain exception for this small model
-    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)  # no enumeration
+    monkeypatch.setattr(schedule, "INCREMENTAL_SURE", 0)  # no enumeration
     monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", 0)
+    monkeypatch.setattr(auto, "NODE_LIMIT", 1)
+    monkeypatch.setattr(auto, "ENUMERATION_LIMIT", 0)
     notes = []
 
     def watch(done, total, *, stage=None, detail=None, note=None):
@@ -306,7 +311,7 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
             notes.append(note)
 
     problem = paper_grid(7)
-    result = solve(problem, budgets=[2.0], progress=watch, node_limit=1, enumeration_limit=0)
+    result = solve(problem, budgets=[2.0], progress=watch)
     oracle = solve(problem, method="exhaustive", budgets=[2.0])
     assert result.probability == pytest.approx(oracle.probability, abs=1e-9)
     assert result.status == "optimal"
@@ -320,9 +325,9 @@ def test_enumeration_cut_short_still_proves_the_budgets_it_finished(method, monk
     """Enumeration runs cheapest first, so when the deadline stops it, every budget whose
     alterations were all evaluated is still proven: here the deadline expires at once, so
     budget 0 ("alter nothing", the only free alteration) is optimal and budget 2 is not."""
-    from misdirect.solvers import base
+    from misdirect.solvers import deadline
 
-    monkeypatch.setattr(base.Deadline, "expired", lambda self: self.end is not None)
+    monkeypatch.setattr(deadline.Deadline, "expired", lambda self: self.end is not None)
     problem = paper_grid(7)
     result = solve(problem, method=method, budgets=[0, 2], time_limit=60)
     zero, two = result.curve
@@ -386,13 +391,13 @@ def test_auto_enumerates_the_small_budgets_of_a_curve_and_searches_the_rest(monk
     space = alteration_space(problem.with_budget(3))
     at_one = space.count_within(1.0, 10**6)
     assert space.count_within(3.0, 10**6) > at_one  # the top budget is the larger space
-    monkeypatch.setattr(auto, "INCREMENTAL_SURE", at_one)
+    monkeypatch.setattr(schedule, "INCREMENTAL_SURE", at_one)
     monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", at_one)
+    monkeypatch.setattr(auto, "ENUMERATION_LIMIT", 0)
     notes = []
     result = solve(
         problem,
         budgets=budgets,
-        enumeration_limit=0,
         progress=lambda d, t, **info: notes.append(info.get("note")),
     )
     oracle = solve(problem, method="exhaustive", budgets=budgets)
@@ -425,16 +430,17 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
     from misdirect.core.alterations import alteration_space
     from misdirect.core.evaluate import decoy_probability
     from misdirect.solvers import auto
-    from misdirect.solvers.base import Solution, Status
+    from misdirect.solvers.base import Solution
+    from misdirect.solvers.status import Status
 
     problem = paper_grid(7)
     budgets = [0.0, 1.0, 2.0, 3.0]
     count = alteration_space(problem.with_budget(3)).count_within(3.0, 10**6)
-    monkeypatch.setattr(auto, "INCREMENTAL_SURE", 0)
+    monkeypatch.setattr(schedule, "INCREMENTAL_SURE", 0)
     monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # the search below, not an unlimited one
     monkeypatch.setattr(auto, "ENUMERATION_SECONDS", 0.0)  # nor one-by-one enumeration
     # within 100 s, enumerating the top budget "takes" 60 or 70 s: over half, under 90 %
-    monkeypatch.setattr(auto, "UPDATE_SECONDS", enumeration_s / count)
+    monkeypatch.setattr(schedule, "UPDATE_SECONDS", enumeration_s / count)
     given = []
 
     class NoProof:
@@ -446,8 +452,8 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
                 for b in budgets
             ]
 
-    solver = auto.AutoSolver(time_limit=time_limit, enumeration_limit=0)
-    solver.branch_and_bound = NoProof()
+    solver = auto.AutoSolver(SolveOptions(time_limit=time_limit), enumeration_limit=0)
+    solver.branch_and_bound = lambda max_nodes: NoProof()
     result = solver.solve(problem, budgets)
     oracle = solve(problem, method="exhaustive", budgets=budgets)
     assert len(given) == 1 and search_s - 1 < given[0] <= search_s

@@ -74,7 +74,7 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     import scipy.sparse as sp
 
     from misdirect.core.alterations import AlterationSpace, ObservationChoices
-    from misdirect.solvers.incremental import _add_corrections, _deltas
+    from misdirect.solvers.engines.lowrank_updates import add_corrections, row_deltas
 
     rng = np.random.default_rng(seed)
     m = 14
@@ -107,7 +107,7 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     unit = np.zeros((m, inner_rows.size))
     unit[inner_rows, np.arange(inner_rows.size)] = 1.0
     W = np.linalg.solve(base, unit)
-    deltas = _deltas(groups, base_groups[inner_rows], inside, to_target, x0, W)
+    deltas = row_deltas(groups, base_groups[inner_rows], inside, to_target, x0, W)
     free = AlterationSpace(  # every option costs 0: every alteration, each once
         tuple(ObservationChoices(j, np.arange(k), np.zeros(k)) for j, k in enumerate(n_options))
     )
@@ -116,7 +116,7 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     assert len({tuple(row) for row in table}) == int(np.prod(n_options))
     start = int(rng.integers(m))
     found = np.full(len(table), x0[start])
-    done = _add_corrections(found, altered, deltas, W[start], chunk_entries=chunk_entries)
+    done = add_corrections(found, altered, deltas, W[start], chunk_entries=chunk_entries)
     assert done.all()
     for row, value in zip(table, found, strict=True):
         chosen = base_groups.copy()
@@ -186,22 +186,23 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
     from misdirect.core.attack import prepare
     from misdirect.core.evaluate import decoy_probability
     from misdirect.scenarios import sensor_grid
-    from misdirect.solvers.base import Deadline
+    from misdirect.solvers.deadline import Deadline
+    from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
 
     problem = sensor_grid(n, k, seed=seed, costs=costs, memory=3 + seed % 3)
     budget = 3.0
     instance = prepare(problem, budget)
     choices = instance.space.choices
     rng = np.random.default_rng(seed)
-    bases: dict = {}
-    solver = IncrementalSolver()
+    bases = BasisCache()
+    enumeration = LowRankEnumeration(instance)
     checked = 0
     for _ in range(12):
         picked = rng.choice(len(choices), size=min(2, len(choices)), replace=False)
         fixed = {int(i): int(rng.integers(choices[i].size)) for i in picked}
         if sum(choices[i].costs[o] for i, o in fixed.items()) > budget:
             continue
-        value, vector = solver.best_with(instance, budget, fixed, Deadline(None), bases)
+        value, vector = enumeration.best_with(budget, fixed, Deadline(None), bases)
         assert all(vector[i] == o for i, o in fixed.items())
         assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget + 1e-9
         exact = decoy_probability(problem, instance.space.alteration(problem, vector))
@@ -209,4 +210,4 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
         assert value == pytest.approx(brute_force_with(problem, instance, budget, fixed), abs=1e-9)
         checked += 1
     assert checked >= 4
-    assert bases  # the bases were kept and reused
+    assert bases._bases  # the bases were kept and reused

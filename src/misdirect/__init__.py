@@ -24,8 +24,8 @@ from misdirect.defence import (
 )
 from misdirect.errors import MisdirectError, ProblemError, SolverError
 from misdirect.io.problem_file import load_problem, write_problem
-from misdirect.solvers.base import Status
 from misdirect.solvers.run import BudgetResult, SolveResult, solve
+from misdirect.solvers.status import Status
 
 __version__ = "0.1.0"
 

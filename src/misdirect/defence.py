@@ -32,8 +32,9 @@ from misdirect.core.model import Problem, reachable_from
 from misdirect.core.objective import LABELS
 from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import ProblemError, SolverError
-from misdirect.solvers.base import Deadline, Status
+from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.run import BudgetResult, default_budgets, solve
+from misdirect.solvers.status import Status
 
 CERTIFY_TOLERANCE = 1e-9  # as everywhere in misdirect: "optimal" means within this
 IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain

@@ -34,6 +34,15 @@ class ProblemError(MisdirectError, ValueError):
         return self
 
 
+class OptionError(ProblemError):
+    """A solve option out of range or not taken by the method: names the library parameter
+    (``time_limit``); the command line shows it as its flag (``--time-limit``)."""
+
+    def __init__(self, reason: str, *, parameter: str):
+        self.parameter = parameter
+        super().__init__(reason, field=parameter)
+
+
 class SolverError(MisdirectError, RuntimeError):
     """A solver could not produce an answer (missing backend, inconsistent result, ...)."""
 

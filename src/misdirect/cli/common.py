@@ -7,10 +7,12 @@ import contextlib
 import json
 import math
 import os
+import re
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from functools import wraps
 from pathlib import Path
 from typing import Any
@@ -21,8 +23,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from misdirect.core.model import format_alteration
-from misdirect.errors import MisdirectError, ProblemError
+from misdirect.errors import MisdirectError, OptionError, ProblemError
 from misdirect.io.files import one_line, write_output
+from misdirect.solvers.deadline import CancelToken
 
 out = Console()
 err = Console(stderr=True)
@@ -50,6 +53,23 @@ def check_budget(value: float | None, option: str) -> None:
     """A budget option: a non-negative number, when given."""
     if value is not None and not (math.isfinite(value) and value >= 0):
         raise ProblemError(f"must be a non-negative number, got {value:g}", field=option)
+
+
+# -- library parameters as flags ---------------------------------------------------------------
+
+# solve options the library names by parameter (misdirect.solvers.options.SolveOptions)
+FLAGS = ("time_limit", "threads", "solver", "formulation", "mip_gap", "verbose", "max_nodes")
+
+
+def flag(parameter: str) -> str:
+    """The command-line flag of a library parameter: ``time_limit`` → ``--time-limit``."""
+    return "--" + parameter.replace("_", "-")
+
+
+def as_flags(text: str) -> str:
+    """A library message about solve options, with each option named as its flag."""
+    pattern = r"\b(" + "|".join(FLAGS) + r")\b"
+    return re.sub(pattern, lambda match: flag(match.group(1)), text)
 
 
 # -- output -------------------------------------------------------------------------------------
@@ -122,31 +142,35 @@ def _signals_as_exceptions() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous_int)
 
 
-@contextlib.contextmanager
-def stop_gracefully() -> Iterator[list[int]]:
-    """While solving, the first Ctrl-C or SIGTERM asks the solvers to stop and hand back their
-    best answers (every deadline expires at once); a second one stops at once, as elsewhere.
-    Yields the list of signals received."""
-    from misdirect.solvers.base import clear_stop, request_stop
+@dataclass
+class StopRequest:
+    """The cancel token of a command's solves, and the signals that cancelled it."""
 
-    received: list[int] = []
+    token: CancelToken = field(default_factory=CancelToken)
+    received: list[int] = field(default_factory=list)
+
+
+@contextlib.contextmanager
+def stop_gracefully() -> Iterator[StopRequest]:
+    """While solving, the first Ctrl-C or SIGTERM cancels the command's solves (they hand back
+    their best answers); a second one stops at once, as elsewhere."""
+    request = StopRequest()
     if threading.current_thread() is not threading.main_thread():
-        yield received
+        yield request
         return
 
     def ask(signum: int, frame: Any) -> None:
-        if received:
+        if request.received:
             raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
-        received.append(signum)
-        request_stop()
+        request.received.append(signum)
+        request.token.cancel()
 
     previous = {sig: signal.signal(sig, ask) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield received
+        yield request
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        clear_stop()
 
 
 def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
@@ -159,6 +183,9 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
         try:
             with _signals_as_exceptions():
                 command(*args, **kwargs)
+        except OptionError as error:  # the library names the parameter, the CLI its flag
+            field, reason = flag(error.parameter), as_flags(error.reason)
+            fail(f"{field}: {reason}", INPUT_ERROR, as_json, field=field)
         except ProblemError as error:
             fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
         except MisdirectError as error:

@@ -46,11 +46,11 @@ from misdirect.core.model import Alteration, Problem
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, one_line, write_output
 from misdirect.solvers import SOLVERS
-from misdirect.solvers.base import Status
 from misdirect.solvers.milp.backends import BACKENDS
 from misdirect.solvers.milp.solver import FORMULATIONS
 from misdirect.solvers.run import SolveResult
 from misdirect.solvers.run import solve as solve_problem
+from misdirect.solvers.status import Status
 
 if TYPE_CHECKING:
     from misdirect.core.simulate import Simulation
@@ -196,11 +196,16 @@ def _run_solve(
         progress = bars.task("solving") if bars else None
         if progress is None and not silent:
             progress = print_handovers  # no terminal: hand-overs still get a line each
-        with stop_gracefully() as received:
+        with stop_gracefully() as stop:
             result = solve_problem(
-                problem, method=method, budgets=budgets, progress=progress, **options
+                problem,
+                method=method,
+                budgets=budgets,
+                progress=progress,
+                cancel=stop.token,
+                **options,
             )
-    return result, received
+    return result, stop.received
 
 
 def _finish_solve(result: SolveResult, received: list[int]) -> None:

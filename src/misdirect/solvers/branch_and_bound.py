@@ -1,65 +1,50 @@
-"""Branch-and-bound over observations, bounded by the MDP relaxation of the choice product.
+"""``--method branch-and-bound``: depth-first over observations, bounded by the per-state
+relaxation, backed up by the segment search on large chains.
 
 An alteration picks one candidate per relevant observation. The search fixes them one at a
 time, observations owning the most live product states first (they move the value most, so
-fixing them early tightens the bounds fastest). At a node, the **relaxation** lets every product
-state owned by a still-free observation take, on its own, the group of any candidate that fits
-the remaining budget; states of fixed observations keep their candidate's group. Every feasible
-completion of the node is one scheduler of that MDP, so its maximal reachability probability
-bounds the subtree.
-
-The bound is computed exactly by policy iteration: each policy is evaluated by
-:func:`misdirect.core.reachability.reach_probabilities` (the least fixed point, so policies that
-cycle forever score 0 and end components need no special care), and a state switches only on a
-strict gain of more than ``IMPROVE_TOLERANCE``. Children start from their parent's policy, so a
-node typically costs one or two evaluations.
+fixing them early tightens the bounds fastest); each node's bound is the per-state relaxation
+(:mod:`misdirect.solvers.engines.per_state`), solved from its parent's policy, so a node
+typically costs one or two evaluations.
 
 Incumbent: at every node the relaxation's policy is rounded to an alteration (per free
 observation, the affordable candidate its states use most, within the remaining budget) and
-evaluated exactly. A subtree is pruned when its bound is at most the incumbent plus
-``PRUNE_TOLERANCE`` (1e-9): values that close count as tied, as in the incremental solver's
-``NEAR_TIE``, and the incumbent found first (seeded with the next smaller budget's answer, so
-the cheaper one) is kept. The reported ``upper_bound`` is the largest bound of any pruned or
-unexplored node, never below the incumbent.
+evaluated exactly; a hill climb improves the previous budget's answer before each search.
+Pruning and the proven bound are the shared bookkeeping of
+:mod:`misdirect.solvers.engines.incumbent`.
+
+Where this search does not certify a budget of a large chain without end components, the
+segment search (:mod:`misdirect.solvers.engines.segment_search`) takes it over from its
+incumbent; the two bounds are both proven, and the smaller one is reported. How time is
+shared between them is :mod:`misdirect.solvers.schedule`'s.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import NotRequired, TypedDict
+from dataclasses import dataclass, field
+from typing import ClassVar, NotRequired, TypedDict
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from misdirect.core.alterations import AlterationSpace
-from misdirect.core.attack import prepare
-from misdirect.core.choice_product import ChoiceProduct
+from misdirect.core import tolerance
+from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.model import Alteration, Problem
-from misdirect.core.reachability import reach_probabilities
-from misdirect.errors import ProblemError
-from misdirect.solvers.base import (
-    Deadline,
-    ProgressCallback,
-    Solution,
-    Status,
-    check_threads,
-    check_time_limit,
-    refuse_options,
-    report,
-    thread_count,
-)
+from misdirect.errors import OptionError
+from misdirect.solvers import schedule
+from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.incumbent import Incumbent, Picks
+from misdirect.solvers.engines.per_state import PerStateRelaxation
+from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
+from misdirect.solvers.engines.segment_search import SegmentSearch
+from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.status import Status
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
-PRUNE_TOLERANCE = 1e-9  # a bound this close to the incumbent cannot beat it by more than a tie
-IMPROVE_TOLERANCE = 1e-12  # policy iteration switches a state only on a larger gain
-BUDGET_SLACK = 1e-9  # costs are compared to budgets with this slack everywhere in misdirect
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
-SEGMENT_MIN_SECONDS = 1.0  # ... when at least this much of the time limit is left
-SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
-SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, this one gets this long first (on H1
-# budget 4 it spent 91 s reaching its node limit; where it certifies, it takes under 1 s)
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
 
 
@@ -78,213 +63,50 @@ class BranchAndBoundStats(TypedDict):
 
 
 @dataclass
-class _Node:
-    """A prefix of fixed candidates (``picks`` for the first ``depth`` observations)."""
+class _Curve:
+    """What one budget of a curve hands the next (budgets go smallest first)."""
 
-    picks: tuple[int, ...]
-    remaining: float
-    parent_bound: float
-    policy: np.ndarray  # warm start: one group per product state
+    instance: AttackInstance
+    relax: PerStateRelaxation
+    policy: np.ndarray  # the last root policy: the next search starts from it
+    incumbent: tuple[Picks, float] | None = None  # feasible at every larger budget
+    segment_backs_up: bool = False
+    segments: SegmentRelaxation | None = None  # built when first needed
+    # once the per-state search fails a budget the segment search had to take, it fails the
+    # larger ones too (its bound only loosens with the budget): they go to the segment search
+    per_state_failed: bool = False
 
 
-class _Relaxation:
-    """The choice product with the per-state MDP relaxation and exact policy evaluation."""
+@dataclass(frozen=True)
+class _Budget:
+    """One budget of the curve, and where it stands in it."""
 
-    def __init__(self, problem: Problem, space: AlterationSpace, chain: ChoiceProduct):
-        self.problem, self.space, self.chain = problem, space, chain
-        self.live = chain.can_reach_target() & ~chain.target
-        sizes = np.array([c.size for c in space.choices], dtype=np.int64)
-        self.first_option = np.concatenate([[0], np.cumsum(sizes)])
-        self.option_cost = chain.options.cost
-        self.option_owner = np.repeat(np.arange(sizes.size), sizes)
-        state_obs = problem.pomdp.observation_of[chain.world_state]
-        observations = np.array([c.observation for c in space.choices], dtype=np.int64)
-        per_observation = np.bincount(state_obs[self.live], minlength=problem.pomdp.n_observations)
-        owned = per_observation[observations]
-        # largest first; observations owning no live state never change the value: fixed to 0
-        self.order = [int(i) for i in np.argsort(-owned, kind="stable") if owned[i] > 0]
-        self.group_options = chain.group_options.tocsr()
-        self.free_group = np.diff(self.group_options.indptr) == 0  # state has no choice at all
-        self.group_start = np.flatnonzero(
-            np.concatenate([[True], chain.group_state[1:] != chain.group_state[:-1]])
-        )
-        self.live_groups = self.live[chain.group_state]
-        # live states whose group says which candidates they use (for rounding policies)
-        self.choosing = self.live & (chain.groups_per_state > 1)
-        self.evaluations = 0
+    budget: float
+    done: int  # budgets already solved
+    total: int
+    seed: Alteration | None = field(default=None, repr=False)
 
-    def allowed_options(self, picks: Sequence[int], remaining: float) -> np.ndarray:
-        """Options a node permits: its fixed picks, and every affordable one of free ones."""
-        allowed = self.option_cost <= remaining + BUDGET_SLACK
-        for i, k in zip(self.order, picks, strict=False):
-            allowed[self.first_option[i] : self.first_option[i + 1]] = False
-            allowed[self.first_option[i] + k] = True
-        return allowed
-
-    def allowed_groups(self, allowed_options: np.ndarray) -> np.ndarray:
-        hits = self.group_options @ allowed_options.astype(np.float64)
-        return self.free_group | (np.asarray(hits).ravel() > 0)
-
-    def best_groups(self, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per state: the group of highest score (the first on ties) and that score."""
-        order = np.lexsort((-score, self.chain.group_state))
-        best = order[self.group_start]
-        return best, score[best]
-
-    def evaluate(self, policy: np.ndarray) -> np.ndarray:
-        """Exact reachability values of the chain that takes group ``policy[q]`` in ``q``."""
-        self.evaluations += 1
-        chain = self.chain
-        return reach_probabilities(
-            chain.transitions[policy], chain.target, blocks=chain.node, value=chain.target_value
-        )
-
-    def optimise(
-        self, allowed_groups: np.ndarray, policy: np.ndarray
-    ) -> tuple[float, np.ndarray, np.ndarray]:
-        """Maximal reachability of the relaxation (value at the start, values, policy)."""
-        chain = self.chain
-        penalty = np.where(allowed_groups, 0.0, -np.inf)
-        if not allowed_groups[policy].all():  # the parent's choice is no longer allowed here
-            fallback, _ = self.best_groups(penalty + self.live_groups)
-            policy = np.where(allowed_groups[policy], policy, fallback)
-        while True:
-            values = self.evaluate(policy)
-            score = chain.transitions @ values + penalty
-            best, best_score = self.best_groups(score)
-            switch = self.live & (best_score > score[policy] + IMPROVE_TOLERANCE)
-            if not switch.any():
-                return float(values[chain.initial]), values, policy
-            policy = np.where(switch, best, policy)
-
-    def ranked(self, i: int, remaining: float, usage: np.ndarray) -> np.ndarray:
-        """Affordable candidates of observation ``i``, most used by the policy first, then
-        cheapest: the order to branch in, and the greedy completion's pick."""
-        first = self.first_option[i]
-        costs = self.option_cost[first : self.first_option[i + 1]]
-        fits = np.flatnonzero(costs <= remaining + BUDGET_SLACK)
-        return fits[np.lexsort((costs[fits], -usage[first + fits]))]
-
-    def usage(self, policy: np.ndarray) -> np.ndarray:
-        """Per option: how many live choosing states the policy's groups agree with it."""
-        rows = self.group_options[policy[self.choosing]]
-        return np.asarray(rows.sum(axis=0)).ravel()
-
-    def alteration(self, picks: Sequence[int]) -> np.ndarray:
-        return self.space.alteration(self.problem, picks, self.order[: len(picks)])
-
-    def policy_of(self, picks: Sequence[int]) -> np.ndarray:
-        """The group every state takes under the complete assignment ``picks``."""
-        allowed = self.allowed_groups(self.allowed_options(picks, 0.0))
-        return self.best_groups(np.where(allowed, 0.0, -np.inf))[0]
-
-    def improve(
-        self,
-        picks: tuple[int, ...],
-        value: float,
-        budget: float,
-        deadline: Deadline | None = None,
-        tries: int = GREEDY_TRIES,
-    ) -> tuple[tuple[int, ...], float]:
-        """Hill-climb from ``picks`` by changing one observation at a time within ``budget``.
-
-        Candidates are ranked by a first-order estimate of their gain (the expected visits of
-        the states they change times the one-step advantage of their group under the current
-        values), and only the ``tries`` best are evaluated exactly: a good incumbent early,
-        for the pruning and for answers cut short by the time limit.
-        """
-        chain, live = self.chain, self.live
-        inner = np.flatnonzero(live)
-        if inner.size == 0 or not self.order:
-            return picks, value
-        position = np.full(chain.n_states, -1)
-        position[inner] = np.arange(inner.size)
-        state_obs = self.problem.pomdp.observation_of[chain.world_state]
-        while deadline is None or not deadline.expired():
-            policy = self.policy_of(picks)
-            values = self.evaluate(policy)
-            block = chain.transitions[policy[inner]][:, inner].tocsc()
-            system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
-            if not live[chain.initial]:
-                return picks, value
-            start = np.zeros(inner.size)
-            start[position[chain.initial]] = 1.0
-            try:
-                visits = spla.splu(system).solve(start)
-            except RuntimeError:  # singular: the chain cycles without reaching the decoy
-                return picks, value
-            score = np.asarray(chain.transitions @ values).ravel()
-            spent = self.cost(picks)
-            moves = []
-            for position_in_order, i in enumerate(self.order):
-                first = self.first_option[i]
-                costs = self.option_cost[first : self.first_option[i + 1]]
-                current = picks[position_in_order]
-                owned = inner[state_obs[inner] == self.space.choices[i].observation]
-                for k in np.flatnonzero(spent - costs[current] + costs <= budget + BUDGET_SLACK):
-                    if k == current:
-                        continue
-                    groups = chain.group_of_option[owned, first + k]
-                    gain = visits[position[owned]] @ (score[groups] - values[owned])
-                    moves.append((float(gain), position_in_order, int(k)))
-            moves.sort(reverse=True)
-            best = (value, picks)
-            for gain, j, k in moves[:tries]:
-                if gain <= 0:
-                    break
-                candidate = (*picks[:j], k, *picks[j + 1 :])
-                found = float(self.evaluate(self.policy_of(candidate))[chain.initial])
-                if found > best[0] + PRUNE_TOLERANCE:
-                    best = (found, candidate)
-            if best[1] is picks:
-                return picks, value
-            value, picks = best
-        return picks, value
-
-    def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
-        """The search's picks for ``alteration``, None if it takes a target outside the
-        space (not the cheapest of its behaviour class)."""
-        picks = []
-        for i in self.order:
-            choice = self.space.choices[i]
-            hit = np.flatnonzero(choice.targets == alteration[choice.observation])
-            if hit.size == 0:
-                return None
-            picks.append(int(hit[0]))
-        return tuple(picks)
-
-    def cost(self, picks: Sequence[int]) -> float:
-        pairs = zip(self.order, picks, strict=False)  # ``picks`` may be a prefix
-        return float(sum(self.option_cost[self.first_option[i] + k] for i, k in pairs))
+    @property
+    def left(self) -> int:
+        return self.total - self.done
 
 
 class BranchAndBoundSolver:
     """Exact optimum by branch-and-bound; see the module docstring."""
 
-    name = "branch-and-bound"
-    curve_is_free = False
+    name: ClassVar[str] = "branch-and-bound"
+    curve_is_free: ClassVar[bool] = False
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads")
 
-    def __init__(
-        self,
-        max_nodes: int = 20_000,
-        time_limit: float | None = None,
-        threads: int | None = None,
-        **options: object,
-    ):
-        refuse_options(self.name, options, accepted=("time_limit", "threads"))
-        check_time_limit(time_limit)
+    def __init__(self, options: SolveOptions | None = None, *, max_nodes: int = 20_000):
         if max_nodes < 1:
-            raise ProblemError(f"must be at least 1, got {max_nodes}", field="max_nodes")
-        check_threads(threads)
+            raise OptionError(f"must be at least 1, got {max_nodes}", parameter="max_nodes")
+        self.options = options or SolveOptions()
         self.max_nodes = max_nodes
-        self.time_limit = time_limit
-        self.threads = threads  # the segment search's workers (default: incremental's)
 
     def workers(self) -> int:
         """Threads of the segment search: ``threads``, else both cores."""
-        from misdirect.solvers.incremental import THREADS
-
-        return thread_count(self.threads, THREADS)
+        return thread_count(self.options.threads)
 
     def solve(
         self,
@@ -297,146 +119,133 @@ class BranchAndBoundSolver:
     ) -> list[Solution]:
         """``seeds`` (one per budget, optional): known good alterations, e.g. a MILP's
         incumbents, that the search starts from."""
-        deadline = deadline or Deadline(self.time_limit)
-        top = max(budgets)
-        instance = prepare(problem, top)
-        space, chain = instance.space, instance.chain
-        relax = _Relaxation(problem, space, chain)
+        deadline = deadline or Deadline(self.options.time_limit)
+        instance = prepare(problem, max(budgets))
+        relax = PerStateRelaxation(problem, instance.space, instance.chain)
+        curve = _Curve(
+            instance,
+            relax,
+            policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
+            # the segment search backs a budget up on large chains without end components
+            # among the live states (its policy iteration needs none)
+            segment_backs_up=(
+                instance.chain.n_states >= SEGMENT_MIN_STATES and not instance.cycling.any()
+            ),
+        )
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
-        # the segment search backs a budget up where this search does not certify it: on
-        # large chains without end components among the live states (its policy iteration
-        # needs none), built only when first needed
-        segment_applies = chain.n_states >= SEGMENT_MIN_STATES and not instance.cycling.any()
-        segments = None
-        policy = relax.best_groups(relax.live_groups.astype(np.float64))[0]
-        incumbent: tuple[tuple[int, ...], float] | None = None
         answers: dict[int, Solution] = {}
-        # once this search fails a budget the segment search had to take, it fails the larger
-        # ones too (its bound only loosens with the budget): they go to the segment search at
-        # once (H1 budget 5: 2.4 s of 119 nodes that never certify)
-        per_state_failed = False
         for done, j in enumerate(order):
-            budget = float(budgets[j])
-            search = _Search(relax, budget, self.max_nodes, incumbent, policy)
             seed = None if seeds is None else seeds[j]
-            picks = None if seed is None else relax.picks_of(seed)
-            if picks is not None and relax.cost(picks) <= budget + BUDGET_SLACK:
-                search.offer(picks, search.value(picks))
-            # a good incumbent before the search: the previous budget's, improved locally
-            if search.best_value < 0:
-                search.offer(search.best_picks, search.value(search.best_picks))
-            share = deadline.share(len(order) - done)
-            climb = None if share is None else Deadline(share / 4)
-            better, found = relax.improve(search.best_picks, search.best_value, budget, climb)
-            search.offer(better, found)
-            share = deadline.front_share(len(order) - done)
-            if segment_applies:  # the rest for the segment search, if this one fails
-                share = SEGMENT_FIRST_SECONDS if share is None else share * (1 - SEGMENT_SHARE)
-                if per_state_failed:
-                    share = 0.0
-            limit = None if share is None else Deadline(share)
-
-            def tick(search=search, budget=budget, done=done) -> None:
-                report(
-                    progress,
-                    done,
-                    len(order),
-                    stage=f"branch-and-bound, budget {budget:g}",
-                    detail=search.describe(),
-                )
-
-            answers[j] = search.run(limit, tick)
-            left = deadline.remaining()
-            if left is not None and left < SEGMENT_MIN_SECONDS:
-                segment_applies = False  # too little time left to build and search it
-            if answers[j].status != Status.OPTIMAL and segment_applies and segments is None:
-                from misdirect.solvers.budget_bound import SegmentRelaxation
-
-                segments = SegmentRelaxation(
-                    problem,
-                    space,
-                    chain,
-                    relax,
-                    instance,
-                    threads=1,  # one per worker
-                )
-            if answers[j].status != Status.OPTIMAL and segments is not None:
-                per_state_failed = True
-                answers[j] = _segment_phase(
-                    segments,
-                    relax,
-                    search,
-                    answers[j],
-                    budget,
-                    deadline,
-                    len(order) - done,
-                    self.max_nodes,
-                    progress,
-                    done,
-                    len(order),
-                    self.workers(),
-                )
-            incumbent, policy = (search.best_picks, search.best_value), search.root_policy
+            step = _Budget(float(budgets[j]), done, len(order), seed)
+            answers[j] = self._solve_budget(curve, step, deadline, progress)
             report(progress, done + 1, len(order), stage="branch-and-bound")
         return [answers[j] for j in range(len(budgets))]
 
-
-def _segment_phase(
-    segments,
-    relax,
-    search,
-    answer,
-    budget,
-    deadline,
-    left,
-    max_nodes,
-    progress,
-    done,
-    total,
-    workers,
-):
-    """Continue a budget the per-state search did not certify with the segment search
-    (:mod:`misdirect.solvers.budget_bound`), from its incumbent; keep the better answer and
-    the smaller of the two proven bounds."""
-    from misdirect.solvers.budget_bound import SegmentSearch
-
-    second = SegmentSearch(
-        segments, budget, seeds=[search.best_picks], enumerate_at=SEGMENT_ENUMERATE_AT
-    )
-    share = deadline.front_share(left)
-    limit = None if share is None else Deadline(share)
-
-    def tick() -> None:
-        report(
-            progress,
-            done,
-            total,
-            stage=f"segment search, budget {budget:g}",
-            detail=f"incumbent {second.best_value:.6f}, bound {second.open_bound():.6f}"
-            f", {second.nodes:,} nodes, {second.enumerated:,} enumerated",
+    def _solve_budget(
+        self, curve: _Curve, step: _Budget, deadline: Deadline, progress: ProgressCallback | None
+    ) -> Solution:
+        relax, budget = curve.relax, step.budget
+        search = _Search(relax, budget, self.max_nodes, curve.incumbent, curve.policy)
+        picks = None if step.seed is None else relax.picks_of(step.seed)
+        if picks is not None and tolerance.affordable(relax.cost(picks), budget):
+            search.incumbent.offer_exact(picks)
+        # a good incumbent before the search: the previous budget's, improved locally
+        if search.best_value < 0:
+            search.incumbent.offer_exact(search.best_picks)
+        climbed = _hill_climb(
+            relax,
+            search.best_picks,
+            search.best_value,
+            budget,
+            schedule.climb(deadline, step.left),
+        )
+        search.incumbent.offer(*climbed)
+        limit = schedule.per_state_search(
+            deadline,
+            step.left,
+            segment_backs_up=curve.segment_backs_up,
+            per_state_failed=curve.per_state_failed,
         )
 
-    status = second.run(limit, tick, max_nodes=max_nodes, workers=workers)
-    search.offer(second.best_picks, second.best_value)  # carried to the next budget
-    value = max(second.best_value, answer.solver_probability)
-    picks = second.best_picks if second.best_value > answer.solver_probability else None
-    bound = max(min(second.open_bound(), answer.upper_bound), value)
-    proven = status == "optimal" or bound - value <= PRUNE_TOLERANCE
-    stats: BranchAndBoundStats = {
-        **answer.stats,
-        "segment_nodes": second.nodes,
-        "segment_root_bound": second.root_bound,
-        "segment_enumerated": second.enumerated,
-        "segment_enumerated_alterations": second.enumerated_alterations,
-    }
-    return Solution(
-        budget=answer.budget,
-        alteration=answer.alteration if picks is None else relax.alteration(picks),
-        solver_probability=value,
-        status=Status.OPTIMAL if proven else answer.status,
-        upper_bound=value if status == "optimal" else bound,
-        stats=stats,
-    )
+        def tick() -> None:
+            stage = f"branch-and-bound, budget {budget:g}"
+            report(progress, step.done, step.total, stage=stage, detail=search.describe())
+
+        answer = search.run(limit, tick)
+        if not schedule.segment_has_time(deadline):
+            curve.segment_backs_up = False  # too little time left to build and search it
+        if answer.status != Status.OPTIMAL and curve.segment_backs_up and curve.segments is None:
+            curve.segments = SegmentRelaxation(curve.instance, relax, threads=1)  # one a worker
+        if answer.status != Status.OPTIMAL and curve.segments is not None:
+            curve.per_state_failed = True
+            answer = self._segment_phase(curve.segments, search, answer, step, deadline, progress)
+        curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
+        return answer
+
+    def _segment_phase(
+        self,
+        segments: SegmentRelaxation,
+        search: _Search,
+        answer: Solution,
+        step: _Budget,
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+    ) -> Solution:
+        """Continue a budget the per-state search did not certify with the segment search,
+        from its incumbent; keep the better answer and the smaller of the two proven bounds."""
+        second = SegmentSearch(
+            segments, step.budget, seeds=[search.best_picks], enumerate_at=SEGMENT_ENUMERATE_AT
+        )
+
+        def tick() -> None:
+            report(
+                progress,
+                step.done,
+                step.total,
+                stage=f"segment search, budget {step.budget:g}",
+                detail=f"incumbent {second.best_value:.6f}, bound {second.open_bound():.6f}"
+                f", {second.nodes:,} nodes, {second.enumerated:,} enumerated",
+            )
+
+        status = second.run(
+            schedule.segment_search(deadline, step.left),
+            tick,
+            max_nodes=self.max_nodes,
+            workers=self.workers(),
+        )
+        search.incumbent.offer(second.best_picks, second.best_value)  # carried to the next budget
+        claimed = answer.solver_probability
+        assert claimed is not None, "the per-state search always has an incumbent"
+        value = max(second.best_value, claimed)
+        picks = second.best_picks if second.best_value > claimed else None
+        assert answer.upper_bound is not None
+        bound = max(min(second.open_bound(), answer.upper_bound), value)
+        finished = status == Status.OPTIMAL
+        stats: BranchAndBoundStats = {
+            **answer.stats,  # type: ignore[typeddict-item]
+            "segment_nodes": second.nodes,
+            "segment_root_bound": second.root_bound,
+            "segment_enumerated": second.enumerated,
+            "segment_enumerated_alterations": second.enumerated_alterations,
+        }
+        return Solution(
+            budget=answer.budget,
+            alteration=answer.alteration if picks is None else segments.relax.alteration(picks),
+            solver_probability=value,
+            status=Status.OPTIMAL if finished else answer.status,
+            upper_bound=value if finished else bound,
+            stats=stats,
+        )
+
+
+@dataclass
+class _Node:
+    """A prefix of fixed candidates (``picks`` for the first ``depth`` observations)."""
+
+    picks: tuple[int, ...]
+    remaining: float
+    parent_bound: float
+    policy: np.ndarray  # warm start: one group per product state
 
 
 class _Search:
@@ -444,51 +253,29 @@ class _Search:
 
     def __init__(
         self,
-        relax: _Relaxation,
+        relax: PerStateRelaxation,
         budget: float,
         max_nodes: int,
-        seed: tuple[tuple[int, ...], float] | None,
+        seed: tuple[Picks, float] | None,
         policy: np.ndarray,
     ):
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        depth = len(relax.order)
-        self.best_picks: tuple[int, ...] = (0,) * depth
-        self.best_value = -1.0
-        self.best_cost = 0.0
-        self.evaluated: dict[tuple[int, ...], float] = {}
+        self.incumbent = Incumbent(relax, (0,) * len(relax.order))
         if seed is not None:  # the smaller budget's answer stays feasible
-            self.offer(seed[0], seed[1])
+            self.incumbent.offer(*seed)
         self.root_policy = policy
         self.stack = [_Node((), budget, np.inf, policy)]
-        self.nodes = self.pruned = 0
-        self.pruned_bound = -np.inf  # largest bound of any pruned subtree
+        self.nodes = 0
         self.root_bound: float | None = None
         self.evaluations_before = relax.evaluations
 
-    def offer(self, picks: tuple[int, ...], value: float) -> None:
-        """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper."""
-        cost = self.relax.cost(picks)
-        better = value > self.best_value + PRUNE_TOLERANCE
-        tied_cheaper = value >= self.best_value - PRUNE_TOLERANCE and cost < self.best_cost - 1e-12
-        if better or tied_cheaper:
-            self.best_picks, self.best_value, self.best_cost = picks, value, cost
+    @property
+    def best_picks(self) -> Picks:
+        return self.incumbent.picks
 
-    def value(self, picks: tuple[int, ...]) -> float:
-        """Exact value of a complete assignment (the chain of its groups, least fixed point)."""
-        if picks not in self.evaluated:
-            relax = self.relax
-            allowed = relax.allowed_groups(relax.allowed_options(picks, 0.0))
-            policy, _ = relax.best_groups(np.where(allowed, 0.0, -np.inf))
-            values = relax.evaluate(policy)
-            self.evaluated[picks] = float(values[relax.chain.initial])
-        return self.evaluated[picks]
-
-    def _prune(self, bound: float) -> bool:
-        if bound <= self.best_value + PRUNE_TOLERANCE:
-            self.pruned += 1
-            self.pruned_bound = max(self.pruned_bound, bound)
-            return True
-        return False
+    @property
+    def best_value(self) -> float:
+        return self.incumbent.value
 
     def describe(self) -> str:
         bound = self.open_bound()
@@ -498,15 +285,15 @@ class _Search:
         )
 
     def open_bound(self) -> float:
-        open_bound = max((n.parent_bound for n in self.stack), default=-np.inf)
-        top = self.relax.problem.objective.max_value
-        return float(min(max(self.best_value, self.pruned_bound, open_bound), top))
+        return self.incumbent.proven_bound(
+            max((n.parent_bound for n in self.stack), default=-np.inf)
+        )
 
     def run(self, deadline: Deadline | None = None, tick=None) -> Solution:
-        relax = self.relax
-        depth = len(relax.order)
+        """Search until every node is pruned (``optimal``: finished), the deadline passes
+        (``time_limit``) or ``max_nodes`` were bounded (``feasible``)."""
         if self.best_value < 0:
-            self.offer(self.best_picks, self.value(self.best_picks))
+            self.incumbent.offer_exact(self.best_picks)
         while self.stack:
             if self.nodes >= self.max_nodes:
                 return self._solution(Status.FEASIBLE)
@@ -515,37 +302,34 @@ class _Search:
             if tick is not None and self.nodes % 64 == 0:
                 tick()
             node = self.stack.pop()
-            if self._prune(node.parent_bound):
-                continue
-            self.nodes += 1
-            allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
-            bound, _, policy = relax.optimise(allowed, node.policy.copy())
-            if self.root_bound is None:
-                self.root_bound, self.root_policy = bound, policy
-            level = len(node.picks)
-            if level == depth:  # every observation fixed: the relaxation is the chain itself
-                self.offer(node.picks, bound)
-                continue
-            usage = relax.usage(policy)
-            rounded = self._round(node.picks, node.remaining, usage)
-            self.offer(rounded, self.value(rounded))
-            if self._prune(bound):
-                continue
-            i = relax.order[level]
-            costs = relax.option_cost[relax.first_option[i] : relax.first_option[i + 1]]
-            preferred = relax.ranked(i, node.remaining, usage)
-            for k in preferred[::-1]:  # the stack pops the preferred candidate first
-                self.stack.append(
-                    _Node(
-                        (*node.picks, int(k)),
-                        node.remaining - float(costs[k]),
-                        bound,
-                        policy,
-                    )
-                )
+            if not self.incumbent.prune(node.parent_bound):
+                self._expand(node)
         return self._solution(Status.OPTIMAL)
 
-    def _round(self, picks: tuple[int, ...], remaining: float, usage: np.ndarray) -> tuple:
+    def _expand(self, node: _Node) -> None:
+        """Bound ``node``, round its policy to an incumbent, and push its children."""
+        relax = self.relax
+        self.nodes += 1
+        allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
+        bound, _, policy = relax.optimise(allowed, node.policy.copy())
+        if self.root_bound is None:
+            self.root_bound, self.root_policy = bound, policy
+        level = len(node.picks)
+        if level == len(relax.order):  # every observation fixed: the relaxation is the chain
+            self.incumbent.offer(node.picks, bound)
+            return
+        usage = relax.usage(policy)
+        self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))
+        if self.incumbent.prune(bound):
+            return
+        i = relax.order[level]
+        costs = relax.option_cost[relax.first_option[i] : relax.first_option[i + 1]]
+        preferred = relax.ranked(i, node.remaining, usage)
+        for k in preferred[::-1]:  # the stack pops the preferred candidate first
+            child = _Node((*node.picks, int(k)), node.remaining - float(costs[k]), bound, policy)
+            self.stack.append(child)
+
+    def _round(self, picks: Picks, remaining: float, usage: np.ndarray) -> Picks:
         """Complete ``picks`` greedily: each free observation's most used affordable candidate."""
         relax = self.relax
         completed = list(picks)
@@ -555,11 +339,10 @@ class _Search:
             remaining -= float(relax.option_cost[relax.first_option[i] + k])
         return tuple(completed)
 
-    def _solution(self, status: str) -> Solution:
-        bound = self.open_bound()
+    def _solution(self, status: Status) -> Solution:
         stats: BranchAndBoundStats = {
             "nodes": self.nodes,
-            "pruned": self.pruned,
+            "pruned": self.incumbent.pruned,
             "policy_evaluations": self.relax.evaluations - self.evaluations_before,
             "root_bound": self.root_bound,
             "relevant_observations": len(self.relax.order),
@@ -569,15 +352,78 @@ class _Search:
             alteration=self.relax.alteration(self.best_picks),
             solver_probability=self.best_value,
             status=status,
-            upper_bound=bound,
+            upper_bound=self.open_bound(),
             stats=stats,
         )
 
 
-def relaxation_bound(problem: Problem, budget: float) -> float:
-    """Root bound of the search: the relaxation's optimum with every observation free."""
-    instance = prepare(problem, budget)
-    relax = _Relaxation(problem, instance.space, instance.chain)
-    allowed = relax.allowed_groups(relax.allowed_options((), budget))
-    start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
-    return relax.optimise(allowed, start)[0]
+def _hill_climb(
+    relax: PerStateRelaxation,
+    picks: tuple[int, ...],
+    value: float,
+    budget: float,
+    deadline: Deadline | None = None,
+    tries: int = GREEDY_TRIES,
+) -> tuple[tuple[int, ...], float]:
+    """Hill-climb from ``picks`` by changing one observation at a time within ``budget``.
+
+    Candidates are ranked by a first-order estimate of their gain (the expected visits of
+    the states they change times the one-step advantage of their group under the current
+    values), and only the ``tries`` best are evaluated exactly: a good incumbent early,
+    for the pruning and for answers cut short by the time limit.
+    """
+    chain, live = relax.chain, relax.live
+    inner = np.flatnonzero(live)
+    if inner.size == 0 or not relax.order:
+        return picks, value
+    position = np.full(chain.n_states, -1)
+    position[inner] = np.arange(inner.size)
+    while deadline is None or not deadline.expired():
+        policy = relax.policy_of(picks)
+        values = relax.evaluate(policy)
+        block = chain.transitions[policy[inner]][:, inner].tocsc()
+        system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
+        if not live[chain.initial]:
+            return picks, value
+        start = np.zeros(inner.size)
+        start[position[chain.initial]] = 1.0
+        try:
+            visits = spla.splu(system).solve(start)
+        except RuntimeError:  # singular: the chain cycles without reaching the decoy
+            return picks, value
+        moves = _ranked_moves(relax, picks, values, visits, inner, position, budget)
+        best = (value, picks)
+        for gain, j, k in moves[:tries]:
+            if gain <= 0:
+                break
+            candidate = (*picks[:j], k, *picks[j + 1 :])
+            found = float(relax.evaluate(relax.policy_of(candidate))[chain.initial])
+            if found > best[0] + tolerance.PRUNE:
+                best = (found, candidate)
+        if best[1] is picks:
+            return picks, value
+        value, picks = best
+    return picks, value
+
+
+def _ranked_moves(relax, picks, values, visits, inner, position, budget) -> list:
+    """Every change of one observation's pick within ``budget``, with its first-order gain
+    (expected visits of the states it changes times their one-step advantage), best first."""
+    chain = relax.chain
+    state_obs = relax.problem.pomdp.observation_of[chain.world_state]
+    score = np.asarray(chain.transitions @ values).ravel()
+    spent = relax.cost(picks)
+    moves = []
+    for position_in_order, i in enumerate(relax.order):
+        first = relax.first_option[i]
+        costs = relax.option_cost[first : relax.first_option[i + 1]]
+        current = picks[position_in_order]
+        owned = inner[state_obs[inner] == relax.space.choices[i].observation]
+        for k in np.flatnonzero(spent - costs[current] + costs <= budget + tolerance.BUDGET_SLACK):
+            if k == current:
+                continue
+            groups = chain.group_of_option[owned, first + k]
+            gain = visits[position[owned]] @ (score[groups] - values[owned])
+            moves.append((float(gain), position_in_order, int(k)))
+    moves.sort(reverse=True)
+    return moves

@@ -3,30 +3,26 @@
 Every combination of per-observation candidates whose cost fits the largest budget is evaluated
 exactly; the best one within each budget is the optimum there, so one run gives the whole
 budget curve. Stopped by its deadline, it reports the best alteration seen so far with status
-``time_limit`` and the root bound of the MDP relaxation (see ``branch_and_bound``).
+``time_limit`` and the root bound of the per-state relaxation.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TypedDict
+from typing import ClassVar, TypedDict
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.errors import SolverError
-from misdirect.solvers.base import (
-    Deadline,
-    ProgressCallback,
-    Solution,
-    Status,
-    best_per_budget,
-    check_time_limit,
-    refuse_options,
-    report,
-)
+from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget, report
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.per_state import relaxation_bound
+from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.status import Status
 
 
 class ExhaustiveStats(TypedDict):
@@ -39,16 +35,13 @@ class ExhaustiveStats(TypedDict):
 
 
 class ExhaustiveSolver:
-    name = "exhaustive"
-    curve_is_free = True
+    name: ClassVar[str] = "exhaustive"
+    curve_is_free: ClassVar[bool] = True
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit",)
 
-    def __init__(
-        self, max_evaluations: int = 2_000_000, time_limit: float | None = None, **options
-    ):
-        refuse_options(self.name, options, accepted=("time_limit",))
-        check_time_limit(time_limit)
+    def __init__(self, options: SolveOptions | None = None, *, max_evaluations: int = 2_000_000):
+        self.options = options or SolveOptions()
         self.max_evaluations = max_evaluations
-        self.time_limit = time_limit
 
     def solve(
         self,
@@ -58,7 +51,7 @@ class ExhaustiveSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.time_limit)
+        deadline = deadline or Deadline(self.options.time_limit)
         top = max(budgets)
         space = prepare(problem, top).space
         enumerated = space.within(top, limit=self.max_evaluations)
@@ -92,20 +85,22 @@ class ExhaustiveSolver:
         }
         picks = best_per_budget(costs[:done], values[:done], budgets)
         # a budget is proven when every alteration it affords was evaluated
-        complete = [finished or costs[done] > b + 1e-9 for b in budgets]
-        bound = None
-        if not all(complete):
-            from misdirect.solvers.branch_and_bound import relaxation_bound
-
-            bound = relaxation_bound(problem, top)  # bounds every smaller budget too
+        complete = [finished or not tolerance.affordable(costs[done], b) for b in budgets]
+        # the relaxation at the largest budget bounds every smaller one too
+        bound = None if all(complete) else relaxation_bound(problem, top)
         return [
             Solution(
                 b,
                 alterations[i],
                 float(values[i]),
                 status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
-                upper_bound=float(values[i]) if proven else max(float(values[i]), bound),
+                upper_bound=_bound(float(values[i]), proven, bound),
                 stats=stats,
             )
             for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]
+
+
+def _bound(value: float, proven: bool, relaxed: float | None) -> float:
+    """A budget whose every alteration was evaluated is bounded by its best value."""
+    return value if proven or relaxed is None else max(value, relaxed)

@@ -16,19 +16,20 @@ from typing import Any
 import numpy as np
 
 from misdirect.core.alterations import max_alteration_cost
-from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Alteration, Problem
+from misdirect.core.tolerance import BUDGET_SLACK
 from misdirect.errors import ProblemError
 from misdirect.solvers import get_solver
-from misdirect.solvers.base import (
-    CERTIFY_TOLERANCE,
-    ProgressCallback,
-    Status,
-    clear_stop,
-    stop_requested,
+from misdirect.solvers.base import ProgressCallback
+from misdirect.solvers.certification import (
+    CurvePoint,
+    ExactValues,
+    certify_curve,
+    check_claims,
 )
-
-MISMATCH_TOLERANCE = 1e-6  # a solver claim this far from the exact value is "unverified"
+from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.status import Status
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,7 @@ class SolveResult:
 
 def default_budgets(budget: float) -> list[float]:
     """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
-    whole = [float(b) for b in range(math.floor(budget + 1e-9) + 1)]
+    whole = [float(b) for b in range(math.floor(budget + BUDGET_SLACK) + 1)]
     return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
 
 
@@ -133,110 +134,104 @@ def solve(
     *,
     method: str = "auto",
     budgets: Sequence[float] | None = None,
+    options: SolveOptions | None = None,
+    time_limit: float | None = None,
+    threads: int | None = None,
+    solver: str | None = None,
+    formulation: str | None = None,
+    mip_gap: float | None = None,
+    verbose: bool | None = None,
+    deadline: Deadline | None = None,
+    cancel: CancelToken | None = None,
     progress: ProgressCallback | None = None,
-    **options: Any,
 ) -> SolveResult:
-    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), verified exactly.
+    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), certified exactly.
 
+    Parameters
+    ----------
+    problem:
+        The POMDP, controller, costs, decoy and budget (:func:`misdirect.load_problem`).
+    method:
+        ``auto`` (default: picks and combines the exact methods), ``exhaustive``,
+        ``incremental``, ``branch-and-bound`` or ``milp``.
+    budgets:
+        Budgets to solve (the curve); default: ``problem.budget``, plus every whole budget
+        below it where the method gets them for free.
+    options:
+        A :class:`~misdirect.solvers.options.SolveOptions`; the keyword arguments
+        ``time_limit`` (seconds for the whole call), ``threads``, and the MILP's ``solver``,
+        ``formulation``, ``mip_gap`` and ``verbose`` override its fields. An option the method
+        does not take raises :class:`~misdirect.errors.OptionError`.
+    deadline:
+        A :class:`~misdirect.solvers.deadline.Deadline` shared with other work (an audit's
+        solves share one); ``time_limit`` then limits this call further.
+    cancel:
+        A :class:`~misdirect.solvers.deadline.CancelToken`: cancelling it (from another
+        thread, a signal handler) stops this solve with its best answers so far, marked
+        ``interrupted``. Default: the deadline's token, else a fresh one.
+    progress:
+        Called as ``progress(done, total, stage=..., detail=..., note=...)`` while solving.
+
+    Every probability returned is the exact value of the returned alteration, and a point is
+    ``optimal`` only when a proven bound meets it (:mod:`misdirect.solvers.certification`).
     A budget above the cost of the most expensive complete alteration affords everything, so
-    the solvers run at that cost instead and its answer is reported at the budget asked for
-    (``budget_clamped_from`` / ``budget_clamped_to`` say so): no method then enumerates or
-    sweeps a range it cannot need (a budget of 1e9 is "no limit", not a billion budgets).
+    the methods run at that cost instead and its answer is reported at the budget asked for
+    (``budget_clamped_from`` / ``budget_clamped_to`` say so).
     """
-    solver = get_solver(method, **options)
-    cap = max_alteration_cost(problem)
-    asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
-    clamped_from = asked if math.isfinite(asked) and asked > cap else None
-    if budgets is None:
-        whole = default_budgets(min(problem.budget, cap)) if solver.curve_is_free else []
-        budgets = [*whole, problem.budget]
-    budgets = sorted({float(b) for b in budgets})
-    for b in budgets:
-        if not math.isfinite(b) or b < 0:
-            raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
+    overrides = {
+        "time_limit": time_limit,
+        "threads": threads,
+        "solver": solver,
+        "formulation": formulation,
+        "mip_gap": mip_gap,
+        "verbose": verbose,
+    }
+    given = {name: value for name, value in overrides.items() if value is not None}
+    options = replace(options or SolveOptions(), **given)
+    method_solver = get_solver(method, options)
+    budgets, cap, clamped_from = _budgets(problem, budgets, method_solver.curve_is_free)
     if problem.budget > cap:
         problem = problem.with_budget(cap)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
+    if deadline is None:
+        deadline = Deadline(options.time_limit, cancel=cancel)
+    elif options.time_limit is not None or cancel is not None:
+        deadline = Deadline(options.time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
     started = time.perf_counter()
-    clear_stop()
-    solutions = solver.solve(problem, clamped, progress=progress)
-    interrupted = stop_requested()
+    solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
+    interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started
     if clamped_from is not None:
         by_budget = {solution.budget: solution for solution in solutions}
         solutions = [
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
-
-    exact_values: dict[bytes, float] = {}  # a budget curve often repeats an alteration
-
-    def exact_value(alpha: np.ndarray) -> float:
-        key = alpha.tobytes()
-        if key not in exact_values:
-            exact_values[key] = decoy_probability(problem, alpha)
-        return exact_values[key]
-
+    exact_value = ExactValues(problem)
     curve, warnings = [], []
     for solution in solutions:
         alpha = np.asarray(solution.alteration, dtype=np.int64)
-        problem.check_alteration(alpha, source=f"{solver.name} solver")
-        exact = exact_value(alpha)
-        cost = problem.alteration_cost(alpha)
-        status = Status(solution.status)
-        claimed = solution.solver_probability
-        stats = dict(solution.stats)
-        # An incumbent cut short (time or gap limit, node limit) may claim less than its
-        # alteration is worth: its continuous part (or a MILP's witness columns) was not yet
-        # pushed to the best for its choices. Only claiming more, or any mismatch at a proven
-        # optimum, contradicts the chain.
-        if (
-            claimed is not None
-            and abs(exact - claimed) > MISMATCH_TOLERANCE
-            and not (status.cut_short and claimed < exact)
-        ):
-            status = Status.UNVERIFIED
-            warnings.append(
-                f"budget {solution.budget:g}: the {solver.name} solver claimed "
-                f"{claimed:.9f} but the chain gives {exact:.9f}; the answer is not optimal "
-                "as far as anyone can tell"
-            )
-        if cost > solution.budget + 1e-9:
-            warnings.append(f"budget {solution.budget:g}: returned alteration costs {cost:g}")
-        upper_bound = solution.upper_bound
-        if upper_bound is not None and upper_bound < exact:
-            # a bound below a value we hold in hand is solver tolerance, or a bug if it is large
-            if exact - upper_bound > MISMATCH_TOLERANCE:
-                status = Status.UNVERIFIED
-                warnings.append(
-                    f"budget {solution.budget:g}: the {solver.name} solver's bound "
-                    f"{upper_bound:.9f} is below the exact value {exact:.9f}"
-                )
-            upper_bound = exact
-        curve.append(
-            _Point(
-                solution.budget,
-                status,
-                exact,
-                alpha,
-                cost,
-                upper_bound,
-                claimed,
-                stats,
-                solution.certified_by,
-            )
+        problem.check_alteration(alpha, source=f"{method_solver.name} solver")
+        point = CurvePoint(
+            budget=solution.budget,
+            status=Status(solution.status),
+            probability=exact_value(alpha),
+            alteration=alpha,
+            cost=problem.alteration_cost(alpha),
+            upper_bound=solution.upper_bound,
+            claimed=solution.solver_probability,
+            stats=dict(solution.stats),
+            certified_by=solution.certified_by,
         )
-    _make_monotone(curve)
-    if interrupted:  # stopped by request (Ctrl-C), not by the time limit
-        for point in curve:
-            if point.status == Status.TIME_LIMIT:
-                point.status = Status.INTERRUPTED
+        warnings += check_claims(point, method_solver.name)
+        curve.append(point)
+    certify_curve(curve, cancelled=interrupted)
     return SolveResult(
         problem=problem.name,
-        method=solver.name,
-        baseline_probability=exact_value(np.asarray(problem.identity(), dtype=np.int64)),
+        method=method_solver.name,
+        baseline_probability=exact_value(problem.identity()),
         time_s=elapsed,
-        curve=[point.result(problem) for point in curve],
+        curve=[_result(point, problem) for point in curve],
         warnings=warnings,
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
@@ -245,84 +240,34 @@ def solve(
     )
 
 
-@dataclass
-class _Point:
-    """One budget's answer while ``solve`` checks the curve as a whole."""
-
-    budget: float
-    status: Status
-    probability: float
-    alteration: np.ndarray
-    cost: float
-    upper_bound: float | None
-    claimed: float | None
-    stats: dict[str, Any]
-    certified_by: str | None
-
-    def result(self, problem: Problem) -> BudgetResult:
-        return BudgetResult(
-            budget=self.budget,
-            status=self.status,
-            probability=self.probability,
-            alteration=problem.changed_observations(self.alteration),
-            cost=self.cost,
-            upper_bound=self.upper_bound,
-            solver_probability=self.claimed,
-            stats=self.stats,
-            alteration_array=self.alteration,
-            certified_by=self.certified_by,
-        )
+def _budgets(
+    problem: Problem, budgets: Sequence[float] | None, curve_is_free: bool
+) -> tuple[list[float], float, float | None]:
+    """The budgets to answer (sorted, checked), the cap (the most expensive complete
+    alteration's cost) and the largest budget asked for when it exceeds the cap."""
+    cap = max_alteration_cost(problem)
+    asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
+    clamped_from = asked if math.isfinite(asked) and asked > cap else None
+    if budgets is None:
+        whole = default_budgets(min(problem.budget, cap)) if curve_is_free else []
+        budgets = [*whole, problem.budget]
+    ordered = sorted({float(b) for b in budgets})
+    for b in ordered:
+        if not math.isfinite(b) or b < 0:
+            raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
+    return ordered, cap, clamped_from
 
 
-def _make_monotone(curve: list[_Point]) -> None:
-    """What one budget's answer proves about the others, and "optimal" only when proven.
-
-    * A larger budget can do whatever a smaller one can: a point worse than one at a smaller
-      budget takes that alteration (a solver cut short may not have found it again).
-    * An upper bound at a larger budget bounds every smaller one too.
-    * ``optimal`` requires a proven bound within ``CERTIFY_TOLERANCE`` of the exact value of the
-      alteration returned, whatever the method said; a point without one is ``feasible``, and a
-      point whose bound (perhaps one from a larger budget) closes the gap becomes ``optimal``.
-    """
-    order = sorted(range(len(curve)), key=lambda j: curve[j].budget)
-    best: _Point | None = None
-    for j in order:
-        point = curve[j]
-        if best is not None and point.probability < best.probability - 1e-12:
-            point.stats["replaced"] = (
-                f"the solver's answer ({point.probability:.9f}) was worse than budget "
-                f"{best.budget:g}'s, whose alteration it takes"
-            )
-            point.alteration, point.probability, point.cost = (
-                best.alteration,
-                best.probability,
-                best.cost,
-            )
-            if point.upper_bound is not None:
-                point.upper_bound = max(point.upper_bound, point.probability)
-        if best is None or point.probability > best.probability:
-            best = point
-    bound: float | None = None
-    for j in reversed(order):
-        point = curve[j]
-        if point.status == Status.UNVERIFIED:
-            continue
-        if bound is not None and (point.upper_bound is None or bound < point.upper_bound):
-            point.upper_bound = max(bound, point.probability)
-        if point.upper_bound is not None:
-            bound = point.upper_bound
-        certified = (
-            point.upper_bound is not None
-            and point.upper_bound - point.probability <= CERTIFY_TOLERANCE + 1e-12
-        )
-        if point.status == Status.OPTIMAL and not certified:
-            point.stats["not_certified"] = (
-                "no proven bound within 1e-9 of the exact value"
-                if point.upper_bound is None
-                else f"proven bound {point.upper_bound:.12f} is "
-                f"{point.upper_bound - point.probability:.2e} above the exact value"
-            )
-            point.status = Status.FEASIBLE
-        elif point.status.cut_short and certified:
-            point.stats["certified_by_bound"] = "a bound at this or a larger budget meets it"
-            point.status = Status.OPTIMAL
+def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
+    return BudgetResult(
+        budget=point.budget,
+        status=point.status,
+        probability=point.probability,
+        alteration=problem.changed_observations(point.alteration),
+        cost=point.cost,
+        upper_bound=point.upper_bound,
+        solver_probability=point.claimed,
+        stats=point.stats,
+        alteration_array=point.alteration,
+        certified_by=point.certified_by,
+    )

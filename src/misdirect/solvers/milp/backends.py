@@ -23,7 +23,8 @@ from typing import Any, Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from misdirect.errors import ProblemError, SolverError
+from misdirect.errors import OptionError, ProblemError, SolverError
+from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.milp.model import MilpModel
 
 # A binary may sit this far from 0 or 1 in a Gurobi or SCIP answer. At their defaults (1e-5 in
@@ -77,9 +78,13 @@ class Backend(Protocol):
     def set_row_upper(self, row: int, value: float) -> None: ...
 
     def solve(
-        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+        self,
+        start: tuple[np.ndarray, np.ndarray] | None,
+        time_limit: float | None = None,
+        cancel: CancelToken | None = None,
     ) -> BackendResult:
-        """One solve from ``start``; ``time_limit`` (seconds) overrides the options'."""
+        """One solve from ``start``; ``time_limit`` (seconds) overrides the options'; a
+        backend that runs elsewhere (HiGHS' worker) stops when ``cancel`` is cancelled."""
         ...
 
     def close(self) -> None: ...
@@ -126,7 +131,10 @@ class HighsBackend:
             raise SolverError(f"HiGHS could not write {path}")
 
     def solve(
-        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+        self,
+        start: tuple[np.ndarray, np.ndarray] | None,
+        time_limit: float | None = None,
+        cancel: CancelToken | None = None,
     ) -> BackendResult:
         assert self.model is not None, "load() a model first"
         row = self.model.budget_row
@@ -142,7 +150,7 @@ class HighsBackend:
                 # HiGHS overshoots its own limit (seconds, on large models): past the limit
                 # and a grace period the worker is stopped and the solve counts as timed out
                 grace = None if limit is None else limit * HIGHS_GRACE_FACTOR + HIGHS_GRACE_S
-                if not self._answered(grace):
+                if not self._answered(grace, cancel):
                     self._stop_worker(kill=True)
                     return BackendResult(
                         "time_limit",
@@ -174,14 +182,13 @@ class HighsBackend:
     def close(self) -> None:
         self._stop_worker()
 
-    def _answered(self, seconds: float | None) -> bool:
+    def _answered(self, seconds: float | None, cancel: CancelToken | None) -> bool:
         """Wait up to ``seconds`` (forever: None) for the worker's answer, in short slices so
-        that a stop request (Ctrl-C in the CLI) is seen within a fraction of a second."""
-        from misdirect.solvers.base import stop_requested
-
+        that a cancellation (Ctrl-C in the CLI) is seen within a fraction of a second."""
         end = None if seconds is None else time.perf_counter() + seconds
         while not self._conn.poll(STOP_POLL_S):
-            if stop_requested() or (end is not None and time.perf_counter() >= end):
+            cancelled = cancel is not None and cancel.cancelled
+            if cancelled or (end is not None and time.perf_counter() >= end):
                 return False
         return True
 
@@ -428,7 +435,10 @@ class GurobiBackend:
         self.env.dispose()
 
     def solve(
-        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+        self,
+        start: tuple[np.ndarray, np.ndarray] | None,
+        time_limit: float | None = None,
+        cancel: CancelToken | None = None,
     ) -> BackendResult:
         gp = self.gp
         m = self.model
@@ -489,7 +499,10 @@ class ScipBackend:
         pass
 
     def solve(
-        self, start: tuple[np.ndarray, np.ndarray] | None, time_limit: float | None = None
+        self,
+        start: tuple[np.ndarray, np.ndarray] | None,
+        time_limit: float | None = None,
+        cancel: CancelToken | None = None,
     ) -> BackendResult:
         limit = self.options.time_limit if time_limit is None else time_limit
         # SCIP reads the model from the MPS file HiGHS writes: a bulk path with no per-row calls
@@ -558,9 +571,7 @@ BACKENDS: dict[str, type] = {"highs": HighsBackend, "gurobi": GurobiBackend, "sc
 
 def make_backend(name: str, options: SolverOptions) -> Backend:
     if name not in BACKENDS:
-        raise ProblemError(
-            f"unknown solver {name!r} (choose from {', '.join(BACKENDS)})", field="--solver"
-        )
+        raise OptionError(f"{name!r} is not one of {', '.join(BACKENDS)}", parameter="solver")
     return BACKENDS[name](options)
 
 

@@ -11,34 +11,31 @@ than 1e-9 below its bound, the LP optimum with the binaries rounded: the toleran
 otherwise leak into the claim (0.400001 for 0.4), and an incumbent whose probabilities are not
 the largest for its alteration would look like a gap.
 
-Statuses: ``optimal`` (the solver's bound meets its incumbent within 1e-9), ``gap_limit`` (it
-stopped because the relative gap fell under ``--mip-gap``, with the bound further than that
-from the incumbent), ``time_limit``.
+How it stopped, normalised from the backend's own codes: ``optimal`` (the backend's bound meets
+its incumbent within :data:`~misdirect.core.tolerance.GAP`), ``gap_limit`` (it stopped because
+the relative gap fell under ``mip_gap``, with the bound further than that from the incumbent),
+``time_limit``. Whether the answer is optimal is decided by the front door, on the exact value
+of the decoded alteration.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, TypedDict
+from typing import Any, ClassVar, TypedDict
 
-from misdirect.core.evaluate import decoy_probability
+from misdirect.core import tolerance
 from misdirect.core.model import Problem
-from misdirect.errors import ProblemError, SolverError
-from misdirect.solvers.base import (
-    CERTIFY_TOLERANCE,
-    Deadline,
-    ProgressCallback,
-    Solution,
-    Status,
-    check_threads,
-    check_time_limit,
-    report,
-)
+from misdirect.errors import OptionError, SolverError
+from misdirect.solvers.base import ProgressCallback, Solution, report
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.backends import BackendResult, SolverOptions, make_backend
 from misdirect.solvers.milp.compact import build_compact
 from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
+from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.status import Status
 
 FORMULATIONS = {
     "compact": build_compact,
@@ -49,9 +46,9 @@ FORMULATIONS = {
 
 def _check_formulation(formulation: str) -> None:
     if formulation not in FORMULATIONS:
-        raise ProblemError(
-            f"unknown formulation {formulation!r} (choose from {', '.join(FORMULATIONS)})",
-            field="--formulation",
+        raise OptionError(
+            f"{formulation!r} is not one of {', '.join(FORMULATIONS)}",
+            parameter="formulation",
         )
 
 
@@ -61,20 +58,15 @@ def build_formulation(problem: Problem, formulation: str, budget: float | None =
     return FORMULATIONS[formulation](problem, budget)
 
 
-GAP_TOLERANCE = 1e-9  # a bound this close to the incumbent counts as a proof of optimality
-FEASIBILITY_SLACK = 1e-9  # a point further than this from feasible gets its claim recomputed
-
-
 def _status(result: BackendResult, value: float | None) -> Status:
     """The backend's status, except that a solve it calls optimal while its bound lies more
-    than 1e-9 above ``value`` (its incumbent's: the better of its objective and the claim) is
-    ``gap_limit``, a stop because the gap fell under ``--mip-gap``: optimal means the bound
-    meets the incumbent."""
+    than the gap tolerance above ``value`` (its incumbent's: the better of its objective and
+    the claim) is ``gap_limit``, a stop because the gap fell under ``mip_gap``."""
     if (
         result.status == "optimal"
         and result.bound is not None
         and value is not None
-        and result.bound - value > GAP_TOLERANCE * max(1.0, abs(result.bound)) + 1e-12
+        and result.bound - value > tolerance.GAP * max(1.0, abs(result.bound)) + tolerance.TIE
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
@@ -102,34 +94,32 @@ class MilpStats(TypedDict, total=False):
     nodes: int | None
     claimed: float | None  # the objective, or its recomputation with rounded binaries
     violation: float  # how far the backend's point is from feasible
-    exact: float  # the chain's value of the decoded alteration
-    not_certified: str
 
 
 class MilpSolver:
-    name = "milp"
-    curve_is_free = False
+    name: ClassVar[str] = "milp"
+    curve_is_free: ClassVar[bool] = False
+    accepts: ClassVar[tuple[str, ...]] = (
+        "time_limit",
+        "threads",
+        "solver",
+        "formulation",
+        "mip_gap",
+        "verbose",
+    )
 
-    def __init__(
-        self,
-        solver: str = "highs",
-        formulation: str = "compact",
-        time_limit: float | None = None,
-        threads: int | None = None,
-        mip_gap: float = 1e-9,
-        verbose: bool = False,
-    ):
-        _check_formulation(formulation)
-        check_time_limit(time_limit)
-        if mip_gap is not None and not mip_gap >= 0:
-            raise ProblemError(f"must be a non-negative number, got {mip_gap}", field="--mip-gap")
-        check_threads(threads)
-        self.backend_name = solver
-        self.formulation = formulation
+    def __init__(self, options: SolveOptions | None = None):
+        options = options or SolveOptions()
+        self.backend_name = options.solver or "highs"
+        self.formulation = options.formulation or "compact"
+        _check_formulation(self.formulation)
         self.options = SolverOptions(
-            time_limit=time_limit, threads=threads, mip_gap=mip_gap, verbose=verbose
+            time_limit=options.time_limit,
+            threads=options.threads,
+            mip_gap=tolerance.GAP if options.mip_gap is None else options.mip_gap,
+            verbose=bool(options.verbose),
         )
-        make_backend(solver, self.options)  # fail early on a missing backend
+        make_backend(self.backend_name, self.options)  # fail early on a missing backend
 
     def solve(
         self,
@@ -165,7 +155,9 @@ class MilpSolver:
             report(
                 progress, done - 1, len(budgets), stage=f"milp ({backend.name}), budget {budget:g}"
             )
-            result = backend.solve(start, time_limit=deadline.share(len(budgets) - done + 1))
+            result = backend.solve(
+                start, time_limit=deadline.share(len(budgets) - done + 1), cancel=deadline.cancel
+            )
             if result.status not in ("optimal", "time_limit", "infeasible"):
                 raise SolverError(
                     f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
@@ -183,8 +175,8 @@ class MilpSolver:
                 alteration = model.decode(result.values)
                 claimed = result.objective
                 violation = backends.violation(model, result.values)
-                gapped = result.bound is not None and result.bound - claimed > GAP_TOLERANCE
-                if violation > FEASIBILITY_SLACK or gapped:
+                gapped = result.bound is not None and result.bound - claimed > tolerance.GAP
+                if violation > tolerance.FEASIBILITY or gapped:
                     # a point off by the solver's tolerances, or one whose continuous part is
                     # short of the best for its binaries: the formulation's own value for the
                     # decoded alteration is the LP with the binaries rounded
@@ -194,46 +186,28 @@ class MilpSolver:
             # the solver's objective carries its tolerances as its bound does; the claim may be
             # the better value of the same binaries
             incumbent = None if claimed is None else max(claimed, result.objective or claimed)
-            status = stopped = _status(result, incumbent)
+            status = _status(result, incumbent)
             upper_bound = (
                 min(result.bound, problem.objective.max_value)
                 if model.sound and result.bound is not None
                 else None
             )
-            exact = decoy_probability(problem, alteration)
             if upper_bound is None and model.sound and status != Status.OPTIMAL:
-                # stopped before the solver had a bound: the MDP relaxation's is always proven
-                # (computed once, at the largest budget, which bounds every smaller one)
+                # stopped before the solver had a bound: the per-state relaxation's is always
+                # proven (computed once, at the largest budget, which bounds every smaller one)
                 if relaxed is None:
-                    from misdirect.solvers.branch_and_bound import relaxation_bound
-
                     relaxed = relaxation_bound(problem, max(budgets))
-                upper_bound = max(relaxed, exact)
-            not_certified = None
-            if status == Status.OPTIMAL and (
-                upper_bound is None or upper_bound - exact > CERTIFY_TOLERANCE
-            ):
-                # within the solver's tolerances, but not proven to 1e-9 for the alteration
-                # it returns (its point may rely on rows or binaries off by 1e-6): not optimal
-                status = Status.FEASIBLE
-                not_certified = (
-                    "the formulation proves no bound"
-                    if upper_bound is None
-                    else f"{backend.name} stopped as optimal with its bound {upper_bound:.12f}, "
-                    f"{upper_bound - exact:.2e} above the exact value of its answer"
-                )
+                upper_bound = relaxed
             stats: MilpStats = {
                 **model.stats(),
                 "solver": backend.name,
                 "solve_time_s": result.solve_time_s,
-                "status": stopped,  # how the solver stopped; the point's status may be lower
+                "status": status,  # how the solver stopped; the point's status may be lower
                 "objective": result.objective,
                 "bound": result.bound,
                 "nodes": result.nodes,
                 "claimed": claimed,  # the objective, or its recomputation with rounded binaries
                 "violation": violation,  # how far the solver's point is from feasible
-                "exact": exact,  # the chain's value of the decoded alteration
-                **({"not_certified": not_certified} if not_certified else {}),
                 **result.detail,
             }
             solutions.append(

@@ -1,4 +1,4 @@
-"""The segment relaxation (budget_bound.py): a proven upper bound, and an exact search.
+"""The segment relaxation and the segment search: a proven upper bound, and an exact search.
 
 Every expected value comes from the exhaustive solver, never from the module itself.
 """
@@ -8,16 +8,13 @@ import pytest
 
 from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import random_problem, sensor_grid
-from misdirect.solvers.base import Deadline
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
-from misdirect.solvers.budget_bound import (
-    LOW_RANK,
-    SegmentSearch,
-    _PolicyIteration,
-    segment_bound,
-    segment_relaxation,
-)
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.policy_iteration import LOW_RANK, TransientPolicyIteration
+from misdirect.solvers.engines.segment_relaxation import segment_bound, segment_relaxation
+from misdirect.solvers.engines.segment_search import SegmentSearch
 from misdirect.solvers.exhaustive import ExhaustiveSolver
+from misdirect.solvers.options import SolveOptions
 
 
 def optima(problem, budgets):
@@ -122,7 +119,7 @@ def test_branch_and_bound_backed_by_the_segment_search_stays_honest():
     problem = sensor_grid(20, 8, seed=0)
     budgets = [0.0, 1.0, 2.0]
     best = optima(problem.with_budget(2.0), budgets)
-    answers = BranchAndBoundSolver(max_nodes=2, threads=1).solve(problem, budgets)
+    answers = BranchAndBoundSolver(SolveOptions(threads=1), max_nodes=2).solve(problem, budgets)
     assert any("segment_nodes" in a.stats for a in answers)
     assert any("segment_enumerated" in a.stats for a in answers)
     for answer, optimum in zip(answers, best, strict=True):
@@ -147,7 +144,7 @@ def test_threads_are_checked_and_shares_favour_the_next_budget():
     from misdirect.errors import ProblemError
 
     with pytest.raises(ProblemError, match="at least 1"):
-        BranchAndBoundSolver(threads=0)
+        BranchAndBoundSolver(SolveOptions(threads=0))
     assert Deadline(None).front_share(3) is None
     clock = Deadline(100.0)
     # the next of 3 pieces gets twice each later one's: 2/4 of what is left, then 1/4 each
@@ -209,7 +206,7 @@ def test_a_few_switched_rows_are_solved_exactly_from_the_old_factorisation(chang
         rows.append(row)
     matrix = sp.csr_matrix(np.array(rows))
     row_state = np.repeat(np.arange(n), choices)
-    iteration = _PolicyIteration(row_state, matrix, n)
+    iteration = TransientPolicyIteration(row_state, matrix, n)
     first = iteration.first_rows()
     other = first.copy()
     switched = rng.choice(n, changed, replace=False)
@@ -240,16 +237,18 @@ def test_policy_iteration_stops_only_above_the_threshold_and_below_the_optimum()
     )
     reward = rng.random(n * choices)
     row_state = np.repeat(np.arange(n), choices)
-    values, _, _, optimal = _PolicyIteration(row_state, matrix, n).optimise(reward)
+    values, _, _, optimal = TransientPolicyIteration(row_state, matrix, n).optimise(reward)
     assert optimal
     iterate = np.zeros(n)
     for _ in range(2000):
         iterate = (matrix @ iterate + reward).reshape(n, choices).max(axis=1)
     assert np.allclose(values, iterate, atol=1e-9)
     start = 0
-    worst = _PolicyIteration(row_state, matrix, n).optimise(reward, start=start, enough=-1.0)
+    worst = TransientPolicyIteration(row_state, matrix, n).optimise(
+        reward, start=start, enough=-1.0
+    )
     assert worst[3] is False and -1.0 < worst[0][start] <= values[start] + 1e-12
-    never = _PolicyIteration(row_state, matrix, n).optimise(
+    never = TransientPolicyIteration(row_state, matrix, n).optimise(
         reward, start=start, enough=values[start] + 1e-6
     )
     assert never[3] is True and never[0][start] == pytest.approx(values[start], abs=1e-12)

@@ -1,0 +1,149 @@
+"""The certification policy: when an answer may be called optimal, decided in one place.
+
+Methods only report how they stopped (finished, time or node limit, gap) with the bound they
+proved; the front door (:func:`misdirect.solve`) re-evaluates every returned alteration
+exactly (:class:`ExactValues`) and hands the curve to :func:`certify_curve`, the only code that
+promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tolerance`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from misdirect.core import tolerance
+from misdirect.core.evaluate import decoy_probability
+from misdirect.core.model import Problem
+from misdirect.solvers.status import Status
+
+
+class ExactValues:
+    """Exact values of alterations of one problem, each computed once (a curve often repeats
+    one, and auto compares its stages' answers on the same numbers the user will see)."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self._values: dict[bytes, float] = {}
+
+    def __call__(self, alteration: np.ndarray) -> float:
+        alpha = np.asarray(alteration, dtype=np.int64)
+        key = alpha.tobytes()
+        if key not in self._values:
+            self._values[key] = decoy_probability(self.problem, alpha)
+        return self._values[key]
+
+
+def decide(stopped: Status, exact: float, bound: float | None) -> Status:
+    """The status of an answer worth ``exact`` whose method stopped as ``stopped``, given the
+    best proven upper bound on its budget's optimum: ``optimal`` exactly when ``bound`` meets
+    ``exact``; a method that says it finished without such a bound gets ``feasible``."""
+    if stopped == Status.UNVERIFIED:
+        return stopped
+    if tolerance.proven(exact, bound):
+        return Status.OPTIMAL
+    return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
+
+
+@dataclass
+class CurvePoint:
+    """One budget's answer while the front door checks the curve as a whole."""
+
+    budget: float
+    status: Status
+    probability: float  # exact value of ``alteration``
+    alteration: np.ndarray
+    cost: float
+    upper_bound: float | None
+    claimed: float | None  # the method's own value (None: it had no incumbent)
+    stats: dict[str, Any]
+    certified_by: str | None
+
+
+def check_claims(point: CurvePoint, method: str) -> list[str]:
+    """Contradictions between the method's numbers and the chain: a claim or a bound off the
+    exact value by more than :data:`~misdirect.core.tolerance.MISMATCH` makes the point
+    ``unverified``; a bound slightly below the exact value (solver tolerance) is raised to it.
+    Returns the warnings for the user."""
+    warnings = []
+    exact, claimed = point.probability, point.claimed
+    # An incumbent cut short (time or gap limit, node limit) may claim less than its
+    # alteration is worth: its continuous part (or a MILP's witness columns) was not yet
+    # pushed to the best for its choices. Only claiming more, or any mismatch at a proven
+    # optimum, contradicts the chain.
+    if (
+        claimed is not None
+        and abs(exact - claimed) > tolerance.MISMATCH
+        and not (point.status.cut_short and claimed < exact)
+    ):
+        point.status = Status.UNVERIFIED
+        warnings.append(
+            f"budget {point.budget:g}: the {method} solver claimed {claimed:.9f} but the chain "
+            f"gives {exact:.9f}; the answer is not optimal as far as anyone can tell"
+        )
+    if point.cost > point.budget + tolerance.BUDGET_SLACK:
+        warnings.append(f"budget {point.budget:g}: returned alteration costs {point.cost:g}")
+    if point.upper_bound is not None and point.upper_bound < exact:
+        if exact - point.upper_bound > tolerance.MISMATCH:
+            point.status = Status.UNVERIFIED
+            warnings.append(
+                f"budget {point.budget:g}: the {method} solver's bound "
+                f"{point.upper_bound:.9f} is below the exact value {exact:.9f}"
+            )
+        point.upper_bound = exact
+    return warnings
+
+
+def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
+    """What one budget's answer proves about the others, and "optimal" only when proven.
+
+    * A larger budget can do whatever a smaller one can: a point worse than one at a smaller
+      budget takes that alteration (a method cut short may not have found it again).
+    * An upper bound at a larger budget bounds every smaller one too.
+    * Each point's status is :func:`decide`'s; a point cut short by a cancellation (not by its
+      time limit) is ``interrupted``.
+    """
+    _carry_answers_up(curve)
+    bound: float | None = None
+    for point in sorted(curve, key=lambda p: p.budget, reverse=True):
+        if point.status == Status.UNVERIFIED:
+            continue
+        if bound is not None and (point.upper_bound is None or bound < point.upper_bound):
+            point.upper_bound = max(bound, point.probability)
+        if point.upper_bound is not None:
+            bound = point.upper_bound
+        status = decide(point.status, point.probability, point.upper_bound)
+        if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
+            point.stats["not_certified"] = (
+                f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
+                if point.upper_bound is None
+                else f"proven bound {point.upper_bound:.12f} is "
+                f"{point.upper_bound - point.probability:.2e} above the exact value"
+            )
+        elif status == Status.OPTIMAL and point.status.cut_short:
+            point.stats["certified_by_bound"] = "a bound at this or a larger budget meets it"
+        point.status = status
+    if cancelled:
+        for point in curve:
+            if point.status == Status.TIME_LIMIT:
+                point.status = Status.INTERRUPTED
+
+
+def _carry_answers_up(curve: list[CurvePoint]) -> None:
+    best: CurvePoint | None = None
+    for point in sorted(curve, key=lambda p: p.budget):
+        if best is not None and point.probability < best.probability - tolerance.TIE:
+            point.stats["replaced"] = (
+                f"the solver's answer ({point.probability:.9f}) was worse than budget "
+                f"{best.budget:g}'s, whose alteration it takes"
+            )
+            point.alteration, point.probability, point.cost = (
+                best.alteration,
+                best.probability,
+                best.cost,
+            )
+            if point.upper_bound is not None:
+                point.upper_bound = max(point.upper_bound, point.probability)
+        if best is None or point.probability > best.probability:
+            best = point

@@ -1,0 +1,87 @@
+"""The incumbent of a branch-and-bound search and what its pruning has proven, written once.
+
+Both searches (the per-state depth-first one of branch-and-bound and the best-first segment
+search) keep the best complete assignment found, value assignments exactly (each once), prune
+subtrees whose bound cannot beat it by more than a tie, and report as their proven bound the
+largest bound of anything pruned or still open. Values within
+:data:`~misdirect.core.tolerance.PRUNE` count as tied: the cheaper assignment wins, so an
+answer never spends more of the budget than it needs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import numpy as np
+
+from misdirect.core import tolerance
+from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+Picks = tuple[int, ...]  # one candidate per observation of ``PerStateRelaxation.order``
+
+
+class Incumbent:
+    """The best picks found so far; thread-safe when given the search's ``lock``.
+
+    ``order_ties``: among tied, equally cheap assignments the smallest picks win, so that a
+    search with several workers returns the same answer whichever worker finds it first.
+    """
+
+    def __init__(
+        self,
+        relax: PerStateRelaxation,
+        picks: Picks,
+        *,
+        order_ties: bool = False,
+        lock: threading.RLock | threading.Condition | None = None,
+    ):
+        self.relax = relax
+        self.order_ties = order_ties
+        self._lock = lock if lock is not None else contextlib.nullcontext()
+        self.picks: Picks = picks
+        self.value = -1.0  # below every value: the first offer is taken
+        self.cost = 0.0
+        self.improved = True  # the incumbent changed (by more than a tie) since last asked
+        self.pruned = 0
+        self.pruned_bound = -np.inf  # largest bound of any pruned subtree
+        self._values: dict[Picks, float] = {}
+
+    def value_of(self, picks: Picks) -> float:
+        """Exact value of a complete assignment (the chain of its groups, least fixed point),
+        computed once per assignment."""
+        if picks not in self._values:
+            relax = self.relax
+            self._values[picks] = float(relax.evaluate(relax.policy_of(picks))[relax.chain.initial])
+        return self._values[picks]
+
+    def offer(self, picks: Picks, value: float) -> None:
+        """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper."""
+        cost = self.relax.cost(picks)
+        with self._lock:
+            better = value > self.value + tolerance.PRUNE
+            tied = value >= self.value - tolerance.PRUNE
+            cheaper = cost < self.cost - tolerance.TIE
+            same_cost = abs(cost - self.cost) <= tolerance.TIE
+            ordered = self.order_ties and same_cost and picks < self.picks
+            if better or (tied and (cheaper or ordered)):
+                self.picks, self.value, self.cost = picks, value, cost
+                self.improved = self.improved or better
+
+    def offer_exact(self, picks: Picks) -> None:
+        self.offer(picks, self.value_of(picks))
+
+    def prune(self, bound: float) -> bool:
+        """Whether a subtree of ``bound`` cannot beat the incumbent (then counted as pruned)."""
+        with self._lock:
+            if bound <= self.value + tolerance.PRUNE:
+                self.pruned += 1
+                self.pruned_bound = max(self.pruned_bound, bound)
+                return True
+            return False
+
+    def proven_bound(self, open_bound: float) -> float:
+        """The search's bound on the optimum: the incumbent, anything pruned, and the largest
+        bound still open; never above the objective's largest value."""
+        ceiling = self.relax.problem.objective.max_value
+        return float(min(max(self.value, self.pruned_bound, open_bound), ceiling))

@@ -1,0 +1,404 @@
+"""The low-rank enumeration: every alteration within a budget, one base solve per outer choice.
+
+Altering an observation changes only the rows of the product chain whose world state emits it.
+Observations that cover few product states (sensors) are *inner*: for each choice of the
+*outer* ones (the blank reading that covers most of the map), the chain is solved once, and
+every inner alteration is valued by a low-rank update of that solve
+(:mod:`misdirect.solvers.engines.lowrank_updates`).
+
+Applicable when the choice product has no end component among the states that can reach the
+decoy: then ``I − P`` is invertible on them for *every* alteration, and its solution is the
+least fixed point. Values within :data:`~misdirect.core.tolerance.NEAR_TIE` of the best count
+as tied (the cheapest wins); every value reported is re-computed exactly by the front door.
+
+Used by the ``incremental`` method (the whole curve) and by the segment search (the subtrees
+small enough to enumerate, with their bases kept in a :class:`BasisCache`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from misdirect.core import tolerance
+from misdirect.core.alterations import AlterationSpace, ObservationChoices
+from misdirect.core.attack import AttackInstance
+from misdirect.errors import SolverError
+from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.lowrank_updates import (
+    Basis,
+    RowDeltas,
+    add_corrections,
+    base_solve,
+    row_deltas,
+    selected_groups,
+)
+
+INNER_ROWS = 200  # inner observations together may own at least this many product states,
+INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
+INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
+INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
+MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million
+BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
+
+
+class NotApplicableError(SolverError):
+    """The model can cycle without reaching the decoy; use another method."""
+
+
+@dataclass(frozen=True)
+class Enumerated:
+    """What one enumeration valued: per alteration its cost and value, listed block by block
+    (one block per outer choice vector, ``offsets`` where each begins)."""
+
+    costs: np.ndarray
+    values: np.ndarray
+    blocks: list  # per block: (outer choice vector, AlteredEntries of the inner ones)
+    offsets: np.ndarray
+    outer: list[int]
+    inner: list[int]
+    n_choices: int
+    blocks_done: int
+    next_outer_cost: float  # cost of the first outer vector not reached (inf: all were)
+    unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
+    evaluations: int
+
+    def complete_for(self, budget: float) -> bool:
+        """Whether every alteration within ``budget`` was valued."""
+        return not tolerance.affordable(self.next_outer_cost, budget) and not (
+            tolerance.affordable(self.unevaluated, budget)
+        )
+
+    def picks(self, index: int) -> np.ndarray:
+        """The choice vector of alteration ``index``."""
+        block = int(np.searchsorted(self.offsets, index, side="right")) - 1
+        outer_pick, altered = self.blocks[block]
+        picked = np.zeros(self.n_choices, dtype=np.int64)
+        picked[self.outer] = outer_pick
+        picked[self.inner] = altered.picks(index - self.offsets[block], len(self.inner))
+        return picked
+
+    def best_within(self, budgets: list[float]) -> list[int]:
+        """Index of the best alteration within each budget (near-ties: the cheapest)."""
+        return best_per_budget(self.costs, self.values, budgets, tie=tolerance.NEAR_TIE)
+
+
+class BasisCache:
+    """Base chains kept between the enumerations of one search, at most ``kept`` of them
+    (each ``W`` may take hundreds of MB), safe to share between its worker threads.
+
+    A worker gets the basis itself, not a key into the cache: another worker evicting it
+    later cannot pull it from under a running enumeration. One basis is built at a time."""
+
+    def __init__(self, kept: int = BASES_KEPT):
+        self.kept = kept
+        self._bases: dict[tuple[int, ...], Basis] = {}
+        self._lock = threading.Lock()
+        self._building = threading.Lock()
+
+    def __contains__(self, key: tuple[int, ...]) -> bool:
+        with self._lock:
+            return key in self._bases
+
+    def get_or_build(self, key: tuple[int, ...], build: Callable[[], Basis]) -> Basis:
+        with self._lock:
+            if key in self._bases:
+                return self._bases[key]
+        with self._building:
+            with self._lock:
+                if key in self._bases:  # another worker built it meanwhile
+                    return self._bases[key]
+            basis = build()
+            with self._lock:
+                while len(self._bases) >= self.kept:  # the oldest goes
+                    self._bases.pop(next(iter(self._bases)))
+                self._bases[key] = basis
+            return basis
+
+
+def inner_choices(instance: AttackInstance) -> list[int]:
+    """The choices enumerated inside a block (the others are outer: one base solve per pick):
+    the smallest regions first, while ``W`` (live states x their rows) stays small."""
+    sizes = instance.live_states_per_observation
+    size_of = [int(sizes[c.observation]) for c in instance.space.choices]
+    n_live = int(instance.live.sum())
+    # every inner row saves the outer enumeration a factor; W's memory caps them
+    inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
+    inner, total = [], 0
+    for i in sorted(range(len(size_of)), key=lambda i: size_of[i]):
+        if total + size_of[i] > inner_rows or size_of[i] > INNER_BLOCK:
+            break
+        inner.append(i)
+        total += size_of[i]
+    return inner
+
+
+class LowRankEnumeration:
+    """The enumeration over one prepared instance; its layout (regions, the live block of the
+    transitions) is computed once and shared by every call, from any thread."""
+
+    def __init__(
+        self,
+        instance: AttackInstance,
+        *,
+        threads: int = DEFAULT_THREADS,
+        max_evaluations: int = MAX_ALTERATIONS,
+    ):
+        if instance.cycling.any():
+            raise NotApplicableError(
+                "the chain can cycle without reaching the decoy under some alteration, so "
+                "low-rank updates are not safe here; use method auto, exhaustive or milp"
+            )
+        self.instance = instance
+        self.threads = threads
+        self.max_evaluations = max_evaluations
+        chain, live = instance.chain, instance.live
+        space = instance.space
+        self.observations = [c.observation for c in space.choices]
+        self.live_index = np.full(chain.n_states, -1)
+        self.live_index[live] = np.arange(int(live.sum()))
+        state_obs = instance.problem.pomdp.observation_of[chain.world_state]
+        self.rows_of = {o: np.flatnonzero(live & (state_obs == o)) for o in self.observations}
+        self.first_option = np.concatenate([[0], np.cumsum([c.size for c in space.choices])])
+        self.natural_inner = inner_choices(instance)
+        natural = set(self.natural_inner)
+        # outer by size: a base is the basis of their picks (fixed inner ones updated in)
+        self.natural_outer = [i for i in range(len(space.choices)) if i not in natural]
+        self.start = int(self.live_index[chain.initial]) if live[chain.initial] else -1
+
+    @cached_property
+    def _inside(self):
+        """The transitions into live states, (groups, live states)."""
+        chain = self.instance.chain
+        return chain.transitions[:, np.flatnonzero(self.instance.live)].tocsr()
+
+    @cached_property
+    def _to_target(self) -> np.ndarray:
+        return self.instance.chain.one_step()
+
+    @cached_property
+    def _live_node(self) -> np.ndarray:
+        # memory nodes: a separator for solve_chain to cut along
+        return self.instance.chain.node[self.instance.live]
+
+    def basis_key(self, picks: dict[int, int]) -> tuple[int, ...] | None:
+        """The key of the basis an enumeration below ``picks`` uses (None: some outer choice
+        is still free, so it would enumerate several bases)."""
+        if any(i not in picks for i in self.natural_outer):
+            return None
+        return tuple(picks[i] for i in self.natural_outer)
+
+    def best_with(
+        self, budget: float, fixed: dict[int, int], deadline: Deadline, bases: BasisCache
+    ) -> tuple[float, np.ndarray] | None:
+        """The best alteration within ``budget`` that takes option ``fixed[i]`` for choice
+        ``i`` (value, choice vector); None when cut by ``deadline``. Each base chain is solved
+        once (kept in ``bases``), and a subtree's base is that one with its fixed sensors' rows
+        updated in (low rank)."""
+        found = self.run(budget, fixed, deadline, None, bases)
+        if not found.complete_for(budget):
+            return None
+        index = found.best_within([budget])[0]
+        return float(found.values[index]), found.picks(index)
+
+    def run(
+        self,
+        top: float,
+        fixed: dict[int, int] | None = None,
+        deadline: Deadline | None = None,
+        progress: ProgressCallback | None = None,
+        bases: BasisCache | None = None,
+    ) -> Enumerated:
+        """Every alteration within ``top`` that agrees with ``fixed``, valued at the start;
+        outer blocks cheapest first, so a run cut short by ``deadline`` has still proven every
+        budget below the first block it did not reach."""
+        fixed = fixed or {}
+        deadline = deadline or Deadline()
+        inner = [i for i in self.natural_inner if i not in fixed]  # fixed ones: outer
+        outer = [i for i in range(len(self.observations)) if i not in inner]
+        outer_table, outer_costs = self._outer_blocks(top, fixed, outer)
+        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner))
+        blocks, costs, values = [], [], []
+        unevaluated, evaluations = np.inf, 0
+        # a block is not started with less time left than the last one took (later blocks
+        # cost more outside, so they have fewer alterations)
+        factor_s, per_alteration, last_count = 0.0, 0.0, 0
+        for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
+            if blocks and not self._block_fits(
+                deadline, factor_s, per_alteration, last_count, inner_space, top - outer_cost
+            ):
+                break  # the first (unaltered outer) block always runs
+            began = time.perf_counter()
+            x_start, w_start, deltas = self._block_base(outer, outer_pick, inner, fixed, bases)
+            factored = time.perf_counter()
+            block = self._block(
+                top - outer_cost, inner, deltas, x_start, w_start, deadline, evaluations
+            )
+            inner_costs, found, altered, cut_at = block
+            evaluations += int(np.isfinite(inner_costs).sum())
+            unevaluated = min(unevaluated, cut_at + outer_cost)
+            costs.append(outer_cost + inner_costs)
+            values.append(found)
+            blocks.append((outer_pick, altered))
+            factor_s, last_count = factored - began, len(inner_costs)
+            per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
+            report(progress, len(blocks), len(outer_costs), stage="incremental")
+        done = len(blocks)
+        return Enumerated(
+            costs=np.concatenate([np.zeros(0), *costs]),
+            values=np.clip(
+                np.concatenate([np.zeros(0), *values]),
+                0.0,
+                self.instance.problem.objective.max_value,
+            ),
+            blocks=blocks,
+            offsets=np.cumsum([0, *(altered.costs.size for _, altered in blocks)]),
+            outer=outer,
+            inner=inner,
+            n_choices=len(self.observations),
+            blocks_done=done,
+            next_outer_cost=float(outer_costs[done]) if done < len(outer_costs) else np.inf,
+            unevaluated=unevaluated,
+            evaluations=evaluations,
+        )
+
+    def _outer_blocks(
+        self, top: float, fixed: dict[int, int], outer: list[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every outer choice vector within ``top`` (fixed choices with their one option) and
+        its cost, cheapest first."""
+        outer_space = AlterationSpace(
+            tuple(
+                ObservationChoices(c.observation, c.targets[[fixed[i]]], c.costs[[fixed[i]]])
+                if i in fixed
+                else c
+                for i, c in enumerate(self.instance.space.choices)
+            )
+        )
+        outer_table, outer_costs = outer_space.within(top, outer)
+        for column, i in enumerate(outer):
+            if i in fixed:
+                outer_table[:, column] = fixed[i]
+        ranked = np.argsort(outer_costs, kind="stable")
+        return outer_table[ranked], outer_costs[ranked]
+
+    def _block_base(
+        self,
+        outer: list[int],
+        outer_pick: np.ndarray,
+        inner: list[int],
+        fixed: dict[int, int],
+        bases: BasisCache | None,
+    ) -> tuple[float, np.ndarray | None, RowDeltas]:
+        """(value at the start, its row of ``W``, row differences of the inner options) of
+        the block's base chain: solved here, or (with ``bases``) a kept basis updated in low
+        rank for the fixed inner choices."""
+        chosen = np.zeros(self.instance.chain.options.size, dtype=bool)
+        for i, k in zip(outer, outer_pick, strict=True):
+            chosen[self.first_option[i] + k] = True
+        for i in inner:
+            chosen[self.first_option[i]] = True  # inner observations unaltered in the base
+        if bases is None:
+            return self._solved_base(chosen, inner)
+        natural = self.natural_inner
+        picks = dict(zip(outer, outer_pick.tolist(), strict=True))
+        key = self.basis_key(picks)
+        assert key is not None, "every outer choice is fixed in a block"
+        basis = bases.get_or_build(key, lambda: self._basis(chosen))
+        position = {i: j for j, i in enumerate(natural)}
+        return basis.with_fixed(
+            [(position[i], fixed[i]) for i in natural if i in fixed],
+            [position[i] for i in inner],
+            self.start,
+        )
+
+    def _solved_base(
+        self, chosen: np.ndarray, inner: list[int]
+    ) -> tuple[float, np.ndarray | None, RowDeltas]:
+        chain, live, start = self.instance.chain, self.instance.live, self.start
+        group_of_option, first = chain.group_of_option, self.first_option
+        base_groups = selected_groups(chain, live, group_of_option, chosen)
+        rows = self._rows_within(inner)
+        x0, W = base_solve(
+            self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
+        )
+        deltas = row_deltas(
+            [
+                group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
+                for i in inner
+            ],
+            base_groups[self.live_index[rows]],
+            self._inside,
+            self._to_target,
+            x0,
+            W,
+        )
+        if start < 0:
+            return 0.0, None, deltas
+        return float(x0[start]), W[start], deltas
+
+    def _basis(self, chosen: np.ndarray) -> Basis:
+        """The basis of the outer picks in ``chosen`` with every natural inner one unaltered."""
+        chain, live, first = self.instance.chain, self.instance.live, self.first_option
+        unaltered = chosen.copy()  # the fixed inner ones too
+        for i in self.natural_inner:
+            unaltered[first[i] : first[i + 1]] = False
+            unaltered[first[i]] = True
+        root_groups = selected_groups(chain, live, chain.group_of_option, unaltered)
+        return Basis.of(
+            self._inside,
+            self._to_target,
+            root_groups,
+            [self.rows_of[self.observations[i]] for i in self.natural_inner],
+            [chain.group_of_option[:, first[i] : first[i + 1]] for i in self.natural_inner],
+            self.live_index,
+            self._live_node,
+        )
+
+    def _rows_within(self, choices: list[int]) -> np.ndarray:
+        """The live product states of ``choices``' observations, choice by choice."""
+        parts = (self.rows_of[self.observations[i]] for i in choices)
+        return np.concatenate([np.zeros(0, dtype=np.int64), *parts]).astype(np.int64)
+
+    def _block(self, budget, inner, deltas, x_start, w_start, deadline, evaluations):
+        """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
+        alterations within ``budget``; a cost is ``inf`` where the deadline cut it short."""
+        chain = self.instance.chain
+        # an option that changes no live row is worth its base value at a higher cost
+        altered = self.instance.space.altered_within(
+            budget,
+            inner,
+            limit=self.max_evaluations - evaluations,
+            usable=deltas.flat_length > 0,
+        )
+        if altered is None:
+            raise SolverError(f"more than {self.max_evaluations:,} alterations")
+        inner_costs = altered.costs
+        found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
+        cut_at = np.inf
+        if self.start >= 0:
+            found[:] = x_start
+            corrected = add_corrections(
+                found, altered, deltas, w_start, deadline, threads=self.threads
+            )
+            if not corrected.all():  # cut short: those alterations were not evaluated
+                cut_at = float(inner_costs[~corrected].min())
+                inner_costs = np.where(corrected, inner_costs, np.inf)
+        return inner_costs, found, altered, cut_at
+
+    def _block_fits(self, deadline, factor_s, per_alteration, last_count, space, budget) -> bool:
+        """Whether the next outer block likely ends before ``deadline``: at most the last
+        block's count of alterations (its outer cost is no smaller), else counted exactly."""
+        left = deadline.remaining()
+        if deadline.expired():
+            return False
+        if left is None or left >= factor_s + per_alteration * last_count:
+            return True
+        count = space.count_within(budget, self.max_evaluations)
+        return left >= factor_s + per_alteration * count

@@ -1,0 +1,403 @@
+"""Low-rank updates of one base chain: the Woodbury machinery of the enumeration.
+
+A base chain (every inner sensor unaltered) is solved once for its value ``x0`` and for
+``W = A⁻¹ E_R`` on the rows ``R`` that inner sensors may change (:func:`base_solve`). An
+alteration replaces a few rows, and Sherman–Morrison–Woodbury gives its value at the start
+from a system as small as the rows it changes:
+
+    x'(q0) = x0(q0) + W(q0, C) (I − D W_C)⁻¹ (D x0 + Δb)
+
+where ``D`` holds the row differences and ``Δb`` the differences in one-step decoy mass
+(:class:`RowDeltas`). An alteration with several sensors borders the system of its parent
+(itself without its last sensor), so it solves only the Schur complement on its last sensor's
+rows (:func:`add_corrections`, a compiled loop that releases the GIL). :class:`Basis` keeps a
+base with every option's row differences, so a subtree that fixes some sensors needs no solve.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from misdirect.core.alterations import AlteredEntries, rank_in_group
+from misdirect.core.reachability import solve_chain
+from misdirect.solvers.deadline import Deadline
+
+BATCH_ENTRIES = 4_000_000  # numbers per batch of parents when threads share the batches
+CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay in cache while
+# its children read them (an H1 budget-5 subtree: 35.5 -> 31.5 ms; on two threads the pool's
+# overhead per batch outweighs it: H2 budgets 0..3 33 -> 39 s)
+WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
+
+
+def base_solve(inside, to_target, base_groups, local, live_node):
+    """``x0`` and ``W`` (the base chain's solution for ``b`` and for a unit column per inner
+    row ``local``), as contiguous arrays: sparse @ dense copies a strided operand per call."""
+    rhs = np.zeros((inside.shape[1], 1 + local.size))
+    rhs[:, 0] = to_target[base_groups]
+    rhs[local, 1 + np.arange(local.size)] = 1.0
+    solved = solve_chain(inside[base_groups], rhs, live_node)
+    return np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
+
+
+class Basis(NamedTuple):
+    """A base chain (every sensor unaltered) solved for every row that may be altered, with
+    the row differences of every option (:class:`RowDeltas`, over every inner choice): a chain
+    that fixes some sensors' options needs no solve, nor any pass over the chain's states.
+    Woodbury on the fixed sensors' rows updates the options' table in low rank."""
+
+    x0: np.ndarray
+    W: np.ndarray
+    options: RowDeltas
+
+    @staticmethod
+    def of(inside, to_target, groups, regions, option_groups, live_index, live_node) -> Basis:
+        """``groups``: per live state, its group in the base; ``regions``: per inner choice,
+        its live states; ``option_groups``: per inner choice, per state its group under each
+        option."""
+        rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
+        local = live_index[rows]
+        x0, W = base_solve(inside, to_target, groups, local, live_node)
+        options = row_deltas(
+            [g[region] for g, region in zip(option_groups, regions, strict=True)],
+            groups[local],
+            inside,
+            to_target,
+            x0,
+            W,
+        )
+        return Basis(x0, W, options)
+
+    def with_fixed(self, fixed, inner, start: int):
+        """(value at the start, its row of ``W``, options' table of the ``inner`` choices) of
+        the chain whose choices ``fixed`` (position, option) take those options: with ``F``
+        their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``, every row
+        difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its right-hand
+        side likewise) and the start's row ``W' = W + W_F Z``."""
+        table = self.options
+        if fixed:
+            changed = np.concatenate(
+                [table.flat_start[j, k] + np.arange(table.flat_length[j, k]) for j, k in fixed]
+            ).astype(np.int64)
+        else:
+            changed = np.zeros(0, dtype=np.int64)
+        inner = np.asarray(inner, dtype=np.int64)
+        flat_start, flat_length = table.flat_start[inner], table.flat_length[inner]
+        if start < 0:
+            return 0.0, None, table._replace(flat_start=flat_start, flat_length=flat_length)
+        x_start, w_start = float(self.x0[start]), self.W[start]
+        if not changed.size:
+            return x_start, w_start, table._replace(flat_start=flat_start, flat_length=flat_length)
+        own = table.column[changed]
+        d_w = table.d_w[:, :-1]  # without the pad's column
+        system = np.eye(changed.size) - d_w[np.ix_(changed, own)]
+        z = np.linalg.solve(system, np.column_stack([table.rhs[changed], d_w[changed]]))
+        reach = d_w[:, own]  # D W_F for every row slot (the pad's: zero)
+        updated_d_w = table.d_w.copy()
+        updated_d_w[:, :-1] += reach @ z[:, 1:]
+        return (
+            x_start + float(w_start[own] @ z[:, 0]),
+            w_start + w_start[own] @ z[:, 1:],
+            RowDeltas(
+                flat_start, flat_length, table.column, table.rhs + reach @ z[:, 0], updated_d_w
+            ),
+        )
+
+
+class RowDeltas(NamedTuple):
+    """The rows an inner option changes: per inner observation ``j`` and option ``k``, the
+    rows of its region whose group differs from the base (``flat_length[j, k]`` of them, from
+    ``flat_start[j, k]``), each with its ``D W``, its right-hand side ``D x0 + Δb`` and its
+    column among the inner rows (``column``). Rows an option leaves alone have zero ``D`` and
+    ``Δb``, so the Woodbury system needs only the changed ones. A last row slot pads batches:
+    its row of ``D W`` and its right-hand side are zero, and so is its column (the last one of
+    ``d_w``)."""
+
+    flat_start: np.ndarray
+    flat_length: np.ndarray
+    column: np.ndarray
+    rhs: np.ndarray
+    d_w: np.ndarray
+
+    def system(self, slots: np.ndarray) -> np.ndarray:
+        """``F = I − D W`` on each row of row ``slots`` (n, k): (n, k, k)."""
+        coupling = self.d_w[slots[:, :, None], self.column[slots][:, None, :]]
+        return np.eye(slots.shape[1]) - coupling
+
+
+def row_deltas(groups, base_groups, inside, to_target, x0, W) -> RowDeltas:
+    """``groups[j]``: per live row of inner observation ``j`` (in the order of the inner rows),
+    its group under each option of ``j``; ``base_groups``: every inner row's group in the
+    base."""
+    n_options = max((g.shape[1] for g in groups), default=1)
+    flat_start = np.zeros((len(groups), n_options), dtype=np.int64)
+    flat_length = np.zeros((len(groups), n_options), dtype=np.int64)
+    new_rows, old_rows, columns, offset, first = [], [], [], 0, 0
+    for j, g in enumerate(groups):
+        base = base_groups[first : first + g.shape[0]]
+        for k in range(g.shape[1]):
+            changed = np.flatnonzero(g[:, k] != base)
+            flat_start[j, k], flat_length[j, k] = offset, changed.size
+            offset += changed.size
+            new_rows.append(g[changed, k])
+            old_rows.append(base[changed])
+            columns.append(first + changed)
+        first += g.shape[0]
+    pad = np.zeros(1, dtype=np.int64)
+    new_g = np.concatenate([*new_rows, pad]).astype(np.int64)
+    old_g = np.concatenate([*old_rows, pad]).astype(np.int64)
+    delta = inside[new_g] - inside[old_g]  # the pad row: a group minus itself, zero
+    d_w = np.zeros((new_g.size, W.shape[1] + 1))
+    d_w[:, :-1] = delta @ W  # the last column, the pad's, stays zero
+    return RowDeltas(
+        flat_start,
+        flat_length,
+        np.concatenate([*columns, [W.shape[1]]]).astype(np.int64),
+        np.asarray(delta @ x0).ravel() + (to_target[new_g] - to_target[old_g]),
+        d_w,
+    )
+
+
+def add_corrections(
+    found,
+    altered: AlteredEntries,
+    deltas: RowDeltas,
+    w_start,
+    deadline: Deadline | None = None,
+    chunk_entries: int | None = None,
+    threads: int = 1,
+) -> np.ndarray:
+    """Add the Woodbury correction to ``found`` for every alteration of ``altered`` (its
+    choices are the inner observations); returns which got it (all, unless ``deadline`` passed
+    first).
+
+    An alteration is its parent (the same without its last entry) bordered by one entry's
+    rows. Per batch of parents, each parent's system ``A`` is inverted once, with
+    ``G = A⁻¹ F(P, ·)`` (its coupling to every later row, one matrix product); each child then
+    solves only the Schur complement on its last entry's rows (:func:`_children_of`), a system
+    as wide as one sensor's region instead of all its sensors'. Parents go by number of entries,
+    so a run cut short by the deadline has finished the smaller alterations, whose budgets stay
+    proven.
+    """
+    if chunk_entries is None:
+        chunk_entries = BATCH_ENTRIES if threads > 1 else CACHED_BATCH_ENTRIES
+    n = altered.costs.size
+    corrected = np.zeros(n, dtype=bool)
+    corrected[altered.parent < 0] = True  # the unaltered one: the base value
+    tree = _Tree.of(altered, deltas)
+    weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
+    parents, first_child, n_children = np.unique(
+        altered.parent[altered.parent >= 0], return_index=True, return_counts=True
+    )
+    first_child += 1  # children are numbered after the unaltered alteration, by parent
+    order = np.lexsort((tree.width[parents], tree.depth[parents]))
+
+    def run(batch: np.ndarray) -> None:
+        if deadline is not None and deadline.expired():
+            return
+        counts = n_children[batch]
+        kids = np.repeat(first_child[batch], counts) + rank_in_group(counts)
+        local = np.repeat(np.arange(batch.size), counts)
+        found[kids] += _children_of(parents[batch], kids, local, tree, deltas, weight)
+        corrected[kids] = True  # batches are disjoint: threads never write the same entry
+
+    n_slots = deltas.rhs.size - 1
+    batches = list(_batches(order, tree.width[parents], n_children, n_slots, chunk_entries))
+    if threads == 1 or len(batches) == 1:
+        for batch in batches:
+            run(batch)
+    else:  # taken in order, so a cut-short run has still done the smallest alterations
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            list(pool.map(run, batches))  # LAPACK and numpy's gathers release the GIL
+    return corrected
+
+
+class _Tree(NamedTuple):
+    """Per alteration, its number of entries, of changed rows (``width``) and its first entry;
+    per entry, its row slots."""
+
+    depth: np.ndarray
+    width: np.ndarray
+    first_entry: np.ndarray
+    entry_slot: np.ndarray  # per entry: its first row slot
+    entry_width: np.ndarray  # per entry: its number of row slots
+
+    @staticmethod
+    def of(altered: AlteredEntries, deltas: RowDeltas) -> _Tree:
+        n = altered.costs.size
+        entry_width = deltas.flat_length[altered.choice, altered.option]
+        return _Tree(
+            depth=np.bincount(altered.alteration, minlength=n),
+            width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
+                np.int64
+            ),
+            first_entry=np.searchsorted(altered.alteration, np.arange(n)),
+            entry_slot=deltas.flat_start[altered.choice, altered.option],
+            entry_width=entry_width,
+        )
+
+    def slots(self, alterations: np.ndarray, pad: int) -> np.ndarray:
+        """(alterations, widest) row slots of each alteration's entries, padded with ``pad``."""
+        counts = self.depth[alterations]
+        entries = np.repeat(self.first_entry[alterations], counts) + rank_in_group(counts)
+        rows_in = self.entry_width[entries]
+        owner = np.repeat(np.repeat(np.arange(alterations.size), counts), rows_in)
+        widths = self.width[alterations]
+        slots = np.full((alterations.size, int(widths.max(initial=0))), pad, dtype=np.int64)
+        slots[owner, rank_in_group(widths)] = np.repeat(
+            self.entry_slot[entries], rows_in
+        ) + rank_in_group(rows_in)
+        return slots
+
+
+def _batches(order, width, n_children, n_slots, chunk_entries):
+    """Consecutive slices of the parents in ``order`` holding about ``chunk_entries`` numbers
+    (per parent: ``G``, its width times the row slots, and its children's blocks, its width
+    times theirs, at most ``WIDEST_ENTRY``); a slice stops before a parent over 1.5 times as
+    wide as its first, to keep the padding small."""
+    position = 0
+    while position < order.size:
+        widest = max(int(width[order[position]]), 1)
+        cost = np.cumsum(widest * (n_slots + WIDEST_ENTRY * n_children[order[position:]]))
+        size = max(1, int(np.searchsorted(cost, chunk_entries, side="right")))
+        batch = order[position : position + size]
+        wider = np.flatnonzero(width[batch] * 2 > widest * 3)
+        if wider.size:
+            batch = batch[: max(1, wider[0])]
+        position += batch.size
+        yield batch
+
+
+def _children_of(parents, kids, local, tree: _Tree, deltas: RowDeltas, weight) -> np.ndarray:
+    """The corrections of the alterations ``kids``, each the parent ``parents[local]`` plus its
+    last entry, by the Schur complement of the parent's system ``A`` (rows ``P``):
+
+        s = s_P + (g_E − Yᵀ g_P)ᵀ S⁻¹ (r_E − F_EP y),   Y = A⁻¹ F_PE,   S = F_EE − F_EP Y,
+
+    with ``y = A⁻¹ r_P`` and ``s_P = g_Pᵀ y`` the parent's own correction, ``F = I − D W`` on
+    the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``. The parents' part
+    is batched in numpy; each child's (a few small products and a solve as wide as its last
+    entry) is one compiled loop, :func:`_schur_corrections`."""
+    rhs = deltas.rhs
+    pad = rhs.size - 1
+    slots_p = tree.slots(parents, pad)
+    system = deltas.system(slots_p)
+    inverse = np.linalg.inv(system) if slots_p.shape[1] else system
+    y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
+    s_p = np.einsum("pi,pi->p", weight[slots_p], y)
+    last = tree.first_entry[kids] + tree.depth[kids] - 1
+    first = tree.entry_slot[last].astype(np.int64)
+    begin = int(first.min(initial=pad))
+    # (A⁻¹ D W(P, E))ᵀ for every later slot E (a child's entry comes after its parent's, so
+    # deep parents need few), one row per slot: a child reads its wp numbers at once. Rows
+    # gathered first, then columns: one fancy index over three axes costs several times more
+    gathered = np.take(deltas.d_w[slots_p.reshape(-1)], deltas.column[begin:pad], axis=1)
+    gathered = gathered.reshape(parents.size, slots_p.shape[1], pad - begin)
+    out = np.empty(kids.size)
+    _schur_corrections(
+        slots_p,
+        np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2)),
+        begin,
+        y,
+        s_p,
+        local.astype(np.int64),
+        first,
+        tree.entry_width[last].astype(np.int64),
+        deltas.d_w,
+        deltas.column,
+        rhs,
+        weight,
+        out,
+    )
+    return out
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _schur_corrections(
+    slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
+):  # pragma: no cover (compiled; its results are tested against dense solves)
+    """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
+    ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
+    ``reach[p]`` the rows ``(A⁻¹ D W(P, s))ᵀ`` of the slots ``s`` from ``begin`` on,
+    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][E − begin]ᵀ``, so the signs cancel:
+    ``S = F_EE − D W(E, P) G``. Padded parent slots have zero
+    rows, columns and weights."""
+    wp = slots_p.shape[1]
+    widest = max(1, width.max()) if width.size else 1
+    g = np.empty((widest, wp))  # Gᵀ = (A⁻¹ D W(P, E))ᵀ, one row per slot of E
+    row_p = np.empty(wp)  # D W(i, P) of one row i of E
+    columns_p = np.empty(wp, dtype=np.int64)
+    schur = np.empty((widest, widest))
+    right = np.empty(widest)
+    grad = np.empty(widest)
+    parent = -1
+    for c in range(local.size):
+        p = local[c]
+        w = width[c]
+        f = first[c]
+        total = s_p[p]
+        if w == 0:
+            out[c] = total
+            continue
+        if p != parent:  # children come grouped by parent
+            parent = p
+            for j in range(wp):
+                columns_p[j] = column[slots_p[p, j]]
+        for e in range(w):
+            for j in range(wp):
+                g[e, j] = reach[p, f + e - begin, j]
+        for i in range(w):
+            row = f + i
+            r = rhs[row]
+            h = weight[row]
+            for j in range(wp):
+                row_p[j] = d_w[row, columns_p[j]]
+                r += row_p[j] * y[p, j]
+                h += g[i, j] * weight[slots_p[p, j]]
+            right[i] = r
+            grad[i] = h
+            for e in range(w):
+                v = -d_w[row, column[f + e]]
+                if i == e:
+                    v += 1.0
+                for j in range(wp):
+                    v -= row_p[j] * g[e, j]
+                schur[i, e] = v
+        # Gaussian elimination with partial pivoting: S z = right
+        for k in range(w):
+            pivot = k
+            for i in range(k + 1, w):
+                if abs(schur[i, k]) > abs(schur[pivot, k]):
+                    pivot = i
+            if pivot != k:
+                for e in range(w):
+                    schur[k, e], schur[pivot, e] = schur[pivot, e], schur[k, e]
+                right[k], right[pivot] = right[pivot], right[k]
+            for i in range(k + 1, w):
+                factor = schur[i, k] / schur[k, k]
+                for e in range(k, w):
+                    schur[i, e] -= factor * schur[k, e]
+                right[i] -= factor * right[k]
+        for k in range(w - 1, -1, -1):
+            acc = right[k]
+            for e in range(k + 1, w):
+                acc -= schur[k, e] * right[e]
+            right[k] = acc / schur[k, k]
+        for i in range(w):
+            total += grad[i] * right[i]
+        out[c] = total
+
+
+def selected_groups(chain, live, group_of_option, chosen) -> np.ndarray:
+    """Group of every live state when the options in ``chosen`` are taken."""
+    table = group_of_option[np.flatnonzero(live)]
+    picked = np.where(chosen[None, :] & (table >= 0), table, -1).max(axis=1)
+    single = chain.groups_per_state[np.flatnonzero(live)] == 1
+    fallback = group_of_option[np.flatnonzero(live), 0]
+    picked = np.where(single, fallback, picked)
+    if (picked < 0).any():
+        raise AssertionError("a live state has no selected group")
+    return picked

@@ -1,0 +1,142 @@
+"""The per-state MDP relaxation of the choice product: every free state picks on its own.
+
+An alteration picks one candidate per relevant observation. For a partial assignment (some
+observations fixed, the others free within the remaining budget), the relaxation lets every
+product state owned by a free observation take, on its own, the group of any candidate that
+fits the remaining budget; states of fixed observations keep their candidate's group. Every
+feasible completion is one scheduler of that MDP, so its maximal reachability probability
+bounds them all.
+
+The bound is computed exactly by policy iteration: each policy is evaluated by
+:func:`misdirect.core.reachability.reach_probabilities` (the least fixed point, so policies that
+cycle forever score 0 and end components need no special care), and a state switches only on a
+strict gain of more than :data:`~misdirect.core.tolerance.IMPROVE`. Used by branch-and-bound
+(its node bound), by the segment search (its picks and exact values), and by every method that
+needs a proven bound when cut short (:func:`relaxation_bound`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from misdirect.core import tolerance
+from misdirect.core.alterations import AlterationSpace
+from misdirect.core.attack import prepare
+from misdirect.core.choice_product import ChoiceProduct
+from misdirect.core.model import Alteration, Problem
+from misdirect.solvers.engines.policy_iteration import MaxReachability
+
+
+class PerStateRelaxation:
+    """The choice product with the per-state MDP relaxation and exact policy evaluation."""
+
+    def __init__(self, problem: Problem, space: AlterationSpace, chain: ChoiceProduct):
+        self.problem, self.space, self.chain = problem, space, chain
+        self.live = chain.can_reach_target() & ~chain.target
+        sizes = np.array([c.size for c in space.choices], dtype=np.int64)
+        self.first_option = np.concatenate([[0], np.cumsum(sizes)])
+        self.option_cost = chain.options.cost
+        self.option_owner = np.repeat(np.arange(sizes.size), sizes)
+        state_obs = problem.pomdp.observation_of[chain.world_state]
+        observations = np.array([c.observation for c in space.choices], dtype=np.int64)
+        per_observation = np.bincount(state_obs[self.live], minlength=problem.pomdp.n_observations)
+        owned = per_observation[observations]
+        # largest first; observations owning no live state never change the value: fixed to 0
+        self.order = [int(i) for i in np.argsort(-owned, kind="stable") if owned[i] > 0]
+        self.group_options = chain.group_options.tocsr()
+        self.free_group = np.diff(self.group_options.indptr) == 0  # state has no choice at all
+        self.live_groups = self.live[chain.group_state]
+        # live states whose group says which candidates they use (for rounding policies)
+        self.choosing = self.live & (chain.groups_per_state > 1)
+        self.mdp = MaxReachability(
+            chain.group_state,
+            chain.transitions,
+            chain.target,
+            blocks=chain.node,
+            value=chain.target_value,
+            live=self.live,
+        )
+
+    @property
+    def evaluations(self) -> int:
+        """Exact policy evaluations (linear solves) so far."""
+        return self.mdp.evaluations
+
+    def allowed_options(self, picks: Sequence[int], remaining: float) -> np.ndarray:
+        """Options a node permits: its fixed picks, and every affordable one of free ones."""
+        allowed = self.option_cost <= remaining + tolerance.BUDGET_SLACK
+        for i, k in zip(self.order, picks, strict=False):
+            allowed[self.first_option[i] : self.first_option[i + 1]] = False
+            allowed[self.first_option[i] + k] = True
+        return allowed
+
+    def allowed_groups(self, allowed_options: np.ndarray) -> np.ndarray:
+        hits = self.group_options @ allowed_options.astype(np.float64)
+        return self.free_group | (np.asarray(hits).ravel() > 0)
+
+    def best_groups(self, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per state: the group of highest score (the first on ties) and that score."""
+        return self.mdp.best_choices(score)
+
+    def evaluate(self, policy: np.ndarray) -> np.ndarray:
+        """Exact reachability values of the chain that takes group ``policy[q]`` in ``q``."""
+        return self.mdp.evaluate(policy)
+
+    def optimise(
+        self, allowed_groups: np.ndarray, policy: np.ndarray
+    ) -> tuple[float, np.ndarray, np.ndarray]:
+        """Maximal reachability of the relaxation (value at the start, values, policy)."""
+        penalty = np.where(allowed_groups, 0.0, -np.inf)
+        if not allowed_groups[policy].all():  # the parent's choice is no longer allowed here
+            fallback, _ = self.best_groups(penalty + self.live_groups)
+            policy = np.where(allowed_groups[policy], policy, fallback)
+        values, policy = self.mdp.optimise(policy, penalty)
+        return float(values[self.chain.initial]), values, policy
+
+    def ranked(self, i: int, remaining: float, usage: np.ndarray) -> np.ndarray:
+        """Affordable candidates of observation ``i``, most used by the policy first, then
+        cheapest: the order to branch in, and the greedy completion's pick."""
+        first = self.first_option[i]
+        costs = self.option_cost[first : self.first_option[i + 1]]
+        fits = np.flatnonzero(costs <= remaining + tolerance.BUDGET_SLACK)
+        return fits[np.lexsort((costs[fits], -usage[first + fits]))]
+
+    def usage(self, policy: np.ndarray) -> np.ndarray:
+        """Per option: how many live choosing states the policy's groups agree with it."""
+        rows = self.group_options[policy[self.choosing]]
+        return np.asarray(rows.sum(axis=0)).ravel()
+
+    def alteration(self, picks: Sequence[int]) -> np.ndarray:
+        return self.space.alteration(self.problem, picks, self.order[: len(picks)])
+
+    def policy_of(self, picks: Sequence[int]) -> np.ndarray:
+        """The group every state takes under the complete assignment ``picks``."""
+        allowed = self.allowed_groups(self.allowed_options(picks, 0.0))
+        return self.best_groups(np.where(allowed, 0.0, -np.inf))[0]
+
+    def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
+        """The search's picks for ``alteration``, None if it takes a target outside the
+        space (not the cheapest of its behaviour class)."""
+        picks = []
+        for i in self.order:
+            choice = self.space.choices[i]
+            hit = np.flatnonzero(choice.targets == alteration[choice.observation])
+            if hit.size == 0:
+                return None
+            picks.append(int(hit[0]))
+        return tuple(picks)
+
+    def cost(self, picks: Sequence[int]) -> float:
+        pairs = zip(self.order, picks, strict=False)  # ``picks`` may be a prefix
+        return float(sum(self.option_cost[self.first_option[i] + k] for i, k in pairs))
+
+
+def relaxation_bound(problem: Problem, budget: float) -> float:
+    """Root bound of the search: the relaxation's optimum with every observation free."""
+    instance = prepare(problem, budget)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    allowed = relax.allowed_groups(relax.allowed_options((), budget))
+    start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
+    return relax.optimise(allowed, start)[0]

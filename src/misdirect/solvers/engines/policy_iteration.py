@@ -1,0 +1,199 @@
+"""Policy iteration, written once for the two kinds of MDP the engines solve.
+
+* :class:`MaxReachability`: maximal reachability of a target (or the maximal expected value
+  of the first target state entered) in an MDP that may have end components. Each policy is
+  evaluated exactly as the *least* fixed point
+  (:func:`misdirect.core.reachability.reach_probabilities`), so a policy that cycles forever
+  scores 0, and a state switches only on a strict gain. At termination the values are a fixed
+  point of the Bellman operator attained by some policy; every fixed point lies above the least
+  one, which is the optimum, and no policy lies above the optimum: so they are the optimum.
+  The per-state relaxation and the defender's MDPs use it.
+* :class:`TransientPolicyIteration`: maximal expected total reward of an MDP whose every
+  policy leaves its states with probability 1 (no end components), by LU factorisations of
+  ``I − P`` that also give visits (transposed solves); a policy switching few choices is solved
+  from the last factorisation by Woodbury (:class:`UpdatedLU`). The segment relaxation uses it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import lu_factor, lu_solve
+from scipy.sparse.linalg import splu
+
+from misdirect.core import tolerance
+from misdirect.core.model import reachable_from
+from misdirect.core.reachability import reach_probabilities
+from misdirect.errors import SolverError
+
+LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
+# solved by Woodbury from that factorisation (a few solves instead of a new LU)
+
+
+class MaxReachability:
+    """An MDP given by its choices: choice ``g`` belongs to state ``owner[g]`` and moves by
+    row ``g`` of ``transitions``; ``target`` states score ``value`` (default 1)."""
+
+    def __init__(
+        self,
+        owner: np.ndarray,
+        transitions: sp.csr_matrix,
+        target: np.ndarray,
+        *,
+        blocks: np.ndarray | None = None,
+        value: np.ndarray | None = None,
+        live: np.ndarray | None = None,
+    ):
+        n_states = target.size
+        owner = np.asarray(owner, dtype=np.int64)
+        counts = np.bincount(owner, minlength=n_states)
+        if counts.min(initial=1) == 0:
+            raise SolverError("every state of the MDP needs at least one choice")
+        self.owner, self.transitions, self.target = owner, transitions, target
+        self.blocks, self.value = blocks, value
+        # position of each state's first choice once choices are sorted by state
+        self.state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.live = self._live() if live is None else live
+        self.evaluations = 0
+
+    def _live(self) -> np.ndarray:
+        """States outside the target that can reach it under some policy."""
+        structure = (self.transitions != 0).astype(np.float64)
+        owners = sp.csr_matrix(
+            (np.ones(self.owner.size), (self.owner, np.arange(self.owner.size))),
+            shape=(self.target.size, self.owner.size),
+        )
+        graph = (owners @ structure).tocsr()
+        return reachable_from(graph.T.tocsr(), np.flatnonzero(self.target)) & ~self.target
+
+    def first_choices(self) -> np.ndarray:
+        """The lowest-numbered choice of every state."""
+        order = np.argsort(self.owner, kind="stable")
+        return order[self.state_start]
+
+    def evaluate(self, policy: np.ndarray) -> np.ndarray:
+        """Exact values of the chain that takes choice ``policy[s]`` in ``s``."""
+        self.evaluations += 1
+        return reach_probabilities(
+            self.transitions[policy], self.target, blocks=self.blocks, value=self.value
+        )
+
+    def best_choices(self, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per state: the choice of highest score (the first on ties) and that score."""
+        order = np.lexsort((-score, self.owner))
+        best = order[self.state_start]
+        return best, score[best]
+
+    def optimise(
+        self,
+        policy: np.ndarray,
+        penalty: np.ndarray | float = 0.0,
+        max_rounds: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(optimal values, an optimal policy) from ``policy``, among the choices whose
+        ``penalty`` is 0 (``-inf``: not allowed; ``policy`` must be allowed)."""
+        rounds = 0
+        while True:
+            values = self.evaluate(policy)
+            score = self.transitions @ values + penalty
+            best, best_score = self.best_choices(score)
+            switch = self.live & (best_score > score[policy] + tolerance.IMPROVE)
+            if not switch.any():
+                return values, policy
+            policy = np.where(switch, best, policy)
+            rounds += 1
+            if max_rounds is not None and rounds >= max_rounds:
+                raise SolverError(f"policy iteration did not settle in {max_rounds:,} rounds")
+
+
+class UpdatedLU:
+    """Solves ``A' = A + U Vᵀ`` from the LU of ``A`` (Woodbury): ``U`` the unit columns of the
+    ``rows`` whose choice changed, ``Vᵀ = A'[rows] − A[rows]``. A policy improvement switches
+    a few entries' choices; their rows are all that changes."""
+
+    def __init__(self, base, rows: np.ndarray, delta: sp.csr_matrix):
+        self.base, self.rows, self.delta = base, rows, delta
+        units = np.zeros((delta.shape[1], rows.size))
+        units[rows, np.arange(rows.size)] = 1.0
+        self.z = base.solve(units)  # A⁻¹ U
+        self.capacitance = lu_factor(np.eye(rows.size) + delta @ self.z)  # I + Vᵀ A⁻¹ U
+        self.q = None  # A⁻ᵀ V, for transposed solves
+
+    def solve(self, b: np.ndarray, trans: str = "N") -> np.ndarray:
+        if trans == "N":
+            y = self.base.solve(b)
+            return y - self.z @ lu_solve(self.capacitance, self.delta @ y)
+        if self.q is None:
+            self.q = self.base.solve(self.delta.T.toarray(), trans="T")
+        y = self.base.solve(b, trans="T")
+        return y - self.q @ lu_solve(self.capacitance, y[self.rows], trans=1)
+
+
+class TransientPolicyIteration:
+    """Max expected total reward of a transient MDP given by rows (choices)."""
+
+    def __init__(self, row_state: np.ndarray, matrix: sp.csr_matrix, n_states: int):
+        self.row_state = row_state
+        self.matrix = matrix
+        self.n_states = n_states
+        order = np.lexsort((np.arange(row_state.size), row_state))
+        self.sorted_rows = order
+        ordered = row_state[order]
+        starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+        if not row_state.size:
+            starts = starts[:0]
+        self.state_start = starts  # in sorted order, one per state (every state has a row)
+        if starts.size != n_states:
+            raise AssertionError("every state of the mode MDP needs a choice")
+        self.evaluations = 0
+
+    def first_rows(self) -> np.ndarray:
+        return self.sorted_rows[self.state_start]
+
+    def factorise(self, policy: np.ndarray):
+        """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves
+        for any reward on it (``solve``), and for visits (``solve(·, trans="T")``)."""
+        self.evaluations += 1
+        return splu((sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc())
+
+    def updated(self, base, base_policy: np.ndarray, policy: np.ndarray):
+        """A solver for ``policy``'s system from ``base``, the factorisation of
+        ``base_policy``'s: Woodbury on the rows that differ, if few; else None."""
+        rows = np.flatnonzero(policy != base_policy)
+        if rows.size > LOW_RANK:
+            return None
+        self.evaluations += 1
+        delta = self.matrix[base_policy[rows]] - self.matrix[policy[rows]]  # of I − P
+        return UpdatedLU(base, rows, delta.tocsr())
+
+    def optimise(
+        self,
+        reward: np.ndarray,
+        policy: np.ndarray | None = None,
+        *,
+        start: int | None = None,
+        enough: float = np.inf,
+    ):
+        """(values, policy, its factorisation, whether optimal), from ``policy`` (default:
+        first rows). Stops early at a policy worth more than ``enough`` at ``start``: the
+        optimum is above it too (each improvement only raises the values)."""
+        if policy is None:
+            policy = self.first_rows()
+        lu = base = self.factorise(policy)
+        base_policy = policy
+        while True:
+            values = lu.solve(reward[policy])
+            if start is not None and values[start] > enough:
+                return values, policy, lu, False
+            score = self.matrix @ values + reward
+            order = np.lexsort((-score, self.row_state))
+            best = order[self.state_start]
+            gain = score[best] - score[policy]
+            switch = gain > tolerance.IMPROVE * np.maximum(1.0, np.abs(values))
+            if not switch.any():
+                return values, policy, lu, True
+            policy = np.where(switch, best, policy)
+            lu = self.updated(base, base_policy, policy)
+            if lu is None:
+                lu = base = self.factorise(policy)
+                base_policy = policy

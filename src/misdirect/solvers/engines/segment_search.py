@@ -1,0 +1,355 @@
+"""The segment search: best-first branch-and-bound for one budget, bounded by the segment
+relaxation, with the subtrees small enough enumerated exactly and two workers on one heap.
+
+A node fixes some observations to one candidate each (``picks``, by choice index); the rest
+are free within the ``remaining`` budget. It branches on the free observation whose layers the
+bound's optimal scheduler enters most, and its incumbent rounds that scheduler (per
+observation the layer entered most, most-entered first, within the budget).
+
+With ``enumerate_at``, a node with at most that many completions is not bounded but
+enumerated exactly (the low-rank enumeration, with a base kept per outer pick). The bound
+cannot see the budget, but it does see which sensors are left: on sensor networks a few
+sensors carry the value, so a node that leaves a strong sensor out is pruned, and one that
+alters it has a budget one smaller, soon small enough to enumerate. A node that would need a
+new base solve is bounded first (it may be pruned).
+
+Each node's policy iteration starts from its parent's entry choices (mostly one factorisation
+instead of several from scratch). Whenever the incumbent improves, a local search enumerates
+its neighbourhoods (:meth:`SegmentSearch.local_search`): good incumbents early make the
+search, since the optimum at one budget is often the previous budget's plus one sensor.
+"""
+
+from __future__ import annotations
+
+import heapq
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from misdirect.core import tolerance
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.incumbent import Incumbent, Picks
+from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
+from misdirect.solvers.status import Status
+
+NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most this many
+BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
+
+
+@dataclass(order=True)
+class _Open:
+    """A node on the heap: the largest bound first, then the oldest."""
+
+    priority: float  # minus the node's bound
+    token: int
+    picks: dict[int, int] = field(compare=False)
+    remaining: float = field(compare=False)
+    bounded: bool = field(compare=False)  # the bound is the node's own, not its parent's
+    warm: dict | None = field(compare=False, default=None)  # parent's entry choices
+    completions: int = field(compare=False, default=0)  # counted when taken off the heap
+
+    @property
+    def bound(self) -> float:
+        return -self.priority
+
+
+class _SearchOverError(Exception):
+    """The search is over; ``status`` says why."""
+
+
+class SegmentSearch:
+    """The search of one budget; ``run`` it, then read ``best_picks``, ``best_value`` and
+    ``open_bound()``."""
+
+    def __init__(
+        self,
+        seg: SegmentRelaxation,
+        budget: float,
+        seeds: Sequence[Picks | None] = (),
+        enumerate_at: int = 0,
+    ):
+        self.seg, self.budget = seg, budget
+        # a node with at most this many completions is enumerated instead of bounded
+        enumerable = not seg.instance.cycling.any() and len(seg.space.choices) > 0
+        self.enumerate_at = enumerate_at if enumerable else 0
+        self.enumerated = 0  # nodes
+        self.enumerated_alterations = 0
+        self._lock = threading.Condition(threading.RLock())  # the heap and the incumbent
+        self.incumbent = Incumbent(seg.relax, seg.complete({}), order_ties=True, lock=self._lock)
+        self._error: BaseException | None = None
+        self._in_flight: dict[int, float] = {}  # bound of every node a worker holds
+        self._status: Status | None = None  # set when the search is over: why
+        self._local_running = False
+        self._last_node_s = 0.0  # a node is not started with less time left than the last one
+        self.searched: set = set()  # neighbourhoods the local search has enumerated
+        self.incumbent.offer_exact(self.incumbent.picks)
+        for picks in seeds:
+            if picks is not None and tolerance.affordable(seg.relax.cost(picks), budget):
+                self.incumbent.offer_exact(picks)
+        self.heap: list[_Open] = []
+        self.counter = 0
+        self.nodes = 0
+        self.root_bound: float | None = None
+        self._push_roots()
+
+    @property
+    def best_picks(self) -> Picks:
+        return self.incumbent.picks
+
+    @property
+    def best_value(self) -> float:
+        return self.incumbent.value
+
+    def _push_roots(self) -> None:
+        seg, budget = self.seg, self.budget
+        big = [i for i in seg.order if seg.region_size[i] >= BIG_REGION * seg.live_total]
+        if big:  # branch on the largest region at once: the root with it free is costly, loose
+            i = max(big, key=lambda i: seg.region_size[i])
+            costs = seg.space.choices[i].costs
+            for k in np.flatnonzero(tolerance.affordable(costs, budget))[::-1].tolist():
+                self._push({i: int(k)}, budget - float(costs[k]), np.inf)
+        else:
+            self._push({}, budget, np.inf)
+
+    def _push(self, picks, remaining, bound, bounded=False, warm=None) -> None:
+        """``bounded``: ``bound`` is the node's own (not its parent's); ``warm``: the entry
+        choices of its parent's bound, where its policy iteration starts."""
+        self.counter += 1
+        heapq.heappush(self.heap, _Open(-bound, self.counter, picks, remaining, bounded, warm))
+
+    def local_search(self, deadline: Deadline) -> None:
+        """Enumerate the incumbent's neighbourhoods: its altered sensors fixed (what one more
+        sensor adds), and all of them but one (swap one); again from a better one."""
+        seg = self.seg
+        if not self.enumerate_at:
+            return
+        while True:
+            with self._lock:
+                if not self.incumbent.improved or self._status is not None:
+                    return
+                self.incumbent.improved = False
+                picks = dict(zip(seg.order, self.best_picks, strict=True))
+            outer = {i: picks.get(i, 0) for i in seg.outer}  # one block each
+            altered = {i: k for i, k in picks.items() if k and i not in outer}
+            for drop in [None, *altered]:
+                fixed = {**outer, **{i: k for i, k in altered.items() if i != drop}}
+                key = tuple(sorted(fixed.items()))
+                remaining = self.budget - seg.relax.cost(seg.complete(fixed))
+                if key in self.searched or remaining < -tolerance.BUDGET_SLACK:
+                    continue
+                self.searched.add(key)
+                if seg.completions(fixed, remaining, NEIGHBOURHOOD) > NEIGHBOURHOOD:
+                    continue
+                found = seg.enumerate(fixed, self.budget, deadline)
+                if found is None or self._status is not None:
+                    return  # out of time, or the search is over
+                if found[0] > self.best_value + tolerance.PRUNE:
+                    self.incumbent.offer_exact(found[1])
+
+    def open_bound(self) -> float:
+        """The proven bound on this budget's optimum so far."""
+        with self._lock:
+            top = self.heap[0].bound if self.heap else -np.inf
+            top = max([top, *self._in_flight.values()])
+            return self.incumbent.proven_bound(top)
+
+    def run(
+        self,
+        deadline: Deadline | None = None,
+        tick: Callable[[], None] | None = None,
+        max_nodes: int | None = None,
+        workers: int = 1,
+    ) -> Status:
+        """Search until every node is pruned or enumerated (``optimal``: finished), the
+        deadline passes (``time_limit``) or ``max_nodes`` were bounded (``feasible``).
+        ``workers`` threads take nodes from the one heap: the bounds' factorisations and the
+        enumeration's compiled loop release the GIL, so two workers use both cores."""
+        deadline = deadline or Deadline()
+        self._status = None
+        if workers <= 1:
+            self._work(deadline, tick, max_nodes)
+        else:
+            threads = [
+                threading.Thread(target=self._work, args=(deadline, tick, max_nodes))
+                for _ in range(workers)
+            ]
+            # one BLAS thread per worker: OpenBLAS's own threads would spin on the cores the
+            # workers need
+            with threadpool_limits(limits=1, user_api="blas"):
+                for thread in threads:
+                    thread.start()
+                for thread in threads:
+                    thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._status or Status.OPTIMAL
+
+    def _work(self, deadline, tick, max_nodes) -> None:
+        """One worker: take a task, do it outside the lock, apply its result under it."""
+        try:
+            while (task := self._next_task(deadline, tick, max_nodes)) is not None:
+                kind, entry = task
+                try:
+                    if kind == "local":
+                        self.local_search(deadline)
+                    elif kind == "enumerate":
+                        self._do_enumerate(entry, deadline)
+                    else:
+                        self._do_node(entry)
+                finally:
+                    with self._lock:
+                        self._in_flight.pop(entry.token if entry else -1, None)
+                        if kind == "local":
+                            self._local_running = False
+                        self._lock.notify_all()
+        except BaseException as error:  # re-raised by run, in the caller's thread
+            with self._lock:
+                self._error = error
+                self._status = self._status or Status.UNVERIFIED
+                self._lock.notify_all()
+
+    def _next_task(self, deadline, tick, max_nodes) -> tuple[str, _Open | None] | None:
+        """Under the lock: the next node to bound or enumerate (pruned ones are dropped), a
+        local search, or None when the search is over (``_status`` then says why)."""
+        with self._lock:
+            try:
+                while True:
+                    self._check_over(deadline, max_nodes)
+                    if self.incumbent.improved and self.enumerate_at and not self._local_running:
+                        self._local_running = True
+                        return "local", None
+                    if self.heap:
+                        task = self._take(heapq.heappop(self.heap), tick)
+                        if task is not None:
+                            return task
+                        continue
+                    if not self._in_flight and not self._local_running:
+                        self._over(Status.OPTIMAL)
+                    self._lock.wait(0.05)  # another worker's node may branch
+            except _SearchOverError:
+                return None
+
+    def _check_over(self, deadline: Deadline, max_nodes: int | None) -> None:
+        if self._status is not None:
+            raise _SearchOverError
+        left = deadline.remaining()
+        if deadline.expired() or (left is not None and left < self._last_node_s):
+            self._over(Status.TIME_LIMIT)
+        if max_nodes is not None and self.nodes >= max_nodes:
+            self._over(Status.FEASIBLE)
+
+    def _over(self, status: Status) -> None:
+        self._status = status
+        self._lock.notify_all()
+        raise _SearchOverError
+
+    def _take(self, entry: _Open, tick) -> tuple[str, _Open] | None:
+        """What to do with a node taken off the heap: nothing (pruned), bound or enumerate."""
+        if self.incumbent.prune(entry.bound):
+            return None
+        kind, entry.completions = "node", self.enumerate_at + 1
+        if self.enumerate_at:
+            entry.completions = self.seg.completions(
+                entry.picks, entry.remaining, self.enumerate_at
+            )
+            # a node needing a new base solve is bounded first (it may be pruned)
+            ready = entry.bounded or self.seg.basis_ready(entry.picks)
+            if entry.completions <= self.enumerate_at and ready:
+                kind = "enumerate"
+        if kind == "node":
+            self.nodes += 1
+            if tick is not None and self.nodes % 16 == 0:
+                tick()
+        self._in_flight[entry.token] = entry.bound
+        return kind, entry
+
+    def _do_enumerate(self, entry: _Open, deadline: Deadline) -> None:
+        found = self.seg.enumerate(entry.picks, self.budget, deadline)
+        exact = None
+        if found is not None and found[0] > self.best_value + tolerance.PRUNE:
+            exact = self.incumbent.value_of(found[1])  # re-evaluated exactly, outside the lock
+        with self._lock:
+            if found is None:  # cut by the deadline: the node stays open
+                self._push(entry.picks, entry.remaining, entry.bound, bounded=True)
+                self._status = self._status or Status.TIME_LIMIT
+                return
+            self.enumerated += 1
+            self.enumerated_alterations += entry.completions
+            if exact is not None:
+                self.incumbent.offer(found[1], exact)
+
+    def _do_node(self, entry: _Open) -> None:
+        seg = self.seg
+        began = time.perf_counter()
+        result, usage, layers, entry_choices = seg.node(
+            entry.picks,
+            entry.remaining,
+            self.best_value + tolerance.PRUNE,
+            entry.warm,
+            known_bound=entry.bound,
+        )
+        # both proven: the node's own and the one it was pushed with (its parent's)
+        bound = min(float(result.bound), entry.bound, seg.problem.objective.max_value)
+        rounded = self._round(entry, usage, layers)
+        value = self.incumbent.value_of(rounded)
+        with self._lock:
+            self._last_node_s = time.perf_counter() - began
+            if self.root_bound is None:
+                self.root_bound = bound
+            self.incumbent.offer(rounded, value)
+            if not layers or self.incumbent.prune(bound):
+                return
+            if entry.completions <= self.enumerate_at:  # bounded, not pruned: enumerated next
+                self._push(entry.picks, entry.remaining, bound, bounded=True)
+                return
+            self._branch(entry, bound, usage, layers, entry_choices)
+
+    def _round(self, entry: _Open, usage: np.ndarray, layers: list) -> Picks:
+        """The node's scheduler rounded to an alteration within the budget: per observation
+        the layer entered most, most-entered first."""
+        if not layers:  # nothing affordable changes anything: the node is one alteration
+            return self.seg.complete(entry.picks)
+        choices = self.seg.space.choices
+        chosen, left = dict(entry.picks), entry.remaining
+        for j in np.argsort(-usage, kind="stable"):
+            if usage[j] <= 0:
+                break
+            i, k, _ = layers[j]
+            if i in chosen or not tolerance.affordable(choices[i].costs[k], left):
+                continue
+            chosen[i] = k
+            left -= float(choices[i].costs[k])
+        return self.seg.complete(chosen)
+
+    def _branch(self, entry: _Open, bound: float, usage, layers, entry_choices) -> None:
+        """Push the children of a node: one per affordable option of the observation to
+        branch on, the options its scheduler enters most first."""
+        seg, choices = self.seg, self.seg.space.choices
+        per_obs: dict[int, float] = {}
+        for (i, _, _), u in zip(layers, usage, strict=True):
+            per_obs[i] = per_obs.get(i, 0.0) + float(u)
+        big = [i for i in per_obs if seg.region_size[i] >= BIG_REGION * seg.live_total]
+        # a region covering much of the map (the blank reading) first: its layers make the
+        # MDP large and the bound loose; then the observation the scheduler enters most
+        branch = max(
+            big or per_obs,
+            key=lambda i: (seg.region_size[i], per_obs[i]) if big else per_obs[i],
+        )
+        entered: dict[int, float] = {}
+        for (i, k, _), u in zip(layers, usage, strict=True):
+            if i == branch:
+                entered[k] = entered.get(k, 0.0) + float(u)
+        costs = choices[branch].costs
+        affordable = [
+            k
+            for k in range(choices[branch].size)
+            if tolerance.affordable(costs[k], entry.remaining)
+        ]
+        for k in sorted(affordable, key=lambda k: -entered.get(k, 0.0)):
+            child = dict(entry.picks)
+            child[branch] = int(k)
+            self._push(child, entry.remaining - float(costs[k]), bound, warm=entry_choices)

@@ -1,0 +1,58 @@
+"""How one solve runs: its options as one typed, checked record.
+
+In the spirit of stormpy's ``Environment`` and PAYNT's synthesis task: the caller states the
+options once (:class:`SolveOptions`), they are checked once, and each method declares which of
+them it takes (``Solver.accepts``), so an option a method would ignore is an error, not a
+surprise. Errors name the library parameter (``time_limit``); only the CLI speaks of flags.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
+
+from misdirect.errors import OptionError
+
+MILP_OPTIONS = ("solver", "formulation", "mip_gap", "verbose")
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """The options of one solve; ``None`` means "the method's default"."""
+
+    time_limit: float | None = None  # seconds for the whole call: every stage and budget
+    threads: int | None = None  # worker threads (enumeration, segment search, MILP backend)
+    solver: str | None = None  # MILP backend: highs (default), scip, gurobi
+    formulation: str | None = None  # MILP formulation: compact (default), paper, paper-pinned
+    mip_gap: float | None = None  # MILP: relative gap to stop at (default 1e-9)
+    verbose: bool | None = None  # MILP: the backend's log on stdout
+
+    def __post_init__(self) -> None:
+        limit = self.time_limit
+        if limit is not None and not (math.isfinite(limit) and limit > 0):
+            raise OptionError(
+                f"must be a positive number of seconds, got {limit}", parameter="time_limit"
+            )
+        if self.threads is not None and self.threads < 1:
+            raise OptionError(f"must be at least 1, got {self.threads}", parameter="threads")
+        if self.mip_gap is not None and not self.mip_gap >= 0:
+            raise OptionError(
+                f"must be a non-negative number, got {self.mip_gap}", parameter="mip_gap"
+            )
+
+    def given(self) -> list[str]:
+        """The options set (not None), in declaration order."""
+        return [f.name for f in fields(self) if getattr(self, f.name) is not None]
+
+    def check_taken_by(self, method: str, accepts: Iterable[str]) -> None:
+        """An :class:`OptionError` for the first option ``method`` does not take."""
+        accepted = list(accepts)
+        for name in self.given():
+            if name not in accepted:
+                takes = f"takes only {', '.join(accepted)}" if accepted else "takes no options"
+                raise OptionError(
+                    f"does not apply to method {method} ({method} {takes}; solver, mip_gap "
+                    "and formulation are MILP options, for method milp or auto)",
+                    parameter=name,
+                )

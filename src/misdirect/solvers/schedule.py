@@ -1,0 +1,84 @@
+"""The time policy: how one solve's deadline is shared between its stages and budgets.
+
+Every share of time any method gives any stage is computed here, so that a change of policy
+is one edit and every number can be read side by side. Each share is a sub-deadline of the
+solve's own (:meth:`Deadline.within`): it never outlives the solve, and a cancellation ends it.
+The measurements behind the constants live in ``bench/`` (``hard_instances.py``).
+"""
+
+from __future__ import annotations
+
+from misdirect.solvers.deadline import Deadline
+
+# -- auto: enumerate, or search first ------------------------------------------------------------
+INCREMENTAL_SURE = 200_000  # alterations the low-rank enumeration always takes on
+UPDATE_SECONDS = 5e-6  # about the enumeration's time per alteration, on 2 threads
+ENUMERATION_FIRST = 0.5  # enumerate first when this share of the time left covers it; else
+ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating what is left
+SEARCH_FIRST = 0.25  # ... but giving the search at least this share of the time left
+UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
+UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
+
+# -- branch-and-bound: the per-state search, then the segment search ------------------------------
+CLIMB_SHARE = 0.25  # of a budget's even share: the hill climb before its search
+SEGMENT_MIN_SECONDS = 1.0  # the segment search backs a budget up with at least this much left
+SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
+SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, the per-state search gets this long first
+
+
+def enumeration_fits(count: int, deadline: Deadline, *, limit: int) -> bool:
+    """Whether auto enumerates ``count`` alterations (at most ``limit``) before anything else:
+    always up to ``INCREMENTAL_SURE``, else when they take at most ``ENUMERATION_FIRST`` of the
+    time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
+    left = deadline.remaining()
+    first = UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
+    return count <= INCREMENTAL_SURE or (count <= limit and count * UPDATE_SECONDS <= first)
+
+
+def search_before_enumerating(count: int, deadline: Deadline, *, limit: int) -> float | None:
+    """Seconds for the search before enumerating ``count`` alterations, or None if they are
+    not to be enumerated: within a limit, what the enumeration leaves of the time (if it
+    needs under ``ENUMERATION_RESERVE`` of it), at least ``SEARCH_FIRST`` of it; without one,
+    ``UNLIMITED_SEARCH`` of the enumeration's time, so a search that certifies at once saves
+    it, at worst costing that."""
+    if count > limit:
+        return None
+    needed = count * UPDATE_SECONDS
+    left = deadline.remaining()
+    if left is None:
+        return UNLIMITED_SEARCH * needed
+    if needed > ENUMERATION_RESERVE * left:
+        return None
+    return max(left - needed / ENUMERATION_RESERVE, SEARCH_FIRST * left)
+
+
+def climb(deadline: Deadline, budgets_left: int) -> Deadline:
+    """The hill climb before a budget's search: a quarter of the budget's even share."""
+    share = deadline.share(budgets_left)
+    return deadline.within(None if share is None else share * CLIMB_SHARE)
+
+
+def per_state_search(
+    deadline: Deadline, budgets_left: int, *, segment_backs_up: bool, per_state_failed: bool
+) -> Deadline:
+    """The per-state search of a budget: twice the share of each later budget (the next one
+    is the likelier to finish), or, where the segment search backs it up, what that one leaves
+    (nothing once the per-state search has failed a smaller budget: its bound only loosens
+    with the budget)."""
+    share = deadline.front_share(budgets_left)
+    if segment_backs_up:
+        share = SEGMENT_FIRST_SECONDS if share is None else share * (1 - SEGMENT_SHARE)
+        if per_state_failed:
+            share = 0.0
+    return deadline.within(share)
+
+
+def segment_search(deadline: Deadline, budgets_left: int) -> Deadline:
+    """The segment search of a budget the per-state search did not certify."""
+    return deadline.within(deadline.front_share(budgets_left))
+
+
+def segment_has_time(deadline: Deadline) -> bool:
+    """Whether enough is left to build the segment relaxation and search with it."""
+    left = deadline.remaining()
+    return left is None or left >= SEGMENT_MIN_SECONDS
