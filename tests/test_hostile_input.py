@@ -20,6 +20,7 @@ import yaml
 from typer.testing import CliRunner
 
 from misdirect.cli import MAX_GRID_SIZE, MAX_RUNS, Terminated, app
+from misdirect.core import memory
 from misdirect.core.product import check_product_fits
 from misdirect.errors import ProblemError, WriteError
 from misdirect.io import files as io_utils
@@ -304,8 +305,8 @@ def test_budget_within_reach_is_not_clamped():
 
 
 def test_product_that_cannot_fit_is_refused_with_its_size(monkeypatch):
-    monkeypatch.setattr(io_utils, "MEMORY_CHECK_FLOOR", 0)
-    monkeypatch.setattr(io_utils, "available_memory", lambda: 1000)
+    monkeypatch.setattr(memory, "MEMORY_CHECK_FLOOR", 0)
+    monkeypatch.setattr(memory, "available_memory", lambda: 1000)
     with pytest.raises(ProblemError) as caught:
         check_product_fits(paper_grid(5))
     assert "75 states" in str(caught.value) and "GiB" in str(caught.value)

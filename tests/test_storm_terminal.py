@@ -326,14 +326,14 @@ def test_observation_names_from_the_states():
 
 def test_bulk_reading_matches_stormpys_accessors():
     """The UMB route gives the matrix stormpy's per-entry accessors give."""
-    from misdirect.io.storm import _read_arrays, _read_arrays_slowly
+    from misdirect.io.storm_arrays import read_arrays, read_arrays_slowly
 
     program = stormpy.parse_prism_program(str(DATA / "drone.prism"))
     program, _ = stormpy.instantiate_constants(program, "N=4,B=6")
     options = stormpy.BuilderOptions()
     options.set_build_choice_labels()
     model = stormpy.build_model(program, options=options)
-    fast, slow = _read_arrays(stormpy, model), _read_arrays_slowly(model)
+    fast, slow = read_arrays(stormpy, model), read_arrays_slowly(model)
     assert model.nr_choices > 100
     for name in ("groups", "rows", "target", "probability", "observation_of", "initial"):
         assert np.array_equal(getattr(fast, name), getattr(slow, name)), name

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Alteration, Problem, reachable_from
-from misdirect.io.files import check_memory
 
 
 @dataclass(frozen=True, eq=False)

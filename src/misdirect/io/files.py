@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
-import math
 import os
 import re
 import stat
@@ -37,6 +36,7 @@ from yaml.events import (
 from yaml.nodes import MappingNode, ScalarNode, SequenceNode
 from yaml.resolver import Resolver
 
+from misdirect.core.memory import check_memory as check_memory  # re-exported: it lived here
 from misdirect.errors import ProblemError, WriteError
 
 try:  # libyaml's scanner and parser; the composition below is ours either way
@@ -57,7 +57,6 @@ MAX_FILE_BYTES_ENV = "MISDIRECT_MAX_FILE_BYTES"
 DEFAULT_MAX_FILE_BYTES = 256 * 1024**2
 MAX_DEPTH = 64  # a problem file nests 5 levels; 64 leaves room and stays far from any stack
 MAX_ALIAS_NODES = 100_000  # nodes YAML aliases may add beyond what the file itself spells out
-MEMORY_CHECK_FLOOR = 256 * 1024**2  # below this, an allocation is not checked against memory
 
 
 def max_file_bytes() -> int:
@@ -550,40 +549,3 @@ def prepare_output_dir(path: Path, *, field: str = "--out") -> None:
         raise ProblemError(f"cannot create {path}: {error.strerror}", field=field) from None
     if not os.access(path, os.W_OK):
         raise ProblemError(f"cannot write into {path}: permission denied", field=field)
-
-
-# -- memory -------------------------------------------------------------------------------------
-
-
-def available_memory() -> int | None:
-    """Bytes this process can still allocate, as far as Linux tells (MemAvailable, and the
-    cgroup v2 limit if one is set); None where it cannot be read."""
-    values = []
-    with contextlib.suppress(OSError, ValueError), open("/proc/meminfo", encoding="ascii") as f:
-        for line in f:
-            if line.startswith("MemAvailable:"):
-                values.append(int(line.split()[1]) * 1024)
-                break
-    with contextlib.suppress(OSError, ValueError):
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        used = Path("/sys/fs/cgroup/memory.current").read_text().strip()
-        if limit != "max":
-            values.append(max(int(limit) - int(used), 0))
-    return min(values) if values else None
-
-
-def check_memory(needed: float, what: str, *, field: str | None = None) -> None:
-    """Refuse early (ProblemError) when ``needed`` bytes are certainly not available."""
-    if needed < MEMORY_CHECK_FLOOR:  # small: never worth a look at /proc
-        return
-    available = available_memory()
-    if available is not None and needed > available:
-        raise ProblemError(
-            f"{what} needs about {_gib(needed)} of memory, more than the "
-            f"{_gib(available)} available",
-            field=field,
-        )
-
-
-def _gib(value: float) -> str:
-    return f"{value / 1024**3:,.1f} GiB" if math.isfinite(value) else "unbounded memory"

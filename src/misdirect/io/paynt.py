@@ -7,7 +7,7 @@ PAYNT (the synthesis tool built on Storm) writes a finite-state controller as JS
 to. Node 0 is the initial node.
 
 Which observation a column means: for a model misdirect loads through Storm, PAYNT's
-observation k of the model as PAYNT builds it (see :class:`misdirect.io.storm.PayntView`),
+observation k of the model as PAYNT builds it (see :class:`misdirect.io.paynt_model.PayntView`),
 when the file's labels are exactly PAYNT's for that model; otherwise, and for explicit
 models, the labels are matched by name.
 """
@@ -26,7 +26,8 @@ import numpy as np
 from misdirect.core.model import Controller, CostModel, Pomdp, factored_entries
 from misdirect.errors import ProblemError
 from misdirect.io.files import parse_json, read_text_file
-from misdirect.io.storm import NO_LABEL, PAYNT_NO_LABEL, PayntView, valuation_name
+from misdirect.io.paynt_model import PAYNT_NO_LABEL, PayntView
+from misdirect.io.storm_names import NO_LABEL, valuation_name
 
 FIELD = "controller.paynt"
 SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking

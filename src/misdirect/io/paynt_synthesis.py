@@ -25,7 +25,7 @@ from typing import Any
 
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import check_input_file, read_text_file
-from misdirect.io.storm import paynt_prism_text
+from misdirect.io.paynt_model import paynt_prism_text
 
 NEEDS_PAYNT = "needs paynt: pip install 'misdirect[paynt]'"
 _CONSTANT = re.compile(

@@ -27,12 +27,12 @@ from pydantic import (
     model_validator,
 )
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
 from misdirect.errors import ProblemError
 from misdirect.io.files import (
     check_input_file,
-    check_memory,
     parse_json,
     parse_yaml,
     read_text_file,
