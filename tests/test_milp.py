@@ -295,7 +295,7 @@ def test_only_a_licence_error_skips_gurobi(monkeypatch):
     pytest.importorskip("gurobipy")
 
     def failing(message):
-        def solve(self, start, time_limit=None):
+        def solve(self, start, time_limit=None, cancel=None):
             raise SolverError(message)
 
         return solve

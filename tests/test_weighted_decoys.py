@@ -275,9 +275,9 @@ def test_incremental_is_not_skipped_everywhere():
 def test_defence_falls_back_to_the_largest_weight_as_bound(two_branches):
     """A method without a bound of its own: the defender's bound is the largest decoy weight
     (2 here), not 1, which a weighted value may exceed (any run into the trap scores 2)."""
-    from misdirect.defence import _attack_of
+    from misdirect.defence.attack import attack_of
 
     point = solve(two_branches, method="exhaustive", budgets=[2.0]).curve[-1]
-    attack = _attack_of(dataclasses.replace(point, upper_bound=None), two_branches)
+    attack = attack_of(dataclasses.replace(point, upper_bound=None), two_branches)
     assert attack.upper == 2.0
     assert attack.value == pytest.approx(0.8, abs=1e-15)

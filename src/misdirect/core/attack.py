@@ -4,12 +4,16 @@ The attacker's real choices (:mod:`misdirect.core.alterations`), the MDP they sp
 product states (:mod:`misdirect.core.choice_product`), which product states can still reach
 a decoy, how many of those each observation owns, and where the chain could cycle: auto
 measures these to pick a method, then the method it picks needs them again, and a curve's
-fallback stages once more. :func:`prepare` builds them once per problem and budget range;
-every solver asks it.
+fallback stages once more. :func:`prepare` builds them once per problem and budget range
+within a :func:`shared_preparation` block (one per ``solve`` call, one per audit); every
+solver asks it.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from contextvars import ContextVar
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -18,6 +22,7 @@ import numpy as np
 from misdirect.core.alterations import AlterationSpace, alteration_space
 from misdirect.core.choice_product import ChoiceProduct, build_choice_product, end_component_states
 from misdirect.core.model import Problem
+from misdirect.core.tolerance import TIE
 
 
 @dataclass(eq=False)
@@ -56,11 +61,33 @@ class AttackInstance:
         return end_component_states(chain.group_state, chain.transitions, self.live)
 
 
+# per problem (by id; the entry keeps the problem alive, so the id stays its own): the
+# instances built within the current shared_preparation block, by budget
+_Prepared = dict[int, tuple[Problem, dict[float, AttackInstance]]]
+_shared: ContextVar[_Prepared | None] = ContextVar("misdirect_prepared_attacks", default=None)
+
+
+@contextlib.contextmanager
+def shared_preparation() -> Iterator[None]:
+    """Within this block (of this thread or task), :func:`prepare` builds each problem's
+    instance once and every stage reuses it; outside, nothing is kept. Nested blocks share
+    the outermost one's instances."""
+    if _shared.get() is not None:
+        yield
+        return
+    token = _shared.set({})
+    try:
+        yield
+    finally:
+        _shared.reset(token)
+
+
 def prepare(problem: Problem, budget: float) -> AttackInstance:
-    """The prepared instance of ``problem`` for budgets up to ``budget``: one already built for
-    this or a larger budget, else a new one (kept on the problem for the next solver)."""
-    prepared = problem.prepared_attacks
-    fitting = [b for b in prepared if b >= budget - 1e-12]
+    """The prepared instance of ``problem`` for budgets up to ``budget``: one already built
+    within this :func:`shared_preparation` block for this or a larger budget, else a new one."""
+    shared = _shared.get()
+    prepared = {} if shared is None else shared.setdefault(id(problem), (problem, {}))[1]
+    fitting = [b for b in prepared if b >= budget - TIE]
     if fitting:
         return prepared[min(fitting)]
     instance = AttackInstance(problem, float(budget), alteration_space(problem.with_budget(budget)))

@@ -13,16 +13,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
 from misdirect.core.objective import DecoySet, Objective
-
-if TYPE_CHECKING:  # attack builds on this module
-    from misdirect.core.attack import AttackInstance
 from misdirect.errors import ProblemError
 
 Alteration = np.ndarray  # int array, alpha[o] = received observation
@@ -427,12 +423,6 @@ class Problem:
 
     def with_budget(self, budget: float) -> Problem:
         return replace(self, budget=float(budget))
-
-    @cached_property
-    def prepared_attacks(self) -> dict[float, AttackInstance]:
-        """The attack instances built for this problem, by budget (:func:`misdirect.core.attack.
-        prepare`), so that a second solver on the same problem does not build them again."""
-        return {}
 
     def unweighted(self) -> Problem:
         """The same problem scoring 1 for every decoy state: Pr(reach any decoy)."""

@@ -158,7 +158,8 @@ def map_figure(problem: Problem, result: AuditResult):
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap
 
-    from misdirect.report.figures import grid_arrays, grid_cells, grid_frame, mark_cell
+    from misdirect.core.grid import grid_cells
+    from misdirect.report.figures import grid_arrays, grid_frame, mark_cell
 
     cells = grid_cells(problem)
     assert cells is not None

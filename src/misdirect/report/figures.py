@@ -7,7 +7,6 @@ every function takes the numbers it draws, so the same data can be checked in te
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 
 from misdirect.core.evaluate import evaluate
+from misdirect.core.grid import grid_cells as grid_cells  # re-exported: now lives in core.grid
 from misdirect.core.model import Alteration, Problem
 from misdirect.io.files import write_output
 
@@ -472,17 +472,6 @@ def scalability_panels(
         "Scalability on the scaled grid (paper Fig. 4): compact vs the paper's MILP", fontsize=10
     )
     return save(fig, stem, formats)
-
-
-CELL = re.compile(r"^\((\d+),(\d+)\)$")  # grid worlds name their states "(x,y)"
-
-
-def grid_cells(problem: Problem) -> np.ndarray | None:
-    """(|S|, 2) cell coordinates if the problem is a grid world, else None."""
-    matches = [CELL.match(name) for name in problem.pomdp.states]
-    if not all(matches):
-        return None
-    return np.array([(int(m.group(1)), int(m.group(2))) for m in matches])
 
 
 def grid_arrays(

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from misdirect.core.grid import grid_cells
 from misdirect.core.model import Alteration, Problem
 from misdirect.core.product import build_product
 from misdirect.errors import ProblemError
 from misdirect.io.files import one_line, write_output
-from misdirect.report.figures import draw_grid, grid_cells
+from misdirect.report.figures import draw_grid
 
 MAX_DOT_STATES = 200
 PICTURE_SUFFIXES = (".png", ".svg", ".pdf")

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from misdirect.core.alterations import max_alteration_cost
+from misdirect.core.attack import shared_preparation
 from misdirect.core.model import Alteration, Problem
 from misdirect.core.tolerance import BUDGET_SLACK
 from misdirect.errors import ProblemError
@@ -199,7 +200,8 @@ def solve(
     elif options.time_limit is not None or cancel is not None:
         deadline = Deadline(options.time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
     started = time.perf_counter()
-    solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
+    with shared_preparation():  # the stages of this call share each prepared instance
+        solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started
     if clamped_from is not None:

@@ -1,0 +1,106 @@
+"""The attacker as the defender meets it: one solve at budget ``B`` under a protection set.
+
+Audit and hardening both ask the same question many times — what is the attacker's optimum
+if these sensors are protected? — under one shared clock, and both need the answer in the same
+form: its exact value, a proven bound, and which sensors it alters. That question and its
+answer live here, once. (Not to be confused with :mod:`misdirect.core.attack`, which prepares
+the attacker's choices for the solvers.)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from misdirect.core.alterations import alteration_space
+from misdirect.core.model import Problem
+from misdirect.errors import OptionError, ProblemError
+from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.run import BudgetResult, solve
+from misdirect.solvers.status import Status
+
+
+@dataclass(frozen=True)
+class Attack:
+    """The attacker's answer at budget B under one protection set."""
+
+    value: float  # exact value of ``alteration``
+    upper: float  # proven bound on the attacker's optimum (== value when certified)
+    status: Status
+    alteration: dict[str, str]
+    changed: frozenset[int]
+    cost: float
+
+    @property
+    def certified(self) -> bool:
+        return self.status == Status.OPTIMAL
+
+
+def protect(problem: Problem, observations: Iterable[int]) -> Problem:
+    """``problem`` with ``observations`` made unalterable as well (CostModel.protected)."""
+    protected = problem.cost.protected | frozenset(int(o) for o in observations)
+    return replace(problem, cost=replace(problem.cost, protected=protected))
+
+
+def attack_of(point: BudgetResult, problem: Problem) -> Attack:
+    """The solver's point as an :class:`Attack`: the sensors it alters, and a bound even when
+    the method proved none."""
+    alpha = point.alteration_array
+    changed = (
+        frozenset(int(o) for o in np.flatnonzero(alpha != problem.identity()))
+        if alpha is not None
+        else frozenset()
+    )
+    # no bound from the method: the largest decoy weight bounds every value (1 for a probability)
+    upper = point.upper_bound if point.upper_bound is not None else problem.objective.max_value
+    return Attack(
+        value=point.probability,
+        upper=max(upper, point.probability),
+        status=point.status,
+        alteration=point.alteration,
+        changed=changed,
+        cost=point.cost,
+    )
+
+
+def shared_deadline(
+    seconds: float | None, deadline: Deadline | None = None, cancel: CancelToken | None = None
+) -> Deadline:
+    """The wall-clock limit shared by every solve of one audit or hardening: ``seconds``
+    from now, within the caller's ``deadline`` if given; cancelling ``cancel`` (default: the
+    deadline's token) stops every one of its solves."""
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise OptionError(
+            f"must be a positive number of seconds, got {seconds}", parameter="time_limit"
+        )
+    if deadline is None:
+        return Deadline(seconds, cancel=cancel)
+    return Deadline(seconds, cancel=cancel or deadline.cancel, end=deadline.end)
+
+
+def attacker_budget(problem: Problem, budget: float | None) -> float:
+    """The attacker's budget ``B``: ``budget``, or the problem's own when None."""
+    budget = problem.budget if budget is None else float(budget)
+    if not (math.isfinite(budget) and budget >= 0):
+        raise ProblemError(f"must be a non-negative number, got {budget}", field="budget")
+    return budget
+
+
+def solve_at(
+    problem: Problem, budget: float, clock: Deadline, seconds: float | None, method: str = "auto"
+) -> Attack:
+    """The attacker's optimum at ``budget`` alone, within ``seconds`` (None: no limit; at
+    least 50 ms, so that even a solve that starts late gets past its first incumbent), and
+    cancelled with ``clock``."""
+    limit = Deadline(None if seconds is None else max(seconds, 0.05), cancel=clock.cancel)
+    result = solve(problem.with_budget(budget), method=method, budgets=[budget], deadline=limit)
+    return attack_of(result.curve[-1], problem)
+
+
+def alterable_sensors(problem: Problem, budget: float) -> list[int]:
+    """Observations the attacker can alter within ``budget`` to something the controller
+    reacts to differently (the others cannot change the outcome)."""
+    return [int(c.observation) for c in alteration_space(problem.with_budget(budget)).choices]

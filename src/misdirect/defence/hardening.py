@@ -1,0 +1,304 @@
+"""Hardening: which sensors to protect, within a protection budget ``D``, so that the
+attacker's optimum at ``B`` is as low as possible — an exact min–max.
+
+The inner problem (the attacker's optimum under one protection set) is a full solve, so the
+search is built to make as few as possible: it branches only where protection can matter and
+prunes with a lower bound that costs no solve at all (a hitting-set argument over the attacks
+already found).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from misdirect.core import tolerance
+from misdirect.core.model import Problem
+from misdirect.defence.attack import (
+    Attack,
+    alterable_sensors,
+    attacker_budget,
+    protect,
+    shared_deadline,
+    solve_at,
+)
+from misdirect.defence.results import HardenPoint, HardenResult
+from misdirect.errors import ProblemError
+from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.run import default_budgets
+from misdirect.solvers.status import Status
+
+HITTING_NODE_LIMIT = 200_000  # the lower bound's hitting-set search gives up (soundly) beyond
+
+
+def protection_costs(
+    problem: Problem, costs: Mapping[str, float] | None, *, field: str = "protect_costs"
+) -> np.ndarray:
+    """Per observation, what protecting it costs: ``costs`` by name, key ``default`` for the
+    rest (default 1). Unknown names, negative or non-finite costs are refused."""
+    names = problem.pomdp.observations
+    index = {name: i for i, name in enumerate(names)}
+    costs = dict(costs or {})
+    default = 1.0
+    if "default" in costs and "default" not in index:
+        default = float(costs.pop("default"))
+    table = np.full(len(names), default)
+    for name, value in [("default", default), *costs.items()]:
+        if name != "default" and name not in index:
+            shown = ", ".join(names[:8]) + (", …" if len(names) > 8 else "")
+            raise ProblemError(f"unknown observation {name!r} (known: {shown})", field=field)
+        value = float(value)
+        if not (math.isfinite(value) and value >= 0):
+            raise ProblemError(
+                f"the protection cost of {name!r} must be a non-negative number, got {value}",
+                field=field,
+            )
+        if name != "default":
+            table[index[name]] = value
+    return table
+
+
+def _can_hit(
+    sets: Sequence[frozenset[int]], room: float, costs: np.ndarray, work: list[int]
+) -> bool:
+    """Is there a set of sensors of total cost ≤ ``room`` meeting every one of ``sets``?
+
+    Branches on the elements of the smallest set not yet met (every hitting set contains one
+    of them). Beyond ``HITTING_NODE_LIMIT`` nodes it answers True, which only ever weakens the
+    lower bound it serves, never invalidates it."""
+    failed: set[frozenset[int]] = set()
+
+    def search(chosen: frozenset[int], room: float) -> bool:
+        open_sets = [s for s in sets if not (s & chosen)]
+        if not open_sets:
+            return True
+        if chosen in failed:
+            return False
+        work[0] += 1
+        if work[0] > HITTING_NODE_LIMIT:
+            return True
+        smallest = min(open_sets, key=len)
+        for o in sorted(smallest, key=lambda o: costs[o]):
+            if costs[o] <= room + tolerance.BUDGET_SLACK and search(chosen | {o}, room - costs[o]):
+                return True
+        failed.add(chosen)
+        return False
+
+    return search(frozenset(), room)
+
+
+def hitting_lower_bound(
+    attacks: Sequence[tuple[float, frozenset[int]]],
+    fixed: frozenset[int],
+    room: float,
+    costs: np.ndarray,
+) -> float:
+    """A proven lower bound on min f(Q) over Q ⊇ ``fixed`` with cost(Q \\ fixed) ≤ ``room``.
+
+    Each ``(v, A)`` is an alteration within the attacker's budget of exact value ``v`` that
+    alters the sensors ``A``: under any protection Q missing A it stays feasible, so f(Q) ≥ v.
+    Hence f(Q) ≥ max{v : A ∩ Q = ∅}, and the minimum of that over the Q allowed is the largest
+    v such that the attacks of value ≥ v cannot all be met within ``room``. ``attacks`` must
+    include the unaltered one (value: f with everything protected, A = ∅), which nothing meets.
+    """
+    live = sorted(((v, a - fixed) for v, a in attacks if not (a & fixed)), key=lambda t: -t[0])
+    work = [0]
+    must: list[frozenset[int]] = []
+    i = 0
+    while i < len(live):
+        v = live[i][0]
+        j = i
+        while j < len(live) and live[j][0] >= v:
+            must.append(live[j][1])
+            j += 1
+        if not _can_hit(must, room, costs, work):
+            return v
+        i = j
+    return 0.0  # unreachable when the unaltered attack is included
+
+
+def harden(
+    problem: Problem,
+    *,
+    protect_budget: float,
+    budget: float | None = None,
+    protect_costs: Mapping[str, float] | None = None,
+    time_limit: float | None = None,
+    method: str = "auto",
+    deadline: Deadline | None = None,
+    cancel: CancelToken | None = None,
+) -> HardenResult:
+    """The protection set within ``protect_budget`` minimising the attacker's optimum at
+    ``budget``, with the trade-off curve over every whole protection budget up to it.
+
+    Hitting-set branching: with α*(P) the attacker's optimum under protection P, every
+    superset of P that protects none of α*(P)'s sensors keeps α*(P) feasible and so has the
+    same optimum (it cannot be higher: protecting more only removes alterations). The search
+    therefore branches only on protecting one of α*(P)'s sensors, prunes a subtree when the
+    hitting-set lower bound (:func:`hitting_lower_bound`) over every attack found so far
+    cannot beat the best protection, and solves each protection set once.
+
+    ``time_limit`` (seconds) bounds the whole search, within ``deadline`` when one is shared
+    with other work; cancelling ``cancel`` (or the deadline's token) stops every solve of it.
+    """
+    started = time.perf_counter()
+    clock = shared_deadline(time_limit, deadline, cancel)
+    if not (math.isfinite(protect_budget) and protect_budget >= 0):
+        raise ProblemError(
+            f"must be a non-negative number, got {protect_budget}", field="protect_budget"
+        )
+    budget = attacker_budget(problem, budget)
+    problem = problem.with_budget(budget)
+    costs = protection_costs(problem, protect_costs)
+    search = _Search(problem, budget, costs, clock, method)
+    curve: list[HardenPoint] = []
+    best: frozenset[int] = frozenset()
+    for d in (float(d) for d in default_budgets(protect_budget)):
+        best = search.best_within(d, best)
+        curve.append(search.point(d, best))
+    final = curve[-1]
+    before = search.attack(frozenset())
+    notes = search.notes()
+    names = problem.pomdp.observations
+    listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
+    return HardenResult(
+        problem=problem.name,
+        budget=budget,
+        protect_budget=float(protect_budget),
+        protect_costs=listed,
+        protection=final.protection,
+        protection_cost=final.protection_cost,
+        value_before=before.value,
+        value_after=final.probability,
+        value_after_upper=final.upper_bound,
+        lower_bound=final.lower_bound,
+        best_reply=final.attack,
+        status=final.status,
+        curve=curve,
+        solves=len(search.memo),
+        nodes=search.nodes,
+        pruned=search.pruned,
+        time_s=time.perf_counter() - started,
+        notes=notes,
+    )
+
+
+class _Search:
+    """The min–max search over protection sets, shared by every protection budget of the
+    curve: each protection set is solved once (``memo``), and every attack found is kept as
+    evidence for the hitting-set lower bound (``attacks``)."""
+
+    def __init__(
+        self, problem: Problem, budget: float, costs: np.ndarray, clock: Deadline, method: str
+    ) -> None:
+        self.problem = problem
+        self.budget = budget
+        self.costs = costs
+        self.clock = clock
+        self.method = method
+        self.names = problem.pomdp.observations
+        self.memo: dict[frozenset[int], Attack] = {}
+        everything = frozenset(range(problem.pomdp.n_observations))
+        floor = solve_at(protect(problem, everything), budget, clock, None, method="exhaustive")
+        self.attacks: list[tuple[float, frozenset[int]]] = [(floor.value, frozenset())]
+        self.nodes = 0
+        self.pruned = 0
+        self.complete = True  # the time limit never cut the search short
+        self.certified = True  # every attacker optimum solved was proven
+
+    def attack(self, protection: frozenset[int]) -> Attack:
+        """The attacker's answer under ``protection`` (solved on first use)."""
+        if protection not in self.memo:
+            self.memo[protection] = solve_at(
+                protect(self.problem, protection),
+                self.budget,
+                self.clock,
+                self.clock.share(4),
+                method=self.method,
+            )
+            found = self.memo[protection]
+            self.attacks.append((found.value, found.changed))
+            self.certified &= found.certified
+        return self.memo[protection]
+
+    def cost_of(self, protection: frozenset[int]) -> float:
+        return float(sum(self.costs[o] for o in protection))
+
+    def best_within(self, d: float, best: frozenset[int]) -> frozenset[int]:
+        """The best protection of cost ≤ ``d``, starting from the incumbent ``best`` (the
+        answer at a smaller budget, still within this one): depth first, the cheapest sensor
+        first, pruning every subtree the hitting-set bound shows cannot beat the incumbent."""
+        stack = [frozenset()]
+        seen: set[frozenset[int]] = set()
+        while stack:
+            if self.clock.expired():
+                self.complete = False
+                break
+            node = stack.pop()
+            if node in seen:
+                continue
+            seen.add(node)
+            self.nodes += 1
+            room = d - self.cost_of(node)
+            best_value = self.attack(best).upper
+            bound = hitting_lower_bound(self.attacks, node, room, self.costs)
+            if bound >= best_value - tolerance.CERTIFY:
+                self.pruned += 1
+                continue
+            here = self.attack(node)
+            if _better(here, self.cost_of(node), self.attack(best), self.cost_of(best)):
+                best = node
+            children = [
+                node | {o}
+                for o in sorted(here.changed, key=lambda o: (self.costs[o], self.names[o]))
+                if self.costs[o] <= room + tolerance.BUDGET_SLACK and (node | {o}) not in seen
+            ]
+            stack.extend(reversed(children))  # the cheapest sensor first
+        return best
+
+    def point(self, d: float, best: frozenset[int]) -> HardenPoint:
+        """The curve's point at protection budget ``d`` for the protection ``best`` found."""
+        reply = self.attack(best)
+        proven = self.complete and self.certified
+        lower = (
+            reply.upper
+            if proven
+            else min(hitting_lower_bound(self.attacks, frozenset(), d, self.costs), reply.upper)
+        )
+        status = (
+            Status.OPTIMAL
+            if proven
+            else (Status.TIME_LIMIT if not self.complete else Status.FEASIBLE)
+        )
+        return HardenPoint(
+            protect_budget=d,
+            protection=sorted((self.names[o] for o in best), key=self.names.index),
+            protection_cost=self.cost_of(best),
+            probability=reply.value,
+            upper_bound=reply.upper,
+            lower_bound=lower,
+            attack=reply.alteration,
+            status=status,
+        )
+
+    def notes(self) -> list[str]:
+        """What the answer does not prove, and why."""
+        notes = []
+        if not self.certified:
+            notes.append(
+                "some attacker optimum was not certified (solver time or node limit): values "
+                "are reported with their proven bounds"
+            )
+        if not self.complete:
+            notes.append("stopped by the time limit: best protection found, proven lower bound")
+        return notes
+
+
+def _better(candidate: Attack, cost: float, best: Attack, best_cost: float) -> bool:
+    """Lower guaranteed attacker value, or tied within the tolerance and cheaper."""
+    if candidate.upper < best.upper - tolerance.CERTIFY:
+        return True
+    return candidate.upper <= best.upper + tolerance.CERTIFY and cost < best_cost - tolerance.TIE

@@ -1,0 +1,211 @@
+"""What the defender's questions return: one frozen record per answer, each with ``to_dict``
+(the ``--json`` output and the data of the audit report).
+
+The records are kept apart from the computations so that the CLI and the report, which only
+read answers, need not depend on how they were found.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from misdirect.core import tolerance
+from misdirect.core.objective import LABELS
+from misdirect.solvers.run import BudgetResult
+from misdirect.solvers.status import Status
+
+
+@dataclass(frozen=True)
+class OnlineAttack:
+    """The online attacker's value: unlimited, and with a per-step budget if one was asked."""
+
+    probability: float  # the value asked for: budgeted if ``budget`` is set, else unlimited
+    unlimited_probability: float  # every allowed target at any cost: bounds the offline optimum
+    budget: float | None  # paid per altered reading along the run; None: not asked
+    budgeted_probability: float | None
+    cost_unit: float | None  # the common unit the budgeted MDP counts costs in
+    product_states: int
+    mdp_states: int  # of the MDP actually solved (product states x budget levels)
+    policy_evaluations: int
+    time_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "probability": self.probability,
+            "unlimited_probability": self.unlimited_probability,
+            "budget": self.budget,
+            "budgeted_probability": self.budgeted_probability,
+            "cost_unit": self.cost_unit,
+            "product_states": self.product_states,
+            "mdp_states": self.mdp_states,
+            "policy_evaluations": self.policy_evaluations,
+            "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class SensorAudit:
+    """One sensor the attacker could alter within the budget."""
+
+    observation: str
+    single_probability: float  # attacker's best with only this sensor alterable
+    single_status: str
+    single_alteration: dict[str, str]
+    in_optimal_attack: bool  # the optimal alteration at the budget alters this sensor
+    criticality: float  # the drop of the optimum when this sensor is protected (lower bound)
+    criticality_upper: float  # == criticality when exact
+    protected_probability: float  # attacker's optimum with this sensor protected
+    protected_status: str
+    protected_alteration: dict[str, str]
+
+    @property
+    def exact(self) -> bool:
+        return self.criticality_upper - self.criticality <= tolerance.CERTIFY
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "observation": self.observation,
+            "single_probability": self.single_probability,
+            "single_status": self.single_status,
+            "single_alteration": self.single_alteration,
+            "in_optimal_attack": self.in_optimal_attack,
+            "criticality": self.criticality,
+            "criticality_upper": self.criticality_upper,
+            "criticality_exact": self.exact,
+            "protected_probability": self.protected_probability,
+            "protected_status": self.protected_status,
+            "protected_alteration": self.protected_alteration,
+        }
+
+
+@dataclass(frozen=True)
+class AuditResult:
+    """Which sensors are weak, for the attacker's budget ``B``.
+
+    ``curve`` holds the attacker's optimum at every budget up to ``B``; ``status``,
+    ``probability``, ``upper_bound`` and ``alteration`` are its last point, the optimum at
+    ``B``. ``sensors`` has one row per sensor alterable within ``B``, the most critical first.
+    """
+
+    problem: str  # the problem's name
+    budget: float  # the attacker's budget B
+    baseline_probability: float  # the value with no alteration
+    curve: list[BudgetResult]
+    status: str  # of the optimum at ``budget``
+    probability: float  # exact value of ``alteration``
+    upper_bound: float | None  # proven bound on the optimum at ``budget``, if any
+    alteration: dict[str, str]  # the attacker's best alteration found at ``budget``
+    sensors: list[SensorAudit]
+    online: OnlineAttack  # budgeted within ``budget`` if possible, else unlimited only
+    online_budgeted_note: str | None  # why the budgeted online value is missing, if it is
+    certified: bool  # the optimum at B and every criticality are exact
+    notes: list[str]  # what is not proven, and the solver's warnings
+    time_s: float
+    grid: bool = False  # the states are grid cells: the report draws a map
+    extra: dict[str, Any] = field(default_factory=dict)  # free for callers; not in to_dict
+    objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
+
+    @property
+    def objective_label(self) -> str:
+        return LABELS[self.objective]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "problem": self.problem,
+            "objective": self.objective,
+            "budget": self.budget,
+            "baseline_probability": self.baseline_probability,
+            "status": self.status,
+            "probability": self.probability,
+            "upper_bound": self.upper_bound,
+            "alteration": self.alteration,
+            "certified": self.certified,
+            "curve": [point.to_dict() for point in self.curve],
+            "sensors": [sensor.to_dict() for sensor in self.sensors],
+            "online": {
+                **self.online.to_dict(),
+                "budgeted_note": self.online_budgeted_note,
+                "upper_bounds_offline": self.online.unlimited_probability
+                >= self.probability - tolerance.CERTIFY,
+            },
+            "notes": self.notes,
+            "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class HardenPoint:
+    """The best protection within one protection budget ``d``."""
+
+    protect_budget: float
+    protection: list[str]  # the sensors to protect, in the problem's order
+    protection_cost: float
+    probability: float  # exact value of the attacker's best reply found
+    upper_bound: float  # proven bound on the attacker's optimum under ``protection``
+    lower_bound: float  # proven: no protection within d holds the attacker below this
+    attack: dict[str, str]  # the attacker's best reply found under ``protection``
+    status: Status  # optimal when the min–max is proven, else time_limit / feasible
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "protect_budget": self.protect_budget,
+            "protection": self.protection,
+            "protection_cost": self.protection_cost,
+            "probability": self.probability,
+            "upper_bound": self.upper_bound,
+            "lower_bound": self.lower_bound,
+            "attack": self.attack,
+            "status": self.status,
+        }
+
+
+@dataclass(frozen=True)
+class HardenResult:
+    """Which sensors to protect: the protection within ``protect_budget`` (``D``) that
+    minimises the attacker's optimum at ``budget`` (``B``).
+
+    ``curve`` has one :class:`HardenPoint` per whole protection budget up to ``D``; the
+    fields from ``protection`` to ``status`` repeat its last point, the answer at ``D``.
+    """
+
+    problem: str  # the problem's name
+    budget: float  # the attacker's budget B
+    protect_budget: float  # the defender's budget D
+    protect_costs: dict[str, float]  # what protecting each sensor alterable within B costs
+    protection: list[str]
+    protection_cost: float
+    value_before: float  # the attacker's optimum found with nothing protected (exact value)
+    value_after: float  # exact value of the attacker's best reply under ``protection``
+    value_after_upper: float  # proven bound on the attacker's optimum under ``protection``
+    lower_bound: float  # proven: no protection within D holds the attacker below this
+    best_reply: dict[str, str]
+    status: str  # optimal when the min–max is proven, else time_limit / feasible
+    curve: list[HardenPoint]
+    solves: int  # attacker solves: one per protection set examined
+    nodes: int  # search nodes visited over every protection budget
+    pruned: int  # of which cut off by the hitting-set lower bound
+    time_s: float
+    notes: list[str] = field(default_factory=list)  # what is not proven, and why
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "problem": self.problem,
+            "budget": self.budget,
+            "protect_budget": self.protect_budget,
+            "protection": self.protection,
+            "protection_cost": self.protection_cost,
+            "value_before": self.value_before,
+            "value_after": self.value_after,
+            "value_after_upper": self.value_after_upper,
+            "lower_bound": self.lower_bound,
+            "best_reply": self.best_reply,
+            "status": self.status,
+            "curve": [point.to_dict() for point in self.curve],
+            "protect_costs": self.protect_costs,
+            "solves": self.solves,
+            "nodes": self.nodes,
+            "pruned": self.pruned,
+            "time_s": self.time_s,
+            "notes": self.notes,
+        }

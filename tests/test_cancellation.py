@@ -1,0 +1,88 @@
+"""Cancellation is per solve: a token stops the solves that hold it, and no other.
+
+Two solves in two threads of one process (a notebook, a server): cancelling one leaves the
+other's answer exactly as it is alone. A cancellation that arrives before its solve starts is
+not lost. The expected values come from the same solve run alone, not from constants.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from misdirect import solve
+from misdirect.scenarios import paper_grid
+from misdirect.solvers.deadline import CancelToken, Deadline
+
+SLOW = (paper_grid(9), [0.0, 1.0, 2.0, 3.0])  # exhaustive: thousands of exact evaluations
+OTHER = (paper_grid(7), [0.0, 1.0, 2.0])
+
+
+def _curve(result):
+    return [(p.status, p.probability, p.alteration, p.upper_bound) for p in result.curve]
+
+
+def test_cancelling_one_solve_leaves_another_in_the_next_thread_alone():
+    alone = solve(OTHER[0], method="exhaustive", budgets=OTHER[1])
+    assert all(p.status == "optimal" for p in alone.curve)
+    slow_token, other_token = CancelToken(), CancelToken()
+    results: dict[str, object] = {}
+
+    def run(name, problem, budgets, token):
+        results[name] = solve(problem, method="exhaustive", budgets=budgets, cancel=token)
+
+    threads = [
+        threading.Thread(target=run, args=("slow", *SLOW, slow_token)),
+        threading.Thread(target=run, args=("other", *OTHER, other_token)),
+    ]
+    for thread in threads:
+        thread.start()
+    time.sleep(0.5)
+    slow_token.cancel()
+    for thread in threads:
+        thread.join(timeout=300)
+    assert not any(thread.is_alive() for thread in threads)
+    slow, other = results["slow"], results["other"]
+    assert slow.interrupted and not other.interrupted
+    assert "interrupted" in {p.status for p in slow.curve}
+    assert _curve(other) == _curve(alone)
+    assert not other_token.cancelled
+
+
+def test_a_cancellation_before_the_solve_starts_is_kept():
+    token = CancelToken()
+    token.cancel()
+    began = time.perf_counter()
+    result = solve(SLOW[0], method="exhaustive", budgets=SLOW[1], cancel=token)
+    assert time.perf_counter() - began < 5.0  # it did not search: one evaluation per budget
+    assert result.interrupted
+    assert result.curve[0].status == "optimal"  # budget 0: "alter nothing" is all there is
+    assert {p.status for p in result.curve[1:]} == {"interrupted"}
+    assert all(p.upper_bound >= p.probability for p in result.curve)
+
+
+def test_a_shared_deadline_bounds_a_solve_and_cancels_with_its_token():
+    token = CancelToken()
+    shared = Deadline(60.0, cancel=token)
+    piece = shared.within(10.0)
+    assert piece.cancel is token and piece.end <= shared.end
+    assert shared.within(None).end == shared.end
+    token.cancel()
+    assert piece.expired() and piece.remaining() == 0.0
+    result = solve(SLOW[0], method="exhaustive", budgets=SLOW[1], deadline=shared)
+    assert result.interrupted
+
+
+def test_options_are_checked_and_named_by_parameter():
+    from misdirect.errors import OptionError
+
+    with pytest.raises(OptionError, match="positive number of seconds") as caught:
+        solve(OTHER[0], time_limit=-1)
+    assert caught.value.parameter == "time_limit" and "--" not in str(caught.value)
+    with pytest.raises(OptionError, match="does not apply") as caught:
+        solve(OTHER[0], method="exhaustive", mip_gap=0.1)
+    assert caught.value.parameter == "mip_gap"
+    with pytest.raises(TypeError, match="time_limt"):
+        solve(OTHER[0], time_limt=5)  # type: ignore[call-arg]
