@@ -25,22 +25,32 @@ def _curve(result):
 
 
 def test_cancelling_one_solve_leaves_another_in_the_next_thread_alone():
+    """The first solve cancels its own token from its progress callback, once the second is
+    under way (so the two overlap whatever the machine's speed); the second goes on."""
     alone = solve(OTHER[0], method="exhaustive", budgets=OTHER[1])
     assert all(p.status == "optimal" for p in alone.curve)
     slow_token, other_token = CancelToken(), CancelToken()
+    other_started = threading.Event()
     results: dict[str, object] = {}
 
-    def run(name, problem, budgets, token):
-        results[name] = solve(problem, method="exhaustive", budgets=budgets, cancel=token)
+    def slow_progress(done, total, **_):
+        if not slow_token.cancelled and other_started.wait(timeout=60):
+            slow_token.cancel()
+
+    def other_progress(done, total, **_):
+        other_started.set()
+
+    def run(name, problem, budgets, token, progress):
+        results[name] = solve(
+            problem, method="exhaustive", budgets=budgets, cancel=token, progress=progress
+        )
 
     threads = [
-        threading.Thread(target=run, args=("slow", *SLOW, slow_token)),
-        threading.Thread(target=run, args=("other", *OTHER, other_token)),
+        threading.Thread(target=run, args=("slow", *SLOW, slow_token, slow_progress)),
+        threading.Thread(target=run, args=("other", *OTHER, other_token, other_progress)),
     ]
     for thread in threads:
         thread.start()
-    time.sleep(0.5)
-    slow_token.cancel()
     for thread in threads:
         thread.join(timeout=300)
     assert not any(thread.is_alive() for thread in threads)

@@ -116,7 +116,7 @@ def test_bound_slack_of_the_solver_is_not_called_optimal(monkeypatch):
     loose = solve(problem, method="milp", budgets=[2.0]).curve[0]
     assert loose.upper_bound - loose.probability > 1e-7  # the slack is there, unscaled
     assert loose.status == "feasible"
-    assert "not_certified" in loose.stats
+    assert "not_certified" in loose.notes
     monkeypatch.undo()
     tight = solve(problem, method="milp", budgets=[2.0]).curve[0]
     assert tight.status == "optimal"
@@ -157,7 +157,7 @@ def test_curve_never_decreases_and_bounds_carry_down(monkeypatch):
     values = [p.probability for p in result.curve]
     assert values == pytest.approx([0.0849571376, 0.7199236731, 0.7199236731], abs=1e-9)
     assert result.curve[2].alteration == {"o1": "o3"}
-    assert "replaced" in result.curve[2].stats
+    assert "replaced" in result.curve[2].notes
     assert result.curve[1].upper_bound == pytest.approx(0.8602)  # from budget 2
     # budget 0: "optimal" with a bound 1e-7 above its value is not certified
     assert result.curve[0].status == "feasible"

@@ -66,11 +66,13 @@ def test_auto_uses_updates_on_the_grid():
     assert result.stats["factorisations"] == 3  # one per choice for the blank reading
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("chunk_entries", [1, 4_000_000])
 @pytest.mark.parametrize("seed", range(8))
-def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
+def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries, compiled):
     """The Woodbury corrections, against a dense solve of every alteration's chain: one
-    alteration per batch (``chunk_entries=1``) and batches padded to mixed widths."""
+    alteration per batch (``chunk_entries=1``) and batches padded to mixed widths, by the
+    compiled loop and by its numpy twin."""
     import scipy.sparse as sp
 
     from misdirect.core.alterations import AlterationSpace, ObservationChoices
@@ -116,13 +118,39 @@ def test_every_corrected_value_equals_a_dense_solve(seed, chunk_entries):
     assert len({tuple(row) for row in table}) == int(np.prod(n_options))
     start = int(rng.integers(m))
     found = np.full(len(table), x0[start])
-    done = add_corrections(found, altered, deltas, W[start], chunk_entries=chunk_entries)
+    done = add_corrections(
+        found, altered, deltas, W[start], chunk_entries=chunk_entries, compiled=compiled
+    )
     assert done.all()
     for row, value in zip(table, found, strict=True):
         chosen = base_groups.copy()
         for region, group, k in zip(regions, groups, row, strict=True):
             chosen[region] = group[:, k]
         assert value == pytest.approx(solve_with(chosen)[start], abs=1e-12)
+
+
+def test_small_enumerations_leave_the_compiled_loop_alone(monkeypatch):
+    """Under ``COMPILED_FROM`` alterations the numpy twin corrects, so a small solve never pays
+    numba's load; its curve is the compiled loop's (bounds within rounding)."""
+    from misdirect.solvers.engines import lowrank, lowrank_updates
+
+    calls = []
+    compiled_loop = lowrank_updates._schur_corrections
+
+    def counted(*args):
+        calls.append(args[-1].size)
+        compiled_loop(*args)
+
+    monkeypatch.setattr(lowrank_updates, "_schur_corrections", counted)
+    budgets = list(range(8))
+    small = solve(paper_grid(15), budgets=budgets)
+    assert small.certified_by == "incremental" and not calls
+    monkeypatch.setattr(lowrank, "COMPILED_FROM", 0)
+    loop = solve(paper_grid(15), budgets=budgets)
+    assert calls
+    for a, b in zip(small.curve, loop.curve, strict=True):
+        assert (a.status, a.alteration, a.probability) == (b.status, b.alteration, b.probability)
+        assert a.upper_bound == pytest.approx(b.upper_bound, abs=1e-14)
 
 
 @pytest.mark.parametrize("seed", range(6))

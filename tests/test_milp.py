@@ -492,9 +492,9 @@ def test_warm_start_is_the_previous_optimum(monkeypatch):
     starts = []
     real = backends.HighsBackend.solve
 
-    def recording(self, start, time_limit=None):
+    def recording(self, start, time_limit=None, cancel=None):
         starts.append((start[0].copy(), start[1].copy()))
-        return real(self, start, time_limit)
+        return real(self, start, time_limit, cancel)
 
     monkeypatch.setattr(backends.HighsBackend, "solve", recording)
     problem = paper_grid(5)
@@ -577,8 +577,8 @@ def test_cli_disagreement_is_loud(monkeypatch):
     """A solver claiming a value its alteration does not have: warning on stderr, exit 1."""
     real = backends.HighsBackend.solve
 
-    def lying(self, start, time_limit=None):
-        result = real(self, start, time_limit)
+    def lying(self, start, time_limit=None, cancel=None):
+        result = real(self, start, time_limit, cancel)
         result.objective += 0.01
         return result
 
@@ -667,8 +667,8 @@ def test_cut_short_incumbent_may_claim_less_but_not_more(monkeypatch, shift, fla
     above it is. SPEC §3: budget 1 is worth 0.719924."""
     real = backends.HighsBackend.solve
 
-    def cut_short(self, start, time_limit=None):
-        result = real(self, start, time_limit)
+    def cut_short(self, start, time_limit=None, cancel=None):
+        result = real(self, start, time_limit, cancel)
         result.objective += shift
         result.status = "time_limit"
         return result

@@ -85,14 +85,15 @@ def test_more_memory_more_behaviour_classes():
 @pytest.mark.parametrize(
     ("args", "field"),
     [
-        (dict(n=4, sensors=3), "--size"),
-        (dict(n=6, sensors=0), "--sensors"),
-        (dict(n=6, sensors=100), "--sensors"),
-        (dict(n=6, sensors=3, memory=0), "--memory"),
-        (dict(n=6, sensors=3, costs="free"), "--costs"),
+        (dict(n=4, sensors=3), "n"),
+        (dict(n=6, sensors=0), "sensors"),
+        (dict(n=6, sensors=100), "sensors"),
+        (dict(n=6, sensors=3, memory=0), "memory"),
+        (dict(n=6, sensors=3, costs="free"), "costs"),
     ],
 )
 def test_bad_arguments(args, field):
+    """The library names its parameter; the CLI shows it as the flag (--size for n)."""
     n, sensors = args.pop("n"), args.pop("sensors")
     with pytest.raises(ProblemError) as raised:
         sensor_grid(n, sensors, **args)

@@ -61,9 +61,13 @@ def check_budget(value: float | None, option: str) -> None:
 FLAGS = ("time_limit", "threads", "solver", "formulation", "mip_gap", "verbose", "max_nodes")
 
 
+# library parameters whose flag is not their name: a scenario's grid size ``n`` is --size
+RENAMED_FLAGS = {"n": "--size"}
+
+
 def flag(parameter: str) -> str:
     """The command-line flag of a library parameter: ``time_limit`` → ``--time-limit``."""
-    return "--" + parameter.replace("_", "-")
+    return RENAMED_FLAGS.get(parameter, "--" + parameter.replace("_", "-"))
 
 
 def as_flags(text: str) -> str:

@@ -50,6 +50,7 @@ from misdirect.solvers.milp.backends import BACKENDS
 from misdirect.solvers.milp.solver import FORMULATIONS
 from misdirect.solvers.run import SolveResult
 from misdirect.solvers.run import solve as solve_problem
+from misdirect.solvers.stats import AutoStats, MethodStats, MilpStats
 from misdirect.solvers.status import Status
 
 if TYPE_CHECKING:
@@ -258,22 +259,31 @@ def _solve_summary(result: SolveResult) -> list[str]:
             "(no alteration costs more)",
         )
     stats = result.stats
-    if result.certified_by is not None:
+    if isinstance(stats, AutoStats):
         proven = all(point.status == Status.OPTIMAL for point in result.curve)
         verb = "certified by" if proven else "method"
-        parts.append(f"{verb} {result.certified_by} ({stats['auto_reason']})")
-    if "formulation" in stats:  # a MILP
-        nodes = sum(point.stats.get("nodes") or 0 for point in result.curve)
-        solving = sum(point.stats.get("solve_time_s", 0.0) for point in result.curve)
+        parts.append(f"{verb} {result.certified_by} ({stats.reason})")
+        stats = stats.answer
+    if isinstance(stats, MilpStats):
+        answers = [_method_stats(point.stats) for point in result.curve]
+        milps = [s for s in answers if isinstance(s, MilpStats)]
+        nodes = sum(s.nodes or 0 for s in milps)
+        solving = sum(s.solve_time_s for s in milps)
+        model = stats.model
         parts += [
-            f"{stats['formulation']} MILP on {stats['solver']}: {stats['variables']:,} variables "
-            f"({stats['binaries']:,} binary), {stats['rows']:,} rows, "
-            f"{stats['nonzeros']:,} non-zeros",
-            f"built in {stats['build_time_s']:.2f} s, solved in {solving:.2f} s, {nodes:,} nodes",
+            f"{stats.formulation} MILP on {stats.solver}: {model['variables']:,} variables "
+            f"({model['binaries']:,} binary), {model['rows']:,} rows, "
+            f"{model['nonzeros']:,} non-zeros",
+            f"built in {model['build_time_s']:.2f} s, solved in {solving:.2f} s, {nodes:,} nodes",
         ]
     else:
-        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in stats.items() if isinstance(v, int)]
+        counts = stats.to_dict().items()
+        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in counts if isinstance(v, int)]
     return parts
+
+
+def _method_stats(stats: MethodStats) -> MethodStats:
+    return stats.answer if isinstance(stats, AutoStats) else stats
 
 
 # -- simulate -----------------------------------------------------------------------------------

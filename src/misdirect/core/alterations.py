@@ -195,7 +195,7 @@ class AlterationSpace:
         """How many choice vectors cost at most ``budget`` (``limit + 1`` once it is more than
         ``limit``), without listing them: a count per distinct total cost, the polynomial of
         each group of alike choices raised to its size by squaring (a search counts every node
-        it takes, under its lock: 64 sensors one by one took 0.7 ms). Counts are capped at
+        it takes, under its lock, so it must be cheap). Counts are capped at
         ``limit + 1``: ``min(a·b, cap)`` and ``min(a + b, cap)`` only need capped terms."""
         cap = limit + 1
 

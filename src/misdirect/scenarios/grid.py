@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError
 
 ACTIONS = ("N", "E", "S", "W")
 MOVES = np.array([(0, 1), (1, 0), (0, -1), (-1, 0)])  # same order as ACTIONS
@@ -92,7 +92,7 @@ def paper_controller() -> Controller:
 def paper_grid(n: int = 5, *, budget: float = 4) -> Problem:
     """The ``n x n`` grid case study with the hazard as decoy and unit alteration costs."""
     if n < 5:
-        raise ProblemError(f"the grid needs size ≥ 5, got {n}", field="--size")
+        raise OptionError(f"the grid needs size ≥ 5, got {n}", parameter="n")
     observation_of = np.full(n * n, BLANK, dtype=np.int64)
     for sensor, cells in sensor_cells(n).items():
         for cx, cy in cells:

@@ -12,22 +12,24 @@ from collections.abc import Sequence
 import numpy as np
 
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError
 
 
 def knapsack(weights: Sequence[float], values: Sequence[float], capacity: float) -> Problem:
     k = len(weights)
     if k == 0 or len(values) != k:
-        raise ProblemError(
+        raise OptionError(
             f"need as many values as weights (≥ 1), got {k} weights and {len(values)} values",
-            field="--values",
+            parameter="values",
         )
-    for name, numbers in (("--weights", weights), ("--values", values)):
+    for name, numbers in (("weights", weights), ("values", values)):
         bad = [v for v in numbers if not np.isfinite(v) or v <= 0]
         if bad:
-            raise ProblemError(f"every entry must be a positive number, got {bad[0]}", field=name)
+            raise OptionError(
+                f"every entry must be a positive number, got {bad[0]}", parameter=name
+            )
     if not np.isfinite(capacity) or capacity < 0:
-        raise ProblemError(f"must be a non-negative number, got {capacity}", field="--capacity")
+        raise OptionError(f"must be a non-negative number, got {capacity}", parameter="capacity")
 
     items = [f"s{i}" for i in range(1, k + 1)]
     states = ("s0", *items, "s_club", "s_top", "s_bot")

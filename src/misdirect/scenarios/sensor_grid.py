@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError
 from misdirect.scenarios.grid import ACTIONS, MOVES, grid_transitions
 
 MAX_COVERED = 0.6  # share of the cells that sensors may cover
@@ -102,25 +102,25 @@ def sensor_grid(
         value = decoy_probability(problem, problem.identity())
         if 1e-12 < value < 0.5:
             return problem
-    raise ProblemError(
+    raise OptionError(
         f"no decoy cell with an unattacked probability in (0, 1/2) for seed {seed}; "
         "try another seed",
-        field="--seed",
+        parameter="seed",
     )
 
 
 def _check(n: int, sensors: int, memory: int, costs: str) -> None:
     if not 5 <= n <= MAX_SIZE:
-        raise ProblemError(f"must be between 5 and {MAX_SIZE}, got {n}", field="--size")
+        raise OptionError(f"must be between 5 and {MAX_SIZE}, got {n}", parameter="n")
     room = int(MAX_COVERED * (n * n - 2))
     if not 1 <= sensors <= room:
-        raise ProblemError(
-            f"must be between 1 and {room:,} on a {n}x{n} grid, got {sensors}", field="--sensors"
+        raise OptionError(
+            f"must be between 1 and {room:,} on a {n}x{n} grid, got {sensors}", parameter="sensors"
         )
     if not 1 <= memory <= MAX_MEMORY:
-        raise ProblemError(f"must be between 1 and {MAX_MEMORY}, got {memory}", field="--memory")
+        raise OptionError(f"must be between 1 and {MAX_MEMORY}, got {memory}", parameter="memory")
     if costs not in ("uniform", "random"):
-        raise ProblemError(f"must be uniform or random, got {costs!r}", field="--costs")
+        raise OptionError(f"must be uniform or random, got {costs!r}", parameter="costs")
 
 
 def _place_sensors(

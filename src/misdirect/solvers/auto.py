@@ -50,6 +50,7 @@ from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import AutoStats, MethodStats
 from misdirect.solvers.status import Status
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
@@ -407,7 +408,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         status = Status.TIME_LIMIT
     else:
         status = pick.status
-    stats = {**pick.stats, "auto_reason": why, "stages": [first.stats, second.stats]}
+    stats = AutoStats(_answer(pick.stats), why, (first.stats, second.stats))
     # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
     closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
     return Solution(
@@ -423,5 +424,11 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:
     return [
-        replace(s, stats={**s.stats, "auto_reason": reason}, certified_by=method) for s in solutions
+        replace(s, stats=AutoStats(_answer(s.stats), reason), certified_by=method)
+        for s in solutions
     ]
+
+
+def _answer(stats: MethodStats) -> MethodStats:
+    """The method's own record inside auto's (a stage's answer may be labelled already)."""
+    return stats.answer if isinstance(stats, AutoStats) else stats

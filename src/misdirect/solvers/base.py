@@ -7,15 +7,16 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.model import Alteration, Problem
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
 
@@ -47,9 +48,8 @@ class Solution:
     solver_probability: float | None  # the solver's own value for it (None: no incumbent)
     status: Status = Status.OPTIMAL
     upper_bound: float | None = None  # proven bound on the optimum, if the solver has one
-    # the method's own counters: ExhaustiveStats, IncrementalStats, BranchAndBoundStats,
-    # MilpStats (TypedDicts beside each method), or auto's hand-over record around them
-    stats: Mapping[str, Any] = field(default_factory=dict)
+    # the method's own counters (misdirect.solvers.stats), or auto's record around them
+    stats: MethodStats = field(default_factory=NoStats)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
 
 

@@ -22,8 +22,8 @@ shared between them is :mod:`misdirect.solvers.schedule`'s.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import ClassVar, NotRequired, TypedDict
+from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,25 +41,12 @@ from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import BranchAndBoundStats, SegmentStats
 from misdirect.solvers.status import Status
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
-
-
-class BranchAndBoundStats(TypedDict):
-    """``stats`` of a branch-and-bound answer (the JSON's ``stats``)."""
-
-    nodes: int
-    pruned: int
-    policy_evaluations: int  # exact linear solves of the relaxation
-    root_bound: float | None
-    relevant_observations: int
-    segment_nodes: NotRequired[int]  # when the segment search took the budget over
-    segment_root_bound: NotRequired[float | None]
-    segment_enumerated: NotRequired[int]  # nodes of it enumerated (low-rank updates)
-    segment_enumerated_alterations: NotRequired[int]
 
 
 @dataclass
@@ -221,13 +208,14 @@ class BranchAndBoundSolver:
         assert answer.upper_bound is not None
         bound = max(min(second.open_bound(), answer.upper_bound), value)
         finished = status == Status.OPTIMAL
-        stats: BranchAndBoundStats = {
-            **answer.stats,  # type: ignore[typeddict-item]
-            "segment_nodes": second.nodes,
-            "segment_root_bound": second.root_bound,
-            "segment_enumerated": second.enumerated,
-            "segment_enumerated_alterations": second.enumerated_alterations,
-        }
+        assert isinstance(answer.stats, BranchAndBoundStats)
+        segment = SegmentStats(
+            nodes=second.nodes,
+            root_bound=second.root_bound,
+            enumerated=second.enumerated,
+            enumerated_alterations=second.enumerated_alterations,
+        )
+        stats = replace(answer.stats, segment=segment)
         return Solution(
             budget=answer.budget,
             alteration=answer.alteration if picks is None else segments.relax.alteration(picks),
@@ -340,13 +328,13 @@ class _Search:
         return tuple(completed)
 
     def _solution(self, status: Status) -> Solution:
-        stats: BranchAndBoundStats = {
-            "nodes": self.nodes,
-            "pruned": self.incumbent.pruned,
-            "policy_evaluations": self.relax.evaluations - self.evaluations_before,
-            "root_bound": self.root_bound,
-            "relevant_observations": len(self.relax.order),
-        }
+        stats = BranchAndBoundStats(
+            nodes=self.nodes,
+            pruned=self.incumbent.pruned,
+            policy_evaluations=self.relax.evaluations - self.evaluations_before,
+            root_bound=self.root_bound,
+            relevant_observations=len(self.relax.order),
+        )
         return Solution(
             budget=self.budget,
             alteration=self.relax.alteration(self.best_picks),

@@ -8,14 +8,14 @@ promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tole
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
+from misdirect.solvers.stats import MethodStats
 from misdirect.solvers.status import Status
 
 
@@ -57,8 +57,9 @@ class CurvePoint:
     cost: float
     upper_bound: float | None
     claimed: float | None  # the method's own value (None: it had no incumbent)
-    stats: dict[str, Any]
+    stats: MethodStats
     certified_by: str | None
+    notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
 
 
 def check_claims(point: CurvePoint, method: str) -> list[str]:
@@ -115,14 +116,14 @@ def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
             bound = point.upper_bound
         status = decide(point.status, point.probability, point.upper_bound)
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
-            point.stats["not_certified"] = (
+            point.notes["not_certified"] = (
                 f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
                 if point.upper_bound is None
                 else f"proven bound {point.upper_bound:.12f} is "
                 f"{point.upper_bound - point.probability:.2e} above the exact value"
             )
         elif status == Status.OPTIMAL and point.status.cut_short:
-            point.stats["certified_by_bound"] = "a bound at this or a larger budget meets it"
+            point.notes["certified_by_bound"] = "a bound at this or a larger budget meets it"
         point.status = status
     if cancelled:
         for point in curve:
@@ -134,7 +135,7 @@ def _carry_answers_up(curve: list[CurvePoint]) -> None:
     best: CurvePoint | None = None
     for point in sorted(curve, key=lambda p: p.budget):
         if best is not None and point.probability < best.probability - tolerance.TIE:
-            point.stats["replaced"] = (
+            point.notes["replaced"] = (
                 f"the solver's answer ({point.probability:.9f}) was worse than budget "
                 f"{best.budget:g}'s, whose alteration it takes"
             )

@@ -9,7 +9,7 @@ budget curve. Stopped by its deadline, it reports the best alteration seen so fa
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import ClassVar, TypedDict
+from typing import ClassVar
 
 import numpy as np
 
@@ -22,16 +22,8 @@ from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget, 
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import ExhaustiveStats
 from misdirect.solvers.status import Status
-
-
-class ExhaustiveStats(TypedDict):
-    """``stats`` of an exhaustive answer (the JSON's ``stats``)."""
-
-    evaluations: int  # alterations evaluated exactly
-    alterations_within_budget: int
-    relevant_observations: int
-    candidates_per_observation: list[int]
 
 
 class ExhaustiveSolver:
@@ -77,12 +69,12 @@ class ExhaustiveSolver:
             done = i + 1
             report(progress, done, len(costs), stage="exhaustive")
         finished = done == len(costs)
-        stats: ExhaustiveStats = {
-            "evaluations": done,
-            "alterations_within_budget": len(costs),
-            "relevant_observations": len(space.choices),
-            "candidates_per_observation": [c.size for c in space.choices],
-        }
+        stats = ExhaustiveStats(
+            evaluations=done,
+            alterations_within_budget=len(costs),
+            relevant_observations=len(space.choices),
+            candidates_per_observation=[c.size for c in space.choices],
+        )
         picks = best_per_budget(costs[:done], values[:done], budgets)
         # a budget is proven when every alteration it affords was evaluated
         complete = [finished or not tolerance.affordable(costs[done], b) for b in budgets]

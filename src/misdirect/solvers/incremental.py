@@ -10,7 +10,7 @@ did not reach (those stay proven); the others get the per-state relaxation's bou
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import ClassVar, TypedDict
+from typing import ClassVar
 
 from misdirect.core import tolerance
 from misdirect.core.attack import prepare
@@ -25,18 +25,10 @@ from misdirect.solvers.engines.lowrank import (
 )
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import IncrementalStats
 from misdirect.solvers.status import Status
 
-__all__ = ["IncrementalSolver", "IncrementalStats", "NotApplicableError"]
-
-
-class IncrementalStats(TypedDict):
-    """``stats`` of an incremental answer (the JSON's ``stats``)."""
-
-    evaluations: int  # alterations valued (by low-rank updates or solves)
-    factorisations: int  # outer choices, each one base solve
-    inner_observations: int
-    outer_observations: int
+__all__ = ["IncrementalSolver", "NotApplicableError"]
 
 
 class IncrementalSolver:
@@ -69,12 +61,12 @@ class IncrementalSolver:
             value = decoy_probability(problem, problem.identity())
             return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
         found = enumeration.run(top, deadline=deadline, progress=progress)
-        stats: IncrementalStats = {
-            "evaluations": found.evaluations,
-            "factorisations": found.blocks_done,
-            "inner_observations": len(found.inner),
-            "outer_observations": len(found.outer),
-        }
+        stats = IncrementalStats(
+            evaluations=found.evaluations,
+            factorisations=found.blocks_done,
+            inner_observations=len(found.inner),
+            outer_observations=len(found.outer),
+        )
         complete = [found.complete_for(b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too
         relaxed = None if all(complete) else relaxation_bound(problem, top)

@@ -2,7 +2,7 @@
 
 Whatever the method, the probability reported for an alteration is the evaluator's, computed
 from the product chain of that alteration; the solver's own number is kept only to detect
-disagreement (SPEC §2: a solver can be wrong, the chain cannot).
+disagreement: a solver can be wrong, the chain cannot.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from misdirect.solvers.certification import (
 )
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
 
@@ -44,7 +45,9 @@ class BudgetResult:
     cost: float
     upper_bound: float | None
     solver_probability: float | None  # None when the solver stopped without an incumbent
-    stats: dict[str, Any] = field(default_factory=dict)  # the method's own counters
+    stats: MethodStats = field(default_factory=NoStats)  # the method's own counters
+    # what certification found worth saying: "replaced", "not_certified", "certified_by_bound"
+    notes: dict[str, str] = field(default_factory=dict)
     alteration_array: Alteration | None = field(default=None, repr=False)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
 
@@ -57,11 +60,13 @@ class BudgetResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON fields: the dataclass's own (arrays and the solver's claim left out), the gap,
-        and ``certified_by`` inside ``stats``, where the JSON has always had it."""
-        skip = {"alteration_array", "solver_probability", "certified_by", "stats"}
+        and the certification's notes and ``certified_by`` inside ``stats``, where the JSON has
+        always had them."""
+        skip = {"alteration_array", "solver_probability", "certified_by", "stats", "notes"}
         shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         extra = {} if self.certified_by is None else {"certified_by": self.certified_by}
-        return {**shown, "gap": self.gap, "stats": {**self.stats, **extra}}
+        stats = {**self.stats.to_dict(), **self.notes, **extra}
+        return {**shown, "gap": self.gap, "stats": stats}
 
 
 @dataclass(frozen=True)
@@ -222,7 +227,7 @@ def solve(
             cost=problem.alteration_cost(alpha),
             upper_bound=solution.upper_bound,
             claimed=solution.solver_probability,
-            stats=dict(solution.stats),
+            stats=solution.stats,
             certified_by=solution.certified_by,
         )
         warnings += check_claims(point, method_solver.name)
@@ -270,6 +275,7 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         upper_bound=point.upper_bound,
         solver_probability=point.claimed,
         stats=point.stats,
+        notes=point.notes,
         alteration_array=point.alteration,
         certified_by=point.certified_by,
     )

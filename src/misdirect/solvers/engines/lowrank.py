@@ -44,8 +44,11 @@ INNER_ROWS = 200  # inner observations together may own at least this many produ
 INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
 INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
-MAX_ALTERATIONS = 12_000_000  # listed sparsely: about 2 GiB at 9.6 million
+MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
 BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
+COMPILED_FROM = 5_000  # alterations: fewer are corrected by numpy, not by the numba loop, whose
+# first call in a process loads numba's compiler (even from its cache), a one-off cost that a
+# small enumeration never repays; a search (many enumerations, bases kept) always takes the loop
 
 
 class NotApplicableError(SolverError):
@@ -224,6 +227,9 @@ class LowRankEnumeration:
         outer = [i for i in range(len(self.observations)) if i not in inner]
         outer_table, outer_costs = self._outer_blocks(top, fixed, outer)
         inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner))
+        compiled = bases is not None or (
+            self.instance.space.count_within(top, COMPILED_FROM) > COMPILED_FROM
+        )
         blocks, costs, values = [], [], []
         unevaluated, evaluations = np.inf, 0
         # a block is not started with less time left than the last one took (later blocks
@@ -238,7 +244,7 @@ class LowRankEnumeration:
             x_start, w_start, deltas = self._block_base(outer, outer_pick, inner, fixed, bases)
             factored = time.perf_counter()
             block = self._block(
-                top - outer_cost, inner, deltas, x_start, w_start, deadline, evaluations
+                top - outer_cost, inner, deltas, x_start, w_start, deadline, evaluations, compiled
             )
             inner_costs, found, altered, cut_at = block
             evaluations += int(np.isfinite(inner_costs).sum())
@@ -366,7 +372,7 @@ class LowRankEnumeration:
         parts = (self.rows_of[self.observations[i]] for i in choices)
         return np.concatenate([np.zeros(0, dtype=np.int64), *parts]).astype(np.int64)
 
-    def _block(self, budget, inner, deltas, x_start, w_start, deadline, evaluations):
+    def _block(self, budget, inner, deltas, x_start, w_start, deadline, evaluations, compiled):
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
         alterations within ``budget``; a cost is ``inf`` where the deadline cut it short."""
         chain = self.instance.chain
@@ -385,7 +391,7 @@ class LowRankEnumeration:
         if self.start >= 0:
             found[:] = x_start
             corrected = add_corrections(
-                found, altered, deltas, w_start, deadline, threads=self.threads
+                found, altered, deltas, w_start, deadline, threads=self.threads, compiled=compiled
             )
             if not corrected.all():  # cut short: those alterations were not evaluated
                 cut_at = float(inner_costs[~corrected].min())

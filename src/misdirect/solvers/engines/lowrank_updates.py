@@ -28,8 +28,7 @@ from misdirect.solvers.deadline import Deadline
 
 BATCH_ENTRIES = 4_000_000  # numbers per batch of parents when threads share the batches
 CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay in cache while
-# its children read them (an H1 budget-5 subtree: 35.5 -> 31.5 ms; on two threads the pool's
-# overhead per batch outweighs it: H2 budgets 0..3 33 -> 39 s)
+# its children read them (on two threads the pool's overhead per batch outweighs that)
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
 
 
@@ -169,10 +168,12 @@ def add_corrections(
     deadline: Deadline | None = None,
     chunk_entries: int | None = None,
     threads: int = 1,
+    compiled: bool = True,
 ) -> np.ndarray:
     """Add the Woodbury correction to ``found`` for every alteration of ``altered`` (its
     choices are the inner observations); returns which got it (all, unless ``deadline`` passed
-    first).
+    first). ``compiled``: each child's step by the numba loop, else by its numpy twin (the
+    loop's first call in a process loads numba's compiler, a cost a small run never repays).
 
     An alteration is its parent (the same without its last entry) bordered by one entry's
     rows. Per batch of parents, each parent's system ``A`` is inverted once, with
@@ -201,7 +202,7 @@ def add_corrections(
         counts = n_children[batch]
         kids = np.repeat(first_child[batch], counts) + rank_in_group(counts)
         local = np.repeat(np.arange(batch.size), counts)
-        found[kids] += _children_of(parents[batch], kids, local, tree, deltas, weight)
+        found[kids] += _children_of(parents[batch], kids, local, tree, deltas, weight, compiled)
         corrected[kids] = True  # batches are disjoint: threads never write the same entry
 
     n_slots = deltas.rhs.size - 1
@@ -271,7 +272,9 @@ def _batches(order, width, n_children, n_slots, chunk_entries):
         yield batch
 
 
-def _children_of(parents, kids, local, tree: _Tree, deltas: RowDeltas, weight) -> np.ndarray:
+def _children_of(
+    parents, kids, local, tree: _Tree, deltas: RowDeltas, weight, compiled: bool = True
+) -> np.ndarray:
     """The corrections of the alterations ``kids``, each the parent ``parents[local]`` plus its
     last entry, by the Schur complement of the parent's system ``A`` (rows ``P``):
 
@@ -280,7 +283,8 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: RowDeltas, weight) -
     with ``y = A⁻¹ r_P`` and ``s_P = g_Pᵀ y`` the parent's own correction, ``F = I − D W`` on
     the changed rows, ``r = D x0 + Δb`` and ``g`` the start's row of ``W``. The parents' part
     is batched in numpy; each child's (a few small products and a solve as wide as its last
-    entry) is one compiled loop, :func:`_schur_corrections`."""
+    entry) is one compiled loop, :func:`_schur_corrections` (with ``compiled`` false, its numpy
+    twin :func:`_schur_corrections_numpy`)."""
     rhs = deltas.rhs
     pad = rhs.size - 1
     slots_p = tree.slots(parents, pad)
@@ -297,7 +301,7 @@ def _children_of(parents, kids, local, tree: _Tree, deltas: RowDeltas, weight) -
     gathered = np.take(deltas.d_w[slots_p.reshape(-1)], deltas.column[begin:pad], axis=1)
     gathered = gathered.reshape(parents.size, slots_p.shape[1], pad - begin)
     out = np.empty(kids.size)
-    _schur_corrections(
+    (_schur_corrections if compiled else _schur_corrections_numpy)(
         slots_p,
         np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2)),
         begin,
@@ -389,6 +393,27 @@ def _schur_corrections(
         for i in range(w):
             total += grad[i] * right[i]
         out[c] = total
+
+
+def _schur_corrections_numpy(
+    slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
+):
+    """:func:`_schur_corrections` batched in numpy, the children grouped by the width of their
+    last entry (each group's Schur complements solved at once)."""
+    out[:] = s_p[local]  # a last entry that changes no row: the parent's value
+    columns_p, weight_p = column[slots_p], weight[slots_p]
+    for w in np.unique(width[width > 0]):
+        pick = np.flatnonzero(width == w)
+        p = local[pick]
+        rows = first[pick, None] + np.arange(w)  # an entry's slots are consecutive
+        g = reach[p[:, None], rows - begin]  # Gᵀ, (children, w, wp)
+        row_p = d_w[rows[:, :, None], columns_p[p][:, None, :]]  # D W(E, P)
+        schur = np.eye(w) - d_w[rows[:, :, None], column[rows][:, None, :]]
+        schur -= np.matmul(row_p, np.swapaxes(g, 1, 2))
+        right = rhs[rows] + np.einsum("nij,nj->ni", row_p, y[p])
+        grad = weight[rows] + np.einsum("nij,nj->ni", g, weight_p[p])
+        z = np.linalg.solve(schur, right[..., None])[..., 0]
+        out[pick] += np.einsum("ni,ni->n", grad, z)
 
 
 def selected_groups(chain, live, group_of_option, chosen) -> np.ndarray:

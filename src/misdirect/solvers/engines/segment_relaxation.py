@@ -105,8 +105,8 @@ class SegmentLagrangian:
         With ``known_bound`` (a bound proven before, e.g. the parent's) and nothing charged,
         policy iteration stops at the first policy worth more than ``stop_below``: the node
         cannot be pruned, and ``known_bound`` stands as its bound. Its search then branches
-        on that policy's usage, the parent's scheduler carried over: on H1 that made the tree
-        less than half as large as branching on the re-optimised one."""
+        on that policy's usage, the parent's scheduler carried over, which keeps the tree
+        smaller than branching on the re-optimised one (bench/hard_instances.py)."""
         start = mdp.start
         if start is None:
             value = float(self.chain.target_value[self.chain.initial])

@@ -21,7 +21,8 @@ of the decoded alteration.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, ClassVar, TypedDict
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 from misdirect.core import tolerance
 from misdirect.core.model import Problem
@@ -35,6 +36,7 @@ from misdirect.solvers.milp.compact import build_compact
 from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.stats import MilpStats
 from misdirect.solvers.status import Status
 
 FORMULATIONS = {
@@ -70,30 +72,6 @@ def _status(result: BackendResult, value: float | None) -> Status:
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
-
-
-class MilpStats(TypedDict, total=False):
-    """``stats`` of a MILP answer (the JSON's ``stats``): the model's size (``formulation``,
-    ``variables``, ``binaries``, ``rows``, ``nonzeros``, ``build_time_s``, per-block counts),
-    how the backend stopped, and what its point is worth exactly; plus the backend's own
-    details."""
-
-    formulation: str
-    variables: int
-    binaries: int
-    rows: int
-    nonzeros: int
-    build_time_s: float
-    variables_by_block: dict[str, int]
-    rows_by_block: dict[str, int]
-    solver: str
-    solve_time_s: float
-    status: str  # how the backend stopped; the point's status may be lower
-    objective: float | None
-    bound: float | None
-    nodes: int | None
-    claimed: float | None  # the objective, or its recomputation with rounded binaries
-    violation: float  # how far the backend's point is from feasible
 
 
 class MilpSolver:
@@ -147,78 +125,103 @@ class MilpSolver:
         deadline: Deadline,
     ) -> list[Solution]:
         backend.load(model)
-        start = model.start_for(problem.identity())
+        curve = _Curve(problem, model, budgets, start=model.start_for(problem.identity()))
         solutions = []
-        relaxed: float | None = None
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, budget)
-            report(
-                progress, done - 1, len(budgets), stage=f"milp ({backend.name}), budget {budget:g}"
-            )
+            stage = f"milp ({backend.name}), budget {budget:g}"
+            report(progress, done - 1, len(budgets), stage=stage)
             result = backend.solve(
-                start, time_limit=deadline.share(len(budgets) - done + 1), cancel=deadline.cancel
+                curve.start,
+                time_limit=deadline.share(len(budgets) - done + 1),
+                cancel=deadline.cancel,
             )
-            if result.status not in ("optimal", "time_limit", "infeasible"):
-                raise SolverError(
-                    f"{backend.name} stopped with status {result.detail} at budget {budget:g}"
-                )
-            violation = 0.0
-            if result.values is None:
-                if result.status == "infeasible":
-                    raise SolverError(
-                        f"the {self.formulation} MILP is infeasible at budget {budget:g}, "
-                        "which cannot happen for a valid problem; please report it"
-                    )
-                # stopped before any incumbent: "alter nothing" is always feasible
-                alteration, claimed = problem.identity(), None
-            else:
-                alteration = model.decode(result.values)
-                claimed = result.objective
-                violation = backends.violation(model, result.values)
-                gapped = result.bound is not None and result.bound - claimed > tolerance.GAP
-                if violation > tolerance.FEASIBILITY or gapped:
-                    # a point off by the solver's tolerances, or one whose continuous part is
-                    # short of the best for its binaries: the formulation's own value for the
-                    # decoded alteration is the LP with the binaries rounded
-                    rounded = backends.value_with_rounded_binaries(model, result.values, budget)
-                    claimed = claimed if rounded is None else rounded
-                start = model.start_for(alteration)
-            # the solver's objective carries its tolerances as its bound does; the claim may be
-            # the better value of the same binaries
-            incumbent = None if claimed is None else max(claimed, result.objective or claimed)
-            status = _status(result, incumbent)
-            upper_bound = (
-                min(result.bound, problem.objective.max_value)
-                if model.sound and result.bound is not None
-                else None
-            )
-            if upper_bound is None and model.sound and status != Status.OPTIMAL:
-                # stopped before the solver had a bound: the per-state relaxation's is always
-                # proven (computed once, at the largest budget, which bounds every smaller one)
-                if relaxed is None:
-                    relaxed = relaxation_bound(problem, max(budgets))
-                upper_bound = relaxed
-            stats: MilpStats = {
-                **model.stats(),
-                "solver": backend.name,
-                "solve_time_s": result.solve_time_s,
-                "status": status,  # how the solver stopped; the point's status may be lower
-                "objective": result.objective,
-                "bound": result.bound,
-                "nodes": result.nodes,
-                "claimed": claimed,  # the objective, or its recomputation with rounded binaries
-                "violation": violation,  # how far the solver's point is from feasible
-                **result.detail,
-            }
-            solutions.append(
-                Solution(
-                    budget=budget,
-                    alteration=alteration,
-                    solver_probability=claimed,
-                    status=status,
-                    upper_bound=upper_bound,
-                    stats=stats,
-                )
-            )
+            solutions.append(self._solution(curve, backend.name, budget, result))
             report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
+
+    def _solution(
+        self, curve: _Curve, backend: str, budget: float, result: BackendResult
+    ) -> Solution:
+        """One budget's answer from the backend's result: its alteration, the claim for it,
+        how the backend stopped, and a proven bound where there is one."""
+        problem, model = curve.problem, curve.model
+        if result.status not in ("optimal", "time_limit", "infeasible"):
+            raise SolverError(f"{backend} stopped with status {result.detail} at budget {budget:g}")
+        violation = 0.0
+        if result.values is None:
+            if result.status == "infeasible":
+                raise SolverError(
+                    f"the {self.formulation} MILP is infeasible at budget {budget:g}, "
+                    "which cannot happen for a valid problem; please report it"
+                )
+            # stopped before any incumbent: "alter nothing" is always feasible
+            alteration, claimed = problem.identity(), None
+        else:
+            alteration = model.decode(result.values)
+            violation = backends.violation(model, result.values)
+            claimed = _claim(model, result, violation, budget)
+            curve.start = model.start_for(alteration)  # the next (larger) budget starts here
+        # the solver's objective carries its tolerances as its bound does; the claim may be
+        # the better value of the same binaries
+        incumbent = None if claimed is None else max(claimed, result.objective or claimed)
+        status = _status(result, incumbent)
+        upper_bound = (
+            min(result.bound, problem.objective.max_value)
+            if model.sound and result.bound is not None
+            else None
+        )
+        if upper_bound is None and model.sound and status != Status.OPTIMAL:
+            # stopped before the solver had a bound: the per-state relaxation's is proven
+            upper_bound = curve.relaxed_bound()
+        stats = MilpStats(
+            model=model.stats(),
+            solver=backend,
+            solve_time_s=result.solve_time_s,
+            status=status,
+            objective=result.objective,
+            bound=result.bound,
+            nodes=result.nodes,
+            claimed=claimed,
+            violation=violation,
+            backend=result.detail,
+        )
+        return Solution(
+            budget=budget,
+            alteration=alteration,
+            solver_probability=claimed,
+            status=status,
+            upper_bound=upper_bound,
+            stats=stats,
+        )
+
+
+@dataclass
+class _Curve:
+    """What one budget of a curve hands the next: the warm start, the relaxation's bound."""
+
+    problem: Problem
+    model: MilpModel
+    budgets: Sequence[float]
+    start: tuple[Any, Any]
+    relaxed: float | None = None
+
+    def relaxed_bound(self) -> float:
+        """The per-state relaxation at the largest budget (it bounds every smaller one),
+        computed once."""
+        if self.relaxed is None:
+            self.relaxed = relaxation_bound(self.problem, max(self.budgets))
+        return self.relaxed
+
+
+def _claim(model: MilpModel, result: BackendResult, violation: float, budget: float) -> float:
+    """The solver's value for its alteration: its objective, or, for a point off by the
+    solver's tolerances or one whose continuous part is short of the best for its binaries,
+    the formulation's own value of the decoded alteration (the LP with the binaries rounded)."""
+    claimed = result.objective
+    assert claimed is not None and result.values is not None
+    gapped = result.bound is not None and result.bound - claimed > tolerance.GAP
+    if violation > tolerance.FEASIBILITY or gapped:
+        rounded = backends.value_with_rounded_binaries(model, result.values, budget)
+        claimed = claimed if rounded is None else rounded
+    return claimed

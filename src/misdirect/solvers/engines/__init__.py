@@ -1,0 +1,16 @@
+"""The shared machinery the methods stand on; each module is one engine, named for what it is.
+
+* ``policy_iteration``: policy iteration, written once for the two kinds of MDP solved here
+  (maximal reachability with end components; transient total reward with LU and Woodbury).
+* ``per_state``: the per-state MDP relaxation of the choice product (a node bound, and the
+  proven bound every method falls back on).
+* ``segment_relaxation``: the segment relaxation, a budget-aware bound (the segment MDP and
+  the Lagrangian of the budget over it).
+* ``incumbent``: a search's best assignment, its pruning and its proven bound.
+* ``segment_search``: best-first branch-and-bound on the segment relaxation, two workers on one
+  heap, with small subtrees enumerated.
+* ``lowrank`` and ``lowrank_updates``: the enumeration of every alteration within a budget by
+  low-rank updates of one base solve per outer choice.
+
+Engines import no method; methods import engines, never each other (tests/test_layers.py).
+"""
