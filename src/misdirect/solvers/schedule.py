@@ -52,6 +52,12 @@ def search_before_enumerating(count: int, deadline: Deadline, *, limit: int) -> 
     return max(left - needed / ENUMERATION_RESERVE, SEARCH_FIRST * left)
 
 
+def milp_budget(deadline: Deadline, budgets_left: int) -> float | None:
+    """Seconds for the MILP's next budget: an even share of what is left (what a budget does
+    not use rolls over to the next); None without a limit."""
+    return deadline.share(budgets_left)
+
+
 def climb(deadline: Deadline, budgets_left: int) -> Deadline:
     """The hill climb before a budget's search: a quarter of the budget's even share."""
     share = deadline.share(budgets_left)

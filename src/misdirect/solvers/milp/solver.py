@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 from misdirect.core import tolerance
 from misdirect.core.model import Problem
 from misdirect.errors import OptionError, SolverError
+from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
@@ -133,7 +134,7 @@ class MilpSolver:
             report(progress, done - 1, len(budgets), stage=stage)
             result = backend.solve(
                 curve.start,
-                time_limit=deadline.share(len(budgets) - done + 1),
+                time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
                 cancel=deadline.cancel,
             )
             solutions.append(self._solution(curve, backend.name, budget, result))
