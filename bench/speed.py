@@ -8,6 +8,8 @@ and solve; the floor of any solver) and, where stormpy is installed, Storm on th
 product chain with each of its linear-equation engines (see :func:`storm_case`).
 
     G1  solve --method auto, budgets 0..7, grid n = 45, total time / one evaluation   <= 10
+        ("G1 first call": the same for the first solve in a fresh process, as a command
+        line run sees it; the others are the best of three solves that follow it)
     G2  same, budgets 0..4, grid n = 200                                              <= 10
     G3  one evaluation / Storm's Eigen engine on the same chain, n = 100, 200, 300      <= 1
         (and "G3 strict": / the fastest of Storm's engines, iterative gmm++ included)
@@ -77,6 +79,9 @@ def grid_case(n: int, top_budget: int, low_budget: int = 0, separate_calls: bool
     repeats = 3 if n <= 300 else 1
     floor, _ = _best_of(repeats, lambda: decoy_probability(problem, identity))
     budgets = list(range(low_budget, top_budget + 1))
+    began = time.perf_counter()
+    solve(problem, budgets=budgets)  # the first solve of the process: what a command pays
+    first = time.perf_counter() - began
     took, result = _best_of(repeats, lambda: solve(problem, budgets=budgets))
     separate = None
     if separate_calls:  # the same curve as one call per budget: what the sweep saves
@@ -94,6 +99,8 @@ def grid_case(n: int, top_budget: int, low_budget: int = 0, separate_calls: bool
         "evaluation_s": floor,
         "solve_s": took,
         "ratio": took / floor,
+        "first_solve_s": first,
+        "first_ratio": first / floor,
         "certified_by": result.certified_by,
         "statuses": sorted({p.status for p in result.curve}),
         "probabilities": [p.probability for p in result.curve],
@@ -230,16 +237,21 @@ def goals(rows: list[dict], plan: dict) -> list[dict]:
     grid = {(r["n"], r["budgets"]): r for r in rows if r["case"] == "grid"}
     storm = [r for r in rows if r["case"] == "storm"]
     table = []
-    for name, (n, top) in (("G1", plan["g1"]), ("G2", plan["g2"])):
+    for name, (n, top), key, what in (
+        ("G1", plan["g1"], "ratio", "solve"),
+        ("G1 first call", plan["g1"], "first_ratio", "first solve of a process"),
+        ("G2", plan["g2"], "ratio", "solve"),
+    ):
         row = grid.get((n, f"0..{top}"))
-        measured = row and row["ratio"]
+        measured = row and row[key]
+        target = TARGETS[name.split()[0]]
         table.append(
             {
                 "goal": name,
-                "measure": f"auto, budgets 0..{top}, n = {n}: solve / one evaluation",
+                "measure": f"auto, budgets 0..{top}, n = {n}: {what} / one evaluation",
                 "measured": measured,
-                "target": f"<= {TARGETS[name]:g}",
-                "pass": None if measured is None else measured <= TARGETS[name],
+                "target": f"<= {target:g}",
+                "pass": None if measured is None else measured <= target,
             }
         )
     sizes = ", ".join(str(r["n"]) for r in storm)

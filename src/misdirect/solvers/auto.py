@@ -126,6 +126,7 @@ class _Stage:
     ``run`` (from seed incumbents, one per budget)."""
 
     method: ClassVar[str]
+    announced: ClassVar[bool] = False  # says why before it runs (a stage that may take long)
 
     def __init__(self, auto: AutoSolver):
         self.auto = auto
@@ -199,6 +200,7 @@ class _Exhaustive(_Stage):
 
 class _Milp(_Stage):
     method = "milp"
+    announced = True
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
         largest = facts.largest_observation
@@ -221,6 +223,7 @@ class _Milp(_Stage):
 
 class _Search(_Stage):
     method = "branch-and-bound"
+    announced = True
 
     def __init__(self, auto: AutoSolver, max_nodes: int | None = None):
         super().__init__(auto)
@@ -317,7 +320,7 @@ class AutoSolver:
         )
         handovers = first.handovers(facts, deadline)
         reason = facts.reason
-        if first.method != "incremental" and first.method != "exhaustive":
+        if first.announced:
             report(progress, 0, len(budgets), stage=first.method, note=f"auto: {reason}")
         solutions = first.run(problem, budgets, first.deadline(facts, deadline), progress, seeds)
         solutions = _label(solutions, first.method, reason)

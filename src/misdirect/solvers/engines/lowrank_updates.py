@@ -207,7 +207,8 @@ def add_corrections(
 
     n_slots = deltas.rhs.size - 1
     batches = list(_batches(order, tree.width[parents], n_children, n_slots, chunk_entries))
-    if threads == 1 or len(batches) == 1:
+    # the numpy twin holds the GIL: a second thread would only wait for it
+    if threads == 1 or len(batches) == 1 or not compiled:
         for batch in batches:
             run(batch)
     else:  # taken in order, so a cut-short run has still done the smallest alterations
