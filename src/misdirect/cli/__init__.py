@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.markup import escape
@@ -120,7 +120,8 @@ def main() -> None:
     """The console entry point: usage errors (an option that does not parse, an unknown
     command) become one line and exit code 2, like every other input error."""
     # typer may vendor click: take its classes from typer's own exceptions, by name
-    usage_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+    # (found at run time, so its type is not known here)
+    usage_error: Any = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
     try:
         code = app(standalone_mode=False)
     except usage_error as error:

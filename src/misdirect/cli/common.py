@@ -276,12 +276,9 @@ class ProgressBars:
         if name not in self.tasks:
             self.tasks[name] = self.bar.add_task(name, total=total, detail="")
         description = name if stage is None else f"{name}: {stage}"
+        fields: dict[str, Any] = {} if detail is None else {"detail": detail}  # a bar column
         self.bar.update(
-            self.tasks[name],
-            completed=done,
-            total=total,
-            description=description,
-            **({} if detail is None else {"detail": detail}),
+            self.tasks[name], completed=done, total=total, description=description, **fields
         )
 
     def task(self, name: str) -> Callable[..., None]:

@@ -9,9 +9,9 @@ shared search space of the exhaustive solver and the MILP.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
@@ -54,7 +54,7 @@ class AlteredEntries(NamedTuple):
         return picked
 
 
-def _chunks(counts: np.ndarray, size: int):
+def _chunks(counts: np.ndarray, size: int) -> Iterator[slice]:
     """Consecutive slices of ``counts`` whose sums are about ``size`` (at least one item)."""
     ends = np.searchsorted(np.cumsum(counts), np.arange(size, int(counts.sum()) + size, size))
     begin = 0
@@ -66,7 +66,7 @@ def _chunks(counts: np.ndarray, size: int):
 
 def rank_in_group(counts: np.ndarray) -> np.ndarray:
     """0, 1, …, counts[0]-1, 0, 1, …, counts[1]-1, …: each expanded item's place in its group."""
-    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    return cast(np.ndarray, np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
 
 
 @dataclass(frozen=True)
@@ -230,7 +230,12 @@ class AlterationSpace:
                 return 0
         return min(sum(total.values()), cap)
 
-    def alteration(self, problem: Problem, picked: Sequence[int], indices=None) -> np.ndarray:
+    def alteration(
+        self,
+        problem: Problem,
+        picked: Sequence[int] | np.ndarray,
+        indices: Sequence[int] | np.ndarray | None = None,
+    ) -> np.ndarray:
         """The alteration that takes candidate ``picked[j]`` for the ``j``-th choice."""
         alpha = problem.identity()
         for i, k in zip(

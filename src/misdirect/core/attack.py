@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 
@@ -44,7 +45,7 @@ class AttackInstance:
     def live(self) -> np.ndarray:
         """Product states outside the decoy from which some alteration can still reach it: the
         only ones whose value is unknown (elsewhere it is the decoy's weight, or 0)."""
-        return self.chain.can_reach_target() & ~self.chain.target
+        return cast(np.ndarray, self.chain.can_reach_target() & ~self.chain.target)
 
     @cached_property
     def live_states_per_observation(self) -> np.ndarray:

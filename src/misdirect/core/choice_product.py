@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -61,7 +62,7 @@ class Options:
 
     def encode(self, alteration: Alteration) -> np.ndarray:
         """0/1 vector over the options selecting ``alteration`` (which must lie in the space)."""
-        return (alteration[self.observation] == self.target).astype(np.float64)
+        return cast(np.ndarray, (alteration[self.observation] == self.target).astype(np.float64))
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,7 +256,9 @@ def _row_entries(matrix: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
     starts = matrix.indptr[rows]
     lengths = matrix.indptr[rows + 1] - starts
     offsets = np.cumsum(lengths) - lengths
-    return matrix.indices[np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())]
+    return cast(
+        np.ndarray, matrix.indices[np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())]
+    )
 
 
 def end_component_states(

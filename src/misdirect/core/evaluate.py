@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -81,7 +82,7 @@ class Evaluation:
         names = [self.state_names[s] for s in self.terminal_states]
         return dict(zip(names, values, strict=True))
 
-    def to_dict(self, *, all_outcomes: bool = False) -> dict:
+    def to_dict(self, *, all_outcomes: bool = False) -> dict[str, Any]:
         """JSON-ready report; ``all_outcomes`` lists zero-probability terminal states too."""
         return {
             "objective": self.objective,

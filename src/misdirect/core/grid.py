@@ -22,4 +22,4 @@ def grid_cells(problem: Problem) -> np.ndarray | None:
     matches = [CELL.match(name) for name in problem.pomdp.states]
     if not all(matches):
         return None
-    return np.array([(int(m.group(1)), int(m.group(2))) for m in matches])
+    return np.array([(int(m.group(1)), int(m.group(2))) for m in matches if m is not None])

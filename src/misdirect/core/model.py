@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -165,7 +166,16 @@ class Controller:
             np.ones(keys.size),
         )
 
-    def _assign(self, nodes, initial_node, move, ptr, action, next_node, probability) -> None:
+    def _assign(
+        self,
+        nodes: Iterable[str],
+        initial_node: int,
+        move: np.ndarray,
+        ptr: np.ndarray,
+        action: np.ndarray,
+        next_node: np.ndarray,
+        probability: np.ndarray,
+    ) -> None:
         for name, value in (
             ("nodes", tuple(nodes)),
             ("initial_node", int(initial_node)),
@@ -206,7 +216,9 @@ class Controller:
         keys, inverse = np.unique(
             (cell * n_actions + action) * n_nodes + next_node, return_inverse=True
         )
-        mass = np.bincount(inverse.reshape(-1), weights=probability, minlength=keys.size)
+        mass: np.ndarray = np.bincount(
+            inverse.reshape(-1), weights=probability, minlength=keys.size
+        )
         keep = mass > 0
         keys, mass = keys[keep], mass[keep]
         rest, e_next = np.divmod(keys, n_nodes)
@@ -276,7 +288,7 @@ class Controller:
                 "observation); use its moves (Controller.entries)",
                 field="controller",
             )
-        return values[self.move_ptr[:-1]][self.move]
+        return cast(np.ndarray, values[self.move_ptr[:-1]][self.move])
 
     @cached_property
     def action(self) -> np.ndarray:
@@ -497,7 +509,7 @@ class Problem:
         graph.eliminate_zeros()
         reached = reachable_from(graph, np.array([pomdp.initial_state]))
         emitting = np.unique(pomdp.observation_of[reached & ~stop])
-        return emitting[emitting != pomdp.initial_observation]
+        return cast(np.ndarray, emitting[emitting != pomdp.initial_observation])
 
 
 def format_alteration(changes: Mapping[str, str]) -> str:

@@ -13,6 +13,7 @@ error bound (:func:`solve_certified`), checked against :data:`CERTIFIED_TOL` bef
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -85,7 +86,7 @@ def _lu(system: sp.spmatrix) -> SuperLU:
 
 def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
     """Solve ``(I - a) x = b`` (or its transpose) by sparse LU."""
-    return factorise(a).solve(b, trans="T" if transpose else "N")
+    return cast(np.ndarray, factorise(a).solve(b, trans="T" if transpose else "N"))
 
 
 def _rows(matrix: sp.csr_matrix, start: int, stop: int) -> tuple[np.ndarray, ...]:
@@ -271,7 +272,7 @@ def _neighbours(matrix: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
     starts, stops = matrix.indptr[rows], matrix.indptr[rows + 1]
     counts = stops - starts
     offsets = np.repeat(starts - np.cumsum(counts) + counts, counts)
-    return matrix.indices[offsets + np.arange(counts.sum())]
+    return cast(np.ndarray, matrix.indices[offsets + np.arange(counts.sum())])
 
 
 def lu_would_fill(a: sp.spmatrix) -> bool:
@@ -358,13 +359,13 @@ def _bicgstab(op: sp.csr_matrix, b: np.ndarray, rtol: float, max_iter: int) -> n
         t = scaled @ r
         tt = _dot(t, t)
         if tt == 0.0:  # s = 0: solved at the half step
-            return x * inv_diag
+            return cast(np.ndarray, x * inv_diag)
         omega = _dot(t, r) / tt
         axpy(omega, r, x)
         axpy(-omega, t, r)
         residual = np.sqrt(_dot(r, r))
         if residual <= target:
-            return x * inv_diag
+            return cast(np.ndarray, x * inv_diag)
         if not np.isfinite(residual):
             return None
         best = min(best, residual)
@@ -378,7 +379,7 @@ def _bicgstab(op: sp.csr_matrix, b: np.ndarray, rtol: float, max_iter: int) -> n
 def _rounding(op: sp.csr_matrix) -> np.ndarray:
     """``γ`` per row: ``|fl(b - op x) - (b - op x)| <= γ (|b| + |op| |x|)`` (Higham's bound for
     a dot product of the row's length, plus the subtraction)."""
-    return 1.01 * (np.diff(op.indptr) + 2) * UNIT_ROUNDOFF
+    return cast(np.ndarray, 1.01 * (np.diff(op.indptr) + 2) * UNIT_ROUNDOFF)
 
 
 def _time_bound(system: sp.csr_matrix) -> np.ndarray | None:
@@ -400,7 +401,7 @@ def _time_bound(system: sp.csr_matrix) -> np.ndarray | None:
             continue
         y = t * ((1 + 1e-9) / low)
         if (y >= 0).all() and (system @ y - gamma * (magnitude @ y)).min() >= 1.0:
-            return y
+            return cast(np.ndarray, y)
     return None
 
 
@@ -429,7 +430,7 @@ class Certified:
         if self.time_bound is None:
             return np.full(self.x.size, np.inf)
         scale = self.residual.sum() if self.transpose else self.residual.max(initial=0.0)
-        return scale * self.time_bound
+        return cast(np.ndarray, scale * self.time_bound)
 
     def functional_error(self) -> float:
         """Proven bound on the error of ``cᵀx`` (a transposed solve) for every ``c >= 0`` with
@@ -482,6 +483,7 @@ def solve_certified(
                 return None
             break
         x = x + correction
+    assert best is not None  # the first round always sets it
     _, x, bound = best
     return Certified(x=x, residual=bound, time_bound=time_bound, transpose=transpose)
 
@@ -597,7 +599,7 @@ def _expected_scores(
         rows = matrix[maybe]
         labels = None if blocks is None else blocks[maybe]
         values[maybe] = solve_chain(rows[:, maybe], rows @ scaled, labels)
-    return np.clip(values, 0.0, 1.0)
+    return cast(np.ndarray, np.clip(values, 0.0, 1.0))
 
 
 def _reach_all(matrix: sp.csr_matrix, target: np.ndarray, blocks: np.ndarray | None) -> np.ndarray:
@@ -636,7 +638,7 @@ def _reach_dense(
     if maybe.size:
         system = np.eye(maybe.size) - dense[np.ix_(maybe, maybe)]
         values[maybe] = np.linalg.solve(system, dense[maybe][:, target] @ values[target])
-    return np.clip(values, 0.0, 1.0)
+    return cast(np.ndarray, np.clip(values, 0.0, 1.0))
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ node) pairs can still reach a decoy or absorbing state, on the product's transit
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -113,16 +114,16 @@ def simulate(
             entry = np.minimum(entry, controller.move_ptr[move + 1] - 1)
         action = controller.move_action[entry]
         if record:
-            for k in np.flatnonzero(live < record):
-                run = int(live[k])
+            for j in np.flatnonzero(live < record):
+                run = int(live[j])
                 trajectories.append(
                     (
                         run,
                         step,
                         pomdp.states[state[run]],
                         controller.nodes[node[run]],
-                        pomdp.observations[seen[k]],
-                        pomdp.actions[action[k]],
+                        pomdp.observations[seen[j]],
+                        pomdp.actions[action[j]],
                     )
                 )
         node[live] = controller.move_next[entry]
@@ -152,7 +153,7 @@ def _sampling_keys(indptr: np.ndarray, data: np.ndarray) -> np.ndarray:
     lengths = np.diff(indptr)
     running = np.cumsum(data)
     running -= np.repeat(np.concatenate([[0.0], running[indptr[1:-1] - 1]]), lengths)
-    return np.repeat(np.arange(lengths.size), lengths) + running
+    return cast(np.ndarray, np.repeat(np.arange(lengths.size), lengths) + running)
 
 
 def _can_stop(problem: Problem, alpha: np.ndarray, stop: np.ndarray) -> np.ndarray:

@@ -231,7 +231,7 @@ class _Search:
         """The best protection of cost ≤ ``d``, starting from the incumbent ``best`` (the
         answer at a smaller budget, still within this one): depth first, the cheapest sensor
         first, pruning every subtree the hitting-set bound shows cannot beat the incumbent."""
-        stack = [frozenset()]
+        stack: list[frozenset[int]] = [frozenset()]
         seen: set[frozenset[int]] = set()
         while stack:
             if self.clock.expired():

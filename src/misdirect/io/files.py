@@ -160,7 +160,11 @@ def read_text_file(path: Path, *, source: str | None = None, field: str | None =
 # -- YAML ---------------------------------------------------------------------------------------
 
 
-class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignore[misc,valid-type]
+# types-PyYAML gives libyaml's events a yaml._yaml.Mark, a class apart from the yaml.error.Mark
+# that nodes and errors are typed to take, though either does at runtime; and it types
+# CParser.get_event Optional, though an event is pending wherever it is called here: hence
+# the ignores [arg-type] and [union-attr] below.
+class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
     """``yaml.safe_load`` with limits: libyaml parses, and composition (ours, iterative, so
     deep nesting cannot overflow the C stack) bounds the depth at :data:`MAX_DEPTH` and the
     nodes aliases add at :data:`MAX_ALIAS_NODES` (a "billion laughs" stops at once); mapping
@@ -187,7 +191,10 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignor
         if not self.check_event(StreamEndEvent):
             event = self.get_event()
             raise yaml.composer.ComposerError(
-                None, None, "expected one document, found another", event.start_mark
+                None,
+                None,
+                "expected one document, found another",
+                event.start_mark,  # type: ignore[union-attr,arg-type]
             )
         self.get_event()
         return document
@@ -200,7 +207,10 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignor
             if isinstance(event, AliasEvent):
                 if event.anchor not in self.anchors:
                     raise yaml.composer.ComposerError(
-                        None, None, f"found undefined alias {event.anchor!r}", event.start_mark
+                        None,
+                        None,
+                        f"found undefined alias {event.anchor!r}",
+                        event.start_mark,  # type: ignore[arg-type]
                     )
                 node = self.anchors[event.anchor]
                 size = self.anchor_sizes[event.anchor]
@@ -217,7 +227,11 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignor
                 if tag is None or tag == "!":
                     tag = self.resolve(ScalarNode, event.value, event.implicit)
                 node = ScalarNode(
-                    tag, event.value, event.start_mark, event.end_mark, style=event.style
+                    tag,
+                    event.value,
+                    event.start_mark,  # type: ignore[arg-type]
+                    event.end_mark,  # type: ignore[arg-type]
+                    style=event.style,
                 )
                 self.nodes += 1
                 self._anchor(event, node, self.nodes - 1)
@@ -228,7 +242,7 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignor
                 tag = event.tag
                 if tag is None or tag == "!":
                     tag = self.resolve(kind, None, event.implicit)
-                node = kind(tag, [], event.start_mark, None, flow_style=event.flow_style)
+                node = kind(tag, [], event.start_mark, None, flow_style=event.flow_style)  # type: ignore[arg-type]
                 stack.append([node, event.anchor, self.nodes, None])
                 self.nodes += 1
                 if event.anchor is not None:
@@ -242,7 +256,10 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):  # type: ignor
                     self.anchor_sizes[anchor] = self.nodes - before
             else:  # pragma: no cover - the parser guarantees the order of events
                 raise yaml.composer.ComposerError(
-                    None, None, f"unexpected {type(event).__name__}", event.start_mark
+                    None,
+                    None,
+                    f"unexpected {type(event).__name__}",
+                    event.start_mark,  # type: ignore[union-attr,arg-type]
                 )
             if not stack:
                 return node

@@ -19,7 +19,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -110,6 +110,7 @@ def read_paynt_controller(
 
     action_of = _action_columns(document["action_labels"], pomdp, view, fail)
     if by_position:
+        assert view is not None  # by_position needs a view
         obs_columns = _columns_by_position(view, labels, pomdp, fail)
     else:
         obs_columns = _columns_by_name(labels, pomdp, aliases, view, why_no_view, fail)
@@ -166,20 +167,22 @@ def read_paynt_controller(
                     f"action_function[{n}][{k}]",
                     f"update_function[{n}][{k}]",
                 )
-                chosen = _point(document["action_function"][n][k], action_where, "action", fail)
-                target = _point(document["update_function"][n][k], update_where, "node", fail)
-                if chosen is None and target is not None:
+                action_dist = _point(
+                    document["action_function"][n][k], action_where, "action", fail
+                )
+                node_dist = _point(document["update_function"][n][k], update_where, "node", fail)
+                if action_dist is None and node_dist is not None:
                     raise fail(
                         action_where, "empty, but update_function has a node here; fill it in"
                     )
-                if target is None and chosen is not None:
+                if node_dist is None and action_dist is not None:
                     raise fail(
                         update_where, "empty, but action_function has an action here; fill it in"
                     )
                 pairs = (
                     None
-                    if chosen is None or target is None
-                    else factored_entries(dict(chosen), dict(target))
+                    if action_dist is None or node_dist is None
+                    else factored_entries(dict(action_dist), dict(node_dist))
                 )
             if pairs is None:
                 if o == pomdp.initial_observation and n == 0:
@@ -203,7 +206,7 @@ def read_paynt_controller(
                         f"node {target} is out of range (the controller has "
                         f"{n_nodes} nodes, 0..{n_nodes - 1})",
                     )
-                if by_position and view.available[k]:
+                if by_position and view is not None and view.available[k]:
                     ours = pomdp.actions[action_of[chosen]]
                     enabled = {view.actions.get(label, label) for label in view.available[k]}
                     if ours not in enabled:
@@ -482,7 +485,8 @@ def forbid_disabled_actions(
         states = np.flatnonzero((pomdp.observation_of == o) & ~ended)
         if states.size == 0:
             continue
-        disabled = ~enabled[states].all(axis=0)  # (|A|,) disabled in some state emitting o
+        # (|A|,) disabled in some state emitting o (all over an axis: an array, not a scalar)
+        disabled = ~cast(np.ndarray, enabled[states].all(axis=0))
         bad_move = np.bincount(owner, weights=disabled[move_action], minlength=controller.n_moves)
         # ok[t]: every node's move for received t plays only actions enabled here
         ok = ~(bad_move[controller.move] > 0).any(axis=0)

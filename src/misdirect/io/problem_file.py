@@ -38,9 +38,9 @@ from misdirect.io.files import (
     read_text_file,
     write_output,
 )
-from misdirect.io.grid_map import LegendEntry, compile_grid
+from misdirect.io.grid_map import GridWorld, LegendEntry, compile_grid
 from misdirect.io.paynt import forbid_disabled_actions, forbid_targets, read_paynt_controller
-from misdirect.io.storm import load_storm_pomdp
+from misdirect.io.storm import StormPomdp, load_storm_pomdp
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
@@ -452,11 +452,12 @@ def _compile_weighted_decoys(
                     states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
             else:  # one set by label or expression, checked as the unweighted forms are
                 kind = "label" if entry.label is not None else "expression"
-                form = (
-                    DecoyLabelSpec(label=entry.label)
-                    if entry.label is not None
-                    else DecoyExpressionSpec(expression=entry.expression)
-                )
+                form: DecoyLabelSpec | DecoyExpressionSpec
+                if entry.label is not None:
+                    form = DecoyLabelSpec(label=entry.label)
+                else:
+                    assert entry.expression is not None  # one of the three is given
+                    form = DecoyExpressionSpec(expression=entry.expression)
                 try:
                     states = _compile_decoy(form, pomdp, labels, condition)
                 except ProblemError as error:  # named in this set, not in deception.decoy
@@ -538,6 +539,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     decoy_sets: tuple[DecoySet, ...] = ()  # weighted decoys, if the file gives weights
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
+    world: GridWorld | StormPomdp
     if spec.grid is not None:
         if spec.deception.decoy is not None:
             raise ProblemError(
@@ -561,11 +563,15 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
             kind = "prism" if spec.pomdp.prism is not None else "drn"
             if spec.pomdp.prism is not None and spec.pomdp.drn is not None:
                 raise ProblemError("give prism or drn, not both", field="pomdp")
-            model_file = _resolve(spec.pomdp.prism or spec.pomdp.drn, base)
+            model_name = spec.pomdp.prism or spec.pomdp.drn
+            # None only for `prism: null` and no drn, which the schema lets through: that
+            # crashes here, as it did before (a TypeError then), where a ProblemError belongs
+            assert model_name is not None
+            model_file = _resolve(model_name, base)
             if model_file.exists():  # a FIFO or a device would hang Storm: refuse it first
                 check_input_file(model_file, field=f"pomdp.{kind}")
             world = load_storm_pomdp(
-                Path(spec.pomdp.prism or spec.pomdp.drn),
+                Path(model_name),
                 kind=kind,
                 constants=spec.pomdp.constants,
                 base=base,
@@ -577,6 +583,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
             if spec.pomdp.disabled_action == "forbid":
                 enabled = world.enabled
         else:
+            assert spec.pomdp is not None  # exactly one of pomdp and grid
             pomdp, labels, condition = _compile_pomdp(spec.pomdp), {}, None
         if isinstance(spec.deception.decoy, dict):
             decoy, decoy_sets = _compile_weighted_decoys(
@@ -670,10 +677,10 @@ def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
     sums = np.bincount(source * n_a + action, weights=probability, minlength=n_s * n_a)
     bad = np.flatnonzero((np.abs(sums - 1.0) > SUM_TOLERANCE) & ~np.repeat(absorbing, n_a))
     if bad.size:
-        s, a = divmod(int(bad[0]), n_a)
-        pair = f"({spec.states[s]!r}, {spec.actions[a]!r})"
+        bad_s, bad_a = divmod(int(bad[0]), n_a)
+        pair = f"({spec.states[bad_s]!r}, {spec.actions[bad_a]!r})"
         reason = (
-            f"no transitions for {pair}: list them, or mark {spec.states[s]!r} absorbing"
+            f"no transitions for {pair}: list them, or mark {spec.states[bad_s]!r} absorbing"
             if sums[bad[0]] == 0
             else f"probabilities of {pair} sum to {sums[bad[0]]:.12g}, not 1"
         )
@@ -762,6 +769,7 @@ def _rule_moves(
         ]
         _check_sum(sum(p for _, _, p in entries), f"{field}.moves")
         return entries
+    assert rule.action is not None and rule.next is not None  # RuleSpec: moves, or both
     return factored_entries(
         _rule_distribution(rule.action, actions, "action", f"{field}.action"),
         _rule_distribution(rule.next, nodes, "node", f"{field}.next"),
@@ -797,9 +805,9 @@ def _check_sum(total: float, field: str) -> None:
 
 def _compile_cost(spec: CostSpec, observations: dict[str, int]) -> CostModel:
     pairs: dict[tuple[int, int], float] = {}
-    for source_name, targets in spec.pairs.items():
+    for source_name, costs in spec.pairs.items():
         o = _lookup(observations, source_name, "observation", f"deception.cost.pairs.{source_name}")
-        for target_name, cost in targets.items():
+        for target_name, cost in costs.items():
             field = f"deception.cost.pairs.{source_name}.{target_name}"
             pairs[o, _lookup(observations, target_name, "observation", field)] = cost
     everything = list(observations.values())

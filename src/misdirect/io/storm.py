@@ -408,6 +408,7 @@ def _check_one_choice_per_action(
 def _make_terminal_drn(stormpy, world: StormPomdp, terminal, terminal_from) -> StormPomdp:
     """DRN models: states satisfying ``terminal`` become absorbing (Storm's DRN reader has no
     terminal states; PAYNT reads DRN files as written)."""
+    assert world.condition is not None  # the loader gives every model one
     if terminal_from is not None:
         formula = parse_property(stormpy, None, terminal_from, "pomdp.terminal_from")
         path = formula.subformula if hasattr(formula, "subformula") else None

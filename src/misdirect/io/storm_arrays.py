@@ -15,6 +15,7 @@ import tarfile
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, cast
 
 import numpy as np
 
@@ -60,7 +61,12 @@ def read_arrays(stormpy, model) -> StormArrays:
         archive = Path(folder) / "model.umb"
         stormpy.io.export_to_umb(model, str(archive), options=options)
         with tarfile.open(archive) as tar:
-            files = {m.name: tar.extractfile(m).read() for m in tar.getmembers() if m.isfile()}
+            files = {
+                # a regular member always has a file object (typeshed: Optional)
+                m.name: cast(IO[bytes], tar.extractfile(m)).read()
+                for m in tar.getmembers()
+                if m.isfile()
+            }
     n_states, n_choices = model.nr_states, model.nr_choices
 
     def array(name: str, dtype: str) -> np.ndarray:

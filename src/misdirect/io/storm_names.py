@@ -96,11 +96,12 @@ def state_names(model, order: tuple[str, ...]) -> tuple[dict[str, np.ndarray], t
     the valuations where they tell every state apart, else ``s<k>``."""
     n_states = model.nr_states
     values = read_variables(model.state_valuations, order) if model.has_state_valuations() else {}
-    names = tuple(
-        valuation_names(values)
-        if distinct_rows(values, n_states)
-        else np.char.add("s", np.arange(n_states).astype(str)).tolist()
-    )
+    if distinct_rows(values, n_states):
+        named = valuation_names(values)
+        assert named is not None  # distinct rows: some variable to name them by
+        names = tuple(named)
+    else:
+        names = tuple(np.char.add("s", np.arange(n_states).astype(str)).tolist())
     return values, names
 
 
@@ -140,7 +141,9 @@ def observation_names(
             columns[name] = column
     if not distinct_rows(columns, n_obs):
         return fallback, storm_names
-    return tuple(valuation_names(columns)), storm_names
+    named = valuation_names(columns)
+    assert named is not None  # distinct rows: some column to name them by
+    return tuple(named), storm_names
 
 
 def _observable_values(

@@ -102,7 +102,7 @@ def curve_figure(result: AuditResult):
         ax.vlines(
             [p.budget for p in open_points],
             [p.probability for p in open_points],
-            [p.upper_bound for p in open_points],
+            [p.upper_bound for p in open_points if p.upper_bound is not None],  # every one
             color="C3",
             label="not certified: up to the proven bound",
         )
@@ -200,7 +200,7 @@ def map_figure(problem: Problem, result: AuditResult):
                 x, y = where[0].tolist()
                 ax.text(x, y + 0.3, s.observation, ha="center", va="center", fontsize=6)
     goals = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
-    marks = [(pomdp.initial_state, "S", "black")]
+    marks: list[tuple[int | np.integer, str, str]] = [(pomdp.initial_state, "S", "black")]
     marks += [(g, "G", "darkgreen") for g in goals]
     marks += [(d, "X", "crimson") for d in np.flatnonzero(problem.decoy)]
     for state, text, colour in marks:

@@ -20,13 +20,14 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import LogNorm
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+from matplotlib.typing import LineStyleType
 
 from misdirect.core.evaluate import evaluate
 from misdirect.core.grid import grid_cells as grid_cells  # re-exported: now lives in core.grid
 from misdirect.core.model import Alteration, Problem
 from misdirect.io.files import write_output
 
-SENSOR_COLOURS = plt.get_cmap("tab10").colors
+SENSOR_COLOURS = plt.get_cmap("tab10").colors  # type: ignore[attr-defined]  # a ListedColormap
 HEAT_MAP = "viridis"  # perceptual; the busiest cells are bright, never near-black
 VISITS_FLOOR = 1e-3  # cells visited less than this share the darkest colour
 ABSORBING_FILL = "0.85"  # grey, outside the heat map's colours
@@ -259,6 +260,7 @@ def attack_heatmaps(
             f"Pr(end at G) = {panel['goal_probability']:.3f}\naltered sensors: {changes}",
             fontsize=8.5,
         )
+    assert image is not None  # there is a panel
     colorbar = fig.colorbar(image, ax=axes[0].tolist(), shrink=0.75, extend="min")
     colorbar.set_label(f"expected steps spent in the cell (log scale, < {VISITS_FLOOR:g} darkest)")
     handles = [
@@ -341,7 +343,10 @@ def scalability_panels(
         ("build_time_s", "construction time (s)"),
         ("solve_time_s", "solve time (s)"),
     ]
-    styles = {"compact": ("tab:blue", "o", "-"), "paper": ("tab:red", "s", "--")}
+    styles: dict[str, tuple[str, str, LineStyleType]] = {
+        "compact": ("tab:blue", "o", "-"),
+        "paper": ("tab:red", "s", "--"),
+    }
     names = {"compact": "compact MILP", "paper": "paper MILP"}
     handles: list = []
     for formulation, (colour, marker, line) in styles.items():
@@ -563,7 +568,7 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
         )
     goals = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
     decoys = np.flatnonzero(problem.decoy)
-    marks = [(pomdp.initial_state, "S", "black")]
+    marks: list[tuple[int | np.integer, str, str]] = [(pomdp.initial_state, "S", "black")]
     marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
     for state, text, colour in marks:
         mark_cell(ax, tuple(cells[state].tolist()), text, colour)

@@ -38,7 +38,11 @@ PAPER_GRID_ALTERATIONS = {
     4: "o2 → o6, o5 → o1, o1 → o2, o6 → o3",
 }
 PAPER_REDUCTION = {"variables": 59_373, "rows": 236_477, "solve_time_s": 0.099}
-KNAPSACK = {"weights": [1, 2, 3, 4, 5], "values": [20, 30, 40, 50, 60], "capacity": 7}
+KNAPSACK: dict[str, Any] = {
+    "weights": [1, 2, 3, 4, 5],
+    "values": [20, 30, 40, 50, 60],
+    "capacity": 7,
+}
 QUICK_SIZES, FULL_SIZES = [5, 15, 25], [5, 15, 25, 35, 45]
 SCALABILITY_BUDGET = 1  # the paper does not say which budget its Fig. 4 used
 ATTACK_BUDGETS = [0, 1, 2, 4]
@@ -110,7 +114,7 @@ class ReproduceReport:
     mode: str
     tables: dict[str, Table] = field(default_factory=dict)
     figures: dict[str, list[Path]] = field(default_factory=dict)
-    summary: list[dict[str, str]] = field(default_factory=list)
+    summary: list[dict[str, Any]] = field(default_factory=list)  # notes: a list of lines
     time_s: float = 0.0
 
 
@@ -240,7 +244,7 @@ def _grid(report: ReproduceReport, solver: str, tick: Progress) -> list[dict[str
         budgets=budgets,
         progress=lambda done, total, **_: tick("grid case study", done, total),
     )
-    rows = []
+    rows: list[dict[str, Any]] = []
     for point in result.curve:
         b = int(point.budget)
         alpha = problem.alteration(point.alteration)
@@ -405,7 +409,7 @@ def _scalability(
 def _attacks(report: ReproduceReport, grid_rows: list[dict[str, Any]], tick: Progress) -> None:
     n = 5
     sensors = {OBSERVATIONS[k]: cells for k, cells in sensor_cells(n).items()}
-    places = {"start": (0, 0), "goal": (n - 1, n - 1), "decoy": hazard_cell(n)}
+    places: dict[str, Any] = {"start": (0, 0), "goal": (n - 1, n - 1), "decoy": hazard_cell(n)}
     report.figures["grid_layout"] = figures.grid_layout(
         n, sensors, stem=report.out / "grid_layout", **places
     )

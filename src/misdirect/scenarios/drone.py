@@ -227,28 +227,28 @@ def drone(
     rank = np.where(xy[:, :1] <= xy[:, 1:], [[1, 0, 2, 3]], [[0, 1, 2, 3]])
     toward = np.argmin(np.where(closer, rank, 9), axis=1)
     sector_step = np.array([(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)])
-    action = np.full(len(observations), len(ACTIONS) - 1, dtype=np.int64)  # "stay"
-    for p, c in enumerate(drone_cells):
+    table = np.full(len(observations), len(ACTIONS) - 1, dtype=np.int64)  # "stay"
+    for i, c in enumerate(drone_cells):
         want = int(toward[c])
-        action[p * READINGS] = want
+        table[i * READINGS] = want
         for s in range(SECTORS):
             away = -sector_step[s]
             toward_agent = np.dot(MOVES[want], sector_step[s]) > 0
             if not toward_agent:
                 choice = want
             else:  # step away from the agent, along the axis it is furthest along
-                options = [
+                away_moves = [
                     a
                     for a in range(4)
                     if np.dot(MOVES[a], away) > 0 and step[c, a] != c and step[c, a] != pad
                 ]
-                choice = options[0] if options else len(ACTIONS) - 1
-            action[p * READINGS + 1 + 2 * s] = choice
-            action[p * READINGS + 2 + 2 * s] = choice
+                choice = away_moves[0] if away_moves else len(ACTIONS) - 1
+            table[i * READINGS + 1 + 2 * s] = choice
+            table[i * READINGS + 2 + 2 * s] = choice
     controller = Controller(
         nodes=("n0",),
         initial_node=0,
-        action=action[None, :],
+        action=table[None, :],
         update=np.zeros((1, len(observations)), dtype=np.int64),
     )
 

@@ -73,7 +73,10 @@ def grid_transitions(
             sources.append(cells)
             targets.append(target)
             probs.append(p)
-    return tuple(np.concatenate(part) for part in (actions, sources, targets, probs))
+    action, source, target, probability = (
+        np.concatenate(part) for part in (actions, sources, targets, probs)
+    )
+    return action, source, target, probability
 
 
 def paper_controller() -> Controller:

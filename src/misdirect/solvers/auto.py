@@ -170,7 +170,14 @@ class _Enumeration(_Stage):
     def estimate_s(self, facts: _Facts) -> float:
         return facts.count * schedule.UPDATE_SECONDS
 
-    def run(self, problem, budgets, deadline, progress, seeds):
+    def run(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+        seeds: Sequence[Alteration | None] | None,
+    ) -> list[Solution]:
         solver = IncrementalSolver(SolveOptions(threads=self.auto.options.threads))
         return solver.solve(problem, budgets, progress=progress, deadline=deadline)
 
@@ -194,7 +201,14 @@ class _Exhaustive(_Stage):
     def estimate_s(self, facts: _Facts) -> float:
         return facts.count * facts.evaluation_s
 
-    def run(self, problem, budgets, deadline, progress, seeds):
+    def run(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+        seeds: Sequence[Alteration | None] | None,
+    ) -> list[Solution]:
         return ExhaustiveSolver().solve(problem, budgets, progress=progress, deadline=deadline)
 
 
@@ -212,11 +226,18 @@ class _Milp(_Stage):
         )
         return True
 
-    def handovers(self, facts, deadline):
+    def handovers(self, facts: _Facts, deadline: Deadline) -> list[_Handover]:
         why = "the MILP did not certify it, so branch-and-bound from its answer"
         return [_Handover(_Search(self.auto, UNLIMITED_NODES), why)]  # the deadline is the limit
 
-    def run(self, problem, budgets, deadline, progress, seeds):
+    def run(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+        seeds: Sequence[Alteration | None] | None,
+    ) -> list[Solution]:
         # the MILP warm-starts from its own previous budget, not from seeds
         return self.auto.milp.solve(problem, budgets, progress=progress, deadline=deadline)
 
@@ -254,13 +275,13 @@ class _Search(_Stage):
             )
         return True
 
-    def deadline(self, facts, deadline):
+    def deadline(self, facts: _Facts, deadline: Deadline) -> Deadline:
         if self.search_first_s is None:
             return deadline
         return deadline.within(self.search_first_s)
 
-    def handovers(self, facts, deadline):
-        later = []
+    def handovers(self, facts: _Facts, deadline: Deadline) -> list[_Handover]:
+        later: list[_Handover] = []
         if self.search_first_s is not None:
             why = "branch-and-bound did not certify it, so enumeration"
             later.append(_Handover(_Enumeration(self.auto), why))
@@ -268,7 +289,14 @@ class _Search(_Stage):
         later.append(_Handover(_Milp(self.auto), why))
         return later
 
-    def run(self, problem, budgets, deadline, progress, seeds):
+    def run(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+        seeds: Sequence[Alteration | None] | None,
+    ) -> list[Solution]:
         solver = self.auto.branch_and_bound(self.max_nodes or self.auto.node_limit)
         return solver.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds)
 
@@ -332,7 +360,13 @@ class AutoSolver:
             )
         return solutions
 
-    def _split_curve(self, facts, budgets, deadline, progress) -> list[Solution] | None:
+    def _split_curve(
+        self,
+        facts: _Facts,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+    ) -> list[Solution] | None:
         """A curve whose top budget is too large to enumerate may still have small budgets
         that are: prove those first, and search the larger ones from their best answer."""
         enumeration = _Enumeration(self)
@@ -366,7 +400,17 @@ class AutoSolver:
         found.update(zip(rest, later, strict=True))
         return [found[b] for b in budgets]
 
-    def _hand_over(self, stage, problem, budgets, solutions, exact, why, progress, deadline):
+    def _hand_over(
+        self,
+        stage: _Stage,
+        problem: Problem,
+        budgets: Sequence[float],
+        solutions: list[Solution],
+        exact: ExactValues,
+        why: str,
+        progress: ProgressCallback | None,
+        deadline: Deadline,
+    ) -> list[Solution]:
         """Hand every budget that is not certified to ``stage``, if time is left; keep the
         better answer and the tighter bound of the two."""
         unfinished = [j for j, s in enumerate(solutions) if not _certified(s)]

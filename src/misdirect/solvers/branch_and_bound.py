@@ -21,7 +21,7 @@ shared between them is :mod:`misdirect.solvers.schedule`'s.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
@@ -277,7 +277,9 @@ class _Search:
             max((n.parent_bound for n in self.stack), default=-np.inf)
         )
 
-    def run(self, deadline: Deadline | None = None, tick=None) -> Solution:
+    def run(
+        self, deadline: Deadline | None = None, tick: Callable[[], None] | None = None
+    ) -> Solution:
         """Search until every node is pruned (``optimal``: finished), the deadline passes
         (``time_limit``) or ``max_nodes`` were bounded (``feasible``)."""
         if self.best_value < 0:
@@ -394,7 +396,15 @@ def _hill_climb(
     return picks, value
 
 
-def _ranked_moves(relax, picks, values, visits, inner, position, budget) -> list:
+def _ranked_moves(
+    relax: PerStateRelaxation,
+    picks: tuple[int, ...],
+    values: np.ndarray,
+    visits: np.ndarray,
+    inner: np.ndarray,
+    position: np.ndarray,
+    budget: float,
+) -> list[tuple[float, int, int]]:
     """Every change of one observation's pick within ``budget``, with its first-order gain
     (expected visits of the states it changes times their one-step advantage), best first."""
     chain = relax.chain

@@ -184,7 +184,7 @@ def solve(
     the methods run at that cost instead and its answer is reported at the budget asked for
     (``budget_clamped_from`` / ``budget_clamped_to`` say so).
     """
-    overrides = {
+    overrides: dict[str, Any] = {  # SolveOptions' fields, each of its own type
         "time_limit": time_limit,
         "threads": threads,
         "solver": solver,

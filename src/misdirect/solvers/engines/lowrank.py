@@ -19,14 +19,16 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import numpy as np
+import scipy.sparse as sp
 
 from misdirect.core import tolerance
-from misdirect.core.alterations import AlterationSpace, ObservationChoices
+from misdirect.core.alterations import AlterationSpace, AlteredEntries, ObservationChoices
 from misdirect.core.attack import AttackInstance
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
@@ -62,7 +64,8 @@ class Enumerated:
 
     costs: np.ndarray
     values: np.ndarray
-    blocks: list  # per block: (outer choice vector, AlteredEntries of the inner ones)
+    # per block: (outer choice vector, AlteredEntries of the inner ones)
+    blocks: list[tuple[np.ndarray, AlteredEntries]]
     offsets: np.ndarray
     outer: list[int]
     inner: list[int]
@@ -87,7 +90,7 @@ class Enumerated:
         picked[self.inner] = altered.picks(index - self.offsets[block], len(self.inner))
         return picked
 
-    def best_within(self, budgets: list[float]) -> list[int]:
+    def best_within(self, budgets: Sequence[float]) -> list[int]:
         """Index of the best alteration within each budget (near-ties: the cheapest)."""
         return best_per_budget(self.costs, self.values, budgets, tie=tolerance.NEAR_TIE)
 
@@ -176,7 +179,7 @@ class LowRankEnumeration:
         self.start = int(self.live_index[chain.initial]) if live[chain.initial] else -1
 
     @cached_property
-    def _inside(self):
+    def _inside(self) -> sp.csr_matrix:
         """The transitions into live states, (groups, live states)."""
         chain = self.instance.chain
         return chain.transitions[:, np.flatnonzero(self.instance.live)].tocsr()
@@ -188,7 +191,7 @@ class LowRankEnumeration:
     @cached_property
     def _live_node(self) -> np.ndarray:
         # memory nodes: a separator for solve_chain to cut along
-        return self.instance.chain.node[self.instance.live]
+        return cast(np.ndarray, self.instance.chain.node[self.instance.live])
 
     def basis_key(self, picks: dict[int, int]) -> tuple[int, ...] | None:
         """The key of the basis an enumeration below ``picks`` uses (None: some outer choice
@@ -230,7 +233,9 @@ class LowRankEnumeration:
         compiled = bases is not None or (
             self.instance.space.count_within(top, COMPILED_FROM) > COMPILED_FROM
         )
-        blocks, costs, values = [], [], []
+        blocks: list[tuple[np.ndarray, AlteredEntries]] = []
+        costs: list[np.ndarray] = []
+        values: list[np.ndarray] = []
         unevaluated, evaluations = np.inf, 0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
@@ -287,7 +292,9 @@ class LowRankEnumeration:
                 for i, c in enumerate(self.instance.space.choices)
             )
         )
-        outer_table, outer_costs = outer_space.within(top, outer)
+        listed = outer_space.within(top, outer)
+        assert listed is not None  # no limit given: never None
+        outer_table, outer_costs = listed
         for column, i in enumerate(outer):
             if i in fixed:
                 outer_table[:, column] = fixed[i]
@@ -372,7 +379,17 @@ class LowRankEnumeration:
         parts = (self.rows_of[self.observations[i]] for i in choices)
         return np.concatenate([np.zeros(0, dtype=np.int64), *parts]).astype(np.int64)
 
-    def _block(self, budget, inner, deltas, x_start, w_start, deadline, evaluations, compiled):
+    def _block(
+        self,
+        budget: float,
+        inner: list[int],
+        deltas: RowDeltas,
+        x_start: float,
+        w_start: np.ndarray | None,
+        deadline: Deadline,
+        evaluations: int,
+        compiled: bool,
+    ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
         alterations within ``budget``; a cost is ``inf`` where the deadline cut it short."""
         chain = self.instance.chain
@@ -389,6 +406,7 @@ class LowRankEnumeration:
         found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
         cut_at = np.inf
         if self.start >= 0:
+            assert w_start is not None  # the start is live: it has a row of W
             found[:] = x_start
             corrected = add_corrections(
                 found, altered, deltas, w_start, deadline, threads=self.threads, compiled=compiled
@@ -398,7 +416,15 @@ class LowRankEnumeration:
                 inner_costs = np.where(corrected, inner_costs, np.inf)
         return inner_costs, found, altered, cut_at
 
-    def _block_fits(self, deadline, factor_s, per_alteration, last_count, space, budget) -> bool:
+    def _block_fits(
+        self,
+        deadline: Deadline,
+        factor_s: float,
+        per_alteration: float,
+        last_count: int,
+        space: AlterationSpace,
+        budget: float,
+    ) -> bool:
         """Whether the next outer block likely ends before ``deadline``: at most the last
         block's count of alterations (its outer cost is no smaller), else counted exactly."""
         left = deadline.remaining()

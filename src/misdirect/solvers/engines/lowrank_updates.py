@@ -16,13 +16,16 @@ base with every option's row differences, so a subtree that fixes some sensors n
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numba
 import numpy as np
+import scipy.sparse as sp
 
 from misdirect.core.alterations import AlteredEntries, rank_in_group
+from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.reachability import solve_chain
 from misdirect.solvers.deadline import Deadline
 
@@ -32,7 +35,13 @@ CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay 
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
 
 
-def base_solve(inside, to_target, base_groups, local, live_node):
+def base_solve(
+    inside: sp.csr_matrix,
+    to_target: np.ndarray,
+    base_groups: np.ndarray,
+    local: np.ndarray,
+    live_node: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """``x0`` and ``W`` (the base chain's solution for ``b`` and for a unit column per inner
     row ``local``), as contiguous arrays: sparse @ dense copies a strided operand per call."""
     rhs = np.zeros((inside.shape[1], 1 + local.size))
@@ -53,7 +62,15 @@ class Basis(NamedTuple):
     options: RowDeltas
 
     @staticmethod
-    def of(inside, to_target, groups, regions, option_groups, live_index, live_node) -> Basis:
+    def of(
+        inside: sp.csr_matrix,
+        to_target: np.ndarray,
+        groups: np.ndarray,
+        regions: Sequence[np.ndarray],
+        option_groups: Sequence[np.ndarray],
+        live_index: np.ndarray,
+        live_node: np.ndarray,
+    ) -> Basis:
         """``groups``: per live state, its group in the base; ``regions``: per inner choice,
         its live states; ``option_groups``: per inner choice, per state its group under each
         option."""
@@ -70,7 +87,9 @@ class Basis(NamedTuple):
         )
         return Basis(x0, W, options)
 
-    def with_fixed(self, fixed, inner, start: int):
+    def with_fixed(
+        self, fixed: Sequence[tuple[int, int]], inner: Sequence[int] | np.ndarray, start: int
+    ) -> tuple[float, np.ndarray | None, RowDeltas]:
         """(value at the start, its row of ``W``, options' table of the ``inner`` choices) of
         the chain whose choices ``fixed`` (position, option) take those options: with ``F``
         their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``, every row
@@ -124,10 +143,17 @@ class RowDeltas(NamedTuple):
     def system(self, slots: np.ndarray) -> np.ndarray:
         """``F = I − D W`` on each row of row ``slots`` (n, k): (n, k, k)."""
         coupling = self.d_w[slots[:, :, None], self.column[slots][:, None, :]]
-        return np.eye(slots.shape[1]) - coupling
+        return cast(np.ndarray, np.eye(slots.shape[1]) - coupling)
 
 
-def row_deltas(groups, base_groups, inside, to_target, x0, W) -> RowDeltas:
+def row_deltas(
+    groups: Sequence[np.ndarray],
+    base_groups: np.ndarray,
+    inside: sp.csr_matrix,
+    to_target: np.ndarray,
+    x0: np.ndarray,
+    W: np.ndarray,
+) -> RowDeltas:
     """``groups[j]``: per live row of inner observation ``j`` (in the order of the inner rows),
     its group under each option of ``j``; ``base_groups``: every inner row's group in the
     base."""
@@ -161,10 +187,10 @@ def row_deltas(groups, base_groups, inside, to_target, x0, W) -> RowDeltas:
 
 
 def add_corrections(
-    found,
+    found: np.ndarray,
     altered: AlteredEntries,
     deltas: RowDeltas,
-    w_start,
+    w_start: np.ndarray,
     deadline: Deadline | None = None,
     chunk_entries: int | None = None,
     threads: int = 1,
@@ -255,7 +281,9 @@ class _Tree(NamedTuple):
         return slots
 
 
-def _batches(order, width, n_children, n_slots, chunk_entries):
+def _batches(
+    order: np.ndarray, width: np.ndarray, n_children: np.ndarray, n_slots: int, chunk_entries: int
+) -> Iterator[np.ndarray]:
     """Consecutive slices of the parents in ``order`` holding about ``chunk_entries`` numbers
     (per parent: ``G``, its width times the row slots, and its children's blocks, its width
     times theirs, at most ``WIDEST_ENTRY``); a slice stops before a parent over 1.5 times as
@@ -274,7 +302,13 @@ def _batches(order, width, n_children, n_slots, chunk_entries):
 
 
 def _children_of(
-    parents, kids, local, tree: _Tree, deltas: RowDeltas, weight, compiled: bool = True
+    parents: np.ndarray,
+    kids: np.ndarray,
+    local: np.ndarray,
+    tree: _Tree,
+    deltas: RowDeltas,
+    weight: np.ndarray,
+    compiled: bool = True,
 ) -> np.ndarray:
     """The corrections of the alterations ``kids``, each the parent ``parents[local]`` plus its
     last entry, by the Schur complement of the parent's system ``A`` (rows ``P``):
@@ -322,8 +356,20 @@ def _children_of(
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _schur_corrections(
-    slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
-):  # pragma: no cover (compiled; its results are tested against dense solves)
+    slots_p: np.ndarray,
+    reach: np.ndarray,
+    begin: int,
+    y: np.ndarray,
+    s_p: np.ndarray,
+    local: np.ndarray,
+    first: np.ndarray,
+    width: np.ndarray,
+    d_w: np.ndarray,
+    column: np.ndarray,
+    rhs: np.ndarray,
+    weight: np.ndarray,
+    out: np.ndarray,
+) -> None:  # pragma: no cover (compiled; its results are tested against dense solves)
     """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
     ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
     ``reach[p]`` the rows ``(A⁻¹ D W(P, s))ᵀ`` of the slots ``s`` from ``begin`` on,
@@ -397,8 +443,20 @@ def _schur_corrections(
 
 
 def _schur_corrections_numpy(
-    slots_p, reach, begin, y, s_p, local, first, width, d_w, column, rhs, weight, out
-):
+    slots_p: np.ndarray,
+    reach: np.ndarray,
+    begin: int,
+    y: np.ndarray,
+    s_p: np.ndarray,
+    local: np.ndarray,
+    first: np.ndarray,
+    width: np.ndarray,
+    d_w: np.ndarray,
+    column: np.ndarray,
+    rhs: np.ndarray,
+    weight: np.ndarray,
+    out: np.ndarray,
+) -> None:
     """:func:`_schur_corrections` batched in numpy, the children grouped by the width of their
     last entry (each group's Schur complements solved at once)."""
     out[:] = s_p[local]  # a last entry that changes no row: the parent's value
@@ -417,7 +475,9 @@ def _schur_corrections_numpy(
         out[pick] += np.einsum("ni,ni->n", grad, z)
 
 
-def selected_groups(chain, live, group_of_option, chosen) -> np.ndarray:
+def selected_groups(
+    chain: ChoiceProduct, live: np.ndarray, group_of_option: np.ndarray, chosen: np.ndarray
+) -> np.ndarray:
     """Group of every live state when the options in ``chosen`` are taken."""
     table = group_of_option[np.flatnonzero(live)]
     picked = np.where(chosen[None, :] & (table >= 0), table, -1).max(axis=1)
@@ -426,4 +486,4 @@ def selected_groups(chain, live, group_of_option, chosen) -> np.ndarray:
     picked = np.where(single, fallback, picked)
     if (picked < 0).any():
         raise AssertionError("a live state has no selected group")
-    return picked
+    return cast(np.ndarray, picked)

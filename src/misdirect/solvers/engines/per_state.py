@@ -18,6 +18,7 @@ needs a proven bound when cut short (:func:`relaxation_bound`).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 
@@ -74,7 +75,7 @@ class PerStateRelaxation:
 
     def allowed_groups(self, allowed_options: np.ndarray) -> np.ndarray:
         hits = self.group_options @ allowed_options.astype(np.float64)
-        return self.free_group | (np.asarray(hits).ravel() > 0)
+        return cast(np.ndarray, self.free_group | (np.asarray(hits).ravel() > 0))
 
     def best_groups(self, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per state: the group of highest score (the first on ties) and that score."""

@@ -16,10 +16,12 @@
 
 from __future__ import annotations
 
+from typing import Protocol, cast
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lu_factor, lu_solve
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.core import tolerance
 from misdirect.core.model import reachable_from
@@ -28,6 +30,12 @@ from misdirect.errors import SolverError
 
 LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
 # solved by Woodbury from that factorisation (a few solves instead of a new LU)
+
+
+class LinearSolver(Protocol):
+    """A factorised ``I − P``: scipy's ``SuperLU`` or an :class:`UpdatedLU`."""
+
+    def solve(self, b: np.ndarray, trans: str = ...) -> np.ndarray: ...
 
 
 class MaxReachability:
@@ -64,12 +72,14 @@ class MaxReachability:
             shape=(self.target.size, self.owner.size),
         )
         graph = (owners @ structure).tocsr()
-        return reachable_from(graph.T.tocsr(), np.flatnonzero(self.target)) & ~self.target
+        return cast(
+            np.ndarray, reachable_from(graph.T.tocsr(), np.flatnonzero(self.target)) & ~self.target
+        )
 
     def first_choices(self) -> np.ndarray:
         """The lowest-numbered choice of every state."""
         order = np.argsort(self.owner, kind="stable")
-        return order[self.state_start]
+        return cast(np.ndarray, order[self.state_start])
 
     def evaluate(self, policy: np.ndarray) -> np.ndarray:
         """Exact values of the chain that takes choice ``policy[s]`` in ``s``."""
@@ -111,22 +121,22 @@ class UpdatedLU:
     ``rows`` whose choice changed, ``Vᵀ = A'[rows] − A[rows]``. A policy improvement switches
     a few entries' choices; their rows are all that changes."""
 
-    def __init__(self, base, rows: np.ndarray, delta: sp.csr_matrix):
+    def __init__(self, base: LinearSolver, rows: np.ndarray, delta: sp.csr_matrix):
         self.base, self.rows, self.delta = base, rows, delta
         units = np.zeros((delta.shape[1], rows.size))
         units[rows, np.arange(rows.size)] = 1.0
         self.z = base.solve(units)  # A⁻¹ U
         self.capacitance = lu_factor(np.eye(rows.size) + delta @ self.z)  # I + Vᵀ A⁻¹ U
-        self.q = None  # A⁻ᵀ V, for transposed solves
+        self.q: np.ndarray | None = None  # A⁻ᵀ V, for transposed solves
 
     def solve(self, b: np.ndarray, trans: str = "N") -> np.ndarray:
         if trans == "N":
             y = self.base.solve(b)
-            return y - self.z @ lu_solve(self.capacitance, self.delta @ y)
+            return cast(np.ndarray, y - self.z @ lu_solve(self.capacitance, self.delta @ y))
         if self.q is None:
             self.q = self.base.solve(self.delta.T.toarray(), trans="T")
         y = self.base.solve(b, trans="T")
-        return y - self.q @ lu_solve(self.capacitance, y[self.rows], trans=1)
+        return cast(np.ndarray, y - self.q @ lu_solve(self.capacitance, y[self.rows], trans=1))
 
 
 class TransientPolicyIteration:
@@ -150,13 +160,15 @@ class TransientPolicyIteration:
     def first_rows(self) -> np.ndarray:
         return self.sorted_rows[self.state_start]
 
-    def factorise(self, policy: np.ndarray):
+    def factorise(self, policy: np.ndarray) -> SuperLU:
         """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves
         for any reward on it (``solve``), and for visits (``solve(·, trans="T")``)."""
         self.evaluations += 1
         return splu((sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc())
 
-    def updated(self, base, base_policy: np.ndarray, policy: np.ndarray):
+    def updated(
+        self, base: LinearSolver, base_policy: np.ndarray, policy: np.ndarray
+    ) -> UpdatedLU | None:
         """A solver for ``policy``'s system from ``base``, the factorisation of
         ``base_policy``'s: Woodbury on the rows that differ, if few; else None."""
         rows = np.flatnonzero(policy != base_policy)
@@ -173,12 +185,13 @@ class TransientPolicyIteration:
         *,
         start: int | None = None,
         enough: float = np.inf,
-    ):
+    ) -> tuple[np.ndarray, np.ndarray, LinearSolver, bool]:
         """(values, policy, its factorisation, whether optimal), from ``policy`` (default:
         first rows). Stops early at a policy worth more than ``enough`` at ``start``: the
         optimum is above it too (each improvement only raises the values)."""
         if policy is None:
             policy = self.first_rows()
+        lu: LinearSolver | None
         lu = base = self.factorise(policy)
         base_policy = policy
         while True:

@@ -40,6 +40,7 @@ one either). Otherwise :func:`segment_relaxation` returns None.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,7 +55,9 @@ from misdirect.solvers.base import thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
 from misdirect.solvers.engines.per_state import PerStateRelaxation
-from misdirect.solvers.engines.policy_iteration import TransientPolicyIteration
+from misdirect.solvers.engines.policy_iteration import LinearSolver, TransientPolicyIteration
+
+Layer = tuple[int, int, np.ndarray]  # (choice index, option, group per product state)
 
 
 @dataclass
@@ -91,14 +94,14 @@ class SegmentLagrangian:
 
     def lagrangian_on(
         self,
-        mdp,
-        remaining,
+        mdp: SegmentMdp,
+        remaining: float,
         *,
-        stop_below=-np.inf,
-        max_multipliers=12,
-        policy=None,
-        known_bound=np.inf,
-    ):
+        stop_below: float = -np.inf,
+        max_multipliers: int = 12,
+        policy: np.ndarray | None = None,
+        known_bound: float = np.inf,
+    ) -> tuple[LagrangeResult, np.ndarray | None, LinearSolver | None]:
         """(result, policy at the best multiplier, its factorisation) of the Lagrangian on a
         built segment MDP; policy iteration starts from ``policy`` (a parent's, say).
 
@@ -111,7 +114,7 @@ class SegmentLagrangian:
         if start is None:
             value = float(self.chain.target_value[self.chain.initial])
             return LagrangeResult(value, 0.0, 0, 0), None, None
-        lines: list[tuple[float, float]] = []  # (value at λ, slope) of h at the multipliers tried
+        lines: list[tuple[float, float, float]] = []  # (λ, h(λ), slope) at the multipliers tried
         best = (np.inf, 0.0)
         best_policy = best_lu = None
         lam = 0.0
@@ -178,7 +181,12 @@ class SegmentMdp:
     """
 
     def __init__(
-        self, owner: SegmentLagrangian, default_group: np.ndarray, layers, charges, keys=None
+        self,
+        owner: SegmentLagrangian,
+        default_group: np.ndarray,
+        layers: Sequence[tuple[int, np.ndarray]],
+        charges: Sequence[float],
+        keys: Sequence[int] | None = None,
     ):
         """``default_group``: per product state, its group in the default layer (-1 if not
         live); ``layers``: list of (observation, group per product state of it);
@@ -200,6 +208,7 @@ class SegmentMdp:
         copy_index = first_copy[layer_of] + rank[layer_states]  # per layer copy state
         n = n_live + free_states.size + layer_states.size
         self.n = n
+        self.start: int | None
         if not live[chain.initial]:
             self.start = None
         else:
@@ -277,7 +286,7 @@ class SegmentMdp:
             policy[self.entry_index[states]] = self.layer_entry_start[j] + self.rank[states]
         return policy
 
-    def layer_usage(self, policy: np.ndarray, lu, n_layers: int) -> np.ndarray:
+    def layer_usage(self, policy: np.ndarray, lu: LinearSolver, n_layers: int) -> np.ndarray:
         """Per layer: the expected number of entries that choose it, under ``policy`` (``lu``
         its factorisation: the visits solve the transposed system)."""
         if self.start is None:
@@ -289,7 +298,7 @@ class SegmentMdp:
         chosen = layer >= 0
         return np.bincount(layer[chosen], weights=visits[chosen], minlength=n_layers)
 
-    def entries(self, observations) -> np.ndarray:
+    def entries(self, observations: Sequence[int]) -> np.ndarray:
         """Per observation: the maximal expected number of entries into its live region over
         the schedulers of this MDP (every alteration of the node is one), from the start."""
         coo = self.matrix.tocoo()
@@ -371,10 +380,10 @@ class SegmentRelaxation:
         """The search's picks (in ``relax.order``) with every unlisted observation unaltered."""
         return tuple(picks.get(i, 0) for i in self.order)
 
-    def layers_of(self, picks: dict[int, int], remaining: float):
+    def layers_of(self, picks: dict[int, int], remaining: float) -> list[Layer]:
         """Per free observation: its affordable options that change some live state."""
         relax = self.relax
-        found = []
+        found: list[Layer] = []
         default = self.chain.group_of_option
         for i in self.order:
             if i in picks:
@@ -412,9 +421,9 @@ class SegmentRelaxation:
         picks: dict[int, int],
         remaining: float,
         stop_below: float,
-        warm=None,
+        warm: dict[int, np.ndarray] | None = None,
         known_bound: float = np.inf,
-    ):
+    ) -> tuple[LagrangeResult, np.ndarray, list[Layer], dict[int, np.ndarray] | None]:
         """(bound, per layer usage, layers, entry choices) of the node; its policy iteration
         starts from ``warm``, the entry choices of another node (its parent's, say), and
         stops once the node cannot be pruned when ``known_bound`` (its parent's) is finite."""
@@ -446,6 +455,7 @@ class SegmentRelaxation:
         usage = np.zeros(len(layers))
         choices = None
         if policy is not None and layers:
+            assert lu is not None  # it comes with the policy
             usage = mdp.layer_usage(policy, lu, len(layers))
             choices = mdp.entry_choices(policy)
         return result, usage, layers, choices
@@ -461,7 +471,7 @@ def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | N
     return SegmentRelaxation(instance, relax)
 
 
-def segment_bound(problem, budget: float, *, lagrangian: bool = False) -> float | None:
+def segment_bound(problem: Problem, budget: float, *, lagrangian: bool = False) -> float | None:
     """Bound of the root node (every observation free): the segment MDP, with the Lagrangian
     of the budget when ``lagrangian`` (which first computes M_o, one policy iteration per
     observation). None where the relaxation does not apply."""

@@ -33,7 +33,7 @@ from threadpoolctl import threadpool_limits
 from misdirect.core import tolerance
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.incumbent import Incumbent, Picks
-from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
+from misdirect.solvers.engines.segment_relaxation import Layer, SegmentRelaxation
 from misdirect.solvers.status import Status
 
 NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most this many
@@ -49,7 +49,8 @@ class _Open:
     picks: dict[int, int] = field(compare=False)
     remaining: float = field(compare=False)
     bounded: bool = field(compare=False)  # the bound is the node's own, not its parent's
-    warm: dict | None = field(compare=False, default=None)  # parent's entry choices
+    # the parent's entry choices
+    warm: dict[int, np.ndarray] | None = field(compare=False, default=None)
     completions: int = field(compare=False, default=0)  # counted when taken off the heap
 
     @property
@@ -85,7 +86,8 @@ class SegmentSearch:
         self._status: Status | None = None  # set when the search is over: why
         self._local_running = False
         self._last_node_s = 0.0  # a node is not started with less time left than the last one
-        self.searched: set = set()  # neighbourhoods the local search has enumerated
+        # neighbourhoods the local search has enumerated
+        self.searched: set[tuple[tuple[int, int], ...]] = set()
         self.incumbent.offer_exact(self.incumbent.picks)
         for picks in seeds:
             if picks is not None and tolerance.affordable(seg.relax.cost(picks), budget):
@@ -115,7 +117,14 @@ class SegmentSearch:
         else:
             self._push({}, budget, np.inf)
 
-    def _push(self, picks, remaining, bound, bounded=False, warm=None) -> None:
+    def _push(
+        self,
+        picks: dict[int, int],
+        remaining: float,
+        bound: float,
+        bounded: bool = False,
+        warm: dict[int, np.ndarray] | None = None,
+    ) -> None:
         """``bounded``: ``bound`` is the node's own (not its parent's); ``warm``: the entry
         choices of its parent's bound, where its policy iteration starts."""
         self.counter += 1
@@ -188,7 +197,9 @@ class SegmentSearch:
             raise self._error
         return self._status or Status.OPTIMAL
 
-    def _work(self, deadline, tick, max_nodes) -> None:
+    def _work(
+        self, deadline: Deadline, tick: Callable[[], None] | None, max_nodes: int | None
+    ) -> None:
         """One worker: take a task, do it outside the lock, apply its result under it."""
         try:
             while (task := self._next_task(deadline, tick, max_nodes)) is not None:
@@ -197,8 +208,10 @@ class SegmentSearch:
                     if kind == "local":
                         self.local_search(deadline)
                     elif kind == "enumerate":
+                        assert entry is not None  # only a local search comes without a node
                         self._do_enumerate(entry, deadline)
                     else:
+                        assert entry is not None
                         self._do_node(entry)
                 finally:
                     with self._lock:
@@ -212,7 +225,9 @@ class SegmentSearch:
                 self._status = self._status or Status.UNVERIFIED
                 self._lock.notify_all()
 
-    def _next_task(self, deadline, tick, max_nodes) -> tuple[str, _Open | None] | None:
+    def _next_task(
+        self, deadline: Deadline, tick: Callable[[], None] | None, max_nodes: int | None
+    ) -> tuple[str, _Open | None] | None:
         """Under the lock: the next node to bound or enumerate (pruned ones are dropped), a
         local search, or None when the search is over (``_status`` then says why)."""
         with self._lock:
@@ -247,7 +262,7 @@ class SegmentSearch:
         self._lock.notify_all()
         raise _SearchOverError
 
-    def _take(self, entry: _Open, tick) -> tuple[str, _Open] | None:
+    def _take(self, entry: _Open, tick: Callable[[], None] | None) -> tuple[str, _Open] | None:
         """What to do with a node taken off the heap: nothing (pruned), bound or enumerate."""
         if self.incumbent.prune(entry.bound):
             return None
@@ -308,7 +323,7 @@ class SegmentSearch:
                 return
             self._branch(entry, bound, usage, layers, entry_choices)
 
-    def _round(self, entry: _Open, usage: np.ndarray, layers: list) -> Picks:
+    def _round(self, entry: _Open, usage: np.ndarray, layers: list[Layer]) -> Picks:
         """The node's scheduler rounded to an alteration within the budget: per observation
         the layer entered most, most-entered first."""
         if not layers:  # nothing affordable changes anything: the node is one alteration
@@ -325,7 +340,14 @@ class SegmentSearch:
             left -= float(choices[i].costs[k])
         return self.seg.complete(chosen)
 
-    def _branch(self, entry: _Open, bound: float, usage, layers, entry_choices) -> None:
+    def _branch(
+        self,
+        entry: _Open,
+        bound: float,
+        usage: np.ndarray,
+        layers: list[Layer],
+        entry_choices: dict[int, np.ndarray] | None,
+    ) -> None:
         """Push the children of a node: one per affordable option of the observation to
         branch on, the options its scheduler enters most first."""
         seg, choices = self.seg, self.seg.space.choices

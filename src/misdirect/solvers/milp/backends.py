@@ -16,9 +16,10 @@ import signal
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -173,7 +174,7 @@ class HighsBackend:
             if kind == "error":
                 raise SolverError(payload)
             payload.detail["highs_crashes"] = self.crashes
-            return payload
+            return cast(BackendResult, payload)
         raise SolverError(
             f"HiGHS crashed {self.retries} times on this model (worker exit code {code}); "
             "try another backend: --solver scip or --solver gurobi"
@@ -195,7 +196,11 @@ class HighsBackend:
     def _start_worker(self) -> None:
         assert self.model is not None
         methods = multiprocessing.get_all_start_methods()
-        context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        context = (
+            multiprocessing.get_context("fork")
+            if "fork" in methods
+            else multiprocessing.get_context("spawn")
+        )
         self._conn, child = context.Pipe()
         if multiprocessing.current_process().daemon:
             # A daemonic process (a multiprocessing.Pool worker) may not have children: solve
@@ -308,6 +313,7 @@ def run_highs(
 
     highs = _new_highs(options, seed)
     _pass_model(highs, arrays)
+    values: np.ndarray | None  # the start's, then the answer's
     if start is not None:
         columns, values = start
         highs.setSolution(int(columns.size), columns.astype(np.int32), values.astype(np.float64))
@@ -524,6 +530,7 @@ class ScipBackend:
             scip.setParam("parallel/minnthreads", int(threads))
         by_index = {int(v.name[1:]): v for v in scip.getVars()}
         variables = [by_index[i] for i in range(self.source.n_columns)]
+        values: np.ndarray | None  # the start's, then the answer's
         if start is not None:
             columns, values = start
             solution = scip.createPartialSol()
@@ -566,7 +573,11 @@ class ScipBackend:
         )
 
 
-BACKENDS: dict[str, type] = {"highs": HighsBackend, "gurobi": GurobiBackend, "scip": ScipBackend}
+BACKENDS: dict[str, Callable[[SolverOptions], Backend]] = {
+    "highs": HighsBackend,
+    "gurobi": GurobiBackend,
+    "scip": ScipBackend,
+}
 
 
 def make_backend(name: str, options: SolverOptions) -> Backend:

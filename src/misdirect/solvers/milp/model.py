@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 
 from misdirect.core.model import Alteration
@@ -91,7 +92,7 @@ class ModelBuilder:
         self,
         name: str,
         count: int,
-        entries: tuple[np.ndarray, np.ndarray, np.ndarray],
+        entries: tuple[npt.ArrayLike, npt.ArrayLike, npt.ArrayLike],
         lower: np.ndarray | float,
         upper: np.ndarray | float,
         *,

@@ -23,14 +23,18 @@ that case but not states that cycle under some alterations and escape under othe
 from __future__ import annotations
 
 import time
+from typing import TypeVar, cast
 
 import numpy as np
+import numpy.typing as npt
 
 from misdirect.core.alterations import alteration_space
 from misdirect.core.choice_product import build_choice_product
 from misdirect.core.model import Alteration, Problem
 from misdirect.errors import SolverError
 from misdirect.solvers.milp.model import MilpModel, ModelBuilder
+
+Index = TypeVar("Index", int, npt.NDArray[np.int64])  # one column index, or an array of them
 
 
 def build_paper(
@@ -57,10 +61,10 @@ def build_paper(
     z0 = model.columns("z", n_s * n_n * n_o, 0.0, 1.0)
     l0 = model.columns("l", n_edges * n_o * n_n * n_o, 0.0, 1.0)
 
-    def x(o, o2):
+    def x(o: Index, o2: Index) -> Index:
         return x0 + o * n_o + o2
 
-    def z(s, n, o):
+    def z(s: Index, n: Index, o: Index) -> Index:
         return z0 + (s * n_n + n) * n_o + o
 
     allowed = np.isfinite(costs).ravel()
@@ -195,9 +199,9 @@ def _edge_index(
     """Position of each (source, target) among the lexicographically sorted successor pairs."""
     width = int(max(edge_to.max(initial=0), target.max(initial=0))) + 1
     keys = edge_from * width + edge_to
-    return np.searchsorted(keys, source * width + target)
+    return cast(np.ndarray, np.searchsorted(keys, source * width + target))
 
 
 def _decode(problem: Problem, x_values: np.ndarray) -> Alteration:
     n_o = problem.pomdp.n_observations
-    return np.argmax(x_values.reshape(n_o, n_o), axis=1).astype(np.int64)
+    return cast(Alteration, np.argmax(x_values.reshape(n_o, n_o), axis=1).astype(np.int64))
