@@ -602,3 +602,14 @@ def test_a_program_too_large_to_build_is_refused_before_storm_builds_it(tmp_path
     )
     refused = runner.invoke(app, ["evaluate", str(small)])
     assert refused.exit_code == 2 and "more than the limit of 1 " in refused.stderr
+
+
+def test_a_storm_model_without_a_path_is_a_clear_error(tmp_path):
+    """``prism: null`` and no drn passes the schema; it must be refused naming the field,
+    not crash."""
+    from misdirect.errors import ProblemError
+
+    path = _problem_file(tmp_path, {"prism": None}, SOUTH_CONTROLLER, {"label": "goal"})
+    with pytest.raises(ProblemError, match="prism or a drn") as raised:
+        load_problem(path)
+    assert raised.value.field == "pomdp"

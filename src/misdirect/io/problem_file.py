@@ -564,9 +564,8 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
             if spec.pomdp.prism is not None and spec.pomdp.drn is not None:
                 raise ProblemError("give prism or drn, not both", field="pomdp")
             model_name = spec.pomdp.prism or spec.pomdp.drn
-            # None only for `prism: null` and no drn, which the schema lets through: that
-            # crashes here, as it did before (a TypeError then), where a ProblemError belongs
-            assert model_name is not None
+            if model_name is None:  # `prism: null` and no drn: the schema lets it through
+                raise ProblemError("give the path of a prism or a drn file", field="pomdp")
             model_file = _resolve(model_name, base)
             if model_file.exists():  # a FIFO or a device would hang Storm: refuse it first
                 check_input_file(model_file, field=f"pomdp.{kind}")
