@@ -96,3 +96,19 @@ def test_options_are_checked_and_named_by_parameter():
     assert caught.value.parameter == "mip_gap"
     with pytest.raises(TypeError, match="time_limt"):
         solve(OTHER[0], time_limt=5)  # type: ignore[call-arg]
+
+
+def test_prepared_instances_are_shared_only_within_a_block():
+    """Nothing is cached on a Problem: two prepares outside a block build two instances; inside
+    ``shared_preparation`` (as within one solve) they share one, and a larger budget's serves
+    a smaller one."""
+    from misdirect import shared_preparation
+    from misdirect.core.attack import prepare
+
+    problem = OTHER[0]
+    assert prepare(problem, 2.0) is not prepare(problem, 2.0)
+    with shared_preparation():
+        first = prepare(problem, 2.0)
+        assert prepare(problem, 1.0) is first and prepare(problem, 2.0) is first
+        assert prepare(problem, 3.0) is not first
+    assert prepare(problem, 2.0) is not first

@@ -11,6 +11,7 @@ The library in a few names (the package layout: docs/architecture.md)::
 """
 
 from misdirect import scenarios
+from misdirect.core.attack import shared_preparation
 from misdirect.core.evaluate import Evaluation, decoy_probability, evaluate
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.core.product import ProductChain, build_product
@@ -57,6 +58,7 @@ __all__ = [
     "load_problem",
     "online_attack_value",
     "scenarios",
+    "shared_preparation",
     "solve",
     "write_problem",
 ]
