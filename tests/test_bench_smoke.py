@@ -122,3 +122,18 @@ def test_hard_instances_benchmark_reduced_mode(tmp_path):
         assert max(values) - min(values) <= 1e-9
     lines = list(csv.DictReader((tmp_path / "hard_instances.csv").open()))
     assert len(lines) == sum(len(r["points"]) for r in rows)
+
+
+def test_compare_trees_finds_a_tree_equal_to_itself(tmp_path):
+    """The before/after bench on one tree against itself: every case gives the same answers."""
+    src = ROOT / "src"
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "compare_trees.py"), "--quick"]
+        + ["--before", str(src), "--after", str(src), "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+    )
+    rows = json.loads((tmp_path / "compare_trees.json").read_text())
+    assert {row["kind"] for row in rows} == {"hard", "grid"}
+    assert all(row["same_answers"] for row in rows)
+    assert "same statuses and values" in (tmp_path / "compare_trees.md").read_text()
