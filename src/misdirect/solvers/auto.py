@@ -43,7 +43,7 @@ from misdirect.core.model import Alteration, Problem
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
-from misdirect.solvers.certification import ExactValues
+from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS
 from misdirect.solvers.exhaustive import ExhaustiveSolver
@@ -96,7 +96,7 @@ class _Facts:
     def evaluation_s(self) -> float:
         """Seconds for one exact evaluation (of the unaltered chain, once)."""
         began = time.perf_counter()
-        ExactValues(self.problem)(self.problem.identity())
+        ExactValues(self.problem)(self.problem.identity())  # a fresh table: really evaluated
         return time.perf_counter() - began
 
     @cached_property
@@ -352,7 +352,7 @@ class AutoSolver:
             report(progress, 0, len(budgets), stage=first.method, note=f"auto: {reason}")
         solutions = first.run(problem, budgets, first.deadline(facts, deadline), progress, seeds)
         solutions = _label(solutions, first.method, reason)
-        exact = ExactValues(problem)
+        exact = exact_values(problem)  # the front door's: each answer is evaluated once
         for handover in handovers:
             why = f"{reason}; {handover.why}"
             solutions = self._hand_over(

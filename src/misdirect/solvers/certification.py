@@ -8,6 +8,9 @@ promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tole
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,7 +24,8 @@ from misdirect.solvers.status import Status
 
 class ExactValues:
     """Exact values of alterations of one problem, each computed once (a curve often repeats
-    one, and auto compares its stages' answers on the same numbers the user will see)."""
+    one, and auto compares its stages' answers on the same numbers the user will see): one per
+    ``solve`` call, which stages reach through :func:`exact_values`."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
@@ -33,6 +37,25 @@ class ExactValues:
         if key not in self._values:
             self._values[key] = decoy_probability(self.problem, alpha)
         return self._values[key]
+
+
+_current: ContextVar[ExactValues | None] = ContextVar("misdirect_exact_values", default=None)
+
+
+@contextlib.contextmanager
+def exact_scope(values: ExactValues) -> Iterator[ExactValues]:
+    """Within this block, :func:`exact_values` of ``values.problem`` is ``values``."""
+    token = _current.set(values)
+    try:
+        yield values
+    finally:
+        _current.reset(token)
+
+
+def exact_values(problem: Problem) -> ExactValues:
+    """The exact values of the current solve, if it is of ``problem``; else a new table."""
+    current = _current.get()
+    return current if current is not None and current.problem is problem else ExactValues(problem)
 
 
 def decide(stopped: Status, exact: float, bound: float | None) -> Status:

@@ -27,6 +27,7 @@ from misdirect.solvers.certification import (
     ExactValues,
     certify_curve,
     check_claims,
+    exact_scope,
 )
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
@@ -205,7 +206,9 @@ def solve(
     elif options.time_limit is not None or cancel is not None:
         deadline = Deadline(options.time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
     started = time.perf_counter()
-    with shared_preparation():  # the stages of this call share each prepared instance
+    exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
+    # the stages of this call share each prepared instance, and the exact values
+    with shared_preparation(), exact_scope(exact_value):
         solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started
@@ -214,7 +217,6 @@ def solve(
         solutions = [
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
-    exact_value = ExactValues(problem)
     curve, warnings = [], []
     for solution in solutions:
         alpha = np.asarray(solution.alteration, dtype=np.int64)
