@@ -36,7 +36,7 @@ from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.incumbent import Incumbent, Picks
+from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
@@ -236,7 +236,7 @@ class _Node:
     policy: np.ndarray  # warm start: one group per product state
 
 
-class _Search:
+class _Search(IncumbentSearch):
     """Depth-first branch-and-bound for one budget."""
 
     def __init__(
@@ -256,14 +256,6 @@ class _Search:
         self.nodes = 0
         self.root_bound: float | None = None
         self.evaluations_before = relax.evaluations
-
-    @property
-    def best_picks(self) -> Picks:
-        return self.incumbent.picks
-
-    @property
-    def best_value(self) -> float:
-        return self.incumbent.value
 
     def describe(self) -> str:
         bound = self.open_bound()

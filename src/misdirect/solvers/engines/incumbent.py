@@ -85,3 +85,17 @@ class Incumbent:
         bound still open; never above the objective's largest value."""
         ceiling = self.relax.problem.objective.max_value
         return float(min(max(self.value, self.pruned_bound, open_bound), ceiling))
+
+
+class IncumbentSearch:
+    """A search read through its incumbent: ``best_picks`` and ``best_value``."""
+
+    incumbent: Incumbent
+
+    @property
+    def best_picks(self) -> Picks:
+        return self.incumbent.picks
+
+    @property
+    def best_value(self) -> float:
+        return self.incumbent.value

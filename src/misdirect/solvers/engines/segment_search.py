@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 
 from misdirect.core import tolerance
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.incumbent import Incumbent, Picks
+from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.segment_relaxation import Layer, SegmentRelaxation
 from misdirect.solvers.status import Status
 
@@ -62,7 +62,7 @@ class _SearchOverError(Exception):
     """The search is over; ``status`` says why."""
 
 
-class SegmentSearch:
+class SegmentSearch(IncumbentSearch):
     """The search of one budget; ``run`` it, then read ``best_picks``, ``best_value`` and
     ``open_bound()``."""
 
@@ -97,14 +97,6 @@ class SegmentSearch:
         self.nodes = 0
         self.root_bound: float | None = None
         self._push_roots()
-
-    @property
-    def best_picks(self) -> Picks:
-        return self.incumbent.picks
-
-    @property
-    def best_value(self) -> float:
-        return self.incumbent.value
 
     def _push_roots(self) -> None:
         seg, budget = self.seg, self.budget
