@@ -128,8 +128,12 @@ def test_compare_trees_finds_a_tree_equal_to_itself(tmp_path):
     """The before/after bench on one tree against itself: every case gives the same answers."""
     src = ROOT / "src"
     subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "compare_trees.py"), "--quick"]
-        + ["--before", str(src), "--after", str(src), "--out", str(tmp_path)],
+        [
+            sys.executable,
+            str(ROOT / "bench" / "compare_trees.py"),
+            "--quick",
+            *("--before", str(src), "--after", str(src), "--out", str(tmp_path)),
+        ],
         check=True,
         capture_output=True,
     )
