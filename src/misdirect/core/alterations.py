@@ -15,6 +15,7 @@ from typing import NamedTuple, cast
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.model import Problem
 
 GROW_CHUNK = 8_000_000  # candidate extensions listed at once by altered_within (64 MB each)
@@ -94,7 +95,7 @@ class AlterationSpace:
         steps = []  # per choice: (row of the previous step each vector extends, its option)
         for i in range(len(self.choices)) if indices is None else indices:
             grown = costs[:, None] + np.asarray(self.choices[i].costs, dtype=np.float64)
-            keep_row, keep_option = np.nonzero(grown <= budget + 1e-9)
+            keep_row, keep_option = np.nonzero(grown <= budget + tolerance.BUDGET_SLACK)
             if limit is not None and keep_row.size > limit:
                 return None
             steps.append((keep_row, keep_option))
@@ -129,7 +130,7 @@ class AlterationSpace:
         choice, option, cost = [], [], []
         for j, i in enumerate(positions):
             costs = np.asarray(self.choices[i].costs, dtype=np.float64)
-            keep = np.flatnonzero(costs[1:] <= budget + 1e-9) + 1
+            keep = np.flatnonzero(costs[1:] <= budget + tolerance.BUDGET_SLACK) + 1
             if usable is not None:
                 keep = keep[usable[j, keep]] if usable.shape[1] else keep[:0]
             choice.append(np.full(keep.size, j, dtype=np.int64))
@@ -146,7 +147,9 @@ class AlterationSpace:
         while last.size:
             first = after[last]  # last = -1 (nothing altered yet): from the first candidate
             # only vectors that can still afford a later candidate grow
-            growing = np.flatnonzero(level_cost + cheapest_from[first] <= budget + 1e-9)
+            growing = np.flatnonzero(
+                level_cost + cheapest_from[first] <= budget + tolerance.BUDGET_SLACK
+            )
             counts = cand_cost.size - first[growing]
             parents, cands = [], []
             for chunk in _chunks(counts, GROW_CHUNK):  # candidates listed a chunk at a time
@@ -154,7 +157,7 @@ class AlterationSpace:
                 cand = np.repeat(first[growing[chunk]], counts[chunk]) + rank_in_group(
                     counts[chunk]
                 )
-                fits = level_cost[parent] + cand_cost[cand] <= budget + 1e-9
+                fits = level_cost[parent] + cand_cost[cand] <= budget + tolerance.BUDGET_SLACK
                 parents.append(parent[fits])
                 cands.append(cand[fits])
                 total += int(fits.sum())
@@ -204,7 +207,7 @@ class AlterationSpace:
             for cost_a, count_a in a.items():
                 for cost_b, count_b in b.items():
                     key = round(cost_a + cost_b, 9)
-                    if key <= budget + 1e-9:
+                    if key <= budget + tolerance.BUDGET_SLACK:
                         product[key] = min(product.get(key, 0) + count_a * count_b, cap)
             return product
 
@@ -216,7 +219,7 @@ class AlterationSpace:
         for costs, size in alike.items():
             one: dict[float, int] = {}  # one choice of the group: options per cost
             for c in costs:
-                if c <= budget + 1e-9:
+                if c <= budget + tolerance.BUDGET_SLACK:
                     one[c] = min(one.get(c, 0) + 1, cap)
             power = {0.0: 1}
             while size:
@@ -253,7 +256,9 @@ def alteration_space(problem: Problem) -> AlterationSpace:
     for o in problem.relevant_observations:
         o = int(o)
         costs = problem.cost.row(o)
-        allowed = np.flatnonzero(np.isfinite(costs) & (costs <= problem.budget + 1e-9))
+        allowed = np.flatnonzero(
+            np.isfinite(costs) & (costs <= problem.budget + tolerance.BUDGET_SLACK)
+        )
         # cheapest per class; ties go to the lowest index, and o itself (cost 0) wins its class
         order = allowed[np.lexsort((allowed, allowed != o, costs[allowed]))]
         _, first = np.unique(classes[order], return_index=True)

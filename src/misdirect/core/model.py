@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
+from misdirect.core import tolerance
 from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
 
@@ -225,8 +226,8 @@ class Controller:
         e_cell, e_action = np.divmod(rest, n_actions)
         n_cells = n_nodes * n_observations
         total = np.bincount(e_cell, weights=mass, minlength=n_cells)
-        if np.any(np.abs(total - 1.0) > 1e-9):
-            bad = int(np.flatnonzero(np.abs(total - 1.0) > 1e-9)[0])
+        if np.any(np.abs(total - 1.0) > tolerance.STOCHASTIC):
+            bad = int(np.flatnonzero(np.abs(total - 1.0) > tolerance.STOCHASTIC)[0])
             raise ProblemError(
                 f"node {nodes[bad // n_observations]!r}, observation {bad % n_observations}: "
                 f"the move's probabilities sum to {total[bad]:.12g}, not 1",
@@ -342,7 +343,7 @@ class Controller:
             by_next[n] = by_next.get(n, 0.0) + p
         if len(table) != len(by_action) * len(by_next):
             return None
-        if any(abs(p - by_action[a] * by_next[n]) > 1e-12 for a, n, p in table):
+        if any(abs(p - by_action[a] * by_next[n]) > tolerance.TIE for a, n, p in table):
             return None
         return by_action, by_next
 

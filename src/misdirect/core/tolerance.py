@@ -22,6 +22,9 @@ PRUNE = CERTIFY
 NEAR_TIE = CERTIFY
 """Values of low-rank updates this close count as equal: within the updates' rounding error."""
 
+STOCHASTIC = 1e-9
+"""A distribution (a model's row, a controller's move) sums to 1 within this."""
+
 TIE = 1e-12
 """Two exact values (or two costs) this close are the same number up to rounding."""
 

@@ -16,6 +16,7 @@ from fractions import Fraction
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.attack import prepare
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import Problem
@@ -93,7 +94,7 @@ def _budgeted_value(chain: ChoiceProduct, budget: float) -> tuple[float, float, 
             "of a common unit (e.g. 0.5); these are not, so it is not computed",
             field="budget",
         )
-    levels = math.floor(budget / unit + 1e-9) + 1
+    levels = math.floor(budget / unit + tolerance.BUDGET_SLACK) + 1
     if levels > MAX_BUDGET_LEVELS or levels * chain.n_states > MAX_BUDGETED_STATES:
         raise ProblemError(
             f"budget {budget:g} is {levels - 1:,} cost units of {unit:g}: too many budget "

@@ -27,6 +27,7 @@ from pydantic import (
     model_validator,
 )
 
+from misdirect.core import tolerance
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
@@ -44,7 +45,7 @@ from misdirect.io.storm import StormPomdp, load_storm_pomdp
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
-SUM_TOLERANCE = 1e-9
+SUM_TOLERANCE = tolerance.STOCHASTIC
 
 
 def _name(value: Any) -> Any:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.model import Pomdp
 from misdirect.errors import ProblemError
 from misdirect.io.paynt_model import PAYNT_NO_LABEL, PayntView, build_paynt_view, paynt_prism_text
@@ -54,7 +55,7 @@ __all__ = [
     "valuation_name",
 ]
 
-SUM_TOLERANCE = 1e-9
+SUM_TOLERANCE = tolerance.STOCHASTIC
 
 
 @dataclass(frozen=True)

@@ -158,7 +158,8 @@ class _Enumeration(_Stage):
     method = "incremental"
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
-        if not schedule.enumeration_fits(facts.count, deadline, limit=INCREMENTAL_LIMIT):
+        needed = self.estimate_s(facts)
+        if not schedule.enumeration_fits(facts.count, needed, deadline, limit=INCREMENTAL_LIMIT):
             return False
         if facts.cycling:
             facts.reasons.append(
@@ -168,7 +169,7 @@ class _Enumeration(_Stage):
         return True
 
     def estimate_s(self, facts: _Facts) -> float:
-        return facts.count * schedule.UPDATE_SECONDS
+        return schedule.enumeration_seconds(facts.count)
 
     def run(
         self,
@@ -188,10 +189,7 @@ class _Exhaustive(_Stage):
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
         if facts.count <= self.auto.enumeration_limit:
             return True
-        if (
-            facts.count > INCREMENTAL_LIMIT
-            or facts.count * facts.evaluation_s > ENUMERATION_SECONDS
-        ):
+        if facts.count > INCREMENTAL_LIMIT or self.estimate_s(facts) > ENUMERATION_SECONDS:
             return False
         facts.reasons.append(
             f"one evaluation is quick enough to try all within {ENUMERATION_SECONDS:g} s"
@@ -263,8 +261,9 @@ class _Search(_Stage):
                     f"a tiny chain ({facts.product_states:,} product states): no node limit"
                 )
                 self.max_nodes = UNLIMITED_NODES
+        enumerating = _Enumeration(self.auto).estimate_s(facts)
         search_s = schedule.search_before_enumerating(
-            facts.count, deadline, limit=INCREMENTAL_LIMIT
+            facts.count, enumerating, deadline, limit=INCREMENTAL_LIMIT
         )
         if search_s is not None and not facts.cycling:
             # the enumeration would likely finish, but not soon: the search goes first (it
@@ -372,17 +371,16 @@ class AutoSolver:
         enumeration = _Enumeration(self)
         if len(budgets) < 2 or facts.cycling:
             return None
-        if schedule.enumeration_fits(facts.count, deadline, limit=INCREMENTAL_LIMIT):
+
+        def fits(count: int) -> bool:
+            needed = schedule.enumeration_seconds(count)
+            return schedule.enumeration_fits(count, needed, deadline, limit=INCREMENTAL_LIMIT)
+
+        if fits(facts.count):
             return None
         space = facts.instance.space
         ordered = sorted(budgets)
-        small = [
-            b
-            for b in ordered
-            if schedule.enumeration_fits(
-                space.count_within(b, INCREMENTAL_LIMIT), deadline, limit=INCREMENTAL_LIMIT
-            )
-        ]
+        small = [b for b in ordered if fits(space.count_within(b, INCREMENTAL_LIMIT))]
         if not small:
             return None
         first = enumeration.run(facts.problem, small, deadline, progress, None)

@@ -26,24 +26,30 @@ SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound i
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, the per-state search gets this long first
 
 
-def enumeration_fits(count: int, deadline: Deadline, *, limit: int) -> bool:
-    """Whether auto enumerates ``count`` alterations (at most ``limit``) before anything else:
-    always up to ``INCREMENTAL_SURE``, else when they take at most ``ENUMERATION_FIRST`` of the
-    time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
+def enumeration_seconds(count: int) -> float:
+    """About how long the low-rank enumeration of ``count`` alterations takes."""
+    return count * UPDATE_SECONDS
+
+
+def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:
+    """Whether auto enumerates ``count`` alterations (at most ``limit``; about ``needed``
+    seconds) before anything else: always up to ``INCREMENTAL_SURE``, else when they take at
+    most ``ENUMERATION_FIRST`` of the time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
     left = deadline.remaining()
     first = UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
-    return count <= INCREMENTAL_SURE or (count <= limit and count * UPDATE_SECONDS <= first)
+    return count <= INCREMENTAL_SURE or (count <= limit and needed <= first)
 
 
-def search_before_enumerating(count: int, deadline: Deadline, *, limit: int) -> float | None:
-    """Seconds for the search before enumerating ``count`` alterations, or None if they are
-    not to be enumerated: within a limit, what the enumeration leaves of the time (if it
-    needs under ``ENUMERATION_RESERVE`` of it), at least ``SEARCH_FIRST`` of it; without one,
-    ``UNLIMITED_SEARCH`` of the enumeration's time, so a search that certifies at once saves
-    it, at worst costing that."""
+def search_before_enumerating(
+    count: int, needed: float, deadline: Deadline, *, limit: int
+) -> float | None:
+    """Seconds for the search before enumerating ``count`` alterations (about ``needed``
+    seconds), or None if they are not to be enumerated: within a limit, what the enumeration
+    leaves of the time (if it needs under ``ENUMERATION_RESERVE`` of it), at least
+    ``SEARCH_FIRST`` of it; without one, ``UNLIMITED_SEARCH`` of the enumeration's time, so a
+    search that certifies at once saves it, at worst costing that."""
     if count > limit:
         return None
-    needed = count * UPDATE_SECONDS
     left = deadline.remaining()
     if left is None:
         return UNLIMITED_SEARCH * needed

@@ -139,7 +139,7 @@ class SegmentLagrangian:
             if best[0] <= stop_below:
                 break
             lines.append((lam, h, slope))
-            if slope >= -1e-12:  # h grows from here: the minimum is at or left of λ
+            if slope >= -tolerance.TIE:  # h grows from here: the minimum is at or left of λ
                 hi_line = (lam, h, slope) if hi_line is None or lam < hi_line[0] else hi_line
             else:
                 lo_line = (lam, h, slope) if lo_line is None or lam > lo_line[0] else lo_line
@@ -157,7 +157,7 @@ class SegmentLagrangian:
             if not l1 < cross < l2:
                 break
             predicted = h1 + s1 * (cross - l1)
-            if best[0] - predicted <= 1e-12:
+            if best[0] - predicted <= tolerance.TIE:
                 break
             lam = cross
         self.evaluations += mdp.solver.evaluations

@@ -24,6 +24,7 @@ from typing import Any, Protocol, cast
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.core import tolerance
 from misdirect.errors import OptionError, ProblemError, SolverError
 from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.milp.model import MilpModel
@@ -56,7 +57,7 @@ HIGHS_GRACE_S = 1.0
 class SolverOptions:
     time_limit: float | None = None  # seconds per solve
     threads: int | None = None
-    mip_gap: float = 1e-9  # relative; the default asks for a proven optimum
+    mip_gap: float = tolerance.GAP  # relative; the default asks for a proven optimum
     verbose: bool = False
 
 
@@ -269,7 +270,7 @@ def _new_highs(options: SolverOptions, seed: int) -> Any:
     if options.threads is not None:
         highs.setOptionValue("threads", int(options.threads))
     highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
-    highs.setOptionValue("mip_abs_gap", min(1e-9, float(options.mip_gap)))
+    highs.setOptionValue("mip_abs_gap", min(tolerance.GAP, float(options.mip_gap)))
     highs.setOptionValue("random_seed", int(seed))
     highs.setOptionValue("presolve_rule_off", HIGHS_PRESOLVE_RULES_OFF)
     # HiGHS' default feasibility tolerances: at 1e-9 its dual simplex crashed sooner, and at an
