@@ -25,30 +25,23 @@ import subprocess
 import sys
 from pathlib import Path
 
-HARD = [
-    (20, 16, 8, 60.0),
-    (20, 32, 5, 60.0),
-    (20, 64, 5, 60.0),
-    (20, 128, 2, 60.0),
-    (40, 16, 8, 60.0),
-    (40, 32, 5, 60.0),
-    (40, 64, 5, 60.0),
-    (40, 128, 3, 60.0),
-    (40, 64, 5, 10.0),
-    (40, 128, 3, 10.0),
-    (40, 128, 3, None),
-    (40, 64, 5, None),
-]
-GRIDS = [(45, 7), (200, 4)]
-QUICK_HARD = [(10, 8, 2, 60.0)]
-QUICK_GRIDS = [(9, 4)]
+import hard_instances  # beside this file: the same cases as the benchmarks, listed once
+import speed
+
+
+def hard_cases(plan: dict, limit: float, short_limit: float) -> list[tuple]:
+    """(n, sensors, top budget, seed, time limit) of every auto run of the hard instances."""
+    cases = [(*case, limit) for case in plan["set"]]
+    cases += [(*case, short_limit) for case in (plan["h1"], plan["h2"])]
+    return cases + [(*case, None) for case in plan["unlimited"]]
+
 
 HARD_CASE = r"""
 import json, sys, time
 import misdirect
 from misdirect.scenarios import sensor_grid
-n, k, top, limit = json.loads(sys.argv[1])
-problem = sensor_grid(n, k, seed=0)
+n, k, top, seed, limit = json.loads(sys.argv[1])
+problem = sensor_grid(n, k, seed=seed)
 began = time.perf_counter()
 result = misdirect.solve(problem, budgets=range(top + 1), time_limit=limit)
 wall = time.perf_counter() - began
@@ -101,8 +94,11 @@ def _same(a: dict, b: dict) -> bool:
 
 def compare(before: Path, after: Path, quick: bool) -> list[dict]:
     rows = []
-    cases = [("hard", HARD_CASE, list(c)) for c in (QUICK_HARD if quick else HARD)]
-    cases += [("grid", GRID_CASE, list(c)) for c in (QUICK_GRIDS if quick else GRIDS)]
+    plan = hard_instances.QUICK if quick else hard_instances.FULL
+    hard = hard_cases(plan, 60.0, 10.0)[:1] if quick else hard_cases(plan, 60.0, 10.0)
+    grids = [speed.QUICK["g1"]] if quick else [speed.FULL["g1"], speed.FULL["g2"]]
+    cases = [("hard", HARD_CASE, list(c)) for c in hard]
+    cases += [("grid", GRID_CASE, list(c)) for c in grids]
     for index, (kind, code, case) in enumerate(cases):
         order = [("before", before), ("after", after)]
         if index % 2:
@@ -121,8 +117,8 @@ def markdown(rows: list[dict]) -> str:
     for row in rows:
         a, b = row["before"], row["after"]
         if row["kind"] == "hard":
-            n, k, top, limit = row["case"]
-            name = f"sensor_grid({n}, {k}) B0..{top}, limit {limit or 'none'}"
+            n, k, top, seed, limit = row["case"]
+            name = f"sensor_grid({n}, {k}, seed={seed}) B0..{top}, limit {limit or 'none'}"
             if "wall_s" in a and "wall_s" in b:
                 cells = [f"{a['wall_s']:.1f} s", f"{b['wall_s']:.1f} s"]
                 cells.append(f"{b['wall_s'] / a['wall_s']:.2f}")

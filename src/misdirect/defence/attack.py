@@ -17,8 +17,9 @@ import numpy as np
 
 from misdirect.core.alterations import alteration_space
 from misdirect.core.model import Problem
-from misdirect.errors import OptionError, ProblemError
+from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.options import check_time_limit
 from misdirect.solvers.run import BudgetResult, solve
 from misdirect.solvers.status import Status
 
@@ -72,10 +73,7 @@ def shared_deadline(
     """The wall-clock limit shared by every solve of one audit or hardening: ``seconds``
     from now, within the caller's ``deadline`` if given; cancelling ``cancel`` (default: the
     deadline's token) stops every one of its solves."""
-    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
-        raise OptionError(
-            f"must be a positive number of seconds, got {seconds}", parameter="time_limit"
-        )
+    check_time_limit(seconds)
     if deadline is None:
         return Deadline(seconds, cancel=cancel)
     return Deadline(seconds, cancel=cancel or deadline.cancel, end=deadline.end)

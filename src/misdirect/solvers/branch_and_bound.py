@@ -379,7 +379,7 @@ def _hill_climb(
             if gain <= 0:
                 break
             candidate = (*picks[:j], k, *picks[j + 1 :])
-            found = float(relax.evaluate(relax.policy_of(candidate))[chain.initial])
+            found = relax.value_of(candidate)
             if found > best[0] + tolerance.PRUNE:
                 best = (found, candidate)
         if best[1] is picks:

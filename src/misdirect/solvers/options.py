@@ -17,6 +17,14 @@ from misdirect.errors import OptionError
 MILP_OPTIONS = ("solver", "formulation", "mip_gap", "verbose")
 
 
+def check_time_limit(seconds: float | None) -> None:
+    """A time limit is a positive, finite number of seconds (or None: no limit)."""
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise OptionError(
+            f"must be a positive number of seconds, got {seconds}", parameter="time_limit"
+        )
+
+
 @dataclass(frozen=True)
 class SolveOptions:
     """The options of one solve; ``None`` means "the method's default"."""
@@ -29,11 +37,7 @@ class SolveOptions:
     verbose: bool | None = None  # MILP: the backend's log on stdout
 
     def __post_init__(self) -> None:
-        limit = self.time_limit
-        if limit is not None and not (math.isfinite(limit) and limit > 0):
-            raise OptionError(
-                f"must be a positive number of seconds, got {limit}", parameter="time_limit"
-            )
+        check_time_limit(self.time_limit)
         if self.threads is not None and self.threads < 1:
             raise OptionError(f"must be at least 1, got {self.threads}", parameter="threads")
         if self.mip_gap is not None and not self.mip_gap >= 0:

@@ -51,8 +51,7 @@ class Incumbent:
         """Exact value of a complete assignment (the chain of its groups, least fixed point),
         computed once per assignment."""
         if picks not in self._values:
-            relax = self.relax
-            self._values[picks] = float(relax.evaluate(relax.policy_of(picks))[relax.chain.initial])
+            self._values[picks] = self.relax.value_of(picks)
         return self._values[picks]
 
     def offer(self, picks: Picks, value: float) -> None:

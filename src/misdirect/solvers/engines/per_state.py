@@ -117,6 +117,10 @@ class PerStateRelaxation:
         allowed = self.allowed_groups(self.allowed_options(picks, 0.0))
         return self.best_groups(np.where(allowed, 0.0, -np.inf))[0]
 
+    def value_of(self, picks: Sequence[int]) -> float:
+        """Exact value at the start of the complete assignment ``picks`` (least fixed point)."""
+        return float(self.evaluate(self.policy_of(picks))[self.chain.initial])
+
     def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
         """The search's picks for ``alteration``, None if it takes a target outside the
         space (not the cheapest of its behaviour class)."""
