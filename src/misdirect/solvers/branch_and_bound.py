@@ -31,11 +31,11 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import Alteration, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
-from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
@@ -113,11 +113,8 @@ class BranchAndBoundSolver:
             instance,
             relax,
             policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
-            # the segment search backs a budget up on large chains without end components
-            # among the live states (its policy iteration needs none)
-            segment_backs_up=(
-                instance.chain.n_states >= SEGMENT_MIN_STATES and not instance.cycling.any()
-            ),
+            # the segment search backs a budget up on large chains
+            segment_backs_up=instance.chain.n_states >= SEGMENT_MIN_STATES,
         )
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
         answers: dict[int, Solution] = {}
@@ -284,16 +281,21 @@ class _Search(IncumbentSearch):
             if tick is not None and self.nodes % 64 == 0:
                 tick()
             node = self.stack.pop()
-            if not self.incumbent.prune(node.parent_bound):
-                self._expand(node)
+            if self.incumbent.prune(node.parent_bound):
+                continue
+            try:
+                self._expand(node, deadline)
+            except DeadlineExpiredError:  # cut inside its bound: open, with its parent's
+                self.stack.append(node)
+                return self._solution(Status.TIME_LIMIT)
         return self._solution(Status.OPTIMAL)
 
-    def _expand(self, node: _Node) -> None:
+    def _expand(self, node: _Node, deadline: Deadline | None) -> None:
         """Bound ``node``, round its policy to an incumbent, and push its children."""
         relax = self.relax
         self.nodes += 1
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
-        bound, _, policy = relax.optimise(allowed, node.policy.copy())
+        bound, _, policy = relax.optimise(allowed, node.policy.copy(), deadline)
         if self.root_bound is None:
             self.root_bound, self.root_policy = bound, policy
         level = len(node.picks)
@@ -355,28 +357,29 @@ def _hill_climb(
     for the pruning and for answers cut short by the time limit.
     """
     chain, live = relax.chain, relax.live
-    inner = np.flatnonzero(live)
-    if inner.size == 0 or not relax.order:
+    if not live.any() or not relax.order or not live[chain.initial]:
         return picks, value
-    position = np.full(chain.n_states, -1)
-    position[inner] = np.arange(inner.size)
     while deadline is None or not deadline.expired():
         policy = relax.policy_of(picks)
         values = relax.evaluate(policy)
-        block = chain.transitions[policy[inner]][:, inner].tocsc()
-        system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
-        if not live[chain.initial]:
+        moved = chain.transitions[policy]
+        # the live states that can still leave the live set: the rest sit in closed classes
+        # of this chain (it cycles there forever), where expected visits are infinite
+        leaving = reachable_from(moved.T.tocsr(), np.flatnonzero(~live)) & live
+        inner = np.flatnonzero(leaving)
+        if not leaving[chain.initial]:
             return picks, value
+        position = np.full(chain.n_states, -1)
+        position[inner] = np.arange(inner.size)
+        block = moved[inner][:, inner].tocsc()
+        system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
         start = np.zeros(inner.size)
         start[position[chain.initial]] = 1.0
-        try:
-            visits = spla.splu(system).solve(start)
-        except RuntimeError:  # singular: the chain cycles without reaching the decoy
-            return picks, value
+        visits = spla.splu(system).solve(start)
         moves = _ranked_moves(relax, picks, values, visits, inner, position, budget)
         best = (value, picks)
         for gain, j, k in moves[:tries]:
-            if gain <= 0:
+            if gain <= 0 or (deadline is not None and deadline.expired()):
                 break
             candidate = (*picks[:j], k, *picks[j + 1 :])
             found = relax.value_of(candidate)

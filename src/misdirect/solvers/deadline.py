@@ -34,6 +34,12 @@ class CancelToken:
         return f"CancelToken(cancelled={self.cancelled})"
 
 
+class DeadlineExpiredError(Exception):
+    """Raised by :meth:`Deadline.check` inside a computation whose partial result proves
+    nothing (a policy iteration cut between rounds): the caller that owns the deadline catches
+    it and reports what it had proven before."""
+
+
 class Deadline:
     """A wall-clock limit shared by every stage and budget of one ``solve`` call (or of one
     audit or hardening, whose solves share it), expired early when its token is cancelled."""
@@ -67,6 +73,12 @@ class Deadline:
 
     def expired(self) -> bool:
         return self.cancel.cancelled or (self.end is not None and time.perf_counter() >= self.end)
+
+    def check(self) -> None:
+        """Raise :class:`DeadlineExpiredError` once this deadline has passed or its token is
+        cancelled: for loops deep inside an engine that cannot hand back a partial answer."""
+        if self.expired():
+            raise DeadlineExpiredError
 
     def share(self, parts: int) -> float | None:
         """An even share of what is left for the next of ``parts`` pieces of work; what a

@@ -18,6 +18,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.errors import SolverError
+from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
@@ -79,7 +80,11 @@ class ExhaustiveSolver:
         # a budget is proven when every alteration it affords was evaluated
         complete = [finished or not tolerance.affordable(costs[done], b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too
-        bound = None if all(complete) else relaxation_bound(problem, top)
+        bound = (
+            None
+            if all(complete)
+            else relaxation_bound(problem, top, schedule.closing_bound(deadline))
+        )
         return [
             Solution(
                 b,

@@ -16,6 +16,7 @@ from misdirect.core import tolerance
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
+from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import (
@@ -69,7 +70,11 @@ class IncrementalSolver:
         )
         complete = [found.complete_for(b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too
-        relaxed = None if all(complete) else relaxation_bound(problem, top)
+        relaxed = (
+            None
+            if all(complete)
+            else relaxation_bound(problem, top, schedule.closing_bound(deadline))
+        )
         solutions = []
         for budget, index, finished in zip(
             budgets, found.best_within(budgets), complete, strict=True

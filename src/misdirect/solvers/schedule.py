@@ -94,3 +94,13 @@ def segment_has_time(deadline: Deadline) -> bool:
     """Whether enough is left to build the segment relaxation and search with it."""
     left = deadline.remaining()
     return left is None or left >= SEGMENT_MIN_SECONDS
+
+
+# -- closing bounds -------------------------------------------------------------------------------
+CLOSING_BOUND_SECONDS = 1.0  # a method cut short proves its bound within this much more time
+
+
+def closing_bound(deadline: Deadline) -> Deadline:
+    """The deadline of the bound a method proves once it is cut short (its own time is up):
+    ``CLOSING_BOUND_SECONDS`` more, and a cancellation still ends it at once."""
+    return Deadline(CLOSING_BOUND_SECONDS, cancel=deadline.cancel)

@@ -27,6 +27,7 @@ from misdirect.core.alterations import AlterationSpace
 from misdirect.core.attack import prepare
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import Alteration, Problem
+from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.policy_iteration import MaxReachability
 
 
@@ -86,14 +87,15 @@ class PerStateRelaxation:
         return self.mdp.evaluate(policy)
 
     def optimise(
-        self, allowed_groups: np.ndarray, policy: np.ndarray
+        self, allowed_groups: np.ndarray, policy: np.ndarray, deadline: Deadline | None = None
     ) -> tuple[float, np.ndarray, np.ndarray]:
-        """Maximal reachability of the relaxation (value at the start, values, policy)."""
+        """Maximal reachability of the relaxation (value at the start, values, policy); raises
+        :class:`DeadlineExpiredError` once ``deadline`` has passed."""
         penalty = np.where(allowed_groups, 0.0, -np.inf)
         if not allowed_groups[policy].all():  # the parent's choice is no longer allowed here
             fallback, _ = self.best_groups(penalty + self.live_groups)
             policy = np.where(allowed_groups[policy], policy, fallback)
-        values, policy = self.mdp.optimise(policy, penalty)
+        values, policy = self.mdp.optimise(policy, penalty, deadline=deadline)
         return float(values[self.chain.initial]), values, policy
 
     def ranked(self, i: int, remaining: float, usage: np.ndarray) -> np.ndarray:
@@ -138,10 +140,14 @@ class PerStateRelaxation:
         return float(sum(self.option_cost[self.first_option[i] + k] for i, k in pairs))
 
 
-def relaxation_bound(problem: Problem, budget: float) -> float:
-    """Root bound of the search: the relaxation's optimum with every observation free."""
+def relaxation_bound(problem: Problem, budget: float, deadline: Deadline | None = None) -> float:
+    """Root bound of the search: the relaxation's optimum with every observation free; the
+    objective's largest value (the trivial bound) if ``deadline`` passes first."""
     instance = prepare(problem, budget)
     relax = PerStateRelaxation(problem, instance.space, instance.chain)
     allowed = relax.allowed_groups(relax.allowed_options((), budget))
     start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
-    return relax.optimise(allowed, start)[0]
+    try:
+        return relax.optimise(allowed, start, deadline)[0]
+    except DeadlineExpiredError:
+        return float(problem.objective.max_value)

@@ -27,6 +27,7 @@ from misdirect.core import tolerance
 from misdirect.core.model import reachable_from
 from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import SolverError
+from misdirect.solvers.deadline import Deadline
 
 LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
 # solved by Woodbury from that factorisation (a few solves instead of a new LU)
@@ -99,11 +100,16 @@ class MaxReachability:
         policy: np.ndarray,
         penalty: np.ndarray | float = 0.0,
         max_rounds: int | None = None,
+        deadline: Deadline | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(optimal values, an optimal policy) from ``policy``, among the choices whose
-        ``penalty`` is 0 (``-inf``: not allowed; ``policy`` must be allowed)."""
+        ``penalty`` is 0 (``-inf``: not allowed; ``policy`` must be allowed). Checks
+        ``deadline`` before every round (one linear solve each) and raises
+        :class:`DeadlineExpiredError` once it has passed."""
         rounds = 0
         while True:
+            if deadline is not None:
+                deadline.check()
             values = self.evaluate(policy)
             score = self.transitions @ values + penalty
             best, best_score = self.best_choices(score)
@@ -140,12 +146,35 @@ class UpdatedLU:
 
 
 class TransientPolicyIteration:
-    """Max expected total reward of a transient MDP given by rows (choices)."""
+    """Max expected total reward of an MDP given by rows (choices), over its *proper* policies
+    (those that leave its states with probability 1).
 
-    def __init__(self, row_state: np.ndarray, matrix: sp.csr_matrix, n_states: int):
+    Without ``stop_row`` every policy must be proper (no end components). With it, the states
+    of end components have a stop row (no transitions, reward 0), and every policy iteration
+    starts from a proper policy (:meth:`proper`). A strict improvement then never closes a
+    cycle: in a class closed under the new policy, its stationary distribution weighs the
+    gains of the switched states against rewards that are at most 0 (a row that keeps its
+    mass inside cannot reach the target, and charges are costs), so no state of it switched
+    and it was closed under the old, proper policy already. Every factorisation is then of a
+    non-singular ``I − P``, and the optimum over proper policies is found: with stop rows it
+    is the optimum over all schedulers (cycling forever is worth no more than stopping).
+    """
+
+    def __init__(
+        self,
+        row_state: np.ndarray,
+        matrix: sp.csr_matrix,
+        n_states: int,
+        *,
+        leaks: np.ndarray | None = None,
+        stop_row: np.ndarray | None = None,
+    ):
+        """``leaks``: per row, whether some of its mass leaves the states (needed with
+        ``stop_row``: per state, its stop row or -1)."""
         self.row_state = row_state
         self.matrix = matrix
         self.n_states = n_states
+        self.leaks, self.stop_row = leaks, stop_row
         order = np.lexsort((np.arange(row_state.size), row_state))
         self.sorted_rows = order
         ordered = row_state[order]
@@ -159,6 +188,26 @@ class TransientPolicyIteration:
 
     def first_rows(self) -> np.ndarray:
         return self.sorted_rows[self.state_start]
+
+    def proper(self, policy: np.ndarray) -> np.ndarray:
+        """``policy`` with every state that cannot leave under it switched to its stop row:
+        those states lie in closed classes, which only end components hold."""
+        if self.stop_row is None:
+            return policy
+        assert self.leaks is not None
+        moves = self.matrix[policy]
+        leaving = reachable_from(moves.T.tocsr(), np.flatnonzero(self.leaks[policy]))
+        if leaving.all():
+            return policy
+        stuck = ~leaving & (self.stop_row >= 0)
+        policy = np.where(stuck, self.stop_row, policy)
+        if not (leaving | stuck).all():  # an entry into a stopping state leaves through it
+            again = reachable_from(
+                self.matrix[policy].T.tocsr(), np.flatnonzero(self.leaks[policy])
+            )
+            if not again.all():
+                raise AssertionError("a closed class without a stop row: not an end component")
+        return policy
 
     def factorise(self, policy: np.ndarray) -> SuperLU:
         """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves
@@ -185,16 +234,19 @@ class TransientPolicyIteration:
         *,
         start: int | None = None,
         enough: float = np.inf,
+        deadline: Deadline | None = None,
     ) -> tuple[np.ndarray, np.ndarray, LinearSolver, bool]:
         """(values, policy, its factorisation, whether optimal), from ``policy`` (default:
         first rows). Stops early at a policy worth more than ``enough`` at ``start``: the
-        optimum is above it too (each improvement only raises the values)."""
-        if policy is None:
-            policy = self.first_rows()
+        optimum is above it too (each improvement only raises the values). Raises
+        :class:`DeadlineExpiredError` once ``deadline`` has passed."""
+        policy = self.proper(self.first_rows() if policy is None else policy)
         lu: LinearSolver | None
         lu = base = self.factorise(policy)
         base_policy = policy
         while True:
+            if deadline is not None:
+                deadline.check()
             values = lu.solve(reward[policy])
             if start is not None and values[start] > enough:
                 return values, policy, lu, False

@@ -71,10 +71,18 @@ class LagrangeResult:
 class SegmentLagrangian:
     """The Lagrangian bound for the nodes of one branch-and-bound search (one choice product)."""
 
-    def __init__(self, chain: ChoiceProduct, state_obs: np.ndarray, live: np.ndarray):
+    def __init__(
+        self,
+        chain: ChoiceProduct,
+        state_obs: np.ndarray,
+        live: np.ndarray,
+        cycling: np.ndarray | None = None,
+    ):
         self.chain = chain
         self.state_obs = state_obs
         self.live = live
+        # live states in some end component of the choice product: their copies may stop
+        self.cycling = np.zeros(chain.n_states, dtype=bool) if cycling is None else cycling
         self.live_index = np.full(chain.n_states, -1)
         self.live_states = np.flatnonzero(live)
         self.live_index[self.live_states] = np.arange(self.live_states.size)
@@ -101,6 +109,7 @@ class SegmentLagrangian:
         max_multipliers: int = 12,
         policy: np.ndarray | None = None,
         known_bound: float = np.inf,
+        deadline: Deadline | None = None,
     ) -> tuple[LagrangeResult, np.ndarray | None, LinearSolver | None]:
         """(result, policy at the best multiplier, its factorisation) of the Lagrangian on a
         built segment MDP; policy iteration starts from ``policy`` (a parent's, say).
@@ -127,7 +136,11 @@ class SegmentLagrangian:
         for _ in range(max_multipliers):
             reward = mdp.reward_const - lam * mdp.charge
             values, policy, lu, optimal = mdp.solver.optimise(
-                reward, policy, start=start, enough=stop_below if cut else np.inf
+                reward,
+                policy,
+                start=start,
+                enough=stop_below if cut else np.inf,
+                deadline=deadline,
             )
             g = float(values[start]) if optimal else float(known_bound)
             k = float(lu.solve(mdp.charge[policy])[start]) if positive.size else 0.0
@@ -255,11 +268,33 @@ class SegmentMdp:
             [np.zeros(n_moving + free_states.size), charge[layer_of] if layers else []]
         )
         row_state = np.concatenate([np.arange(n_live), copy_index, entry_source]).astype(np.int64)
-        self.solver = TransientPolicyIteration(row_state, self.matrix, n)
+        # rows whose run leaves the live states (to the decoy or where it cannot be reached)
+        leaks = np.bincount(coo.row[~keep], minlength=self.matrix.shape[0]) > 0
+        # stop rows: every copy of a state in an end component may give the run up (value 0,
+        # nothing charged), after the rows above, so no policy needs to cycle forever
+        cycling = owner.cycling
+        stopping = np.concatenate(
+            [live_index[live_states[cycling[live_states]]], copy_index[cycling[layer_states]]]
+        ).astype(np.int64)
+        stop_row = None
+        if stopping.size:
+            n_rows = self.matrix.shape[0]
+            self.matrix = sp.vstack([self.matrix, sp.csr_matrix((stopping.size, n))], format="csr")
+            self.reward_const = np.concatenate([self.reward_const, np.zeros(stopping.size)])
+            self.charge = np.concatenate([self.charge, np.zeros(stopping.size)])
+            row_state = np.concatenate([row_state, stopping])
+            leaks = np.concatenate([leaks, np.ones(stopping.size, dtype=bool)])
+            stop_row = np.full(n, -1, dtype=np.int64)
+            stop_row[stopping] = n_rows + np.arange(stopping.size)
+        self.solver = TransientPolicyIteration(
+            row_state, self.matrix, n, leaks=leaks, stop_row=stop_row
+        )
         self.layer_of_row = np.full(self.matrix.shape[0], -1)
-        self.layer_of_row[n_moving + free_states.size :] = layer_of
+        self.layer_of_row[n_moving + free_states.size : n_moving + n_entries] = layer_of
         self.entry_obs = np.full(n, -1)
         self.entry_obs[entry_index[free_states]] = state_obs[free_states]
+        self.entry_cycling = np.zeros(n, dtype=bool)  # entries into an end component
+        self.entry_cycling[entry_index[free_states]] = cycling[free_states]
         self.free_states, self.entry_index = free_states, entry_index
         self.keys = np.arange(len(layers)) if keys is None else np.asarray(keys, dtype=np.int64)
         self.rank = rank
@@ -298,9 +333,10 @@ class SegmentMdp:
         chosen = layer >= 0
         return np.bincount(layer[chosen], weights=visits[chosen], minlength=n_layers)
 
-    def entries(self, observations: Sequence[int]) -> np.ndarray:
+    def entries(self, observations: Sequence[int], deadline: Deadline | None = None) -> np.ndarray:
         """Per observation: the maximal expected number of entries into its live region over
-        the schedulers of this MDP (every alteration of the node is one), from the start."""
+        the schedulers of this MDP (every alteration of the node is one), from the start;
+        infinite where an end component holds an entry (a run may enter it again and again)."""
         coo = self.matrix.tocoo()
         into = self.entry_obs[coo.col]
         result = np.zeros(len(observations))
@@ -309,6 +345,9 @@ class SegmentMdp:
         policy = None
         for j, o in enumerate(observations):
             hit = into == o
+            if self.entry_cycling[coo.col[hit]].any():
+                result[j] = np.inf
+                continue
             reward = np.bincount(
                 coo.row[hit], weights=coo.data[hit], minlength=self.matrix.shape[0]
             )
@@ -316,7 +355,7 @@ class SegmentMdp:
             if not reward.any():
                 result[j] = first
                 continue
-            values, policy, _, _ = self.solver.optimise(reward, policy)
+            values, policy, _, _ = self.solver.optimise(reward, policy, deadline=deadline)
             result[j] = values[self.start] + first
         return result
 
@@ -333,7 +372,7 @@ class SegmentRelaxation:
         self.bases = BasisCache()  # their base chains, solved once
         self.threads = thread_count(threads)  # the enumeration's
         self.state_obs = problem.pomdp.observation_of[chain.world_state]
-        self.bound = SegmentLagrangian(chain, self.state_obs, relax.live)
+        self.bound = SegmentLagrangian(chain, self.state_obs, relax.live, instance.cycling)
         self.order = relax.order  # observations (choice indices) that own live states
         self.entries: dict[int, float] | None = None  # M_o, per choice index
         live = relax.live
@@ -401,8 +440,9 @@ class SegmentRelaxation:
                 found.append((i, k, groups))
         return found
 
-    def compute_entries(self, remaining: float) -> None:
-        """M_o for every observation, at the root (valid for every node below it)."""
+    def compute_entries(self, remaining: float, deadline: Deadline | None = None) -> None:
+        """M_o for every observation, at the root (valid for every node below it); raises
+        :class:`DeadlineExpiredError` if ``deadline`` passes first."""
         layers = self.layers_of({}, remaining)
         default_group = self.relax.policy_of(self.complete({}))
         mdp = SegmentMdp(
@@ -412,7 +452,7 @@ class SegmentRelaxation:
             [1.0] * len(layers),
         )
         observations = sorted({i for i, _, _ in layers})
-        values = mdp.entries([self.space.choices[i].observation for i in observations])
+        values = mdp.entries([self.space.choices[i].observation for i in observations], deadline)
         self.entries = dict(zip(observations, values.tolist(), strict=True))
         self.bound.evaluations += mdp.solver.evaluations
 
@@ -423,10 +463,12 @@ class SegmentRelaxation:
         stop_below: float,
         warm: dict[int, np.ndarray] | None = None,
         known_bound: float = np.inf,
+        deadline: Deadline | None = None,
     ) -> tuple[LagrangeResult, np.ndarray, list[Layer], dict[int, np.ndarray] | None]:
         """(bound, per layer usage, layers, entry choices) of the node; its policy iteration
         starts from ``warm``, the entry choices of another node (its parent's, say), and
-        stops once the node cannot be pruned when ``known_bound`` (its parent's) is finite."""
+        stops once the node cannot be pruned when ``known_bound`` (its parent's) is finite.
+        Raises :class:`DeadlineExpiredError` if ``deadline`` passes first."""
         layers = self.layers_of(picks, remaining)
         default_group = self.relax.policy_of(self.complete(picks))
         if self.entries is None:
@@ -451,6 +493,7 @@ class SegmentRelaxation:
             stop_below=stop_below,
             policy=mdp.policy_from(warm),
             known_bound=known_bound,
+            deadline=deadline,
         )
         usage = np.zeros(len(layers))
         choices = None
@@ -465,8 +508,6 @@ def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | N
     """The segment relaxation of ``problem`` for budgets up to ``budget``; None when the choice
     product has an end component among its live states (policy iteration needs none)."""
     instance = prepare(problem, budget)
-    if instance.cycling.any():
-        return None
     relax = PerStateRelaxation(problem, instance.space, instance.chain)
     return SegmentRelaxation(instance, relax)
 

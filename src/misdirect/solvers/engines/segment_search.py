@@ -31,7 +31,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from misdirect.core import tolerance
-from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.segment_relaxation import Layer, SegmentRelaxation
 from misdirect.solvers.status import Status
@@ -204,7 +204,7 @@ class SegmentSearch(IncumbentSearch):
                         self._do_enumerate(entry, deadline)
                     else:
                         assert entry is not None
-                        self._do_node(entry)
+                        self._do_node(entry, deadline)
                 finally:
                     with self._lock:
                         self._in_flight.pop(entry.token if entry else -1, None)
@@ -289,16 +289,23 @@ class SegmentSearch(IncumbentSearch):
             if exact is not None:
                 self.incumbent.offer(found[1], exact)
 
-    def _do_node(self, entry: _Open) -> None:
+    def _do_node(self, entry: _Open, deadline: Deadline) -> None:
         seg = self.seg
         began = time.perf_counter()
-        result, usage, layers, entry_choices = seg.node(
-            entry.picks,
-            entry.remaining,
-            self.best_value + tolerance.PRUNE,
-            entry.warm,
-            known_bound=entry.bound,
-        )
+        try:
+            result, usage, layers, entry_choices = seg.node(
+                entry.picks,
+                entry.remaining,
+                self.best_value + tolerance.PRUNE,
+                entry.warm,
+                known_bound=entry.bound,
+                deadline=deadline,
+            )
+        except DeadlineExpiredError:  # cut inside its bound: open, with its parent's
+            with self._lock:
+                self._push(entry.picks, entry.remaining, entry.bound, entry.bounded, entry.warm)
+                self._status = self._status or Status.TIME_LIMIT
+            return
         # both proven: the node's own and the one it was pushed with (its parent's)
         bound = min(float(result.bound), entry.bound, seg.problem.objective.max_value)
         rounded = self._round(entry, usage, layers)

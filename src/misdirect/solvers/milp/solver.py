@@ -137,12 +137,12 @@ class MilpSolver:
                 time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
                 cancel=deadline.cancel,
             )
-            solutions.append(self._solution(curve, backend.name, budget, result))
+            solutions.append(self._solution(curve, backend.name, budget, result, deadline))
             report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
 
     def _solution(
-        self, curve: _Curve, backend: str, budget: float, result: BackendResult
+        self, curve: _Curve, backend: str, budget: float, result: BackendResult, deadline: Deadline
     ) -> Solution:
         """One budget's answer from the backend's result: its alteration, the claim for it,
         how the backend stopped, and a proven bound where there is one."""
@@ -174,7 +174,7 @@ class MilpSolver:
         )
         if upper_bound is None and model.sound and status != Status.OPTIMAL:
             # stopped before the solver had a bound: the per-state relaxation's is proven
-            upper_bound = curve.relaxed_bound()
+            upper_bound = curve.relaxed_bound(schedule.closing_bound(deadline))
         stats = MilpStats(
             model=model.stats(),
             solver=backend,
@@ -207,11 +207,11 @@ class _Curve:
     start: tuple[Any, Any]
     relaxed: float | None = None
 
-    def relaxed_bound(self) -> float:
+    def relaxed_bound(self, deadline: Deadline) -> float:
         """The per-state relaxation at the largest budget (it bounds every smaller one),
-        computed once."""
+        computed once (the trivial bound if ``deadline`` passes first)."""
         if self.relaxed is None:
-            self.relaxed = relaxation_bound(self.problem, max(self.budgets))
+            self.relaxed = relaxation_bound(self.problem, max(self.budgets), deadline)
         return self.relaxed
 
 
