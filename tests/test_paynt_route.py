@@ -355,3 +355,80 @@ def test_controller_of_another_model_is_one_clear_error(tmp_path):
     result = runner.invoke(app, ["evaluate", str(path)])
     assert result.exit_code == 2, result.output
     assert result.stderr.count("\n") == 1 and "robot.fsc.json" in result.stderr
+
+
+# A DRN POMDP whose observation ids have gaps (1, 4, 5, 7: no 0), as hallway's do. From s0
+# (obs 1), `right` goes to s2, `left` to s1 or s2 (1/2 each); s1 and s2 both read obs 4, from
+# which `left`/`right` reach goal (s3, obs 5) or bad (s4, obs 7).
+GAPPED_DRN = """@type: POMDP
+@parameters
+
+@reward_models
+
+@nr_states
+5
+@nr_choices
+8
+@model
+state 0 {1} init
+\taction left
+\t\t1 : 0.5
+\t\t2 : 0.5
+\taction right
+\t\t2 : 1
+state 1 {4}
+\taction left
+\t\t3 : 0.8
+\t\t4 : 0.2
+\taction right
+\t\t3 : 0.3
+\t\t4 : 0.7
+state 2 {4}
+\taction left
+\t\t3 : 0.4
+\t\t4 : 0.6
+\taction right
+\t\t3 : 0.9
+\t\t4 : 0.1
+state 3 {5} goal
+\taction left
+\t\t3 : 1
+state 4 {7} bad
+\taction left
+\t\t4 : 1
+"""
+
+
+def test_drn_with_gaps_in_its_observation_ids(tmp_path):
+    """PAYNT's controller of a DRN model numbered 1, 4, 5, 7 has a column per id 0..7 (null
+    where no state reads it) and loads as written. By hand, with one memory node the only
+    controller reaching the goal with 0.9 plays `right` at obs 1 and at obs 4 (`left` at
+    obs 1 gives 1/2 (0.8 or 0.3) + 1/2 (0.4 or 0.9) = 0.6 at most): Pr(bad) = 0.1. With one
+    sensor altered: obs4 -> obs5 (or obs7), where the controller plays `left`: s2 reaches bad
+    with 0.6; obs1 -> obs5: 1/2 0.7 + 1/2 0.1 = 0.4; so the budget-1 optimum is 0.6."""
+    (tmp_path / "gap.drn").write_text(GAPPED_DRN)
+    (tmp_path / "sketch.props").write_text('Pmax=? [F "goal"]\n')
+    paynt.utils.timer.GlobalTimer.start(20)
+    factory, task = paynt.parser.sketch.Sketch.load_sketch(
+        str(tmp_path / "gap.drn"), str(tmp_path / "sketch.props"), task_kwargs={"memory_size": 1}
+    )
+    synthesizer = paynt.api.get_synthesizer(factory, task, "ar", fsc_synthesis=True)
+    synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
+    result = synthesizer.build_result()
+    assert float(result.value) == pytest.approx(0.9, abs=PAYNT_TOLERANCE)
+    (tmp_path / "robot.fsc.json").write_text(str(result.fsc))  # as PAYNT writes it
+    fsc = json.loads((tmp_path / "robot.fsc.json").read_text())
+    assert fsc["num_observations"] == 8 and fsc["action_function"][0][0] is None
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": {"drn": "gap.drn"},
+        "controller": {"paynt": "robot.fsc.json"},
+        "deception": {"decoy": {"label": "bad"}, "budget": 1},
+    }
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
+    problem = load_problem(tmp_path / "p.yaml")
+    # an id no state emits is no observation of the model
+    assert problem.pomdp.observations == ("obs1", "obs4", "obs5", "obs7")
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(0.1, abs=1e-12)
+    best = solve(problem, budgets=[0, 1])
+    assert [p.probability for p in best.curve] == pytest.approx([0.1, 0.6], abs=1e-12)
