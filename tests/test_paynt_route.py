@@ -432,3 +432,35 @@ def test_drn_with_gaps_in_its_observation_ids(tmp_path):
     assert decoy_probability(problem, problem.identity()) == pytest.approx(0.1, abs=1e-12)
     best = solve(problem, budgets=[0, 1])
     assert [p.probability for p in best.curve] == pytest.approx([0.1, 0.6], abs=1e-12)
+
+
+def test_cli_synthesize_reads_drn(tmp_path):
+    """`controller synthesize` on a DRN model, as PAYNT reads it: the gapped model above, whose
+    best one-node controller reaches the goal with 0.9 (by hand, see above)."""
+    (tmp_path / "gap.drn").write_text(GAPPED_DRN)
+    output = tmp_path / "robot.fsc.json"
+    args = ["controller", "synthesize", str(tmp_path / "gap.drn"), "-o", str(output)]
+    result = runner.invoke(app, [*args, "--props", 'Pmax=? [F "goal"]', "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["value"] == pytest.approx(0.9, abs=PAYNT_TOLERANCE)
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": {"drn": "gap.drn"},
+        "controller": {"paynt": "robot.fsc.json"},
+        "deception": {"decoy": {"label": "goal"}, "budget": 1},
+    }
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
+    problem = load_problem(tmp_path / "p.yaml")
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(0.9, abs=1e-12)
+    # what is wrong with a DRN model or its property: one line
+    (tmp_path / "bad.drn").write_text("@type: POMDP\n@nr_states\nx\n")
+    for model, extra, words in [
+        ("bad.drn", ["--props", 'Pmax=? [F "goal"]'], "Storm cannot read it"),
+        ("gap.drn", ["--props", 'Pmax=? [F "nowhere"]'], "'nowhere'"),
+        ("gap.drn", ["--props", 'Pmax=? [F "goal"]', "--constants", "N=2"], "--constants"),
+    ]:
+        args = ["controller", "synthesize", str(tmp_path / model), "-o", str(output), *extra]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2, result.output
+        assert result.stderr.count("\n") == 1 and words in result.stderr, result.stderr

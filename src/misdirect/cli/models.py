@@ -126,7 +126,7 @@ def scenario_random(
 
 
 def controller_synthesize(
-    model: Annotated[Path, typer.Argument(help="PRISM POMDP (the robot's world).")],
+    model: Annotated[Path, typer.Argument(help="PRISM or DRN POMDP (the robot's world).")],
     output: Annotated[
         Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write (PAYNT's own JSON).")
     ],

@@ -1,6 +1,6 @@
 """The robot's controller from PAYNT (``misdirect[paynt]``), through PAYNT's Python API.
 
-PAYNT 0.5 reads a PRISM program and a properties file from disk
+PAYNT 0.5 reads a PRISM program (or a DRN file) and a properties file from disk
 (``paynt.parser.sketch.Sketch.load_sketch``) and synthesizes a finite-state controller with
 a given number of memory nodes (``paynt.pomdp.PomdpSynthesizer``, abstraction refinement).
 We run it for one memory size, within a time limit, and keep PAYNT's own JSON of the
@@ -11,6 +11,7 @@ exactly what PAYNT writes.
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import math
 import os
@@ -80,21 +81,28 @@ def _with_constants(text: str, constants: str | None) -> str:
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
-    """PAYNT logs through ``logging`` and prints, and Storm writes to the process's file
-    descriptors: none of it may reach our standard output (``--json`` prints one object)."""
+    """PAYNT logs through ``logging`` and prints, and Storm's parsers write to the process's
+    file descriptors (PAYNT tries several on a DRN file): none of it may reach our output
+    (``--json`` prints one object, an error is one line)."""
     logger = logging.getLogger("paynt")
     level = logger.level
     logger.setLevel(logging.ERROR)
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    sink = os.open(os.devnull, os.O_WRONLY)
     try:
-        os.dup2(2, 1)
-        with contextlib.redirect_stdout(sys.stderr):
+        os.dup2(sink, 1)
+        os.dup2(sink, 2)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             yield
     finally:
         sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
+        sys.stderr.flush()
+        for fd, copy in zip((1, 2), saved, strict=True):
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(sink)
         logger.setLevel(level)
 
 
@@ -106,23 +114,31 @@ def synthesize(
     memory: int = 1,
     timeout: float = 60.0,
 ) -> Synthesis:
-    """Run PAYNT on a PRISM POMDP for one property and ``memory`` nodes per observation."""
+    """Run PAYNT on a POMDP (a PRISM program or a DRN file, as PAYNT reads both) for one
+    property and ``memory`` nodes per observation."""
     paynt = _paynt()
     import stormpy
 
     check_input_file(model, field="MODEL")
-    text = _with_constants(paynt_prism_text(read_text_file(model, field="MODEL")), constants)
+    text = read_text_file(model, field="MODEL")
+    drn = is_drn(text)
+    if drn and constants:
+        raise ProblemError("a DRN model has no constants to set", field="--constants")
+    if not drn:
+        text = _with_constants(paynt_prism_text(text), constants)
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         sketch, props = Path(folder) / model.name, Path(folder) / "sketch.props"
         sketch.write_text(text, encoding="utf-8")
         props.write_text(prop.strip() + "\n", encoding="utf-8")
-        try:
-            program = stormpy.parse_prism_program(str(sketch), prism_compatibility=True)
-        except Exception as error:
-            raise ProblemError(
-                f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
-            ) from None
+        program = None
+        if not drn:
+            try:
+                program = stormpy.parse_prism_program(str(sketch), prism_compatibility=True)
+            except Exception as error:
+                raise ProblemError(
+                    f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
+                ) from None
         _check_property(stormpy, program, prop)
         started = time.monotonic()
         try:
@@ -135,6 +151,9 @@ def synthesize(
                 synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
                 result = synthesizer.build_result()
         except (AssertionError, ValueError, RuntimeError, SyntaxError) as error:
+            if drn:  # PAYNT only says it knows no such format: Storm says what is wrong
+                with _quiet():
+                    _check_drn(stormpy, sketch, model)
             reason = " ".join(str(error).split()) or type(error).__name__
             raise ProblemError(
                 f"PAYNT cannot synthesize for it: {reason}", source=str(model)
@@ -150,9 +169,29 @@ def synthesize(
     return Synthesis(result.fsc.to_json(), value, prop.strip(), memory, seconds)
 
 
+def is_drn(text: str) -> bool:
+    """Whether a model file is Storm's explicit DRN format (its header has ``@type:``; Storm's
+    export starts with ``//`` comments) rather than a PRISM program."""
+    for line in text.splitlines():
+        if line.strip() and not line.lstrip().startswith("//"):
+            return line.lstrip().startswith("@type:")
+    return False
+
+
+def _check_drn(stormpy, sketch: Path, model: Path) -> None:
+    """Storm's reason a DRN file cannot be read, if it cannot."""
+    try:
+        stormpy.build_model_from_drn(str(sketch))
+    except Exception as error:
+        raise ProblemError(
+            f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
+        ) from None
+
+
 def _check_property(stormpy, program, prop: str) -> None:
     """One optimizing property (``Pmax=? [F "goal"]``), as PAYNT needs for a controller's value."""
     try:
+        # a DRN model has no program: its labels are checked when PAYNT reads the model
         properties = stormpy.parse_properties(prop, program)
     except Exception as error:
         message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))
