@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -464,3 +465,39 @@ def test_cli_synthesize_reads_drn(tmp_path):
         result = runner.invoke(app, args)
         assert result.exit_code == 2, result.output
         assert result.stderr.count("\n") == 1 and words in result.stderr, result.stderr
+
+
+def test_cli_synthesize_says_why_no_controller(tmp_path, monkeypatch):
+    """Two different failures, two messages. The goal of this model is unreachable, so every
+    controller collects the step reward forever: PAYNT finishes its search with no controller
+    of finite value (not "within the time limit"). And a build that outlives --timeout (a
+    stand-in that never ends, as Storm's build of a large model) is stopped at the limit."""
+    (tmp_path / "loop.drn").write_text(
+        "@type: POMDP\n@parameters\n\n@reward_models\nsteps\n@nr_states\n3\n@nr_choices\n4\n"
+        "@model\nstate 0 {0} init\n\taction a [1]\n\t\t1 : 1\n\taction b [1]\n\t\t0 : 0.5\n"
+        "\t\t1 : 0.5\nstate 1 {1}\n\taction a [1]\n\t\t1 : 1\nstate 2 {2} goal\n"
+        "\taction a [0]\n\t\t2 : 1\n"
+    )
+    args = ["controller", "synthesize", str(tmp_path / "loop.drn"), "-o", str(tmp_path / "x")]
+    result = runner.invoke(app, [*args, "--props", 'R{"steps"}min=? [F "goal"]'])
+    assert result.exit_code == 1, result.output
+    assert "finite value" in result.stderr and "within" not in result.stderr, result.stderr
+
+    import misdirect.io.paynt_synthesis as synthesis
+
+    def endless_build(job, built):
+        time.sleep(3600)
+
+    def endless_search(job, built):
+        built()
+        time.sleep(3600)
+
+    for stand_in, words in [
+        (endless_build, "still building the model"),
+        (endless_search, "was stopped at the time limit"),
+    ]:
+        monkeypatch.setattr(synthesis, "_search", stand_in)
+        result = runner.invoke(app, [*args, "--props", 'Pmax=? [F "goal"]', "--timeout", "1"])
+        assert result.exit_code == 1, result.output
+        assert "no controller with 1 memory node(s) within 1 s" in result.stderr
+        assert words in result.stderr, result.stderr

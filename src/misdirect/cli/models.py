@@ -137,7 +137,9 @@ def controller_synthesize(
         str | None, typer.Option(help='Undefined PRISM constants, e.g. "N=5,p=0.1".')
     ] = None,
     memory: Annotated[int, typer.Option(help="Memory nodes per observation.")] = 1,
-    timeout: Annotated[float, typer.Option(help="Time limit for PAYNT (s).")] = 60.0,
+    timeout: Annotated[
+        float, typer.Option(help="Time limit (s) of the whole command, model build included.")
+    ] = 60.0,
     as_json: JsonOption = False,
 ) -> None:
     """Synthesize the robot's controller with PAYNT and write PAYNT's JSON of it
