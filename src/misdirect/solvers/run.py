@@ -234,11 +234,12 @@ def solve(
         )
         warnings += check_claims(point, method_solver.name)
         curve.append(point)
-    certify_curve(curve, cancelled=interrupted)
+    identity = problem.identity()
+    certify_curve(curve, cancelled=interrupted, unaltered=(identity, exact_value(identity)))
     return SolveResult(
         problem=problem.name,
         method=method_solver.name,
-        baseline_probability=exact_value(problem.identity()),
+        baseline_probability=_clean(exact_value(identity)),
         time_s=elapsed,
         curve=[_result(point, problem) for point in curve],
         warnings=warnings,
@@ -267,14 +268,19 @@ def _budgets(
     return ordered, cap, clamped_from
 
 
+def _clean(value: float) -> float:
+    """``-0.0`` (a solver's bound, a sum of zeros) as ``0.0``: the same number, printed as one."""
+    return value + 0.0
+
+
 def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
     return BudgetResult(
         budget=point.budget,
         status=point.status,
-        probability=point.probability,
+        probability=_clean(point.probability),
         alteration=problem.changed_observations(point.alteration),
-        cost=point.cost,
-        upper_bound=point.upper_bound,
+        cost=_clean(point.cost),
+        upper_bound=None if point.upper_bound is None else _clean(point.upper_bound),
         solver_probability=point.claimed,
         stats=point.stats,
         notes=point.notes,
