@@ -424,6 +424,9 @@ class Problem:
     name: str = ""
     source: str | None = None  # file it came from, for error messages
     decoy_sets: tuple[DecoySet, ...] = ()
+    # doubts the reader had about the input (a PAYNT controller made for another build of the
+    # model): every result about this problem repeats them
+    warnings: tuple[str, ...] = ()
 
     @cached_property
     def objective(self) -> Objective:

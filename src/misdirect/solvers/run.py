@@ -217,7 +217,7 @@ def solve(
         solutions = [
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
-    curve, warnings = [], []
+    curve, warnings = [], list(problem.warnings)
     for solution in solutions:
         alpha = np.asarray(solution.alteration, dtype=np.int64)
         problem.check_alteration(alpha, source=f"{method_solver.name} solver")
