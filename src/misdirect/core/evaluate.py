@@ -76,6 +76,7 @@ class Evaluation:
     decoy_sets: dict[str, float] = field(default_factory=dict)
     objective: str = "probability"  # or "expected_decoy_weight"
     warnings: tuple[str, ...] = ()  # the problem's (see Problem.warnings)
+    notes: tuple[str, ...] = ()  # the problem's (see Problem.notes)
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -100,6 +101,7 @@ class Evaluation:
             "time_s": self.time_s,
             **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
             "warnings": list(self.warnings),
+            "notes": list(self.notes),
         }
 
 
@@ -151,4 +153,5 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         decoy_sets={d.name: float(first_entry[d.states].sum()) for d in objective.sets},
         objective=objective.kind,
         warnings=problem.warnings,
+        notes=problem.notes,
     )

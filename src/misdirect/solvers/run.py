@@ -81,6 +81,8 @@ class SolveResult:
     time_s: float
     curve: list[BudgetResult]
     warnings: list[str] = field(default_factory=list)
+    # what the answer should be read with, though nothing is wrong (Problem.notes)
+    notes: list[str] = field(default_factory=list)
     # the largest budget asked for, when it exceeded the most expensive complete alteration:
     # the solvers then ran at that alteration's cost instead (every budget above it is equal)
     budget_clamped_from: float | None = None
@@ -121,6 +123,7 @@ class SolveResult:
             "curve": [point.to_dict() for point in self.curve],
             "stats": final["stats"],
             "warnings": self.warnings,
+            "notes": self.notes,
         }
         if self.budget_clamped_from is not None:
             document["budget_clamped_from"] = self.budget_clamped_from
@@ -243,6 +246,7 @@ def solve(
         time_s=elapsed,
         curve=[_result(point, problem) for point in curve],
         warnings=warnings,
+        notes=list(problem.notes),
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
