@@ -461,3 +461,117 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
     for mine, best in zip(result, oracle.curve, strict=True):
         assert mine.status == Status.OPTIMAL
         assert mine.solver_probability == pytest.approx(best.probability, abs=1e-9)
+
+
+def _compiled(document: dict):
+    from misdirect.io.problem_file import compile_problem, parse_spec
+
+    return compile_problem(parse_spec({"format": "misdirect/v1", **document}))
+
+
+# The robot moves from `init` (oi, never altered) to `start` (o0), where the controller plays
+# `b` (to `side`); read as o1 it plays `a`, which ends in the decoy with 1/2 (else in `side`).
+# From `side` (o2) both actions lead to the goal, so altering o2 gains nothing.
+TIES = {
+    "pomdp": {
+        "states": ["init", "start", "side", "goal", "decoy"],
+        "actions": ["a", "b"],
+        "initial": "init",
+        "observe": {"init": "oi", "start": "o0", "side": "o2", "goal": "o1", "decoy": "o1"},
+        "transitions": [
+            ["init", "a", "start", 1.0],
+            ["init", "b", "start", 1.0],
+            ["start", "a", "decoy", 0.5],
+            ["start", "a", "side", 0.5],
+            ["start", "b", "side", 1.0],
+            ["side", "a", "goal", 1.0],
+            ["side", "b", "goal", 1.0],
+        ],
+        "absorbing": ["goal", "decoy"],
+    },
+    "controller": {
+        "nodes": ["m"],
+        "initial": "m",
+        "rules": [
+            {"node": "*", "obs": "o1", "action": "a", "next": "m"},
+            {"node": "*", "obs": "*", "action": "b", "next": "m"},
+        ],
+    },
+    "deception": {"decoy": ["decoy"], "budget": 2},
+}
+
+
+def test_ties_go_to_the_cheapest_answer(monkeypatch):
+    """By hand: altering nothing gives 0, o0 -> o1 gives 1/2 (cost 1); adding o2 -> o0 (cost 2)
+    gains nothing. A solver answering the cost-2 alteration at budget 2, or a cost-1 one that
+    gains nothing at budget 1, is replaced by the cheaper answer of equal value."""
+    problem = _compiled(TIES)
+    _Scripted.answers = [
+        ({"o2": "o0"}, 0.0, "optimal", 0.0),  # costs 1, worth what altering nothing is
+        ({"o0": "o1", "o2": "o0"}, 0.5, "optimal", 0.5),
+    ]
+    monkeypatch.setitem(SOLVERS, "scripted", _Scripted)
+    result = solve(problem, method="scripted", budgets=[1, 2])
+    assert result.curve[0].alteration == {} and result.curve[0].cost == 0.0
+    assert "gains nothing over altering nothing" in result.curve[0].notes["replaced"]
+    assert result.curve[1].probability == pytest.approx(0.5, abs=1e-12)  # better: kept
+    _Scripted.answers = [
+        ({"o0": "o1"}, 0.5, "optimal", 0.5),
+        ({"o0": "o1", "o2": "o0"}, 0.5, "optimal", 0.5),
+    ]
+    result = solve(problem, method="scripted", budgets=[1, 2])
+    assert [p.alteration for p in result.curve] == [{"o0": "o1"}, {"o0": "o1"}]
+    assert [p.cost for p in result.curve] == [1.0, 1.0]
+    assert [p.probability for p in result.curve] == pytest.approx([0.5, 0.5], abs=1e-12)
+    assert "gains nothing over budget 1's" in result.curve[1].notes["replaced"]
+    assert [p.status for p in result.curve] == ["optimal", "optimal"]
+
+
+def _unreachable_decoy(n: int) -> dict:
+    """A corridor of n states, o<i> each, whose actions all lead on to the goal: no alteration
+    reaches the decoy, so every budget's optimum is 0, altering nothing."""
+    states = [f"s{i}" for i in range(n)]
+    steps = zip(states, [*states[1:], "goal"], strict=True)
+    return {
+        "pomdp": {
+            "states": [*states, "goal", "decoy"],
+            "actions": ["a", "b", "c"],
+            "initial": "s0",
+            "observe": {**{s: f"o{i}" for i, s in enumerate(states)}, "goal": "g", "decoy": "d"},
+            "transitions": [[s, a, t, 1.0] for s, t in steps for a in "abc"],
+            "absorbing": ["goal", "decoy"],
+        },
+        "controller": {
+            "nodes": ["m"],
+            "initial": "m",
+            "rules": [
+                *(
+                    {"node": "*", "obs": f"o{i}", "action": "abc"[i % 3], "next": "m"}
+                    for i in range(n)
+                ),
+                {"node": "*", "obs": "*", "action": "a", "next": "m"},
+            ],
+        },
+        "deception": {"decoy": ["decoy"], "budget": 5},
+    }
+
+
+def test_milp_ties_negative_zeros_and_the_reason_when_nothing_is_live(tmp_path):
+    """Where no alteration changes the value, the MILP's answer (any alteration is optimal for
+    it) becomes "alter nothing" at every budget; its bound -0.0 prints as 0.0; and auto (which
+    picks the MILP here: more than 12 million alterations fit budget 5) says why in words."""
+    from misdirect.io.problem_file import write_problem
+
+    problem = _compiled(_unreachable_decoy(40))
+    for method in ("milp", "auto"):
+        result = solve(problem, method=method, budgets=[0, 1, 2, 3, 4, 5])
+        assert [p.cost for p in result.curve] == [0.0] * 6, method
+        assert [p.probability for p in result.curve] == [0.0] * 6, method
+        assert all(p.status == "optimal" for p in result.curve), method
+    reason = result.final.stats["auto_reason"]
+    assert "no observation owns a live product state" in reason and "at most 0" not in reason
+    write_problem(problem, tmp_path / "p.yaml")
+    shown = runner.invoke(app, ["solve", str(tmp_path / "p.yaml"), "--method", "milp", "--json"])
+    assert shown.exit_code == 0, shown.output
+    assert "-0.0" not in shown.stdout
+    assert json.loads(shown.stdout)["upper_bound"] == 0.0

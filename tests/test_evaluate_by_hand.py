@@ -1,13 +1,18 @@
 """Evaluator values worked out by hand on models small enough to follow on paper."""
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
-from misdirect import evaluate, load_problem, solve
+from misdirect import evaluate, load_problem, solve, write_problem
+from misdirect.cli import app
 from misdirect.core.simulate import simulate
 from misdirect.scenarios import paper_grid
+
+runner = CliRunner()
 
 EXAMPLES = Path(__file__).parents[1] / "examples"
 
@@ -124,3 +129,43 @@ def test_expected_visits_two_ways():
         vector = vector @ a
     per_cell = np.bincount(chain.world_state, weights=total, minlength=problem.pomdp.n_states)
     assert np.allclose(report.expected_visits, per_cell, atol=1e-9)
+
+
+def test_initial_state_in_the_decoy_is_noted(tmp_path):
+    """A robot that starts in a decoy state scores 1 at once (by hand, whatever it reads):
+    evaluate and solve say why every alteration is worth 1, as a note (exit code 0)."""
+    from misdirect.io.problem_file import compile_problem, parse_spec
+
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": {
+            "states": ["start", "next", "goal"],
+            "actions": ["a"],
+            "initial": "start",
+            "observe": {"start": "o0", "next": "o1", "goal": "o2"},
+            "transitions": [["start", "a", "next", 1.0], ["next", "a", "goal", 1.0]],
+            "absorbing": ["goal"],
+        },
+        "controller": {
+            "nodes": ["m"],
+            "initial": "m",
+            "rules": [{"node": "*", "obs": "*", "action": "a", "next": "m"}],
+        },
+        "deception": {"decoy": ["start"], "budget": 1},
+    }
+    problem = compile_problem(parse_spec(document))
+    (note,) = problem.notes
+    assert "initial state 'start' is a decoy" in note
+    assert evaluate(problem).notes == (note,)
+    result = solve(problem, budgets=[0, 1])
+    assert result.notes == [note] and result.warnings == []
+    assert [p.probability for p in result.curve] == [1.0, 1.0]
+    document["deception"]["decoy"] = ["goal"]
+    assert compile_problem(parse_spec(document)).notes == ()
+    write_problem(problem, tmp_path / "p.yaml")
+    for command in ("evaluate", "solve"):
+        shown = runner.invoke(app, [command, str(tmp_path / "p.yaml"), "--json"])
+        assert shown.exit_code == 0, shown.output
+        assert json.loads(shown.stdout)["notes"] == [note]
+    shown = runner.invoke(app, ["solve", str(tmp_path / "p.yaml")])
+    assert shown.exit_code == 0 and "note: the initial state 'start' is a decoy" in shown.stderr

@@ -294,6 +294,20 @@ def test_clamping_keeps_one_answer_per_budget_asked():
     assert result.curve[3].probability == pytest.approx(0.863622, abs=1e-6)
 
 
+def test_clamped_range_lists_every_budget_asked():
+    """tiny's most expensive alteration costs 4 (above); `--budget 0..7` asks for eight
+    budgets and gets eight, those above 4 answered like 4 (it listed 0..4 and 7)."""
+    result = runner.invoke(app, ["solve", str(TINY), "--budget", "0..7", "--json"])
+    assert result.exit_code == 0, result.output
+    payload = json.loads(result.stdout)
+    assert payload["budget_clamped_from"] == 7.0 and payload["budget_clamped_to"] == 4.0
+    curve = payload["curve"]
+    assert [point["budget"] for point in curve] == [0, 1, 2, 3, 4, 5, 6, 7]
+    for point in curve[5:]:
+        assert point["alteration"] == curve[4]["alteration"]
+        assert point["probability"] == curve[4]["probability"]
+
+
 def test_budget_within_reach_is_not_clamped():
     result = runner.invoke(app, ["solve", str(TINY), "--budget", "2", "--json"])
     assert result.exit_code == 0, result.output

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -355,3 +356,148 @@ def test_controller_of_another_model_is_one_clear_error(tmp_path):
     result = runner.invoke(app, ["evaluate", str(path)])
     assert result.exit_code == 2, result.output
     assert result.stderr.count("\n") == 1 and "robot.fsc.json" in result.stderr
+
+
+# A DRN POMDP whose observation ids have gaps (1, 4, 5, 7: no 0), as hallway's do. From s0
+# (obs 1), `right` goes to s2, `left` to s1 or s2 (1/2 each); s1 and s2 both read obs 4, from
+# which `left`/`right` reach goal (s3, obs 5) or bad (s4, obs 7).
+GAPPED_DRN = """@type: POMDP
+@parameters
+
+@reward_models
+
+@nr_states
+5
+@nr_choices
+8
+@model
+state 0 {1} init
+\taction left
+\t\t1 : 0.5
+\t\t2 : 0.5
+\taction right
+\t\t2 : 1
+state 1 {4}
+\taction left
+\t\t3 : 0.8
+\t\t4 : 0.2
+\taction right
+\t\t3 : 0.3
+\t\t4 : 0.7
+state 2 {4}
+\taction left
+\t\t3 : 0.4
+\t\t4 : 0.6
+\taction right
+\t\t3 : 0.9
+\t\t4 : 0.1
+state 3 {5} goal
+\taction left
+\t\t3 : 1
+state 4 {7} bad
+\taction left
+\t\t4 : 1
+"""
+
+
+def test_drn_with_gaps_in_its_observation_ids(tmp_path):
+    """PAYNT's controller of a DRN model numbered 1, 4, 5, 7 has a column per id 0..7 (null
+    where no state reads it) and loads as written. By hand, with one memory node the only
+    controller reaching the goal with 0.9 plays `right` at obs 1 and at obs 4 (`left` at
+    obs 1 gives 1/2 (0.8 or 0.3) + 1/2 (0.4 or 0.9) = 0.6 at most): Pr(bad) = 0.1. With one
+    sensor altered: obs4 -> obs5 (or obs7), where the controller plays `left`: s2 reaches bad
+    with 0.6; obs1 -> obs5: 1/2 0.7 + 1/2 0.1 = 0.4; so the budget-1 optimum is 0.6."""
+    (tmp_path / "gap.drn").write_text(GAPPED_DRN)
+    (tmp_path / "sketch.props").write_text('Pmax=? [F "goal"]\n')
+    paynt.utils.timer.GlobalTimer.start(20)
+    factory, task = paynt.parser.sketch.Sketch.load_sketch(
+        str(tmp_path / "gap.drn"), str(tmp_path / "sketch.props"), task_kwargs={"memory_size": 1}
+    )
+    synthesizer = paynt.api.get_synthesizer(factory, task, "ar", fsc_synthesis=True)
+    synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
+    result = synthesizer.build_result()
+    assert float(result.value) == pytest.approx(0.9, abs=PAYNT_TOLERANCE)
+    (tmp_path / "robot.fsc.json").write_text(str(result.fsc))  # as PAYNT writes it
+    fsc = json.loads((tmp_path / "robot.fsc.json").read_text())
+    assert fsc["num_observations"] == 8 and fsc["action_function"][0][0] is None
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": {"drn": "gap.drn"},
+        "controller": {"paynt": "robot.fsc.json"},
+        "deception": {"decoy": {"label": "bad"}, "budget": 1},
+    }
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
+    problem = load_problem(tmp_path / "p.yaml")
+    # an id no state emits is no observation of the model
+    assert problem.pomdp.observations == ("obs1", "obs4", "obs5", "obs7")
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(0.1, abs=1e-12)
+    best = solve(problem, budgets=[0, 1])
+    assert [p.probability for p in best.curve] == pytest.approx([0.1, 0.6], abs=1e-12)
+
+
+def test_cli_synthesize_reads_drn(tmp_path):
+    """`controller synthesize` on a DRN model, as PAYNT reads it: the gapped model above, whose
+    best one-node controller reaches the goal with 0.9 (by hand, see above)."""
+    (tmp_path / "gap.drn").write_text(GAPPED_DRN)
+    output = tmp_path / "robot.fsc.json"
+    args = ["controller", "synthesize", str(tmp_path / "gap.drn"), "-o", str(output)]
+    result = runner.invoke(app, [*args, "--props", 'Pmax=? [F "goal"]', "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["value"] == pytest.approx(0.9, abs=PAYNT_TOLERANCE)
+    document = {
+        "format": "misdirect/v1",
+        "pomdp": {"drn": "gap.drn"},
+        "controller": {"paynt": "robot.fsc.json"},
+        "deception": {"decoy": {"label": "goal"}, "budget": 1},
+    }
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(document))
+    problem = load_problem(tmp_path / "p.yaml")
+    assert decoy_probability(problem, problem.identity()) == pytest.approx(0.9, abs=1e-12)
+    # what is wrong with a DRN model or its property: one line
+    (tmp_path / "bad.drn").write_text("@type: POMDP\n@nr_states\nx\n")
+    for model, extra, words in [
+        ("bad.drn", ["--props", 'Pmax=? [F "goal"]'], "Storm cannot read it"),
+        ("gap.drn", ["--props", 'Pmax=? [F "nowhere"]'], "'nowhere'"),
+        ("gap.drn", ["--props", 'Pmax=? [F "goal"]', "--constants", "N=2"], "--constants"),
+    ]:
+        args = ["controller", "synthesize", str(tmp_path / model), "-o", str(output), *extra]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2, result.output
+        assert result.stderr.count("\n") == 1 and words in result.stderr, result.stderr
+
+
+def test_cli_synthesize_says_why_no_controller(tmp_path, monkeypatch):
+    """Two different failures, two messages. The goal of this model is unreachable, so every
+    controller collects the step reward forever: PAYNT finishes its search with no controller
+    of finite value (not "within the time limit"). And a build that outlives --timeout (a
+    stand-in that never ends, as Storm's build of a large model) is stopped at the limit."""
+    (tmp_path / "loop.drn").write_text(
+        "@type: POMDP\n@parameters\n\n@reward_models\nsteps\n@nr_states\n3\n@nr_choices\n4\n"
+        "@model\nstate 0 {0} init\n\taction a [1]\n\t\t1 : 1\n\taction b [1]\n\t\t0 : 0.5\n"
+        "\t\t1 : 0.5\nstate 1 {1}\n\taction a [1]\n\t\t1 : 1\nstate 2 {2} goal\n"
+        "\taction a [0]\n\t\t2 : 1\n"
+    )
+    args = ["controller", "synthesize", str(tmp_path / "loop.drn"), "-o", str(tmp_path / "x")]
+    result = runner.invoke(app, [*args, "--props", 'R{"steps"}min=? [F "goal"]'])
+    assert result.exit_code == 1, result.output
+    assert "finite value" in result.stderr and "within" not in result.stderr, result.stderr
+
+    import misdirect.io.paynt_synthesis as synthesis
+
+    def endless_build(job, built):
+        time.sleep(3600)
+
+    def endless_search(job, built):
+        built()
+        time.sleep(3600)
+
+    for stand_in, words in [
+        (endless_build, "still building the model"),
+        (endless_search, "was stopped at the time limit"),
+    ]:
+        monkeypatch.setattr(synthesis, "_search", stand_in)
+        result = runner.invoke(app, [*args, "--props", 'Pmax=? [F "goal"]', "--timeout", "1"])
+        assert result.exit_code == 1, result.output
+        assert "no controller with 1 memory node(s) within 1 s" in result.stderr
+        assert words in result.stderr, result.stderr

@@ -377,3 +377,66 @@ def test_paynt_labels_as_storm_prints_them(tmp_path):
         _problem(tmp_path, "geo", {"terminal": "goal"}, controller={"paynt": "geo.fsc.json"})
     )
     assert decoy_probability(problem, problem.identity()) == pytest.approx(0.5, abs=1e-9)
+
+
+# -- a PAYNT file made for the terminal build, read without terminal -----------------------------
+
+# x=0 -> x=1 (o=1) -> goal x=2 (0.9) or bad x=4 (0.1); past the goal, x=3 reads o=1 again and
+# leads to bad. The controller (PAYNT's form, nulls where PAYNT's controller never goes) moves
+# to node 1 at o=1: in PAYNT's build, with the goal terminal, node 1 never meets o=1 again.
+BEYOND = """pomdp
+observables o endobservables
+module m
+  x : [0..4] init 0;
+  o : [0..2] init 0;
+  [go] x=0 -> (x'=1) & (o'=1);
+  [go] x=1 -> 0.9 : (x'=2) & (o'=2) + 0.1 : (x'=4) & (o'=2);
+  [go] x=2 -> (x'=3) & (o'=1);
+  [go] x=3 -> (x'=4) & (o'=2);
+  [go] x=4 -> true;
+endmodule
+label "goal" = x=2;
+label "bad" = x=4;
+"""
+BEYOND_FSC = {
+    "num_nodes": 2,
+    "num_observations": 3,
+    "action_function": [[0, 0, None], [None, None, 0]],
+    "update_function": [[0, 1, None], [None, None, 1]],
+    "action_labels": ["go"],
+    "observation_labels": ["o=0", "o=1", "o=2"],
+}
+
+
+def test_paynt_file_of_the_terminal_build_read_without_terminal_warns(tmp_path):
+    """By hand: with the goal terminal, Pr(bad) = 0.1 and node 1 never reads o=1. As written,
+    the robot walks on from the goal to x=3, reads o=1 in node 1 (null in the file) and ends
+    in bad: 1.0. That reading is warned about, naming the label to make terminal."""
+    (tmp_path / "beyond.prism").write_text(BEYOND)
+    (tmp_path / "beyond.fsc.json").write_text(json.dumps(BEYOND_FSC))
+
+    def problem(extra: dict, name: str):
+        document = {
+            "format": "misdirect/v1",
+            "pomdp": {"prism": "beyond.prism", **extra},
+            "controller": {"paynt": "beyond.fsc.json"},
+            "deception": {"decoy": {"label": "bad"}, "budget": 1},
+        }
+        (tmp_path / name).write_text(yaml.safe_dump(document))
+        return tmp_path / name
+
+    terminal = load_problem(problem({"terminal_from": 'P=? [F "goal"]'}, "t.yaml"))
+    assert terminal.warnings == ()
+    assert decoy_probability(terminal, terminal.identity()) == pytest.approx(0.1, abs=1e-12)
+    plain_path = problem({}, "p.yaml")
+    plain = load_problem(plain_path)
+    assert decoy_probability(plain, plain.identity()) == pytest.approx(1.0, abs=1e-12)
+    (warning,) = plain.warnings
+    assert "'o=1' in node n1" in warning and "labelled 'goal' terminal" in warning
+    for command in ("evaluate", "solve"):
+        result = runner.invoke(app, [command, str(plain_path), "--json"])
+        assert result.exit_code == 1, result.output  # a warning, as elsewhere
+        assert json.loads(result.stdout)["warnings"] == [warning]
+        assert "warning:" in result.stderr
+    result = runner.invoke(app, ["evaluate", str(tmp_path / "t.yaml"), "--json"])
+    assert result.exit_code == 0 and json.loads(result.stdout)["warnings"] == []

@@ -126,7 +126,7 @@ def scenario_random(
 
 
 def controller_synthesize(
-    model: Annotated[Path, typer.Argument(help="PRISM POMDP (the robot's world).")],
+    model: Annotated[Path, typer.Argument(help="PRISM or DRN POMDP (the robot's world).")],
     output: Annotated[
         Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write (PAYNT's own JSON).")
     ],
@@ -137,7 +137,9 @@ def controller_synthesize(
         str | None, typer.Option(help='Undefined PRISM constants, e.g. "N=5,p=0.1".')
     ] = None,
     memory: Annotated[int, typer.Option(help="Memory nodes per observation.")] = 1,
-    timeout: Annotated[float, typer.Option(help="Time limit for PAYNT (s).")] = 60.0,
+    timeout: Annotated[
+        float, typer.Option(help="Time limit (s) of the whole command, model build included.")
+    ] = 60.0,
     as_json: JsonOption = False,
 ) -> None:
     """Synthesize the robot's controller with PAYNT and write PAYNT's JSON of it

@@ -215,14 +215,18 @@ def alteration(problem: Problem, alter: list[str] | None) -> Alteration:
     return problem.alteration(changes, source="--alter")
 
 
+LISTED_RANGE = 1_000  # a range of budgets this long is listed whole, even above the cap
+
+
 def parse_budgets(
     budget: str | None, budgets: str | None, cap: float | None = None
 ) -> list[float] | None:
     """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``.
 
-    A range is expanded only up to ``cap`` (the most expensive complete alteration: every
-    budget beyond it gives the same answer), then its upper end, which solve clamps and
-    reports; so ``0..1000000000`` never materialises a billion budgets."""
+    A range lists every whole budget in it, those above ``cap`` (the most expensive complete
+    alteration: solve answers them with its answer) included. Only a range of more than
+    :data:`LISTED_RANGE` budgets is expanded up to the cap and then its upper end, so
+    ``0..1000000000`` never materialises a billion budgets."""
     if budget is not None and budgets is not None:
         raise ProblemError("give --budget or --budgets, not both", field="--budgets")
     option = "--budgets" if budgets is not None else "--budget"
@@ -235,7 +239,9 @@ def parse_budgets(
                 raise ProblemError(
                     f"expected a range low..high with 0 ≤ low ≤ high, got {budget!r}", field=option
                 )
-            top = high if cap is None else min(high, max(low, math.ceil(cap)))
+            top = high
+            if cap is not None and high - low >= LISTED_RANGE:
+                top = min(high, max(low, math.ceil(cap)))
             if top - low > 1_000_000:
                 raise ProblemError(
                     f"a range of {top - low + 1:,} budgets is too many; give fewer", field=option

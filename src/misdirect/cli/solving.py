@@ -73,6 +73,21 @@ def evaluate(source: ProblemSource, alter: AlterOption = None, as_json: JsonOpti
         print_json({"problem": problem.name, **result.to_dict(), "baseline_probability": baseline})
     else:
         _print_evaluation(result, baseline, problem)
+        _print_notes(result.notes)
+    _print_warnings(result.warnings)
+    if result.warnings:
+        raise typer.Exit(1)
+
+
+def _print_warnings(warnings: Iterable[str]) -> None:
+    for warning in warnings:
+        err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
+
+
+def _print_notes(notes: Iterable[str]) -> None:
+    """Notes on stderr (``--json`` carries them in ``notes``): no change of exit code."""
+    for text in notes:
+        err.print(f"[bold]note:[/] {escape(one_line(text))}", highlight=False)
 
 
 def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> None:
@@ -180,6 +195,7 @@ def solve(
         print_json(result.to_dict())
     else:
         _print_solve(result, problem)
+        _print_notes(result.notes)
     _finish_solve(result, received)
 
 
@@ -211,8 +227,7 @@ def _run_solve(
 
 def _finish_solve(result: SolveResult, received: list[int]) -> None:
     """Warnings on stderr, and the exit code: 1 after a warning, 130/143 after a signal."""
-    for warning in result.warnings:
-        err.print(f"[bold red]warning:[/] {escape(one_line(warning))}", highlight=False)
+    _print_warnings(result.warnings)
     if received:  # the best answer so far is printed above, marked interrupted
         name = "terminated (SIGTERM)" if received[0] == signal.SIGTERM else "interrupted"
         err.print(f"{name}: the best answers found so far are shown", highlight=False)

@@ -75,6 +75,8 @@ class Evaluation:
     # weighted decoys: probability that the first decoy state entered is in each set
     decoy_sets: dict[str, float] = field(default_factory=dict)
     objective: str = "probability"  # or "expected_decoy_weight"
+    warnings: tuple[str, ...] = ()  # the problem's (see Problem.warnings)
+    notes: tuple[str, ...] = ()  # the problem's (see Problem.notes)
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -98,6 +100,8 @@ class Evaluation:
             "product_transitions": self.product_transitions,
             "time_s": self.time_s,
             **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
+            "warnings": list(self.warnings),
+            "notes": list(self.notes),
         }
 
 
@@ -148,4 +152,6 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         state_names=names,
         decoy_sets={d.name: float(first_entry[d.states].sum()) for d in objective.sets},
         objective=objective.kind,
+        warnings=problem.warnings,
+        notes=problem.notes,
     )

@@ -424,6 +424,9 @@ class Problem:
     name: str = ""
     source: str | None = None  # file it came from, for error messages
     decoy_sets: tuple[DecoySet, ...] = ()
+    # doubts the reader had about the input (a PAYNT controller made for another build of the
+    # model): every result about this problem repeats them
+    warnings: tuple[str, ...] = ()
 
     @cached_property
     def objective(self) -> Objective:
@@ -433,6 +436,19 @@ class Problem:
         if not np.array_equal(objective.target, np.asarray(self.decoy, dtype=bool)):
             raise ProblemError("decoy must be the union of decoy_sets", field="decoy")
         return objective
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What every result about this problem says beside its numbers, though nothing is
+        wrong: a robot that starts in a decoy state scores at once, whatever it reads."""
+        s0 = self.pomdp.initial_state
+        if not self.decoy[s0]:
+            return ()
+        score = float(self.objective.value[s0])
+        return (
+            f"the initial state {self.pomdp.states[s0]!r} is a decoy: every run scores "
+            f"{score:g} at once, whatever the robot reads, so no alteration changes the value",
+        )
 
     def with_budget(self, budget: float) -> Problem:
         return replace(self, budget=float(budget))

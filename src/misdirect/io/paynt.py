@@ -22,8 +22,17 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
+import scipy.sparse as sp
 
-from misdirect.core.model import Controller, CostModel, Pomdp, factored_entries
+from misdirect.core.model import (
+    Controller,
+    CostModel,
+    Pomdp,
+    Problem,
+    factored_entries,
+    reachable_from,
+)
+from misdirect.core.product import full_product_matrix
 from misdirect.errors import ProblemError
 from misdirect.io.files import parse_json, read_text_file
 from misdirect.io.paynt_model import PAYNT_NO_LABEL, PayntView
@@ -32,6 +41,7 @@ from misdirect.io.storm_names import NO_LABEL, valuation_name
 FIELD = "controller.paynt"
 SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking
 _GENERATED = re.compile(r"^\w+_cmd_\d+$")  # PAYNT's name for an unlabelled PRISM command
+MAX_LABELS_TRIED = 32  # labels tried as PAYNT's terminal targets when a file does not fit
 _PAIR = re.compile(r"^\s*[(\[]?\s*(\d+)\s*,\s*(\d+)\s*[)\]]?\s*$")
 
 
@@ -50,6 +60,8 @@ class PayntController:
     controller: Controller
     # observations with a null entry (some node never meets them): not alteration targets
     never_read: np.ndarray
+    # (nodes, observations) bool: the entries PAYNT left null, filled with a placeholder
+    undefined: np.ndarray
 
 
 def load_paynt_controller(path: Path, pomdp: Pomdp, *, aliases: Sequence[str] = ()) -> Controller:
@@ -154,6 +166,7 @@ def read_paynt_controller(
     # flat entries (node, observation, action, next node, probability) of every cell
     cells: list[tuple[int, int, int, int, float]] = []
     never: set[int] = set()
+    undefined = np.zeros((n_nodes, pomdp.n_observations), dtype=bool)
     for n in range(n_nodes):
         for k, o in enumerate(obs_columns):
             if o < 0:  # PAYNT's observation k has no state in our model: never read
@@ -191,6 +204,7 @@ def read_paynt_controller(
                         "empty, but the robot starts in node 0 reading this observation",
                     )
                 never.add(o)
+                undefined[n, o] = True
                 cells.append((n, o, action_of[0] if action_of else 0, n, 1.0))
                 continue
             for chosen, target, p in pairs:
@@ -231,7 +245,71 @@ def read_paynt_controller(
         next_node=next_node,
         probability=probability,
     )
-    return PayntController(controller, np.array(sorted(never), dtype=np.int64))
+    return PayntController(controller, np.array(sorted(never), dtype=np.int64), undefined)
+
+
+def unmet_rule_warning(
+    problem: Problem,
+    undefined: np.ndarray,
+    path: Path,
+    *,
+    terminal_given: bool,
+    labels: dict[str, np.ndarray] | None = None,
+) -> str | None:
+    """Whether the unaltered robot, before its run ends, reaches an entry PAYNT left null: a
+    warning saying so (and which label's states, made terminal, would avoid it), else None.
+
+    PAYNT leaves null exactly the (node, observation) entries its controller never meets in
+    its own build of the model. Meeting one here means this model is not PAYNT's, most often
+    because PAYNT made its property's target states terminal and this build did not (without
+    ``terminal``/``terminal_from`` the robot walks on past the goal into entries PAYNT never
+    met), and the values then differ from PAYNT's with no other sign. One reachability
+    search over the product chain per label tried; runs end at decoy and absorbing states."""
+    if not undefined.any():
+        return None
+    pomdp, controller = problem.pomdp, problem.controller
+    n_nodes = controller.n_nodes
+    full = full_product_matrix(problem, problem.identity()).tocsr()
+    world = np.repeat(np.arange(pomdp.n_states), n_nodes)
+    node = np.tile(np.arange(n_nodes), pomdp.n_states)
+    null = undefined[node, pomdp.observation_of[world]]
+    start = np.array([pomdp.initial_state * n_nodes + controller.initial_node])
+
+    def met(ended: np.ndarray) -> np.ndarray:
+        onward = (sp.diags((~ended).astype(np.float64)) @ full).tocsr()
+        return np.flatnonzero(reachable_from(onward, start) & ~ended & null)
+
+    ended = (problem.decoy | pomdp.absorbing)[world]
+    first = met(ended)
+    if first.size == 0:
+        return None
+    s, n = int(world[first[0]]), int(node[first[0]])
+    labels = labels or {}
+    candidates = [
+        name
+        for name, mask in sorted(labels.items())
+        if mask.any() and not mask[pomdp.initial_state]  # `init` would end every run at once
+    ][:MAX_LABELS_TRIED]
+    fitting = [name for name in candidates if met(ended | labels[name][world]).size == 0]
+    if fitting:
+        hint = (
+            f"it fits this model with the states labelled {fitting[0]!r} terminal, as PAYNT "
+            f'builds it for a property such as P=? [F "{fitting[0]}"]: give that property '
+            "as pomdp.terminal_from"
+        )
+    elif terminal_given:
+        hint = "PAYNT built another model than this one (other constants, or another property?)"
+    else:
+        hint = (
+            "PAYNT most likely built this model with its property's target states terminal: "
+            "give the property as pomdp.terminal_from (or the targets as pomdp.terminal)"
+        )
+    return (
+        f"{Path(path).name} has no rule for observation "
+        f"{pomdp.observations[pomdp.observation_of[s]]!r} in node {controller.nodes[n]} (null), "
+        f"yet the unaltered robot reaches it (state {pomdp.states[s]!r}): {hint}. misdirect "
+        "plays a placeholder there, so these values are not those of PAYNT's model"
+    )
 
 
 def _action_columns(names: list[Any], pomdp: Pomdp, view: PayntView | None, fail) -> list[int]:

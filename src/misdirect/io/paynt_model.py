@@ -218,13 +218,16 @@ def _match_observations(
 
 
 def _available_labels(model, paynt_obs: np.ndarray) -> list[frozenset[str]]:
-    """PAYNT's action labels enabled at each of its observations (read at its first state)."""
-    _, first = np.unique(paynt_obs, return_index=True)
+    """PAYNT's action labels enabled at each of its observations (read at its first state;
+    none at an observation no state emits, as a DRN file's gaps in its ids)."""
+    emitted, first_state = np.unique(paynt_obs, return_index=True)
+    first = np.full(model.nr_observations, -1, dtype=np.int64)
+    first[emitted] = first_state
     labelling = model.choice_labeling if model.has_choice_labeling() else None
     available: list[frozenset[str]] = []
     for o in range(model.nr_observations):
         names_here: set[str] = set()
-        if o < first.size:
+        if first[o] >= 0:
             state = int(first[o])
             for offset in range(model.get_nr_available_actions(state)):
                 choice = model.get_choice_index(state, offset)

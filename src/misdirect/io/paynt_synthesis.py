@@ -1,6 +1,6 @@
 """The robot's controller from PAYNT (``misdirect[paynt]``), through PAYNT's Python API.
 
-PAYNT 0.5 reads a PRISM program and a properties file from disk
+PAYNT 0.5 reads a PRISM program (or a DRN file) and a properties file from disk
 (``paynt.parser.sketch.Sketch.load_sketch``) and synthesizes a finite-state controller with
 a given number of memory nodes (``paynt.pomdp.PomdpSynthesizer``, abstraction refinement).
 We run it for one memory size, within a time limit, and keep PAYNT's own JSON of the
@@ -11,14 +11,17 @@ exactly what PAYNT writes.
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import math
+import multiprocessing
 import os
 import re
+import signal
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -80,21 +83,28 @@ def _with_constants(text: str, constants: str | None) -> str:
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
-    """PAYNT logs through ``logging`` and prints, and Storm writes to the process's file
-    descriptors: none of it may reach our standard output (``--json`` prints one object)."""
+    """PAYNT logs through ``logging`` and prints, and Storm's parsers write to the process's
+    file descriptors (PAYNT tries several on a DRN file): none of it may reach our output
+    (``--json`` prints one object, an error is one line)."""
     logger = logging.getLogger("paynt")
     level = logger.level
     logger.setLevel(logging.ERROR)
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    sink = os.open(os.devnull, os.O_WRONLY)
     try:
-        os.dup2(2, 1)
-        with contextlib.redirect_stdout(sys.stderr):
+        os.dup2(sink, 1)
+        os.dup2(sink, 2)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             yield
     finally:
         sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
+        sys.stderr.flush()
+        for fd, copy in zip((1, 2), saved, strict=True):
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(sink)
         logger.setLevel(level)
 
 
@@ -106,53 +116,178 @@ def synthesize(
     memory: int = 1,
     timeout: float = 60.0,
 ) -> Synthesis:
-    """Run PAYNT on a PRISM POMDP for one property and ``memory`` nodes per observation."""
-    paynt = _paynt()
+    """Run PAYNT on a POMDP (a PRISM program or a DRN file, as PAYNT reads both) for one
+    property and ``memory`` nodes per observation.
+
+    ``timeout`` bounds the whole call, not PAYNT's search alone: building the model (which
+    neither Storm nor PAYNT can interrupt, and which PAYNT's timer does not stop) runs with
+    the search in a worker process that is stopped at the limit, and the search gets what the
+    build leaves, less a margin for writing its answer back.
+    """
+    started = time.monotonic()
+    _paynt()
     import stormpy
 
     check_input_file(model, field="MODEL")
-    text = _with_constants(paynt_prism_text(read_text_file(model, field="MODEL")), constants)
+    text = read_text_file(model, field="MODEL")
+    drn = is_drn(text)
+    if drn and constants:
+        raise ProblemError("a DRN model has no constants to set", field="--constants")
+    if not drn:
+        text = _with_constants(paynt_prism_text(text), constants)
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         sketch, props = Path(folder) / model.name, Path(folder) / "sketch.props"
         sketch.write_text(text, encoding="utf-8")
         props.write_text(prop.strip() + "\n", encoding="utf-8")
-        try:
-            program = stormpy.parse_prism_program(str(sketch), prism_compatibility=True)
-        except Exception as error:
-            raise ProblemError(
-                f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
-            ) from None
+        program = None
+        if not drn:
+            try:
+                program = stormpy.parse_prism_program(str(sketch), prism_compatibility=True)
+            except Exception as error:
+                raise ProblemError(
+                    f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
+                ) from None
         _check_property(stormpy, program, prop)
-        started = time.monotonic()
-        try:
-            with _quiet():
-                paynt.utils.timer.GlobalTimer.start(timeout)
-                factory, task = paynt.parser.sketch.Sketch.load_sketch(
-                    str(sketch), str(props), task_kwargs={"memory_size": memory}
-                )
-                synthesizer = paynt.api.get_synthesizer(factory, task, "ar", fsc_synthesis=True)
-                synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
-                result = synthesizer.build_result()
-        except (AssertionError, ValueError, RuntimeError, SyntaxError) as error:
-            reason = " ".join(str(error).split()) or type(error).__name__
-            raise ProblemError(
-                f"PAYNT cannot synthesize for it: {reason}", source=str(model)
-            ) from None
-    seconds = time.monotonic() - started
-    if result.fsc is None:
+        job = _Job(str(sketch), str(props), memory, drn, deadline=started + timeout)
+        kind, payload = _run_bounded(job)
+    if kind == "problem":
+        raise ProblemError(payload, source=str(model))
+    if kind == "failed":
+        raise MisdirectError(f"PAYNT failed on {model}: {payload}")
+    if kind in ("building", "searching"):
+        where = "was still building the model" if kind == "building" else "was stopped"
+        raise MisdirectError(
+            f"PAYNT found no controller with {memory} memory node(s) within {timeout:g} s "
+            f"(it {where} at the time limit, which counts building the model)"
+        )
+    document, value, timed_out = payload
+    if document is None and timed_out:
         raise MisdirectError(
             f"PAYNT found no controller with {memory} memory node(s) within {timeout:g} s"
         )
-    value = None if result.value is None else float(result.value)
-    if value is not None and not math.isfinite(value):
-        value = None
-    return Synthesis(result.fsc.to_json(), value, prop.strip(), memory, seconds)
+    if document is None:
+        raise MisdirectError(
+            f"PAYNT found no controller with {memory} memory node(s) under which "
+            f"{prop.strip()} has a finite value (it finished its search; more memory nodes "
+            "may help)"
+        )
+    return Synthesis(document, value, prop.strip(), memory, time.monotonic() - started)
+
+
+SEARCH_SHARE = 0.9  # of the time left after the build, PAYNT's search gets this much
+STOP_POLL_S = 0.1  # how often the parent looks for the worker's answer and for Ctrl-C
+
+
+@dataclass(frozen=True)
+class _Job:
+    sketch: str
+    props: str
+    memory: int
+    drn: bool
+    deadline: float  # time.monotonic() by which the whole synthesis must end
+
+
+def _search(job: _Job, built: Callable[[], None]) -> tuple[str, Any]:
+    """PAYNT's synthesis (quietly): ``("done", (document or None, value, timed out))`` or
+    ``("problem", reason)``; ``built()`` is called once the model is built."""
+    paynt = _paynt()
+    import stormpy
+
+    with _quiet():
+        try:
+            # PAYNT's timer starts now, so it counts the build; the search ends by SEARCH_SHARE
+            # of the time left, leaving the rest for building and sending the answer
+            left = job.deadline - time.monotonic()
+            paynt.utils.timer.GlobalTimer.start(max(left * SEARCH_SHARE, 0.0))
+            factory, task = paynt.parser.sketch.Sketch.load_sketch(
+                job.sketch, job.props, task_kwargs={"memory_size": job.memory}
+            )
+            synthesizer = paynt.api.get_synthesizer(factory, task, "ar", fsc_synthesis=True)
+            built()
+            synthesizer.synthesize(synthesizer.colored_mdp.parameter_space, print_stats=False)
+            result = synthesizer.build_result()
+        except (AssertionError, ValueError, RuntimeError, SyntaxError) as error:
+            if job.drn:  # PAYNT only says it knows no such format: Storm says what is wrong
+                try:
+                    stormpy.build_model_from_drn(job.sketch)
+                except Exception as storm_error:
+                    return "problem", f"Storm cannot read it: {' '.join(str(storm_error).split())}"
+            reason = " ".join(str(error).split()) or type(error).__name__
+            return "problem", f"PAYNT cannot synthesize for it: {reason}"
+        timed_out = paynt.utils.timer.GlobalTimer.time_limit_reached()
+        value = None if result.value is None else float(result.value)
+        if value is not None and not math.isfinite(value):
+            value = None
+        document = None if result.fsc is None else result.fsc.to_json()
+        return "done", (document, value, timed_out)
+
+
+def _run_bounded(job: _Job) -> tuple[str, Any]:
+    """:func:`_search` in a forked worker, stopped at ``job.deadline``: ``("building", None)``
+    or ``("searching", None)`` when it was, or what the search returned (``("failed", why)``
+    when the worker died). Ctrl-C stops the worker at once. Where no worker can be started (a
+    daemonic process, no ``fork``), the search runs here, bounded by PAYNT's timer only."""
+    if "fork" not in multiprocessing.get_all_start_methods() or (
+        multiprocessing.current_process().daemon
+    ):
+        return _search(job, lambda: None)
+    context = multiprocessing.get_context("fork")
+    conn, child = context.Pipe(duplex=False)
+    worker = context.Process(target=_worker, args=(child, job), daemon=True)
+    worker.start()
+    child.close()
+    phase = "building"
+    try:
+        while True:
+            left = job.deadline - time.monotonic()
+            if left <= 0:
+                return phase, None
+            if not conn.poll(min(left, STOP_POLL_S)):
+                continue
+            try:
+                kind, payload = conn.recv()
+            except (EOFError, OSError):
+                worker.join(timeout=1)
+                return "failed", f"its worker stopped (exit code {worker.exitcode})"
+            if kind == "built":
+                phase = "searching"
+                continue
+            return kind, payload
+    finally:
+        if worker.is_alive():
+            worker.kill()
+        worker.join(timeout=1)
+        conn.close()
+
+
+def _worker(conn: Any, job: _Job) -> None:
+    """The forked worker: one search, its answer sent back over ``conn``."""
+    # Ctrl-C reaches the whole process group: the parent handles it and kills this worker
+    # (which must not run the parent's SIGTERM handler, inherited through fork)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        answer = _search(job, lambda: conn.send(("built", None)))
+    except Exception as error:  # anything else PAYNT raises: one line in the parent
+        answer = ("failed", " ".join(f"{type(error).__name__}: {error}".split()))
+    conn.send(answer)
+    conn.close()
+
+
+def is_drn(text: str) -> bool:
+    """Whether a model file is Storm's explicit DRN format (its header has ``@type:``; Storm's
+    export starts with ``//`` comments) rather than a PRISM program."""
+    for line in text.splitlines():
+        if line.strip() and not line.lstrip().startswith("//"):
+            return line.lstrip().startswith("@type:")
+    return False
 
 
 def _check_property(stormpy, program, prop: str) -> None:
     """One optimizing property (``Pmax=? [F "goal"]``), as PAYNT needs for a controller's value."""
     try:
+        # a DRN model has no program: its labels are checked when PAYNT reads the model
         properties = stormpy.parse_properties(prop, program)
     except Exception as error:
         message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))

@@ -8,6 +8,7 @@ and produces the array model. Every failure is a :class:`ProblemError` naming fi
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -40,7 +41,12 @@ from misdirect.io.files import (
     write_output,
 )
 from misdirect.io.grid_map import GridWorld, LegendEntry, compile_grid
-from misdirect.io.paynt import forbid_disabled_actions, forbid_targets, read_paynt_controller
+from misdirect.io.paynt import (
+    forbid_disabled_actions,
+    forbid_targets,
+    read_paynt_controller,
+    unmet_rule_warning,
+)
 from misdirect.io.storm import StormPomdp, load_storm_pomdp
 
 FORMAT = "misdirect/v1"
@@ -537,6 +543,8 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
     aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)
     paynt_view = None  # builds the model as PAYNT does: its observation numbering and labels
     never = np.zeros(0, dtype=np.int64)  # observations a PAYNT controller says never occur
+    paynt = None
+    labels: dict[str, np.ndarray] = {}  # Storm's state labels (PAYNT's terminal candidates)
     decoy_sets: tuple[DecoySet, ...] = ()  # weighted decoys, if the file gives weights
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
@@ -607,7 +615,7 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
         cost = forbid_targets(cost, never)
     if enabled is not None:
         cost = forbid_disabled_actions(cost, pomdp, controller, enabled, decoy)
-    return Problem(
+    problem = Problem(
         pomdp=pomdp,
         controller=controller,
         cost=cost,
@@ -617,6 +625,16 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
         source=source,
         decoy_sets=decoy_sets,
     )
+    if paynt is not None:
+        terminal_given = isinstance(spec.pomdp, StormPomdpSpec) and (
+            spec.pomdp.terminal is not None or spec.pomdp.terminal_from is not None
+        )
+        warning = unmet_rule_warning(
+            problem, paynt.undefined, paynt_file, terminal_given=terminal_given, labels=labels
+        )
+        if warning is not None:
+            problem = dataclasses.replace(problem, warnings=(warning,))
+    return problem
 
 
 def _compile_pomdp(spec: PomdpSpec) -> Pomdp:

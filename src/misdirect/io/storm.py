@@ -39,7 +39,13 @@ from misdirect.io.storm_expressions import (
     storm_message,
     strip_comments,
 )
-from misdirect.io.storm_names import NO_LABEL, observation_names, state_names, valuation_name
+from misdirect.io.storm_names import (
+    NO_LABEL,
+    emitted_observations,
+    observation_names,
+    state_names,
+    valuation_name,
+)
 
 # NO_LABEL, PAYNT_NO_LABEL, PayntView, paynt_prism_text and valuation_name live beside this
 # module; they stay importable from here, where they were first defined
@@ -299,8 +305,9 @@ def _translate(
     # terminal states (PAYNT's targets) are built that way.
     leaves = np.bincount(src[dst != src], minlength=n_states) > 0
     absorbing = ~leaves
+    storm_ids, observation_of = emitted_observations(arrays.observation_of)
     observations, storm_names = observation_names(
-        model, arrays.observation_of, arrays.observation_variables, values, program
+        model, storm_ids, observation_of, arrays.observation_variables, values, program
     )
     # a disabled (state, action) is a self-loop in the matrix; `forbid` is enforced on costs
     loops_s, loops_a = np.nonzero(~enabled)
@@ -309,7 +316,7 @@ def _translate(
         actions=arrays.actions,
         observations=observations,
         initial_state=int(arrays.initial[0]),
-        observation_of=arrays.observation_of,
+        observation_of=observation_of,
         action=np.concatenate([act, loops_a]),
         source=np.concatenate([src, loops_s]),
         target=np.concatenate([dst, loops_s]),

@@ -107,6 +107,7 @@ def state_names(model, order: tuple[str, ...]) -> tuple[dict[str, np.ndarray], t
 
 def observation_names(
     model,
+    storm_ids: np.ndarray,
     observation_of: np.ndarray,
     order: tuple[str, ...],
     values: dict[str, np.ndarray],
@@ -114,20 +115,22 @@ def observation_names(
 ) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """Each observation named by the observables' values in a state that emits it.
 
+    ``storm_ids[o]`` is Storm's number of our observation ``o`` (``observation_of`` is in our
+    numbering, see :func:`emitted_observations`); without valuations, ``o`` is named
+    ``obs<storm id>``, as a DRN file numbers it.
+
     Storm's own observation valuations (stormpy 2.0) print a true boolean as nothing and get
     named observables (``observable "u" = x + y;``) wrong, so only the list of observables is
     taken from them: variables are read from the states, and named observables evaluated on
     them from their declaration.
     """
-    n_obs = model.nr_observations
-    fallback = tuple(f"obs{o}" for o in range(n_obs))
+    n_obs = storm_ids.size
+    fallback = tuple(f"obs{o}" for o in storm_ids.tolist())
     if not model.has_observation_valuations():
         return fallback, ()
     valuations = model.observation_valuations
-    storm_names = tuple(valuation_name(valuations.to_string(o)) for o in range(n_obs))
-    emitted, first = np.unique(observation_of, return_index=True)
-    if emitted.size != n_obs:
-        return fallback, storm_names
+    storm_names = tuple(valuation_name(valuations.to_string(o)) for o in storm_ids.tolist())
+    _, first = np.unique(observation_of, return_index=True)
     observed = read_variables(valuations, order)
     columns: dict[str, np.ndarray] = {}
     for name, column in observed.items():
@@ -138,12 +141,24 @@ def observation_names(
         if computed is not None:
             columns[name] = computed
         elif column.dtype == bool:  # Storm's value, when the declaration cannot be read
-            columns[name] = column
+            columns[name] = column[storm_ids]
     if not distinct_rows(columns, n_obs):
         return fallback, storm_names
     named = valuation_names(columns)
     assert named is not None  # distinct rows: some column to name them by
     return tuple(named), storm_names
+
+
+def emitted_observations(storm_observation_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Storm's ids of the observations some state emits, and each state's observation
+    numbered among those.
+
+    A DRN file may number its observations with gaps (1, 4, 5, ...: no 0), and Storm then
+    counts every id up to the largest. An id no state emits is no observation of the model:
+    no controller has a rule for it and no alteration may target it.
+    """
+    storm_ids, observation_of = np.unique(storm_observation_of, return_inverse=True)
+    return storm_ids, observation_of.reshape(-1).astype(np.int64)
 
 
 def _observable_values(

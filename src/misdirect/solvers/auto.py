@@ -219,8 +219,11 @@ class _Milp(_Stage):
         if largest > KNAPSACK_STATES:
             return False
         facts.reasons.append(
-            f"knapsack-like (each observation owns at most {largest} live product states), "
-            "so the MILP"
+            "no observation owns a live product state: no alteration changes the value, so "
+            "the MILP proves it"
+            if largest == 0
+            else f"knapsack-like (each observation owns at most {largest} live product "
+            "states), so the MILP"
         )
         return True
 

@@ -119,16 +119,25 @@ def check_claims(point: CurvePoint, method: str) -> list[str]:
     return warnings
 
 
-def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
+def certify_curve(
+    curve: list[CurvePoint],
+    *,
+    cancelled: bool = False,
+    unaltered: tuple[np.ndarray, float] | None = None,
+) -> None:
     """What one budget's answer proves about the others, and "optimal" only when proven.
 
     * A larger budget can do whatever a smaller one can: a point worse than one at a smaller
-      budget takes that alteration (a method cut short may not have found it again).
+      budget (or than altering nothing, ``unaltered``: the identity and its exact value) takes
+      that alteration (a method cut short may not have found it again).
+    * Ties go to the cheapest: a point whose exact value does not beat a cheaper known answer
+      by more than :data:`~misdirect.core.tolerance.TIE` takes that answer (an alteration that
+      gains nothing is not worth paying for).
     * An upper bound at a larger budget bounds every smaller one too.
     * Each point's status is :func:`decide`'s; a point cut short by a cancellation (not by its
       time limit) is ``interrupted``.
     """
-    _carry_answers_up(curve)
+    _carry_answers_up(curve, unaltered)
     bound: float | None = None
     for point in sorted(curve, key=lambda p: p.budget, reverse=True):
         if point.status == Status.UNVERIFIED:
@@ -154,20 +163,47 @@ def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
                 point.status = Status.INTERRUPTED
 
 
-def _carry_answers_up(curve: list[CurvePoint]) -> None:
-    best: CurvePoint | None = None
+@dataclass(frozen=True)
+class _Known:
+    """An answer a point may take instead of its own: a smaller budget's, or altering nothing."""
+
+    alteration: np.ndarray
+    probability: float
+    cost: float
+    name: str  # "budget 1's", "altering nothing"
+
+
+def _carry_answers_up(curve: list[CurvePoint], unaltered: tuple[np.ndarray, float] | None) -> None:
+    best = None if unaltered is None else _Known(*unaltered, 0.0, "altering nothing")
     for point in sorted(curve, key=lambda p: p.budget):
-        if best is not None and point.probability < best.probability - tolerance.TIE:
-            point.notes["replaced"] = (
-                f"the solver's answer ({point.probability:.9f}) was worse than budget "
-                f"{best.budget:g}'s, whose alteration it takes"
+        if best is not None:
+            worse = point.probability < best.probability - tolerance.TIE
+            costlier = point.cost > best.cost + tolerance.BUDGET_SLACK
+            if worse:
+                point.notes["replaced"] = (
+                    f"the solver's answer ({point.probability:.9f}) was worse than "
+                    f"{best.name}, whose alteration it takes"
+                )
+            elif costlier and point.probability <= best.probability + tolerance.TIE:
+                point.notes["replaced"] = (
+                    f"the solver's answer (cost {point.cost:g}) gains nothing over "
+                    f"{best.name} (cost {best.cost:g}), whose alteration it takes"
+                )
+            else:
+                worse = costlier = False
+            if worse or costlier:
+                point.alteration, point.probability, point.cost = (
+                    best.alteration,
+                    best.probability,
+                    best.cost,
+                )
+                if point.upper_bound is not None:
+                    point.upper_bound = max(point.upper_bound, point.probability)
+        if (
+            best is None
+            or point.probability > best.probability + tolerance.TIE
+            or point.cost < best.cost - tolerance.BUDGET_SLACK
+        ):
+            best = _Known(
+                point.alteration, point.probability, point.cost, f"budget {point.budget:g}'s"
             )
-            point.alteration, point.probability, point.cost = (
-                best.alteration,
-                best.probability,
-                best.cost,
-            )
-            if point.upper_bound is not None:
-                point.upper_bound = max(point.upper_bound, point.probability)
-        if best is None or point.probability > best.probability:
-            best = point

@@ -81,6 +81,8 @@ class SolveResult:
     time_s: float
     curve: list[BudgetResult]
     warnings: list[str] = field(default_factory=list)
+    # what the answer should be read with, though nothing is wrong (Problem.notes)
+    notes: list[str] = field(default_factory=list)
     # the largest budget asked for, when it exceeded the most expensive complete alteration:
     # the solvers then ran at that alteration's cost instead (every budget above it is equal)
     budget_clamped_from: float | None = None
@@ -121,6 +123,7 @@ class SolveResult:
             "curve": [point.to_dict() for point in self.curve],
             "stats": final["stats"],
             "warnings": self.warnings,
+            "notes": self.notes,
         }
         if self.budget_clamped_from is not None:
             document["budget_clamped_from"] = self.budget_clamped_from
@@ -217,7 +220,7 @@ def solve(
         solutions = [
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
-    curve, warnings = [], []
+    curve, warnings = [], list(problem.warnings)
     for solution in solutions:
         alpha = np.asarray(solution.alteration, dtype=np.int64)
         problem.check_alteration(alpha, source=f"{method_solver.name} solver")
@@ -234,14 +237,16 @@ def solve(
         )
         warnings += check_claims(point, method_solver.name)
         curve.append(point)
-    certify_curve(curve, cancelled=interrupted)
+    identity = problem.identity()
+    certify_curve(curve, cancelled=interrupted, unaltered=(identity, exact_value(identity)))
     return SolveResult(
         problem=problem.name,
         method=method_solver.name,
-        baseline_probability=exact_value(problem.identity()),
+        baseline_probability=_clean(exact_value(identity)),
         time_s=elapsed,
         curve=[_result(point, problem) for point in curve],
         warnings=warnings,
+        notes=list(problem.notes),
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
@@ -267,14 +272,19 @@ def _budgets(
     return ordered, cap, clamped_from
 
 
+def _clean(value: float) -> float:
+    """``-0.0`` (a solver's bound, a sum of zeros) as ``0.0``: the same number, printed as one."""
+    return value + 0.0
+
+
 def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
     return BudgetResult(
         budget=point.budget,
         status=point.status,
-        probability=point.probability,
+        probability=_clean(point.probability),
         alteration=problem.changed_observations(point.alteration),
-        cost=point.cost,
-        upper_bound=point.upper_bound,
+        cost=_clean(point.cost),
+        upper_bound=None if point.upper_bound is None else _clean(point.upper_bound),
         solver_probability=point.claimed,
         stats=point.stats,
         notes=point.notes,

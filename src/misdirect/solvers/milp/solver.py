@@ -21,7 +21,7 @@ of the decoded alteration.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 from misdirect.core import tolerance
@@ -147,6 +147,12 @@ class MilpSolver:
         """One budget's answer from the backend's result: its alteration, the claim for it,
         how the backend stopped, and a proven bound where there is one."""
         problem, model = curve.problem, curve.model
+        # a backend's zero may be -0.0 (a bound of an empty objective): the same number
+        result = replace(
+            result,
+            objective=None if result.objective is None else result.objective + 0.0,
+            bound=None if result.bound is None else result.bound + 0.0,
+        )
         if result.status not in ("optimal", "time_limit", "infeasible"):
             raise SolverError(f"{backend} stopped with status {result.detail} at budget {budget:g}")
         violation = 0.0
