@@ -1,4 +1,5 @@
-"""Hard instances: sensor networks with 16–128 sensors (docs/sensor-grid.md), goals H1–H4.
+"""Hard instances: sensor networks with 16–128 sensors (docs/sensor-grid.md), goals H1–H4,
+and chains with cycles (issue 27), goals C1–C3.
 
     python bench/hard_instances.py [--out bench/results] [--quick] [--limit 60]
 
@@ -10,11 +11,20 @@
         mean over the instances (a MILP gets max(--limit, 10.5x auto's time): one that does
         not certify within that proves a lower bound on the ratio)                      >= 10x
 
+    C1  robots that turn back: sensor-grid --goal inside, n = 40, k = 64 and k = 96, budgets
+        0..5: every budget certified optimal                                within 60 s each
+    C2  drones among patrolling agents shaped like PAYNT's drone and network benchmarks
+        (scenario drone: 1-3k product states, hundreds of observations, end components),
+        budgets 0..3: certified                                             within 60 s each
+    C3  at --time-limit 10 on the C1/C2 instances: every budget's reported bound within 5 % of
+        the optimum (the best value any run certified or found), never a bare 1.0
+
 Each case runs ``misdirect.solve`` in a fresh process with a whole-command ``time_limit``
 (``--limit``, default 60 s, 10 s for H3), so a case that cannot be certified reports how far it
 got: per budget the status, the exact value, the proven bound and the gap. ``--quick`` (the
-test suite) runs small networks only and asserts nothing. Writes hard_instances.json, .csv and
-.md under --out.
+test suite) runs small networks only and asserts nothing. A case that has not answered at
+twice its limit plus a minute (a solver that does not hold the time limit) is stopped and
+recorded as an error. Writes hard_instances.json, .csv and .md under --out.
 """
 
 from __future__ import annotations
@@ -46,6 +56,18 @@ FULL = {
     # run again with no time limit: how long certifying really takes (H2's budget 3 is 9.6
     # million alterations, H1's budget 5 several hundred million)
     "unlimited": [(40, 128, 3, 0), (40, 64, 5, 0)],
+    # chains with cycles (issue 27): (label, scenario, its parameters, top budget). The same
+    # models as `misdirect scenario sensor-grid --size 40 --sensors 64 --goal inside` and
+    # `misdirect scenario drone --size 7 --agents 2 --rows 1`.
+    "c1": [
+        ("turn-back n=40 k=64", "sensor-grid", {"n": 40, "sensors": 64, "goal": "inside"}, 5),
+        ("turn-back n=40 k=96", "sensor-grid", {"n": 40, "sensors": 96, "goal": "inside"}, 5),
+    ],
+    "c2": [
+        ("drone n=7, 2 agents, 1 row", "drone", {"n": 7, "agents": 2, "rows": 1}, 3),
+        ("drone n=8, 1 agent, 2 rows", "drone", {"n": 8, "agents": 1, "rows": 2}, 3),
+        ("drone n=8, 1 agent, 3 rows", "drone", {"n": 8, "agents": 1, "rows": 3}, 3),
+    ],
 }
 QUICK = {
     "set": [(8, 6, 3, 0), (10, 8, 2, 1)],
@@ -53,25 +75,67 @@ QUICK = {
     "h2": (8, 6, 3, 0),
     "h4_instances": [(8, 6, 2, 0)],
     "unlimited": [(8, 6, 3, 0)],
+    "c1": [("turn-back n=6 k=4", "sensor-grid", {"n": 6, "sensors": 4, "goal": "inside"}, 2)],
+    "c2": [("drone n=5, 1 agent, 1 row", "drone", {"n": 5, "agents": 1, "rows": 1}, 2)],
 }
-TARGETS = {"H1_s": 60.0, "H2_s": 60.0, "H3_value": 0.01, "H3_bound": 0.05, "H4": 10.0}
+TARGETS = {
+    "H1_s": 60.0,
+    "H2_s": 60.0,
+    "H3_value": 0.01,
+    "H3_bound": 0.05,
+    "H4": 10.0,
+    "C1_s": 60.0,
+    "C2_s": 60.0,
+    "C3_bound": 0.05,
+}
 H4_MARGIN = 1.05  # the MILP's limit in H4: this times the target ratio times auto's time
+OVERRUN_S = 60.0  # a case still running at twice its limit plus this is stopped (an error row)
 
 
 def case(
     n: int, sensors: int, top: int, seed: int, method: str, limit: float | None, **options
 ) -> dict:
-    from misdirect import solve
     from misdirect.scenarios import sensor_grid
 
     problem = sensor_grid(n, sensors, seed=seed)
+    row = {"instance": _name((n, sensors, top, seed)), "n": n, "sensors": sensors, "seed": seed}
+    return row | _solved(problem, top, method, limit, **options)
+
+
+def model_case(label: str, scenario: str, parameters: dict, top: int, limit: float | None) -> dict:
+    """A C1/C2 instance (``FULL["c1"]``, ``["c2"]``) solved by auto, with its size."""
+    from misdirect.core.attack import prepare
+    from misdirect.core.evaluate import evaluate
+    from misdirect.scenarios import drone, sensor_grid
+
+    began = time.perf_counter()
+    problem = {"sensor-grid": sensor_grid, "drone": drone}[scenario](**parameters)
+    built = time.perf_counter() - began
+    instance = prepare(problem, top)
+    row = {
+        "instance": label,
+        "scenario": scenario,
+        "parameters": parameters,
+        "n": parameters["n"],
+        "sensors": parameters.get("sensors"),
+        "seed": parameters.get("seed", 0),
+        "build_s": built,
+        "product_states": evaluate(problem).product_states,  # reached without attack
+        "choice_states": int(instance.chain.world_state.size),  # ... under some alteration
+        "observations": problem.pomdp.n_observations,
+        "live_observations": int((instance.live_states_per_observation > 0).sum()),
+        "cycling_states": int(instance.cycling.sum()),
+    }
+    return row | _solved(problem, top, "auto", limit)
+
+
+def _solved(problem, top: int, method: str, limit: float | None, **options) -> dict:
+    from misdirect import solve
+
     began = time.perf_counter()
     result = solve(problem, method=method, budgets=range(top + 1), time_limit=limit, **options)
     wall = time.perf_counter() - began
     return {
-        "n": n,
-        "sensors": sensors,
-        "seed": seed,
         "budgets": f"0..{top}",
         "method": method if not options else f"{method} ({options.get('solver', '')})",
         "limit_s": limit,
@@ -99,12 +163,40 @@ def _run_and_send(connection, function, args, kwargs) -> None:
 
 def isolated(*args, **kwargs) -> dict:
     """One case in a fresh process (its own memory; a crash costs only this row)."""
+    n, sensors, top, seed, method, limit = args[:6]
+    method = method if not kwargs else f"{method} ({kwargs.get('solver', '')})"
+    names = {"instance": _name((n, sensors, top, seed)), "n": n, "sensors": sensors}
+    return _in_process(
+        case, args, kwargs, names | {"budgets": f"0..{top}", "method": method}, limit
+    )
+
+
+def isolated_model(
+    label: str, scenario: str, parameters: dict, top: int, limit: float | None
+) -> dict:
+    """A C1/C2 case in a fresh process."""
+    names = {"instance": label, "scenario": scenario, "budgets": f"0..{top}", "method": "auto"}
+    return _in_process(model_case, (label, scenario, parameters, top, limit), {}, names, limit)
+
+
+def _in_process(function, args, kwargs, names: dict, limit: float | None) -> dict:
     context = multiprocessing.get_context("spawn")
     receive, send = context.Pipe(duplex=False)
-    process = context.Process(target=_run_and_send, args=(send, case, args, kwargs))
+    process = context.Process(target=_run_and_send, args=(send, function, args, kwargs))
     process.start()
-    row = receive.recv()
+    send.close()  # the child's copy only: a child that dies unheard ends the wait (EOFError)
+    patience = None if limit is None else 2 * limit + OVERRUN_S
+    try:
+        if receive.poll(patience):
+            row = receive.recv()
+        else:  # the solve did not hold its time limit: stop it, report that, go on
+            process.kill()
+            row = {"error": f"no answer after {patience:g} s (time limit {limit:g} s not held)"}
+    except EOFError:
+        row = {"error": "the case's process died without an answer"}
     process.join()
+    if "error" in row:
+        row |= names | {"limit_s": limit}
     return row
 
 
@@ -112,6 +204,8 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
     def find(instance, method, limit=None):
         n, k, top, _ = instance
         for r in rows:
+            if "scenario" in r:  # a C1/C2 row
+                continue
             if (r.get("n"), r.get("sensors"), r.get("budgets"), r.get("method")) == (
                 n,
                 k,
@@ -121,6 +215,15 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
                 return r
         return None
 
+    table: list[dict] = []
+    if "h" in plan["goals"]:
+        table += _h_goals(rows, plan, find)
+    if "c" in plan["goals"]:
+        table += _c_goals(rows, plan)
+    return table
+
+
+def _h_goals(rows: list[dict], plan: dict, find) -> list[dict]:
     table = []
     for goal, instance in (("H1", plan["h1"]), ("H2", plan["h2"])):
         r = find(instance, "auto", plan["limit"])
@@ -157,7 +260,11 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
     unproven = 0
     for instance in (plan["h1"], plan["h2"]):
         short = find(instance, "auto", plan["short_limit"])
-        runs = [r for r in rows if "error" not in r and (r["n"], r["sensors"]) == instance[:2]]
+        runs = [
+            r
+            for r in rows
+            if "error" not in r and "scenario" not in r and (r["n"], r["sensors"]) == instance[:2]
+        ]
         if short is None or "error" in short:
             continue
         for j, p in enumerate(short["points"]):
@@ -211,6 +318,82 @@ def summary(rows: list[dict], plan: dict) -> list[dict]:
     return table
 
 
+def _c_goals(rows: list[dict], plan: dict) -> list[dict]:
+    """C1, C2: every instance certified within the limit; C3: at the short limit, every
+    budget's bound within 5 % of the reference (the optimum where a run certified it, else the
+    best value found), and none a bare 1.0."""
+
+    def run(label: str, limit: float) -> dict | None:
+        return next(
+            (r for r in rows if r.get("instance") == label and r.get("limit_s") == limit), None
+        )
+
+    def certified(r: dict | None) -> str:
+        if r is None or "error" in r:
+            return "error" if r is None else f"error: {r['error']}"
+        if r["certified"]:
+            return f"{r['wall_s']:.1f} s, certified"
+        return f"not certified in {r['wall_s']:.1f} s: " + ", ".join(
+            f"B={p['budget']:g} {p['status']}"
+            + ("" if p["upper_bound"] is None else f" ≤ {p['upper_bound']:.4g}")
+            for p in r["points"]
+            if p["status"] != "optimal"
+        )
+
+    table = []
+    for goal, key, target in (("C1", "c1", "C1_s"), ("C2", "c2", "C2_s")):
+        found = [(label, run(label, plan["limit"])) for label, *_ in plan[key]]
+        table.append(
+            {
+                "goal": goal,
+                "instance": ", ".join(f"{label} B=0..{top}" for label, _, _, top in plan[key]),
+                "measured": "; ".join(f"{label}: {certified(r)}" for label, r in found),
+                "target": f"certified, <= {TARGETS[target]:g} s each",
+                "pass": all(
+                    r is not None
+                    and "error" not in r
+                    and r["certified"]
+                    and r["wall_s"] <= TARGETS[target]
+                    for _, r in found
+                ),
+            }
+        )
+    worst, where, bare, unproven, missing, below = 0.0, "", 0, 0, 0, 0.0
+    for label, *_ in plan["c1"] + plan["c2"]:
+        short = run(label, plan["short_limit"])
+        runs = [r for r in rows if r.get("instance") == label and "error" not in r]
+        if short is None or "error" in short:
+            missing += 1
+            continue
+        for j, p in enumerate(short["points"]):
+            same = [r["points"][j] for r in runs if j < len(r["points"])]
+            best = max(q["probability"] for q in same)
+            unproven += not any(q["status"] == "optimal" for q in same)
+            below = max(below, (best - p["probability"]) / max(best, 1e-300))
+            bound = p["upper_bound"]
+            if bound is None:
+                missing += 1
+                continue
+            bare += bound >= 1 - 1e-12 and best < 1 - 1e-12
+            gap = (bound - best) / max(best, 1e-300)
+            if gap >= worst:
+                worst, where = gap, f" (worst: {label}, B={p['budget']:g}, bound {bound:.4g})"
+    notes = [f"{bare} bounds of 1.0"] if bare else []
+    notes += [f"{unproven} budgets with no proven optimum (reference: best found)"] * bool(unproven)
+    notes += [f"{missing} runs or bounds missing"] * bool(missing)
+    table.append(
+        {
+            "goal": "C3",
+            "instance": f"C1, C2 at --time-limit {plan['short_limit']:g}",
+            "measured": f"bound {100 * worst:.1f} % above the reference{where}; incumbent "
+            f"{100 * below:.2f} % below it (worst budget)" + "".join(f"; {n}" for n in notes),
+            "target": "<= 5 %, never a bare 1.0",
+            "pass": worst <= TARGETS["C3_bound"] and not bare and not unproven and not missing,
+        }
+    )
+    return table
+
+
 def _limit(seconds: float | None) -> str:
     return "none" if seconds is None else f"{seconds:g}"
 
@@ -232,15 +415,35 @@ def markdown(rows: list[dict], table: list[dict], machine: str) -> str:
         f"{'yes' if t['pass'] else '**no**'} |"
         for t in table
     ]
+    sized = [r for r in rows if "product_states" in r and r["limit_s"] is not None]
+    if sized:  # C1/C2: how large each model is, once per instance
+        lines += [
+            "",
+            "| instance | product states (unattacked / any alteration) | observations (with "
+            "live states) | cycling states | built in (s) |",
+            "|---|---|---|---|---|",
+        ]
+        seen = set()
+        for r in sized:
+            if r["instance"] not in seen:
+                seen.add(r["instance"])
+                lines.append(
+                    f"| {r['instance']} | {r['product_states']:,} / {r['choice_states']:,} | "
+                    f"{r['observations']:,} "
+                    f"({r['live_observations']:,}) | {r['cycling_states']:,} | "
+                    f"{r['build_s']:.2f} |"
+                )
     lines += [
         "",
-        "| n | sensors | budgets | method | limit (s) | wall (s) | per budget: status, "
-        "value, bound |",
-        "|---|---|---|---|---|---|---|",
+        "| instance | budgets | method | limit (s) | wall (s) | per budget: status, value, bound |",
+        "|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| | | | | | | error: {r['error']} |")
+            lines.append(
+                f"| {r.get('instance', '')} | {r.get('budgets', '')} | {r.get('method', '')} | "
+                f"{_limit(r.get('limit_s'))} | | error: {r['error']} |"
+            )
             continue
         points = "; ".join(
             f"{p['budget']:g}: {p['status']} {p['probability']:.6f}"
@@ -252,7 +455,7 @@ def markdown(rows: list[dict], table: list[dict], machine: str) -> str:
             for p in r["points"]
         )
         lines.append(
-            f"| {r['n']} | {r['sensors']} | {r['budgets']} | {r['method']} | "
+            f"| {r['instance']} | {r['budgets']} | {r['method']} | "
             f"{_limit(r['limit_s'])} | {r['wall_s']:.1f} | {points} |"
         )
     return "\n".join(lines) + "\n"
@@ -263,12 +466,22 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--quick", action="store_true", help="small networks only (CI)")
     parser.add_argument("--limit", type=float, default=60.0, help="seconds per case")
-    parser.add_argument("--short-limit", type=float, default=10.0, help="H3's time limit")
+    parser.add_argument("--short-limit", type=float, default=10.0, help="H3's and C3's limit")
     parser.add_argument(
         "--summarise", type=Path, help="only rebuild the tables from an earlier run's JSON"
     )
+    parser.add_argument(
+        "--only",
+        choices=("h", "c"),
+        help="only the sensor networks (H1-H4) or only the chains with cycles (C1-C3)",
+    )
     args = parser.parse_args()
-    plan = dict(QUICK if args.quick else FULL, limit=args.limit, short_limit=args.short_limit)
+    plan = dict(
+        QUICK if args.quick else FULL,
+        limit=args.limit,
+        short_limit=args.short_limit,
+        goals={args.only} if args.only else {"h", "c"},
+    )
     if args.summarise:
         earlier = json.loads(args.summarise.read_text())
         write(args.out, earlier["rows"], plan, earlier["machine"], earlier["quick"])
@@ -279,6 +492,21 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "points"}), flush=True)
 
+    if "h" in plan["goals"]:
+        _sensor_networks(plan, args, record)
+    if "c" in plan["goals"]:  # chains with cycles: C1, C2 at the limit, then C3's short one
+        for limit in (args.limit, args.short_limit):
+            for label, scenario, parameters, top in plan["c1"] + plan["c2"]:
+                record(isolated_model(label, scenario, parameters, top, limit))
+    machine = (
+        f"{platform.machine()}, {multiprocessing.cpu_count()} cores, Python "
+        f"{platform.python_version()}, {platform.system()}"
+    )
+    write(args.out, rows, plan, machine, args.quick)
+
+
+def _sensor_networks(plan: dict, args: argparse.Namespace, record) -> None:
+    """The runs of H1-H4."""
     for n, k, top, seed in plan["set"]:
         record(isolated(n, k, top, seed, "auto", args.limit))
     for n, k, top, seed in (plan["h1"], plan["h2"]):
@@ -295,19 +523,17 @@ def main() -> None:
             milp_limit = max(args.limit, math.ceil(H4_MARGIN * TARGETS["H4"] * ours["wall_s"]))
         for solver in ("highs", "scip"):
             record(isolated(n, k, top, seed, "milp", milp_limit, solver=solver))
-    machine = (
-        f"{platform.machine()}, {multiprocessing.cpu_count()} cores, Python "
-        f"{platform.python_version()}, {platform.system()}"
-    )
-    write(args.out, rows, plan, machine, args.quick)
 
 
-COLUMNS = ["n", "sensors", "budgets", "method", "limit_s", "wall_s"]
+COLUMNS = ["instance", "n", "sensors", "budgets", "method", "limit_s", "wall_s"]
 POINT_COLUMNS = ["budget", "status", "probability", "upper_bound"]
 
 
 def write(out: Path, rows: list[dict], plan: dict, machine: str, quick: bool) -> None:
     """hard_instances.{json,csv,md} under ``out``, and the Markdown on stdout."""
+    for r in rows:  # rows of a run before C1-C3 (--summarise) had no instance label
+        if "instance" not in r and "n" in r:
+            r["instance"] = _name((r["n"], r["sensors"], r["budgets"][3:], r["seed"]))
     table = summary(rows, plan)
     out.mkdir(parents=True, exist_ok=True)
     payload = {"machine": machine, "quick": quick, "goals": table, "rows": rows}
@@ -317,7 +543,7 @@ def write(out: Path, rows: list[dict], plan: dict, machine: str, quick: bool) ->
         writer.writerow(COLUMNS + POINT_COLUMNS)
         for r in rows:
             for p in r.get("points", []):
-                writer.writerow([r[c] for c in COLUMNS] + [p[c] for c in POINT_COLUMNS])
+                writer.writerow([r.get(c) for c in COLUMNS] + [p[c] for c in POINT_COLUMNS])
     (out / "hard_instances.md").write_text(markdown(rows, table, machine))
     print(markdown(rows, table, machine))
 

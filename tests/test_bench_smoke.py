@@ -94,8 +94,9 @@ def test_speed_benchmark_reduced_mode(tmp_path):
 
 
 def test_hard_instances_benchmark_reduced_mode(tmp_path):
-    """Small sensor networks, certified by auto and by both MILP backends: every row must
-    certify, and the values must agree across methods (no timing asserted)."""
+    """Small sensor networks, certified by auto and by both MILP backends, and small chains
+    with cycles (a turn-back grid, a drone): every row must certify, and the values must agree
+    across methods and time limits (no timing asserted)."""
     subprocess.run(
         [
             sys.executable,
@@ -108,18 +109,28 @@ def test_hard_instances_benchmark_reduced_mode(tmp_path):
         capture_output=True,
     )
     payload = json.loads((tmp_path / "hard_instances.json").read_text())
-    assert [goal["goal"] for goal in payload["goals"]] == ["H1", "H2", "H3", "H4"]
+    goals = ["H1", "H2", "H3", "H4", "C1", "C2", "C3"]
+    assert [goal["goal"] for goal in payload["goals"]] == goals
     rows = payload["rows"]
-    assert all("error" not in r and r["certified"] for r in rows)
+    assert all("error" not in r for r in rows)
+    # the sensor networks certify; chains with cycles may not yet (issue 27), but every
+    # bound must hold and every certified value agree
+    assert all(r["certified"] for r in rows if "scenario" not in r)
     by_instance: dict = {}
     for r in rows:
         values = [p["probability"] for p in r["points"]]
         assert values == sorted(values)  # a curve never decreases
-        key = (r["n"], r["sensors"])
+        key = r.get("scenario"), r["n"], r["sensors"]  # a C row is its own instance
         for p in r["points"]:
-            by_instance.setdefault((*key, p["budget"]), []).append(p["probability"])
-    for values in by_instance.values():
-        assert max(values) - min(values) <= 1e-9
+            by_instance.setdefault((*key, p["budget"]), []).append(p)
+    cycling = [r for r in rows if "scenario" in r]
+    assert {r["scenario"] for r in cycling} == {"sensor-grid", "drone"}
+    assert all(r["cycling_states"] > 0 for r in cycling)
+    for points in by_instance.values():
+        best = max(p["probability"] for p in points)
+        certified = [p["probability"] for p in points if p["status"] == "optimal"]
+        assert all(abs(value - best) <= 1e-9 for value in certified)
+        assert all(p["upper_bound"] is None or p["upper_bound"] >= best - 1e-9 for p in points)
     lines = list(csv.DictReader((tmp_path / "hard_instances.csv").open()))
     assert len(lines) == sum(len(r["points"]) for r in rows)
 

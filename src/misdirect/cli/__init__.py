@@ -97,6 +97,7 @@ _add(app, defence.harden)
 _add(scenario_app, models.scenario_paper_grid, "paper-grid")
 _add(scenario_app, models.scenario_knapsack, "knapsack")
 _add(scenario_app, models.scenario_sensor_grid, "sensor-grid")
+_add(scenario_app, models.scenario_drone, "drone")
 _add(scenario_app, models.scenario_random, "random")
 _add(controller_app, models.controller_synthesize, "synthesize")
 

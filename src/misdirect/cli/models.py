@@ -28,7 +28,7 @@ from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, write_output
 from misdirect.io.problem_file import json_schema, write_problem
-from misdirect.scenarios import knapsack, paper_grid, random_problem, sensor_grid
+from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers.milp.backends import write_model
 from misdirect.solvers.milp.solver import build_formulation
 
@@ -83,15 +83,48 @@ def scenario_sensor_grid(
         int, typer.Option(help="Number of sensors k, each covering 1-6 cells.")
     ] = 16,
     seed: RandomSeedOption = 0,
-    memory: Annotated[int, typer.Option(help="Controller memory nodes (3: the paper's).")] = 3,
+    memory: Annotated[
+        int | None,
+        typer.Option(
+            help="Controller memory nodes (default 3, the paper's; 4, one per heading, with "
+            "--goal inside).",
+            show_default=False,
+        ),
+    ] = None,
     costs: Annotated[
         str, typer.Option(help="uniform (every alteration 1) or random (1..3 per sensor).")
     ] = "uniform",
     budget: ScenarioBudgetOption = 3,
+    goal: Annotated[
+        str,
+        typer.Option(
+            help="corner (the paper's: East/North to (n-1, n-1)) or inside (the centre; "
+            "sensors point N/E/S/W, the robot can turn back)."
+        ),
+    ] = "corner",
     as_json: JsonOption = False,
 ) -> None:
     """A sensor network on the paper's slippery grid (docs/sensor-grid.md)."""
-    problem = sensor_grid(size, sensors, seed=seed, memory=memory, costs=costs, budget=budget)
+    problem = sensor_grid(
+        size, sensors, seed=seed, memory=memory, costs=costs, budget=budget, goal=goal
+    )
+    _write_scenario(problem, output, as_json)
+
+
+def scenario_drone(
+    output: OutputOption,
+    size: Annotated[int, typer.Option(help="Grid size n (4..40).")] = 8,
+    agents: Annotated[int, typer.Option(help="Patrolling agents (1..3).")] = 2,
+    rows: Annotated[int, typer.Option(help="Rows each agent patrols.")] = 3,
+    radius: Annotated[int, typer.Option(help="How far the drone sees agents (cells).")] = 2,
+    slip: Annotated[float, typer.Option(help="Probability that a step drifts sideways.")] = 0.2,
+    budget: ScenarioBudgetOption = 2,
+    as_json: JsonOption = False,
+) -> None:
+    """A drone among patrolling agents, shaped like PAYNT's drone benchmarks (cycles, hundreds
+    of observations; docs/sensor-grid.md)."""
+    check_output_path(output)
+    problem = drone(size, agents=agents, rows=rows, radius=radius, slip=slip, budget=budget)
     _write_scenario(problem, output, as_json)
 
 

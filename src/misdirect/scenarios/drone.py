@@ -20,6 +20,13 @@ Sizes (POMDP states / observations / product states): ``drone(8)`` 53,654 / 1,04
 issue 16 measured: 520,190 / 889 / 118,504); ``drone(10)`` 147,302 / 1,695 / 143,621. The
 model exists to measure evaluation on chains of that shape; the generator is plain numpy and
 builds each in a second or two.
+
+Small configurations are shaped like PAYNT's drone-4-1/4-2 and network benchmarks as issue 27
+measured them (1–3k product states, hundreds of observations, end components in the
+attacker's choice product), the C2 instances of ``bench/hard_instances.py``: ``drone(7,
+agents=2, rows=1)`` 3,057 / 777 / 1,689 product states; ``drone(8, agents=1, rows=2)``
+1,802 / 1,047 / 1,725; ``drone(8, agents=1, rows=3)`` 2,614 / 1,047 / 2,520 (``misdirect
+scenario drone --size 8 --agents 1 --rows 2``).
 """
 
 from __future__ import annotations
@@ -29,12 +36,14 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError
 
 ACTIONS = ("N", "E", "S", "W", "stay")
 MOVES = np.array([(0, 1), (1, 0), (0, -1), (-1, 0), (0, 0)])  # (dx, dy), same order
 SECTORS = 8  # compass sectors of the nearest visible agent
 READINGS = 1 + 2 * SECTORS  # none, or (sector, one or two agents visible)
+MAX_SIZE = 40
+MAX_STATES = 2_000_000  # world states the generator builds (drone(8, agents=3, rows=2): 339,362)
 
 
 def _buildings(n: int) -> set[tuple[int, int]]:
@@ -55,6 +64,24 @@ def _bands(n: int, agents: int, rows: int) -> list[tuple[int, int]]:
     return [(int(lo), int(min(n - 1, lo + rows))) for lo in starts]
 
 
+def _check(n: int, agents: int, rows: int, radius: int, slip: float, budget: float) -> None:
+    """One clear line per bad argument, naming the parameter (the CLI shows its flag)."""
+    if not 4 <= n <= MAX_SIZE:
+        raise OptionError(f"must be between 4 and {MAX_SIZE}, got {n}", parameter="n")
+    if not 1 <= agents <= 3:
+        raise OptionError(f"must be between 1 and 3, got {agents}", parameter="agents")
+    if not 1 <= rows <= n - 2:
+        raise OptionError(
+            f"must be between 1 and {n - 2} on a {n}x{n} grid, got {rows}", parameter="rows"
+        )
+    if not 0 <= radius <= n:
+        raise OptionError(f"must be between 0 and {n}, got {radius}", parameter="radius")
+    if not 0 <= slip < 1:
+        raise OptionError(f"must be in [0, 1), got {slip}", parameter="slip")
+    if not (np.isfinite(budget) and budget >= 0):
+        raise OptionError(f"must be a non-negative number, got {budget}", parameter="budget")
+
+
 def drone(
     n: int = 8,
     *,
@@ -65,8 +92,7 @@ def drone(
     budget: float = 2,
 ) -> Problem:
     """The drone model on an ``n x n`` grid with ``agents`` agents patrolling ``rows`` rows each."""
-    if n < 4 or not 1 <= agents <= 3 or rows < 1:
-        raise ProblemError(f"drone needs n ≥ 4, 1..3 agents, rows ≥ 1 (got {n}, {agents}, {rows})")
+    _check(n, agents, rows, radius, slip, budget)
     goal_cell, pad_cell = (n - 1, n - 1), (n // 2 + 1, n // 2 - 1)
     blocked = _buildings(n) - {pad_cell}
     cells = [(x, y) for y in range(n) for x in range(n) if (x, y) not in blocked]
@@ -89,6 +115,12 @@ def drone(
     ]
     sizes = [b.size for b in band_cells]
     n_configs = int(np.prod(sizes))
+    if 2 * n_cells * n_configs > MAX_STATES:  # before the arrays of that size are allocated
+        raise OptionError(
+            f"the model would have about {2 * n_cells * n_configs:,} states (at most "
+            f"{MAX_STATES:,}): take a smaller grid, fewer agents or fewer rows",
+            parameter="n",
+        )
     # config index -> cell of each agent (mixed radix over the bands)
     config_cells = np.stack(
         [
@@ -278,5 +310,9 @@ def drone(
         cost=CostModel(n_observations=len(observations), default=1.0),
         decoy=decoy,
         budget=float(budget),
-        name=f"drone {n}x{n}, {agents} agents",
+        name=f"drone {n}x{n}, {_count(agents, 'agent')}, {_count(rows, 'row')}",
     )
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'s' if number != 1 else ''}"
