@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from misdirect import load_problem, solve
-from misdirect.scenarios import paper_grid, random_problem
 from misdirect.core.attack import prepare
+from misdirect.scenarios import paper_grid, random_problem
 from misdirect.solvers.incremental import IncrementalSolver
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
