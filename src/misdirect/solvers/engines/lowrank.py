@@ -6,10 +6,13 @@ Observations that cover few product states (sensors) are *inner*: for each choic
 every inner alteration is valued by a low-rank update of that solve
 (:mod:`misdirect.solvers.engines.lowrank_updates`).
 
-Applicable when the choice product has no end component among the states that can reach the
-decoy: then ``I − P`` is invertible on them for *every* alteration, and its solution is the
-least fixed point. Values within :data:`~misdirect.core.tolerance.NEAR_TIE` of the best count
-as tied (the cheapest wins); every value reported is re-computed exactly by the front door.
+Where the choice product has no end component among the states that can reach the decoy,
+``I − P`` is invertible on them for *every* alteration, and its solution is the least fixed
+point. Where it has some, each base chain's closed classes are fixed to 0 and the alterations
+that could close a class are valued exactly, one chain each
+(:mod:`misdirect.solvers.engines.closed_classes`). Values within
+:data:`~misdirect.core.tolerance.NEAR_TIE` of the best count as tied (the cheapest wins);
+every value reported is re-computed exactly by the front door.
 
 Used by the ``incremental`` method (the whole curve) and by the segment search (the subtrees
 small enough to enumerate, with their bases kept in a :class:`BasisCache`).
@@ -22,7 +25,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import cast
+from typing import NamedTuple, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,9 +33,11 @@ import scipy.sparse as sp
 from misdirect.core import tolerance
 from misdirect.core.alterations import AlterationSpace, AlteredEntries, ObservationChoices
 from misdirect.core.attack import AttackInstance
+from misdirect.core.evaluate import decoy_probability
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.closed_classes import closed_classes, group_leaks, unsafe_options
 from misdirect.solvers.engines.lowrank_updates import (
     Basis,
     RowDeltas,
@@ -54,7 +59,7 @@ COMPILED_FROM = 5_000  # alterations: fewer are corrected by numpy, not by the n
 
 
 class NotApplicableError(SolverError):
-    """The model can cycle without reaching the decoy; use another method."""
+    """The enumeration does not apply to this model; use another method."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,16 @@ class Enumerated:
     def best_within(self, budgets: Sequence[float]) -> list[int]:
         """Index of the best alteration within each budget (near-ties: the cheapest)."""
         return best_per_budget(self.costs, self.values, budgets, tie=tolerance.NEAR_TIE)
+
+
+class _BlockBase(NamedTuple):
+    """A block's base chain: the value at the start, its row of ``W``, the row differences
+    of the inner options, and (with end components) the options valued exactly."""
+
+    x_start: float
+    w_start: np.ndarray | None
+    deltas: RowDeltas
+    unsafe: np.ndarray | None
 
 
 class BasisCache:
@@ -156,11 +171,6 @@ class LowRankEnumeration:
         threads: int = DEFAULT_THREADS,
         max_evaluations: int = MAX_ALTERATIONS,
     ):
-        if instance.cycling.any():
-            raise NotApplicableError(
-                "the chain can cycle without reaching the decoy under some alteration, so "
-                "low-rank updates are not safe here; use method auto, exhaustive or milp"
-            )
         self.instance = instance
         self.threads = threads
         self.max_evaluations = max_evaluations
@@ -177,16 +187,55 @@ class LowRankEnumeration:
         # outer by size: a base is the basis of their picks (fixed inner ones updated in)
         self.natural_outer = [i for i in range(len(space.choices)) if i not in natural]
         self.start = int(self.live_index[chain.initial]) if live[chain.initial] else -1
+        # with end components: closed classes get an empty row (this extra group) in the base
+        self.cycling = bool(instance.cycling.any())
+        self.closed_group = chain.transitions.shape[0]
+        self.exact_evaluations = 0  # alterations that could close a class, valued one by one
 
     @cached_property
     def _inside(self) -> sp.csr_matrix:
-        """The transitions into live states, (groups, live states)."""
+        """The transitions into live states, (groups, live states), and an empty last row
+        (the group of a closed class's states in a base chain)."""
         chain = self.instance.chain
-        return chain.transitions[:, np.flatnonzero(self.instance.live)].tocsr()
+        inside = chain.transitions[:, np.flatnonzero(self.instance.live)]
+        return sp.vstack([inside, sp.csr_matrix((1, inside.shape[1]))], format="csr")
 
     @cached_property
     def _to_target(self) -> np.ndarray:
-        return self.instance.chain.one_step()
+        return np.append(self.instance.chain.one_step(), 0.0)
+
+    @cached_property
+    def _leaks(self) -> np.ndarray:
+        leaks = group_leaks(self.instance.chain.transitions, self.instance.live)
+        return np.append(leaks, False)
+
+    def _closing(
+        self, base_groups: np.ndarray, option_groups: list[np.ndarray], regions: list[np.ndarray]
+    ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray | None]:
+        """Without end components, the arguments and no unsafe option. With them: the base's
+        closed classes take the empty group (their values are 0), and the options that may
+        close a class are flagged
+        (:func:`~misdirect.solvers.engines.closed_classes.unsafe_options`) and change no row."""
+        if not self.cycling:
+            return base_groups, option_groups, None
+        inner_local = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
+        classes = closed_classes(self._inside, self._leaks, base_groups, inner_local)
+        unsafe = unsafe_options(
+            classes, self._inside, self._leaks, option_groups, base_groups, regions
+        )
+        closed_base = np.where(classes.closed, self.closed_group, base_groups)
+        # an option leaving a row as in the base keeps the base's (empty) row; an unsafe one
+        # gets no row change here (its alterations are valued exactly after, and the low-rank
+        # pass must not divide by a singular system meanwhile)
+        option_groups = [
+            np.where(
+                unsafe[j, None, : g.shape[1]] | (g == base_groups[region][:, None]),
+                closed_base[region][:, None],
+                g,
+            )
+            for j, (g, region) in enumerate(zip(option_groups, regions, strict=True))
+        ]
+        return closed_base, option_groups, unsafe
 
     @cached_property
     def _live_node(self) -> np.ndarray:
@@ -246,12 +295,15 @@ class LowRankEnumeration:
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
-            x_start, w_start, deltas = self._block_base(outer, outer_pick, inner, fixed, bases)
+            base = self._block_base(outer, outer_pick, inner, fixed, bases)
             factored = time.perf_counter()
-            block = self._block(
-                top - outer_cost, inner, deltas, x_start, w_start, deadline, evaluations, compiled
-            )
+            block = self._block(top - outer_cost, inner, base, deadline, evaluations, compiled)
             inner_costs, found, altered, cut_at = block
+            if base.unsafe is not None and base.unsafe.any():
+                cut_at = min(
+                    cut_at,
+                    self._value_exactly(block, base.unsafe, outer, outer_pick, inner, deadline),
+                )
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
@@ -308,10 +360,9 @@ class LowRankEnumeration:
         inner: list[int],
         fixed: dict[int, int],
         bases: BasisCache | None,
-    ) -> tuple[float, np.ndarray | None, RowDeltas]:
-        """(value at the start, its row of ``W``, row differences of the inner options) of
-        the block's base chain: solved here, or (with ``bases``) a kept basis updated in low
-        rank for the fixed inner choices."""
+    ) -> _BlockBase:
+        """The block's base chain: solved here, or (with ``bases``) a kept basis updated in
+        low rank for the fixed inner choices (solved here if one of those may close a class)."""
         chosen = np.zeros(self.instance.chain.options.size, dtype=bool)
         for i, k in zip(outer, outer_pick, strict=True):
             chosen[self.first_option[i] + k] = True
@@ -325,27 +376,33 @@ class LowRankEnumeration:
         assert key is not None, "every outer choice is fixed in a block"
         basis = bases.get_or_build(key, lambda: self._basis(chosen))
         position = {i: j for j, i in enumerate(natural)}
-        return basis.with_fixed(
-            [(position[i], fixed[i]) for i in natural if i in fixed],
-            [position[i] for i in inner],
-            self.start,
+        fixed_inner = [(position[i], fixed[i]) for i in natural if i in fixed]
+        unsafe = basis.unsafe
+        if unsafe is not None and any(unsafe[j, k] for j, k in fixed_inner):
+            return self._solved_base(chosen, inner)
+        x_start, w_start, deltas = basis.with_fixed(
+            fixed_inner, [position[i] for i in inner], self.start
         )
+        if unsafe is not None:
+            unsafe = unsafe[[position[i] for i in inner]]
+        return _BlockBase(x_start, w_start, deltas, unsafe)
 
-    def _solved_base(
-        self, chosen: np.ndarray, inner: list[int]
-    ) -> tuple[float, np.ndarray | None, RowDeltas]:
+    def _solved_base(self, chosen: np.ndarray, inner: list[int]) -> _BlockBase:
         chain, live, start = self.instance.chain, self.instance.live, self.start
         group_of_option, first = chain.group_of_option, self.first_option
         base_groups = selected_groups(chain, live, group_of_option, chosen)
+        regions = [self.live_index[self.rows_of[self.observations[i]]] for i in inner]
+        option_groups = [
+            group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
+            for i in inner
+        ]
+        base_groups, option_groups, unsafe = self._closing(base_groups, option_groups, regions)
         rows = self._rows_within(inner)
         x0, W = base_solve(
             self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
         )
         deltas = row_deltas(
-            [
-                group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
-                for i in inner
-            ],
+            option_groups,
             base_groups[self.live_index[rows]],
             self._inside,
             self._to_target,
@@ -353,8 +410,8 @@ class LowRankEnumeration:
             W,
         )
         if start < 0:
-            return 0.0, None, deltas
-        return float(x0[start]), W[start], deltas
+            return _BlockBase(0.0, None, deltas, unsafe)
+        return _BlockBase(float(x0[start]), W[start], deltas, unsafe)
 
     def _basis(self, chosen: np.ndarray) -> Basis:
         """The basis of the outer picks in ``chosen`` with every natural inner one unaltered."""
@@ -364,14 +421,21 @@ class LowRankEnumeration:
             unaltered[first[i] : first[i + 1]] = False
             unaltered[first[i]] = True
         root_groups = selected_groups(chain, live, chain.group_of_option, unaltered)
+        states = [self.rows_of[self.observations[i]] for i in self.natural_inner]
+        option_groups = [
+            chain.group_of_option[region, first[i] : first[i + 1]]
+            for i, region in zip(self.natural_inner, states, strict=True)
+        ]
+        regions = [self.live_index[region] for region in states]
+        root_groups, option_groups, unsafe = self._closing(root_groups, option_groups, regions)
         return Basis.of(
             self._inside,
             self._to_target,
             root_groups,
-            [self.rows_of[self.observations[i]] for i in self.natural_inner],
-            [chain.group_of_option[:, first[i] : first[i + 1]] for i in self.natural_inner],
-            self.live_index,
+            regions,
+            option_groups,
             self._live_node,
+            unsafe=unsafe,
         )
 
     def _rows_within(self, choices: list[int]) -> np.ndarray:
@@ -383,9 +447,7 @@ class LowRankEnumeration:
         self,
         budget: float,
         inner: list[int],
-        deltas: RowDeltas,
-        x_start: float,
-        w_start: np.ndarray | None,
+        base: _BlockBase,
         deadline: Deadline,
         evaluations: int,
         compiled: bool,
@@ -393,12 +455,16 @@ class LowRankEnumeration:
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
         alterations within ``budget``; a cost is ``inf`` where the deadline cut it short."""
         chain = self.instance.chain
+        x_start, w_start, deltas = base.x_start, base.w_start, base.deltas
+        usable = deltas.flat_length > 0
+        if base.unsafe is not None:  # valued exactly, whatever rows they change
+            usable |= base.unsafe[:, : usable.shape[1]]
         # an option that changes no live row is worth its base value at a higher cost
         altered = self.instance.space.altered_within(
             budget,
             inner,
             limit=self.max_evaluations - evaluations,
-            usable=deltas.flat_length > 0,
+            usable=usable,
         )
         if altered is None:
             raise SolverError(f"more than {self.max_evaluations:,} alterations")
@@ -415,6 +481,37 @@ class LowRankEnumeration:
                 cut_at = float(inner_costs[~corrected].min())
                 inner_costs = np.where(corrected, inner_costs, np.inf)
         return inner_costs, found, altered, cut_at
+
+    def _value_exactly(
+        self,
+        block: tuple[np.ndarray, np.ndarray, AlteredEntries, float],
+        unsafe: np.ndarray,
+        outer: list[int],
+        outer_pick: np.ndarray,
+        inner: list[int],
+        deadline: Deadline,
+    ) -> float:
+        """Value exactly (in place) the block's alterations that take an unsafe option: their
+        chain may close a class, where a low-rank update divides by zero. One cut short by
+        ``deadline`` gets cost ``inf`` (not valued), as in :func:`add_corrections`; returns
+        the cheapest of those (``inf``: none)."""
+        inner_costs, found, altered, _ = block
+        risky = unsafe[altered.choice, altered.option]
+        problem, space = self.instance.problem, self.instance.space
+        picked = np.zeros(len(self.observations), dtype=np.int64)
+        picked[outer] = outer_pick
+        cut_at = np.inf
+        for index in np.unique(altered.alteration[risky]).tolist():
+            if not np.isfinite(inner_costs[index]):
+                continue  # cut short already
+            if deadline.expired():
+                cut_at = min(cut_at, float(inner_costs[index]))
+                inner_costs[index] = np.inf
+                continue
+            picked[inner] = altered.picks(index, len(inner))
+            found[index] = decoy_probability(problem, space.alteration(problem, picked))
+            self.exact_evaluations += 1
+        return cut_at
 
     def _block_fits(
         self,

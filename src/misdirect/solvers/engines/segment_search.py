@@ -75,8 +75,7 @@ class SegmentSearch(IncumbentSearch):
     ):
         self.seg, self.budget = seg, budget
         # a node with at most this many completions is enumerated instead of bounded
-        enumerable = not seg.instance.cycling.any() and len(seg.space.choices) > 0
-        self.enumerate_at = enumerate_at if enumerable else 0
+        self.enumerate_at = enumerate_at if seg.space.choices else 0
         self.enumerated = 0  # nodes
         self.enumerated_alterations = 0
         self._lock = threading.Condition(threading.RLock())  # the heap and the incumbent

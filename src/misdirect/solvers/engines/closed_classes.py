@@ -1,0 +1,105 @@
+"""Closed classes of a base chain, and which altered rows provably keep them: what makes the
+low-rank enumeration exact on chains with end components.
+
+Where the choice product has end components, some alteration may trap the robot in a closed
+class of live states (it cycles there forever, never reaching the decoy). There ``I − P`` is
+singular: a low-rank update of a base solve would divide by zero, or by rounding noise.
+
+Within one block of the enumeration (its outer choices fixed, the inner ones enumerated), an
+alteration changes only the rows of inner observations. Two facts decide what it does to the
+closed classes:
+
+* a class closed under the base chain stays closed unless one of its rows changes, and its
+  values are 0 under every alteration that leaves it alone: the base solve fixes them to 0
+  (:attr:`ClosedClasses.closed`, an empty row each), and the system on the other live states
+  is non-singular;
+* a new closed class needs a changed row whose successors all lie in it. A state is *safe* if
+  it leaves the live states along rows no inner option changes (:attr:`ClosedClasses.safe`):
+  it does so under every alteration of the block, so it lies in no closed class. A changed row
+  with a safe successor, or whose mass partly leaves the live states, is in no closed class
+  either.
+
+So an alteration whose changed rows all have a safe successor (or leak) and avoid the base's
+closed classes has exactly the base's closed classes: its low-rank value is the least fixed
+point. Options that miss this test are *unsafe*; the enumeration values the alterations using
+them exactly, one chain each (:func:`unsafe_options`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from misdirect.core.model import reachable_from
+
+
+@dataclass(frozen=True)
+class ClosedClasses:
+    """The closed classes of one base chain over the live states, and its safe states."""
+
+    closed: np.ndarray  # per live state: in a class the base chain never leaves (value 0)
+    safe: np.ndarray  # per live state: leaves the live states along rows no inner option changes
+
+
+def group_leaks(transitions: sp.csr_matrix, live: np.ndarray) -> np.ndarray:
+    """Per group of the choice product: whether some of its mass leaves the live states (to
+    the decoy, or where the decoy cannot be reached)."""
+    outside = transitions[:, np.flatnonzero(~live)]
+    return np.asarray((outside != 0).sum(axis=1)).ravel() > 0
+
+
+def closed_classes(
+    inside: sp.csr_matrix, leaks: np.ndarray, base_groups: np.ndarray, inner_local: np.ndarray
+) -> ClosedClasses:
+    """The closed classes and safe states of the base chain whose live state ``q`` takes group
+    ``base_groups[q]`` (``inside``: each group's transitions into the live states; ``leaks``:
+    per group, whether it leaves them); ``inner_local``: the live states whose rows inner
+    options may change."""
+    moves = inside[base_groups].tocsr()
+    n = moves.shape[0]
+    leaving = leaks[base_groups]
+    stuck = ~reachable_from(moves.T.tocsr(), np.flatnonzero(leaving))
+    closed = np.zeros(n, dtype=bool)
+    if stuck.any():  # the bottom strongly connected components of the stuck states
+        inner = np.flatnonzero(stuck)
+        sub = moves[inner][:, inner].tocoo()
+        _, labels = connected_components(sub, directed=True, connection="strong")
+        exits = labels[sub.row] != labels[sub.col]
+        not_bottom = np.zeros(labels.max(initial=-1) + 1, dtype=bool)
+        not_bottom[labels[sub.row[exits]]] = True
+        closed[inner] = ~not_bottom[labels]
+    fixed = np.ones(n, dtype=bool)
+    fixed[inner_local] = False
+    kept = sp.diags(fixed.astype(np.float64)) @ moves  # the rows no inner option changes
+    safe = reachable_from(kept.T.tocsr(), np.flatnonzero(fixed & leaving)) & fixed
+    return ClosedClasses(closed, safe)
+
+
+def unsafe_options(
+    classes: ClosedClasses,
+    inside: sp.csr_matrix,
+    leaks: np.ndarray,
+    option_groups: Sequence[np.ndarray],
+    base_groups: np.ndarray,
+    regions: Sequence[np.ndarray],
+) -> np.ndarray:
+    """Per inner choice ``j`` and option ``k`` (``option_groups[j]``: its region's live states
+    ``regions[j]`` (local indices) by options), whether the option changes a row of a closed
+    class, or a row with neither a safe successor nor a leak: alterations taking it may close
+    a class, and are valued exactly instead."""
+    n_options = max((g.shape[1] for g in option_groups), default=1)
+    unsafe = np.zeros((len(option_groups), n_options), dtype=bool)
+    safe = classes.safe.astype(np.float64)
+    for j, (groups, region) in enumerate(zip(option_groups, regions, strict=True)):
+        if not region.size:
+            continue
+        flat = groups.ravel()
+        escapes = leaks[flat] | (np.asarray(inside[flat] @ safe).ravel() > 0)
+        changed = groups != base_groups[region][:, None]
+        bad = changed & (~escapes.reshape(groups.shape) | classes.closed[region][:, None])
+        unsafe[j, : groups.shape[1]] = bad.any(axis=0)
+    return unsafe
