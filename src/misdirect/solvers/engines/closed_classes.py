@@ -14,10 +14,11 @@ closed classes:
   (:attr:`ClosedClasses.closed`, an empty row each), and the system on the other live states
   is non-singular;
 * a new closed class needs a changed row whose successors all lie in it. A state is *safe* if
-  it leaves the live states along rows no inner option changes (:attr:`ClosedClasses.safe`):
-  it does so under every alteration of the block, so it lies in no closed class. A changed row
-  with a safe successor, or whose mass partly leaves the live states, is in no closed class
-  either.
+  it leaves the live states with positive probability under every alteration of the block,
+  even one that picks inner options state by state (:attr:`ClosedClasses.safe`, the
+  complement of the largest set such a choice can keep the run in): it lies in no closed
+  class. A changed row with a safe successor, or whose mass partly leaves the live states, is
+  in no closed class either.
 
 So an alteration whose changed rows all have a safe successor (or leak) and avoid the base's
 closed classes has exactly the base's closed classes: its low-rank value is the least fixed
@@ -42,7 +43,7 @@ class ClosedClasses:
     """The closed classes of one base chain over the live states, and its safe states."""
 
     closed: np.ndarray  # per live state: in a class the base chain never leaves (value 0)
-    safe: np.ndarray  # per live state: leaves the live states along rows no inner option changes
+    safe: np.ndarray  # per live state: may leave the live states under every alteration
 
 
 def group_leaks(transitions: sp.csr_matrix, live: np.ndarray) -> np.ndarray:
@@ -53,12 +54,15 @@ def group_leaks(transitions: sp.csr_matrix, live: np.ndarray) -> np.ndarray:
 
 
 def closed_classes(
-    inside: sp.csr_matrix, leaks: np.ndarray, base_groups: np.ndarray, inner_local: np.ndarray
+    inside: sp.csr_matrix,
+    leaks: np.ndarray,
+    base_groups: np.ndarray,
+    inner_groups: tuple[np.ndarray, np.ndarray],
 ) -> ClosedClasses:
     """The closed classes and safe states of the base chain whose live state ``q`` takes group
     ``base_groups[q]`` (``inside``: each group's transitions into the live states; ``leaks``:
-    per group, whether it leaves them); ``inner_local``: the live states whose rows inner
-    options may change."""
+    per group, whether it leaves them); ``inner_groups``: (live state, group) of every row an
+    inner option may give a state."""
     moves = inside[base_groups].tocsr()
     n = moves.shape[0]
     leaving = leaks[base_groups]
@@ -72,11 +76,35 @@ def closed_classes(
         not_bottom = np.zeros(labels.max(initial=-1) + 1, dtype=bool)
         not_bottom[labels[sub.row[exits]]] = True
         closed[inner] = ~not_bottom[labels]
-    fixed = np.ones(n, dtype=bool)
-    fixed[inner_local] = False
-    kept = sp.diags(fixed.astype(np.float64)) @ moves  # the rows no inner option changes
-    safe = reachable_from(kept.T.tocsr(), np.flatnonzero(fixed & leaving)) & fixed
-    return ClosedClasses(closed, safe)
+    return ClosedClasses(closed, _safe(inside, leaks, base_groups, inner_groups))
+
+
+def _safe(
+    inside: sp.csr_matrix,
+    leaks: np.ndarray,
+    base_groups: np.ndarray,
+    inner_groups: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Live states that leave the live states with positive probability under *every*
+    alteration of the block (even one that picks an inner option per state): the complement
+    of the largest set in which every state has a row (its base row; any option's, for inner
+    states) that neither leaks nor leaves the set."""
+    n = base_groups.size
+    inner_state, inner_group = inner_groups
+    row_state = np.concatenate([np.arange(n), inner_state]).astype(np.int64)
+    row_group = np.concatenate([base_groups, inner_group]).astype(np.int64)
+    rows = inside[row_group].tocsr()
+    leaking = leaks[row_group]
+    trapped = np.ones(n, dtype=bool)
+    while True:
+        outside = (~trapped).astype(np.float64)
+        stays = ~leaking & (np.asarray(rows @ outside).ravel() == 0)
+        kept = np.zeros(n, dtype=bool)
+        kept[row_state[stays]] = True
+        kept &= trapped
+        if (kept == trapped).all():
+            return ~trapped
+        trapped = kept
 
 
 def unsafe_options(

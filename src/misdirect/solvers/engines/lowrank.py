@@ -218,8 +218,19 @@ class LowRankEnumeration:
         (:func:`~misdirect.solvers.engines.closed_classes.unsafe_options`) and change no row."""
         if not self.cycling:
             return base_groups, option_groups, None
-        inner_local = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
-        classes = closed_classes(self._inside, self._leaks, base_groups, inner_local)
+        inner_rows = (
+            np.concatenate(
+                [
+                    np.zeros(0, dtype=np.int64),
+                    *(
+                        np.repeat(r, g.shape[1])
+                        for r, g in zip(regions, option_groups, strict=True)
+                    ),
+                ]
+            ),
+            np.concatenate([np.zeros(0, dtype=np.int64), *(g.ravel() for g in option_groups)]),
+        )
+        classes = closed_classes(self._inside, self._leaks, base_groups, inner_rows)
         unsafe = unsafe_options(
             classes, self._inside, self._leaks, option_groups, base_groups, regions
         )
