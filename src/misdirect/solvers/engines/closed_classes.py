@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -131,3 +132,94 @@ def unsafe_options(
         bad = changed & (~escapes.reshape(groups.shape) | classes.closed[region][:, None])
         unsafe[j, : groups.shape[1]] = bad.any(axis=0)
     return unsafe
+
+
+@numba.njit(cache=True, nogil=True)
+def _closes_a_class(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    leaks: np.ndarray,
+    stop: np.ndarray,
+    base_group: np.ndarray,
+    override: np.ndarray,
+    alteration_start: np.ndarray,
+    changed_state: np.ndarray,
+    changed_group: np.ndarray,
+) -> np.ndarray:  # pragma: no cover (compiled; its caller is tested)
+    """Per alteration (its changed rows ``changed_state``/``changed_group`` from
+    ``alteration_start``): whether a depth-first search from one of its changed states, over
+    its rows, exhausts without meeting a leaking row or a ``stop`` state (one that leaves under
+    every alteration, or a base closed class, absorbing in the system): then that state lies
+    in, or only leads to, a closed class."""
+    n = base_group.size
+    n_alterations = alteration_start.size - 1
+    closes = np.zeros(n_alterations, dtype=np.bool_)
+    seen = np.zeros(n, dtype=np.int64)
+    stamp = 0
+    stack = np.empty(n, dtype=np.int64)
+    for a in range(n_alterations):
+        lo, hi = alteration_start[a], alteration_start[a + 1]
+        for e in range(lo, hi):
+            override[changed_state[e]] = changed_group[e]
+        for e in range(lo, hi):
+            stamp += 1
+            top = 0
+            stack[0] = changed_state[e]
+            seen[changed_state[e]] = stamp
+            top = 1
+            found = stop[changed_state[e]]
+            while top > 0 and not found:
+                top -= 1
+                s = stack[top]
+                g = override[s] if override[s] >= 0 else base_group[s]
+                if leaks[g]:
+                    found = True
+                    break
+                for p in range(indptr[g], indptr[g + 1]):
+                    t = indices[p]
+                    if stop[t]:
+                        found = True
+                        break
+                    if seen[t] != stamp:
+                        seen[t] = stamp
+                        stack[top] = t
+                        top += 1
+            if not found:
+                closes[a] = True
+                break
+        for e in range(lo, hi):
+            override[changed_state[e]] = -1
+    return closes
+
+
+def closing_alterations(
+    inside: sp.csr_matrix,
+    leaks: np.ndarray,
+    classes: ClosedClasses,
+    base_groups: np.ndarray,
+    alteration_start: np.ndarray,
+    changed_state: np.ndarray,
+    changed_group: np.ndarray,
+    fixed: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Per alteration (given by its changed rows: live state and new group, listed from
+    ``alteration_start``): whether its chain has a closed class through a changed state. An
+    alteration without one keeps exactly the base's closed classes (unless it changes one of
+    their rows, which the caller checks), so its low-rank value is the least fixed point.
+    ``fixed``: rows (live state, group) every alteration of the block takes."""
+    inside = inside.tocsr()
+    override = np.full(base_groups.size, -1, dtype=np.int64)
+    if fixed is not None:
+        override[fixed[0]] = fixed[1]
+    closes: np.ndarray = _closes_a_class(
+        inside.indptr.astype(np.int64),
+        inside.indices.astype(np.int64),
+        leaks,
+        classes.safe | classes.closed,
+        base_groups.astype(np.int64),
+        override,
+        alteration_start.astype(np.int64),
+        changed_state.astype(np.int64),
+        changed_group.astype(np.int64),
+    )
+    return closes

@@ -37,7 +37,13 @@ from misdirect.core.evaluate import decoy_probability
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.closed_classes import closed_classes, group_leaks, unsafe_options
+from misdirect.solvers.engines.closed_classes import (
+    ClosedClasses,
+    closed_classes,
+    closing_alterations,
+    group_leaks,
+    unsafe_options,
+)
 from misdirect.solvers.engines.lowrank_updates import (
     Basis,
     RowDeltas,
@@ -100,14 +106,33 @@ class Enumerated:
         return best_per_budget(self.costs, self.values, budgets, tie=tolerance.NEAR_TIE)
 
 
+class _Cycles(NamedTuple):
+    """What a base chain with end components needs besides its solve: its closed classes and
+    safe states, the options that may close a class, and the live state and new group of every
+    row slot of its :class:`RowDeltas` (the changed rows, for the trap search)."""
+
+    classes: ClosedClasses
+    base_groups: np.ndarray
+    unsafe: np.ndarray
+    slot_state: np.ndarray
+    slot_group: np.ndarray
+
+
+class _KeptBasis(NamedTuple):
+    basis: Basis
+    cycles: _Cycles | None
+
+
 class _BlockBase(NamedTuple):
     """A block's base chain: the value at the start, its row of ``W``, the row differences
-    of the inner options, and (with end components) the options valued exactly."""
+    of the inner options, and (with end components) its :class:`_Cycles` and the rows its
+    fixed inner picks change (live states, groups)."""
 
     x_start: float
     w_start: np.ndarray | None
     deltas: RowDeltas
-    unsafe: np.ndarray | None
+    cycles: _Cycles | None = None
+    fixed_rows: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class BasisCache:
@@ -119,7 +144,7 @@ class BasisCache:
 
     def __init__(self, kept: int = BASES_KEPT):
         self.kept = kept
-        self._bases: dict[tuple[int, ...], Basis] = {}
+        self._bases: dict[tuple[int, ...], _KeptBasis] = {}
         self._lock = threading.Lock()
         self._building = threading.Lock()
 
@@ -127,7 +152,7 @@ class BasisCache:
         with self._lock:
             return key in self._bases
 
-    def get_or_build(self, key: tuple[int, ...], build: Callable[[], Basis]) -> Basis:
+    def get_or_build(self, key: tuple[int, ...], build: Callable[[], _KeptBasis]) -> _KeptBasis:
         with self._lock:
             if key in self._bases:
                 return self._bases[key]
@@ -211,23 +236,16 @@ class LowRankEnumeration:
 
     def _closing(
         self, base_groups: np.ndarray, option_groups: list[np.ndarray], regions: list[np.ndarray]
-    ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray | None]:
-        """Without end components, the arguments and no unsafe option. With them: the base's
-        closed classes take the empty group (their values are 0), and the options that may
-        close a class are flagged
-        (:func:`~misdirect.solvers.engines.closed_classes.unsafe_options`) and change no row."""
+    ) -> tuple[np.ndarray, list[np.ndarray], tuple[ClosedClasses, np.ndarray] | None]:
+        """Without end components, the arguments. With them: the base's closed classes take
+        the empty group (their values are 0), and so does every option that leaves such a row
+        as it is; with the closed classes, the options that may close a class
+        (:func:`~misdirect.solvers.engines.closed_classes.unsafe_options`)."""
         if not self.cycling:
             return base_groups, option_groups, None
+        repeated = (np.repeat(r, g.shape[1]) for r, g in zip(regions, option_groups, strict=True))
         inner_rows = (
-            np.concatenate(
-                [
-                    np.zeros(0, dtype=np.int64),
-                    *(
-                        np.repeat(r, g.shape[1])
-                        for r, g in zip(regions, option_groups, strict=True)
-                    ),
-                ]
-            ),
+            np.concatenate([np.zeros(0, dtype=np.int64), *repeated]),
             np.concatenate([np.zeros(0, dtype=np.int64), *(g.ravel() for g in option_groups)]),
         )
         classes = closed_classes(self._inside, self._leaks, base_groups, inner_rows)
@@ -235,18 +253,38 @@ class LowRankEnumeration:
             classes, self._inside, self._leaks, option_groups, base_groups, regions
         )
         closed_base = np.where(classes.closed, self.closed_group, base_groups)
-        # an option leaving a row as in the base keeps the base's (empty) row; an unsafe one
-        # gets no row change here (its alterations are valued exactly after, and the low-rank
-        # pass must not divide by a singular system meanwhile)
         option_groups = [
-            np.where(
-                unsafe[j, None, : g.shape[1]] | (g == base_groups[region][:, None]),
-                closed_base[region][:, None],
-                g,
-            )
-            for j, (g, region) in enumerate(zip(option_groups, regions, strict=True))
+            np.where(g == base_groups[region][:, None], closed_base[region][:, None], g)
+            for g, region in zip(option_groups, regions, strict=True)
         ]
-        return closed_base, option_groups, unsafe
+        return closed_base, option_groups, (classes, unsafe)
+
+    def _cycles(
+        self,
+        closing: tuple[ClosedClasses, np.ndarray] | None,
+        base_groups: np.ndarray,
+        option_groups: list[np.ndarray],
+        regions: list[np.ndarray],
+    ) -> _Cycles | None:
+        """The :class:`_Cycles` of a base, its row slots listed as :func:`row_deltas` lists
+        them (per choice, per option, the rows that differ from the base)."""
+        if closing is None:
+            return None
+        states, groups = [], []
+        for g, region in zip(option_groups, regions, strict=True):
+            base = base_groups[region]
+            for k in range(g.shape[1]):
+                changed = np.flatnonzero(g[:, k] != base)
+                states.append(region[changed])
+                groups.append(g[changed, k])
+        empty = np.zeros(0, dtype=np.int64)
+        return _Cycles(
+            closing[0],
+            base_groups,
+            closing[1],
+            np.concatenate([empty, *states]).astype(np.int64),
+            np.concatenate([empty, *groups]).astype(np.int64),
+        )
 
     @cached_property
     def _live_node(self) -> np.ndarray:
@@ -310,10 +348,9 @@ class LowRankEnumeration:
             factored = time.perf_counter()
             block = self._block(top - outer_cost, inner, base, deadline, evaluations, compiled)
             inner_costs, found, altered, cut_at = block
-            if base.unsafe is not None and base.unsafe.any():
+            if base.cycles is not None and base.cycles.unsafe.any():
                 cut_at = min(
-                    cut_at,
-                    self._value_exactly(block, base.unsafe, outer, outer_pick, inner, deadline),
+                    cut_at, self._value_flagged(block, base, outer, outer_pick, inner, deadline)
                 )
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
@@ -385,18 +422,25 @@ class LowRankEnumeration:
         picks = dict(zip(outer, outer_pick.tolist(), strict=True))
         key = self.basis_key(picks)
         assert key is not None, "every outer choice is fixed in a block"
-        basis = bases.get_or_build(key, lambda: self._basis(chosen))
+        kept = bases.get_or_build(key, lambda: self._basis(chosen))
         position = {i: j for j, i in enumerate(natural)}
         fixed_inner = [(position[i], fixed[i]) for i in natural if i in fixed]
-        unsafe = basis.unsafe
-        if unsafe is not None and any(unsafe[j, k] for j, k in fixed_inner):
-            return self._solved_base(chosen, inner)
-        x_start, w_start, deltas = basis.with_fixed(
+        cycles = kept.cycles
+        if cycles is not None and any(cycles.unsafe[j, k] for j, k in fixed_inner):
+            return self._solved_base(chosen, inner)  # its closed classes may differ
+        x_start, w_start, deltas = kept.basis.with_fixed(
             fixed_inner, [position[i] for i in inner], self.start
         )
-        if unsafe is not None:
-            unsafe = unsafe[[position[i] for i in inner]]
-        return _BlockBase(x_start, w_start, deltas, unsafe)
+        if cycles is None:
+            return _BlockBase(x_start, w_start, deltas)
+        table = kept.basis.options
+        fixed_slots = np.concatenate(
+            [np.zeros(0, dtype=np.int64)]
+            + [table.flat_start[j, k] + np.arange(table.flat_length[j, k]) for j, k in fixed_inner]
+        ).astype(np.int64)
+        inner_cycles = cycles._replace(unsafe=cycles.unsafe[[position[i] for i in inner]])
+        fixed_rows = (cycles.slot_state[fixed_slots], cycles.slot_group[fixed_slots])
+        return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows)
 
     def _solved_base(self, chosen: np.ndarray, inner: list[int]) -> _BlockBase:
         chain, live, start = self.instance.chain, self.instance.live, self.start
@@ -407,7 +451,8 @@ class LowRankEnumeration:
             group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
             for i in inner
         ]
-        base_groups, option_groups, unsafe = self._closing(base_groups, option_groups, regions)
+        base_groups, option_groups, closing = self._closing(base_groups, option_groups, regions)
+        cycles = self._cycles(closing, base_groups, option_groups, regions)
         rows = self._rows_within(inner)
         x0, W = base_solve(
             self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
@@ -421,10 +466,10 @@ class LowRankEnumeration:
             W,
         )
         if start < 0:
-            return _BlockBase(0.0, None, deltas, unsafe)
-        return _BlockBase(float(x0[start]), W[start], deltas, unsafe)
+            return _BlockBase(0.0, None, deltas, cycles)
+        return _BlockBase(float(x0[start]), W[start], deltas, cycles)
 
-    def _basis(self, chosen: np.ndarray) -> Basis:
+    def _basis(self, chosen: np.ndarray) -> _KeptBasis:
         """The basis of the outer picks in ``chosen`` with every natural inner one unaltered."""
         chain, live, first = self.instance.chain, self.instance.live, self.first_option
         unaltered = chosen.copy()  # the fixed inner ones too
@@ -438,16 +483,11 @@ class LowRankEnumeration:
             for i, region in zip(self.natural_inner, states, strict=True)
         ]
         regions = [self.live_index[region] for region in states]
-        root_groups, option_groups, unsafe = self._closing(root_groups, option_groups, regions)
-        return Basis.of(
-            self._inside,
-            self._to_target,
-            root_groups,
-            regions,
-            option_groups,
-            self._live_node,
-            unsafe=unsafe,
+        root_groups, option_groups, closing = self._closing(root_groups, option_groups, regions)
+        basis = Basis.of(
+            self._inside, self._to_target, root_groups, regions, option_groups, self._live_node
         )
+        return _KeptBasis(basis, self._cycles(closing, root_groups, option_groups, regions))
 
     def _rows_within(self, choices: list[int]) -> np.ndarray:
         """The live product states of ``choices``' observations, choice by choice."""
@@ -468,8 +508,12 @@ class LowRankEnumeration:
         chain = self.instance.chain
         x_start, w_start, deltas = base.x_start, base.w_start, base.deltas
         usable = deltas.flat_length > 0
-        if base.unsafe is not None:  # valued exactly, whatever rows they change
-            usable |= base.unsafe[:, : usable.shape[1]]
+        if base.cycles is not None:
+            # the options that may close a class change no row in the batch (it must not
+            # divide by a singular system); their alterations are valued after it
+            unsafe = base.cycles.unsafe[:, : usable.shape[1]]
+            usable |= unsafe
+            deltas = deltas._replace(flat_length=np.where(unsafe, 0, deltas.flat_length))
         # an option that changes no live row is worth its base value at a higher cost
         altered = self.instance.space.altered_within(
             budget,
@@ -493,35 +537,73 @@ class LowRankEnumeration:
                 inner_costs = np.where(corrected, inner_costs, np.inf)
         return inner_costs, found, altered, cut_at
 
-    def _value_exactly(
+    def _value_flagged(
         self,
         block: tuple[np.ndarray, np.ndarray, AlteredEntries, float],
-        unsafe: np.ndarray,
+        base: _BlockBase,
         outer: list[int],
         outer_pick: np.ndarray,
         inner: list[int],
         deadline: Deadline,
     ) -> float:
-        """Value exactly (in place) the block's alterations that take an unsafe option: their
-        chain may close a class, where a low-rank update divides by zero. One cut short by
-        ``deadline`` gets cost ``inf`` (not valued), as in :func:`add_corrections`; returns
-        the cheapest of those (``inf``: none)."""
+        """Value (in place) the block's alterations that take an unsafe option: by a low-rank
+        update of their own where the trap search shows no class closes through their changed
+        rows (and they change no row of a closed class), else exactly, one chain each. One cut
+        short by ``deadline`` gets cost ``inf`` (not valued), as in :func:`add_corrections`;
+        returns the cheapest of those (``inf``: none)."""
         inner_costs, found, altered, _ = block
-        risky = unsafe[altered.choice, altered.option]
+        cycles, table = base.cycles, base.deltas
+        assert cycles is not None
+        flagged = np.unique(altered.alteration[cycles.unsafe[altered.choice, altered.option]])
+        flagged = flagged[np.isfinite(inner_costs[flagged])]  # the rest was cut short already
+        if not flagged.size:
+            return np.inf
+        # each flagged alteration's changed rows: its entries' row slots
+        lo = np.searchsorted(altered.alteration, flagged)
+        hi = np.searchsorted(altered.alteration, flagged, side="right")
+        slots_of = [
+            np.concatenate(
+                [np.zeros(0, dtype=np.int64)]
+                + [
+                    table.flat_start[j, k] + np.arange(table.flat_length[j, k])
+                    for j, k in zip(altered.choice[a:b], altered.option[a:b], strict=True)
+                ]
+            ).astype(np.int64)
+            for a, b in zip(lo, hi, strict=True)
+        ]
+        start = np.cumsum([0, *(len(x) for x in slots_of)])
+        slots = np.concatenate([np.zeros(0, dtype=np.int64), *slots_of])
+        closes = closing_alterations(
+            self._inside,
+            self._leaks,
+            cycles.classes,
+            cycles.base_groups,
+            start,
+            cycles.slot_state[slots],
+            cycles.slot_group[slots],
+            base.fixed_rows,
+        )
+        closes |= np.add.reduceat(
+            np.append(cycles.classes.closed[cycles.slot_state[slots]], False), start[:-1]
+        ).astype(bool) & (np.diff(start) > 0)
         problem, space = self.instance.problem, self.instance.space
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
         cut_at = np.inf
-        for index in np.unique(altered.alteration[risky]).tolist():
-            if not np.isfinite(inner_costs[index]):
-                continue  # cut short already
+        for index, own, exact in zip(flagged.tolist(), slots_of, closes.tolist(), strict=True):
             if deadline.expired():
                 cut_at = min(cut_at, float(inner_costs[index]))
                 inner_costs[index] = np.inf
                 continue
-            picked[inner] = altered.picks(index, len(inner))
-            found[index] = decoy_probability(problem, space.alteration(problem, picked))
-            self.exact_evaluations += 1
+            if exact:  # a class may close: the chain itself, solved exactly
+                picked[inner] = altered.picks(index, len(inner))
+                found[index] = decoy_probability(problem, space.alteration(problem, picked))
+                self.exact_evaluations += 1
+            elif base.w_start is not None and own.size:
+                columns = table.column[own]
+                system = np.eye(own.size) - table.d_w[np.ix_(own, columns)]
+                z = np.linalg.solve(system, table.rhs[own])
+                found[index] = base.x_start + float(base.w_start[columns] @ z)
         return cut_at
 
     def _block_fits(

@@ -60,8 +60,6 @@ class Basis(NamedTuple):
     x0: np.ndarray
     W: np.ndarray
     options: RowDeltas
-    # per inner choice and option: may close a class (valued exactly), None without cycles
-    unsafe: np.ndarray | None = None
 
     @staticmethod
     def of(
@@ -71,7 +69,6 @@ class Basis(NamedTuple):
         regions: Sequence[np.ndarray],
         option_groups: Sequence[np.ndarray],
         live_node: np.ndarray,
-        unsafe: np.ndarray | None = None,
     ) -> Basis:
         """``groups``: per live state, its group in the base; ``regions``: per inner choice,
         its live states (local indices); ``option_groups``: per inner choice, per state of its
@@ -79,7 +76,7 @@ class Basis(NamedTuple):
         local = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
         x0, W = base_solve(inside, to_target, groups, local, live_node)
         options = row_deltas(list(option_groups), groups[local], inside, to_target, x0, W)
-        return Basis(x0, W, options, unsafe)
+        return Basis(x0, W, options)
 
     def with_fixed(
         self, fixed: Sequence[tuple[int, int]], inner: Sequence[int] | np.ndarray, start: int
