@@ -175,6 +175,34 @@ def test_bound_from_a_larger_budget_can_certify(monkeypatch):
     assert [p.status for p in result.curve] == ["optimal", "optimal"]
 
 
+def test_evidence_from_other_work_certifies_by_the_same_policy(monkeypatch):
+    """The paper's grid (budget 1 optimum 0.719924, o1 -> o3, from the paper's Section VII):
+    a cut-short solver left budget 1 at "alter nothing" with bound 1. Evidence of that
+    optimum with a bound meeting it makes the point optimal, with the evidence's alteration;
+    budget 2 then takes it too (it can do what budget 1 does) but stays open. A bound below
+    the exact value contradicts the chain and is not taken."""
+    from misdirect.solvers.certification import Evidence
+    from misdirect.solvers.run import recertify
+
+    problem = paper_grid(5)
+    exact = 0.7199236731437554
+    _Scripted.answers = [({}, 0.084957, "time_limit", 1.0)] * 2
+    monkeypatch.setitem(SOLVERS, "scripted", _Scripted)
+    open_curve = solve(problem, method="scripted", budgets=[1, 2])
+    assert [p.status for p in open_curve.curve] == ["time_limit", "time_limit"]
+    found = problem.alteration({"o1": "o3"})
+    evidence = Evidence(1.0, "elsewhere", "proven there", exact, found, exact, 1.0)
+    one, two = recertify(open_curve, problem, [evidence]).curve
+    assert one.status == "optimal" and one.certified_by == "elsewhere"
+    assert one.alteration == {"o1": "o3"} and one.probability == exact
+    assert one.notes["bound_from"] == "elsewhere: proven there"
+    assert two.status == "time_limit" and two.probability == exact and two.upper_bound == 1.0
+    low = Evidence(1.0, "elsewhere", "wrong", 0.01)  # below "alter nothing" (0.084957)
+    one, _ = recertify(open_curve, problem, [low]).curve
+    assert one.status == "time_limit" and one.upper_bound == 1.0
+    assert "evidence_ignored" in one.notes
+
+
 @pytest.mark.parametrize("method", ["exhaustive", "incremental", "branch-and-bound"])
 def test_every_method_takes_a_time_limit(method):
     result = runner.invoke(
@@ -438,7 +466,7 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
     count = alteration_space(problem.with_budget(3)).count_within(3.0, 10**6)
     monkeypatch.setattr(schedule, "INCREMENTAL_SURE", 0)
     monkeypatch.setattr(auto, "TINY_CHAIN", 0)  # the search below, not an unlimited one
-    monkeypatch.setattr(auto, "ENUMERATION_SECONDS", 0.0)  # nor one-by-one enumeration
+    monkeypatch.setattr(schedule, "EVALUATION_SURE", 0.0)  # nor one-by-one enumeration
     # within 100 s, enumerating the top budget "takes" 60 or 70 s: over half, under 90 %
     monkeypatch.setattr(schedule, "UPDATE_SECONDS", enumeration_s / count)
     given = []

@@ -450,3 +450,99 @@ def test_defence_benchmark_quick_mode(tmp_path):
     assert rows["D1"]["detail"]["online_unlimited"] >= curve[-1]
     assert {r["goal"] for r in csv.DictReader((tmp_path / "defence.csv").open())} == set(rows)
     assert "| D3 |" in (tmp_path / "defence.md").read_text()
+
+
+# -- the audit reuses what it proved ------------------------------------------------------------
+
+
+class NoProof:
+    """A method that proves nothing: the unaltered chain with bound 1, what branch-and-bound
+    reported for budget 1 on drone-4-1's cycling chain (issue 27)."""
+
+    name = "no-proof"
+    curve_is_free = False
+    accepts = ("time_limit",)
+
+    def __init__(self, options=None):
+        pass
+
+    def solve(self, problem, budgets, *, progress=None, deadline=None):
+        from misdirect.solvers.base import Solution
+        from misdirect.solvers.status import Status
+
+        value = decoy_probability(problem, problem.identity())
+        return [
+            Solution(b, problem.identity(), value, Status.TIME_LIMIT, upper_bound=1.0)
+            for b in budgets
+        ]
+
+
+@pytest.fixture
+def no_proof(monkeypatch):
+    from misdirect.solvers import SOLVERS
+
+    monkeypatch.setitem(SOLVERS, "no-proof", NoProof)
+    return "no-proof"
+
+
+def best_single_sensor(problem: Problem, budget: float) -> float:
+    """Brute force: the best value of the unaltered chain and of every alteration of one
+    observation (the initial one stays) to any target it may take within ``budget``."""
+    best = decoy_probability(problem, problem.identity())
+    for o in range(problem.pomdp.n_observations):
+        if o == problem.pomdp.initial_observation:
+            continue
+        row = problem.cost.row(o)
+        for t in np.flatnonzero(row <= budget + 1e-9):
+            alpha = problem.identity()
+            alpha[o] = t
+            best = max(best, decoy_probability(problem, alpha))
+    return best
+
+
+def test_audit_proves_budget_one_by_the_single_sensor_optima(no_proof):
+    """Issue 27 (drone-4-1, audit at budget 2: every single-sensor value optimal, yet budget 1
+    reported open with bound 1). With unit costs budget 1 affords one sensor at most, so its
+    optimum is the best single-sensor optimum: proven even when the curve's own solve proves
+    nothing. Expected value: brute force over every single-observation alteration of a patrol
+    that can turn back; budget 2 (two sensors fit) stays open, bound 1."""
+    from turnback import turnback
+
+    problem = turnback(3, nodes=1, budget=2)
+    result = misdirect.audit(problem, budget=2, method=no_proof)
+    zero, one, two = result.curve
+    expected = best_single_sensor(problem, 1.0)
+    assert expected > decoy_probability(problem, problem.identity()) + 1e-3
+    assert one.status == "optimal"
+    assert one.probability == pytest.approx(expected, abs=1e-12)
+    assert one.upper_bound - one.probability <= 1e-9
+    assert one.certified_by == "single-sensor optima"
+    assert "one sensor at most" in one.to_dict()["stats"]["bound_from"]
+    assert all(row.single_status == "optimal" for row in result.sensors)
+    assert max(row.single_probability for row in result.sensors) == pytest.approx(expected)
+    assert zero.status == "optimal" and zero.alteration == {}
+    assert two.status != "optimal" and two.upper_bound == 1.0
+    assert two.probability >= one.probability
+
+
+def test_audit_single_sensor_bound_follows_the_costs(no_proof):
+    """Costs decide which budgets the single-sensor optima settle. Hand model with altering a
+    costing 2 (b costs 1): budget 1 affords only b (0.15), budget 2 only a (0.3: both cost 3),
+    both proven by brute force over every alteration. With every alteration at 0.5, budget 1
+    affords two sensors, so the singles bound nothing there: the point stays open, its bound
+    still at least the brute-force optimum."""
+    problem = hand_model()
+    costly_a = CostModel(5, default=1.0, pairs={(1, t): 2.0 for t in (0, 2, 3, 4)})
+    problem = replace(problem, cost=costly_a)
+    result = misdirect.audit(problem, budget=2, method=no_proof)
+    for point in result.curve:
+        expected = max(v for v, _ in brute_values(problem, point.budget))
+        assert point.status == "optimal", point.budget
+        assert point.probability == pytest.approx(expected, abs=1e-12)
+    assert [p.probability for p in result.curve] == pytest.approx([0.0, 0.15, 0.3], abs=1e-12)
+
+    cheap = replace(problem, cost=CostModel(5, default=0.5))
+    result = misdirect.audit(cheap, budget=1, method=no_proof)
+    zero, one = result.curve
+    assert zero.status == "optimal" and one.status != "optimal"
+    assert one.upper_bound >= max(v for v, _ in brute_values(cheap, 1.0)) - 1e-12

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -34,6 +34,8 @@ class Attack:
     alteration: dict[str, str]
     changed: frozenset[int]
     cost: float
+    # the alteration itself, to hand to the curve as evidence (not compared: an array)
+    alteration_array: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def certified(self) -> bool:
@@ -64,6 +66,7 @@ def attack_of(point: BudgetResult, problem: Problem) -> Attack:
         alteration=point.alteration,
         changed=changed,
         cost=point.cost,
+        alteration_array=alpha,
     )
 
 

@@ -8,15 +8,17 @@ answers "what should be protected?".
 
 from __future__ import annotations
 
+import math
 import time
+from collections.abc import Sequence
 
 from misdirect.core import tolerance
+from misdirect.core.alterations import alteration_space
 from misdirect.core.attack import shared_preparation
 from misdirect.core.grid import grid_cells
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
-    alterable_sensors,
     attack_of,
     attacker_budget,
     protect,
@@ -26,8 +28,11 @@ from misdirect.defence.attack import (
 from misdirect.defence.online import online_attack_value
 from misdirect.defence.results import AuditResult, OnlineAttack, SensorAudit
 from misdirect.errors import ProblemError, SolverError
+from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline
-from misdirect.solvers.run import SolveResult, default_budgets, solve
+from misdirect.solvers.run import SolveResult, default_budgets, recertify, solve
+
+SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
 
 
 def audit(
@@ -43,7 +48,9 @@ def audit(
 
     Criticality uses the exact shortcut: protecting a sensor the optimal alteration at ``B``
     does not alter leaves that alteration feasible and the optimum unchanged (protection only
-    removes alterations), so only the sensors of the optimal attack are re-solved.
+    removes alterations), so only the sensors of the optimal attack are re-solved. A budget
+    of the curve that affords one sensor at most is bounded by the single-sensor optima, which
+    often certify what the curve's own solve left open (the search's bound can be 1 there).
 
     ``time_limit`` (seconds) bounds the whole audit, within ``deadline`` when one is shared
     with other work; cancelling ``cancel`` (or the deadline's token) stops every solve of it.
@@ -53,8 +60,16 @@ def audit(
     budget = attacker_budget(problem, budget)
     problem = problem.with_budget(budget)
     with shared_preparation():
-        curve_result, optimum, notes = _optimum_curve(problem, budget, clock, method)
-        rows = _sensor_rows(problem, budget, optimum, clock, method)
+        curve_result = _optimum_curve(problem, budget, clock, method)
+        cheapest = _cheapest_alterations(problem, budget)
+        # the re-solves at B the optimum is likely to need share the time with the singles
+        likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
+        singles = _single_values(problem, budget, list(cheapest), clock, likely)
+        evidence = _single_sensor_evidence(curve_result, cheapest, singles)
+        curve_result = recertify(curve_result, problem, evidence)
+        optimum = attack_of(curve_result.curve[-1], problem)
+        rows = _sensor_rows(problem, budget, optimum, singles, clock, method)
+    notes = _not_certified(optimum, curve_result, budget)
     online, note = _online_value(problem, budget, optimum)
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
@@ -78,47 +93,104 @@ def audit(
     )
 
 
-def _optimum_curve(
-    problem: Problem, budget: float, clock: Deadline, method: str
-) -> tuple[SolveResult, Attack, list[str]]:
-    """The attacker's optimum at every budget up to ``budget``, within half the time left;
-    returns the solve, its point at ``budget`` and a note if that point is not certified."""
-    curve_result = solve(
+def _optimum_curve(problem: Problem, budget: float, clock: Deadline, method: str) -> SolveResult:
+    """The attacker's optimum at every budget up to ``budget``, within half the time left."""
+    return solve(
         problem,
         method=method,
         budgets=default_budgets(budget),
         deadline=clock.within(clock.share(2)),
     )
-    top = curve_result.curve[-1]
-    optimum = attack_of(top, problem)
-    notes: list[str] = []
-    if not optimum.certified:
-        notes.append(
-            f"the optimum at budget {budget:g} is not certified (status {top.status}, proven "
-            f"bound {optimum.upper:.9f}): criticalities are intervals, not values"
-        )
-    return curve_result, optimum, notes
 
 
-def _sensor_rows(
-    problem: Problem, budget: float, optimum: Attack, clock: Deadline, method: str
-) -> list[SensorAudit]:
-    """One row per sensor alterable within ``budget``, the most critical first."""
-    sensors = alterable_sensors(problem, budget)
-    names = problem.pomdp.observations
+def _not_certified(optimum: Attack, curve_result: SolveResult, budget: float) -> list[str]:
+    """A note if the optimum at ``budget`` is not certified."""
+    if optimum.certified:
+        return []
+    return [
+        f"the optimum at budget {budget:g} is not certified (status "
+        f"{curve_result.curve[-1].status}, proven bound {optimum.upper:.9f}): criticalities "
+        "are intervals, not values"
+    ]
+
+
+def _cheapest_alterations(problem: Problem, budget: float) -> dict[int, float]:
+    """The sensors alterable within ``budget`` to something the controller reacts to
+    differently (the others cannot change the outcome), each with the cost of its cheapest
+    such alteration."""
+    space = alteration_space(problem.with_budget(budget))
+    return {int(c.observation): float(c.costs[1:].min()) for c in space.choices}
+
+
+def _single_values(
+    problem: Problem, budget: float, sensors: list[int], clock: Deadline, later: int
+) -> dict[int, Attack]:
+    """The attacker's optimum at ``budget`` with only one sensor alterable, for each sensor:
+    one observation's few candidates, cheap; ``later`` re-solves at B (as hard as the optimum
+    itself) then share what is left of the time."""
     everything = frozenset(range(problem.pomdp.n_observations))
-    needs = [o for o in sensors if o in optimum.changed]
-    # single-sensor values first: one observation's few candidates, cheap; the re-solves at
-    # B (as hard as the optimum itself) then share what is left of the time
     singles = {}
     for k, o in enumerate(sensors):
         singles[o] = solve_at(
             protect(problem, everything - {o}),
             budget,
             clock,
-            clock.share(len(sensors) - k + len(needs)),
+            clock.share(len(sensors) - k + later),
             method="exhaustive",
         )
+    return singles
+
+
+def _single_sensor_evidence(
+    curve_result: SolveResult, cheapest: dict[int, float], singles: dict[int, Attack]
+) -> list[Evidence]:
+    """What the single-sensor optima prove about the curve: a budget that affords no two
+    sensors together (their two cheapest alterations cost more) only affords alterations of
+    one sensor, so its optimum is at most the best bound of the sensors it affords (each
+    proven over a larger budget, ``B``), and at least the best of their optimal alterations
+    that fit it. With unit costs that is every budget below 2: the budget-1 optimum is the
+    largest single-sensor optimum."""
+    costs = sorted(cheapest.values())
+    pair = costs[0] + costs[1] if len(costs) > 1 else math.inf
+    evidence = []
+    for point in curve_result.curve:
+        b = point.budget
+        if tolerance.affordable(pair, b):
+            continue
+        fits = [singles[o] for o, cost in cheapest.items() if tolerance.affordable(cost, b)]
+        upper = max([a.upper for a in fits], default=curve_result.baseline_probability)
+        best = _best_within([a for a in fits if tolerance.affordable(a.cost, b)])
+        evidence.append(
+            Evidence(
+                budget=b,
+                source=SINGLES,
+                why=f"budget {b:g} affords one sensor at most (two cost {pair:g})",
+                upper_bound=max(upper, curve_result.baseline_probability),
+                alteration=None if best is None else best.alteration_array,
+                probability=None if best is None else best.value,
+                cost=None if best is None else best.cost,
+            )
+        )
+    return evidence
+
+
+def _best_within(attacks: Sequence[Attack]) -> Attack | None:
+    with_array = [a for a in attacks if a.alteration_array is not None]
+    return max(with_array, key=lambda a: a.value, default=None)
+
+
+def _sensor_rows(
+    problem: Problem,
+    budget: float,
+    optimum: Attack,
+    singles: dict[int, Attack],
+    clock: Deadline,
+    method: str,
+) -> list[SensorAudit]:
+    """One row per sensor alterable within ``budget``, the most critical first."""
+    sensors = list(singles)
+    names = problem.pomdp.observations
+    needs = [o for o in sensors if o in optimum.changed]
     re_solved = {}
     for k, o in enumerate(needs):
         re_solved[o] = solve_at(

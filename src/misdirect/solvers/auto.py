@@ -12,7 +12,11 @@ deadline from seed incumbents. How time is shared is :mod:`misdirect.solvers.sch
    (:func:`~misdirect.solvers.schedule.enumeration_fits`). A curve whose top budget is too
    large has its small budgets enumerated first, and the rest searched from their best answer.
 2. ``exhaustive`` when at most ``ENUMERATION_LIMIT`` alterations fit the budget, or as many as
-   one-by-one evaluation gets through in ``ENUMERATION_SECONDS``.
+   one-by-one evaluation gets through in ``EVALUATION_SURE`` seconds, or, where the chain can
+   cycle (no low-rank updates), in the fair share of the time left that the low-rank
+   enumeration would get (:func:`~misdirect.solvers.schedule.evaluations_fit`), one
+   evaluation's cost measured on a sample of alterations. There the search's bound is often
+   1, so enumerating what fits is the one known way to a proof. Curves are split the same way.
 3. the MILP when every relevant observation owns at most ``KNAPSACK_STATES`` live product
    states (knapsack-like): the per-state relaxation then only drops the budget, its bound is
    weak and branch-and-bound degenerates to enumeration, while the MILP's LP handles the budget
@@ -21,7 +25,8 @@ deadline from seed incumbents. How time is shared is :mod:`misdirect.solvers.sch
    states, where the MILP's is weak), with the MILP taking over any budget on which it hits
    its node limit; on a tiny chain (under ``TINY_CHAIN`` product states) it has no node limit,
    since a node costs microseconds there. Where the enumeration would finish, but not soon, the
-   search goes first with part of the time and the enumeration takes what it did not certify.
+   search goes first with part of the time and the enumeration (exhaustive on a chain that can
+   cycle) takes what it did not certify.
 
 Every hand-over is reported to the progress callback, and every answer records which method
 certified it and why.
@@ -39,6 +44,7 @@ import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
+from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Alteration, Problem
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report
@@ -46,7 +52,7 @@ from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS
-from misdirect.solvers.exhaustive import ExhaustiveSolver
+from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions
@@ -54,8 +60,8 @@ from misdirect.solvers.stats import AutoStats, MethodStats
 from misdirect.solvers.status import Status
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
-ENUMERATION_SECONDS = 2.0  # ... or as many as one-by-one evaluation gets through in this time
 INCREMENTAL_LIMIT = MAX_ALTERATIONS  # the most the low-rank enumeration is given
+EXHAUSTIVE_LIMIT = MAX_EVALUATIONS  # the most auto gives the exhaustive enumeration
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
@@ -94,10 +100,27 @@ class _Facts:
 
     @cached_property
     def evaluation_s(self) -> float:
-        """Seconds for one exact evaluation (of the unaltered chain, once)."""
+        """Seconds for one exact evaluation as the exhaustive enumeration makes it: the mean
+        over the unaltered chain and single-sensor alterations spread over the space (an
+        altered chain may cycle and cost several times the unaltered one: on a 9x9 trap grid,
+        1.2 ms unaltered, 0.3 to 9 ms altered), sampled within about ``SAMPLE_SECONDS``.
+        Evaluated afresh, not from the solve's table."""
+        problem, choices = self.problem, self.instance.space.choices
+        spread = np.linspace(0, len(choices) - 1, schedule.SAMPLE_EVALUATIONS - 1)
+        samples = [problem.identity()]
+        for j in np.unique(spread.round().astype(np.int64)) if choices else ():
+            alpha = problem.identity()
+            choice = choices[int(j)]
+            alpha[choice.observation] = choice.targets[1 + int(j) % (choice.size - 1)]
+            samples.append(alpha)
         began = time.perf_counter()
-        ExactValues(self.problem)(self.problem.identity())  # a fresh table: really evaluated
-        return time.perf_counter() - began
+        taken = 0
+        for alpha in samples:
+            decoy_probability(problem, alpha)
+            taken += 1
+            if time.perf_counter() - began > schedule.SAMPLE_SECONDS:
+                break
+        return (time.perf_counter() - began) / taken
 
     @cached_property
     def largest_observation(self) -> int:
@@ -187,17 +210,35 @@ class _Exhaustive(_Stage):
     method = "exhaustive"
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
-        if facts.count <= self.auto.enumeration_limit:
-            return True
-        if facts.count > INCREMENTAL_LIMIT or self.estimate_s(facts) > ENUMERATION_SECONDS:
-            return False
-        facts.reasons.append(
-            f"one evaluation is quick enough to try all within {ENUMERATION_SECONDS:g} s"
+        why = self.takes(facts, facts.count, deadline)
+        if why:
+            facts.reasons.append(why)
+        return why is not None
+
+    def takes(self, facts: _Facts, count: int, deadline: Deadline) -> str | None:
+        """Whether it enumerates ``count`` alterations before anything else: None if not,
+        else the words of the reason (empty: so few that none are needed)."""
+        if count <= self.auto.enumeration_limit:
+            return ""
+        if count > _exhaustive_limit():
+            return None
+        needed = schedule.enumeration_seconds(count, facts.evaluation_s)
+        if needed <= schedule.EVALUATION_SURE:
+            return (
+                f"one evaluation is quick enough to try all within {schedule.EVALUATION_SURE:g} s"
+            )
+        # elsewhere the low-rank enumeration, far cheaper per alteration, did not fit either
+        if not facts.cycling:
+            return None
+        if not schedule.evaluations_fit(count, needed, deadline, limit=_exhaustive_limit()):
+            return None
+        return (
+            f"{count:,} exact evaluations (about {needed:.3g} s) fit a fair share of the time "
+            "left, so exhaustive enumeration"
         )
-        return True
 
     def estimate_s(self, facts: _Facts) -> float:
-        return facts.count * facts.evaluation_s
+        return schedule.enumeration_seconds(facts.count, facts.evaluation_s)
 
     def run(
         self,
@@ -208,6 +249,12 @@ class _Exhaustive(_Stage):
         seeds: Sequence[Alteration | None] | None,
     ) -> list[Solution]:
         return ExhaustiveSolver().solve(problem, budgets, progress=progress, deadline=deadline)
+
+
+def _exhaustive_limit() -> int:
+    """The most alterations auto enumerates one by one (counts are known up to
+    ``INCREMENTAL_LIMIT``, the most :class:`_Facts` counts)."""
+    return min(EXHAUSTIVE_LIMIT, INCREMENTAL_LIMIT)
 
 
 class _Milp(_Stage):
@@ -251,6 +298,7 @@ class _Search(_Stage):
         super().__init__(auto)
         self.max_nodes = max_nodes
         self.search_first_s: float | None = None
+        self.then: _Stage | None = None  # the enumeration after the search, if any
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
         facts.reasons.append(
@@ -264,16 +312,22 @@ class _Search(_Stage):
                     f"a tiny chain ({facts.product_states:,} product states): no node limit"
                 )
                 self.max_nodes = UNLIMITED_NODES
-        enumerating = _Enumeration(self.auto).estimate_s(facts)
+        # where the chain can cycle, the enumeration is one exact evaluation per alteration
+        later = _Exhaustive(self.auto) if facts.cycling else _Enumeration(self.auto)
+        limit = _exhaustive_limit() if facts.cycling else INCREMENTAL_LIMIT
+        enumerating = later.estimate_s(facts)
         search_s = schedule.search_before_enumerating(
-            facts.count, enumerating, deadline, limit=INCREMENTAL_LIMIT
+            facts.count, enumerating, deadline, limit=limit
         )
-        if search_s is not None and not facts.cycling:
+        if search_s is not None:
             # the enumeration would likely finish, but not soon: the search goes first (it
             # often certifies in seconds) and the enumeration takes what it did not certify
             self.search_first_s = search_s
+            self.then = later
+            kept = "exhaustive enumeration" if facts.cycling else "enumeration"
             facts.reasons.append(
-                f"{facts.count:,} alterations kept for enumeration after the search"
+                f"{facts.count:,} alterations kept for {kept} (about {enumerating:.3g} s) "
+                f"after the search ({search_s:.3g} s)"
             )
         return True
 
@@ -284,9 +338,10 @@ class _Search(_Stage):
 
     def handovers(self, facts: _Facts, deadline: Deadline) -> list[_Handover]:
         later: list[_Handover] = []
-        if self.search_first_s is not None:
-            why = "branch-and-bound did not certify it, so enumeration"
-            later.append(_Handover(_Enumeration(self.auto), why))
+        if self.then is not None:
+            kind = "exhaustive enumeration" if self.then.method == "exhaustive" else "enumeration"
+            why = f"branch-and-bound did not certify it, so {kind}"
+            later.append(_Handover(self.then, why))
         why = "branch-and-bound hit its node limit, so the MILP"
         later.append(_Handover(_Milp(self.auto), why))
         return later
@@ -370,24 +425,32 @@ class AutoSolver:
         progress: ProgressCallback | None,
     ) -> list[Solution] | None:
         """A curve whose top budget is too large to enumerate may still have small budgets
-        that are: prove those first, and search the larger ones from their best answer."""
-        enumeration = _Enumeration(self)
-        if len(budgets) < 2 or facts.cycling:
+        that are: prove those first, and search the larger ones from their best answer (by
+        low-rank updates, or where the chain can cycle one exact evaluation each)."""
+        if len(budgets) < 2:
             return None
+        exhaustive = _Exhaustive(self)
+        enumeration: _Stage = exhaustive if facts.cycling else _Enumeration(self)
+        limit = _exhaustive_limit() if facts.cycling else INCREMENTAL_LIMIT
 
-        def fits(count: int) -> bool:
+        def takes(count: int) -> str | None:
+            if facts.cycling:
+                return exhaustive.takes(facts, count, deadline)
             needed = schedule.enumeration_seconds(count)
-            return schedule.enumeration_fits(count, needed, deadline, limit=INCREMENTAL_LIMIT)
+            fits = schedule.enumeration_fits(count, needed, deadline, limit=INCREMENTAL_LIMIT)
+            return "" if fits else None
 
-        if fits(facts.count):
+        if takes(facts.count) is not None:
             return None
         space = facts.instance.space
         ordered = sorted(budgets)
-        small = [b for b in ordered if fits(space.count_within(b, INCREMENTAL_LIMIT))]
+        small = [b for b in ordered if takes(space.count_within(b, limit)) is not None]
         if not small:
             return None
+        why = takes(space.count_within(small[-1], limit))
         first = enumeration.run(facts.problem, small, deadline, progress, None)
         note = f"auto: budgets up to {small[-1]:g} enumerated, the rest searched"
+        reason = f"{facts.reason}; budgets up to {small[-1]:g}: {why}" if why else facts.reason
         report(progress, 0, 0, note=note)
         rest = [b for b in ordered if b not in small]
         later = self.solve(
@@ -397,7 +460,7 @@ class AutoSolver:
             deadline=deadline,
             seeds=[first[-1].alteration] * len(rest),
         )
-        found = dict(zip(small, _label(first, "incremental", facts.reason), strict=True))
+        found = dict(zip(small, _label(first, enumeration.method, reason), strict=True))
         found.update(zip(rest, later, strict=True))
         return [found[b] for b in budgets]
 

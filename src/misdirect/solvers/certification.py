@@ -85,6 +85,54 @@ class CurvePoint:
     notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
 
 
+@dataclass(frozen=True)
+class Evidence:
+    """What other work proved about one budget's optimum (the audit's single-sensor solves):
+    a proven upper bound, and optionally an alteration within the budget with its exact value
+    and cost. ``source`` names it in ``certified_by``, ``why`` says in the notes why it holds."""
+
+    budget: float
+    source: str
+    why: str
+    upper_bound: float
+    alteration: np.ndarray | None = None
+    probability: float | None = None  # exact value of ``alteration``
+    cost: float | None = None
+
+
+def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
+    """Fold ``evidence`` into ``point`` before :func:`certify_curve` decides: a better
+    alteration (by more than a tie) replaces the point's, a tighter bound its bound. How the
+    method stopped is kept; only the certification turns it into ``optimal``. A bound below
+    the point's exact value contradicts the chain: the evidence is then not taken."""
+    if evidence.upper_bound < point.probability - tolerance.MISMATCH:
+        point.notes["evidence_ignored"] = (
+            f"{evidence.source}'s bound {evidence.upper_bound:.9f} is below the exact value "
+            f"{point.probability:.9f}"
+        )
+        return
+    if (
+        evidence.alteration is not None
+        and evidence.probability is not None
+        and evidence.cost is not None
+        and tolerance.affordable(evidence.cost, point.budget)
+        and evidence.probability > point.probability + tolerance.TIE
+    ):
+        point.notes["replaced"] = (
+            f"the solver's answer ({point.probability:.9f}) was worse than {evidence.source}'s, "
+            "whose alteration it takes"
+        )
+        point.alteration = np.asarray(evidence.alteration, dtype=np.int64)
+        point.probability, point.cost = evidence.probability, evidence.cost
+        point.certified_by = evidence.source
+    bound = max(evidence.upper_bound, point.probability)
+    if point.upper_bound is None or bound < point.upper_bound:
+        point.upper_bound = bound
+        point.notes["bound_from"] = f"{evidence.source}: {evidence.why}"
+        if tolerance.proven(point.probability, bound):
+            point.certified_by = evidence.source
+
+
 def check_claims(point: CurvePoint, method: str) -> list[str]:
     """Contradictions between the method's numbers and the chain: a claim or a bound off the
     exact value by more than :data:`~misdirect.core.tolerance.MISMATCH` makes the point
@@ -156,6 +204,8 @@ def certify_curve(
             )
         elif status == Status.OPTIMAL and point.status.cut_short:
             point.notes["certified_by_bound"] = "a bound at this or a larger budget meets it"
+        if status == Status.OPTIMAL:  # a second pass (with evidence) may prove what was not
+            point.notes.pop("not_certified", None)
         point.status = status
     if cancelled:
         for point in curve:

@@ -26,13 +26,17 @@ from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import ExhaustiveStats
 from misdirect.solvers.status import Status
 
+MAX_EVALUATIONS = 2_000_000  # alterations it takes on (more: it refuses, naming the MILP)
+
 
 class ExhaustiveSolver:
     name: ClassVar[str] = "exhaustive"
     curve_is_free: ClassVar[bool] = True
     accepts: ClassVar[tuple[str, ...]] = ("time_limit",)
 
-    def __init__(self, options: SolveOptions | None = None, *, max_evaluations: int = 2_000_000):
+    def __init__(
+        self, options: SolveOptions | None = None, *, max_evaluations: int = MAX_EVALUATIONS
+    ):
         self.options = options or SolveOptions()
         self.max_evaluations = max_evaluations
 

@@ -24,10 +24,12 @@ from misdirect.solvers import get_solver
 from misdirect.solvers.base import ProgressCallback
 from misdirect.solvers.certification import (
     CurvePoint,
+    Evidence,
     ExactValues,
     certify_curve,
     check_claims,
     exact_scope,
+    take_evidence,
 )
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
@@ -251,6 +253,38 @@ def solve(
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
         objective=problem.objective.kind,
+    )
+
+
+def recertify(result: SolveResult, problem: Problem, evidence: Sequence[Evidence]) -> SolveResult:
+    """``result`` with what other work proved about its budgets (``evidence``, exact values
+    and proven bounds) folded in and the curve certified again by the same policy: a budget
+    the method left open becomes ``optimal`` when the evidence's bound meets its value."""
+    curve = [_point(answer) for answer in result.curve]
+    by_budget = {point.budget: point for point in curve}
+    for item in evidence:
+        point = by_budget.get(item.budget)
+        if point is not None and point.status != Status.UNVERIFIED:
+            take_evidence(point, item)
+    certify_curve(curve, cancelled=result.interrupted)
+    return replace(result, curve=[_result(point, problem) for point in curve])
+
+
+def _point(answer: BudgetResult) -> CurvePoint:
+    """A certified answer back as a point (for :func:`recertify`)."""
+    if answer.alteration_array is None:
+        raise ValueError(f"budget {answer.budget:g}: no alteration array to certify again")
+    return CurvePoint(
+        budget=answer.budget,
+        status=Status(answer.status),
+        probability=answer.probability,
+        alteration=np.asarray(answer.alteration_array, dtype=np.int64),
+        cost=answer.cost,
+        upper_bound=answer.upper_bound,
+        claimed=answer.solver_probability,
+        stats=answer.stats,
+        certified_by=answer.certified_by,
+        notes=dict(answer.notes),
     )
 
 

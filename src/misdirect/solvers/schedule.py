@@ -18,6 +18,9 @@ ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating wh
 SEARCH_FIRST = 0.25  # ... but giving the search at least this share of the time left
 UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
 UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
+EVALUATION_SURE = 2.0  # seconds of one-by-one exact evaluation auto always spends enumerating
+SAMPLE_EVALUATIONS = 8  # alterations auto evaluates to measure what one evaluation costs ...
+SAMPLE_SECONDS = 0.2  # ... stopping once this long is spent (after the first)
 
 # -- branch-and-bound: the per-state search, then the segment search ------------------------------
 CLIMB_SHARE = 0.25  # of a budget's even share: the hill climb before its search
@@ -26,18 +29,35 @@ SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound i
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, the per-state search gets this long first
 
 
-def enumeration_seconds(count: int) -> float:
-    """About how long the low-rank enumeration of ``count`` alterations takes."""
-    return count * UPDATE_SECONDS
+def enumeration_seconds(count: int, per_alteration: float | None = None) -> float:
+    """About how long enumerating ``count`` alterations takes at ``per_alteration`` seconds
+    each (default: ``UPDATE_SECONDS``, the low-rank enumeration's update; one exact evaluation
+    where it does not apply, as measured by auto)."""
+    return count * (UPDATE_SECONDS if per_alteration is None else per_alteration)
+
+
+def _fair_share(deadline: Deadline) -> float:
+    """What an enumeration may take before anything else runs: ``ENUMERATION_FIRST`` of the
+    time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
+    left = deadline.remaining()
+    return UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
 
 
 def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:
     """Whether auto enumerates ``count`` alterations (at most ``limit``; about ``needed``
-    seconds) before anything else: always up to ``INCREMENTAL_SURE``, else when they take at
-    most ``ENUMERATION_FIRST`` of the time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
-    left = deadline.remaining()
-    first = UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
-    return count <= INCREMENTAL_SURE or (count <= limit and needed <= first)
+    seconds) with low-rank updates before anything else: always up to ``INCREMENTAL_SURE``,
+    else when they take at most the fair share of the time left."""
+    return count <= INCREMENTAL_SURE or (count <= limit and needed <= _fair_share(deadline))
+
+
+def evaluations_fit(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:
+    """Whether auto enumerates ``count`` alterations (at most ``limit``) by one exact
+    evaluation each, about ``needed`` seconds in all, before anything else: when that is at
+    most ``EVALUATION_SURE`` seconds, or at most the same fair share of the time left as the
+    low-rank enumeration gets. A search's estimates do not enter: on a chain whose relaxation
+    is loose (bound 1 where the chain can cycle), a search may never prove what this proves
+    in a known time."""
+    return count <= limit and needed <= max(EVALUATION_SURE, _fair_share(deadline))
 
 
 def search_before_enumerating(
