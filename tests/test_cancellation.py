@@ -112,3 +112,71 @@ def test_prepared_instances_are_shared_only_within_a_block():
         assert prepare(problem, 1.0) is first and prepare(problem, 2.0) is first
         assert prepare(problem, 3.0) is not first
     assert prepare(problem, 2.0) is not first
+
+
+def test_a_cancellation_stops_every_loop_on_a_grid_whose_robot_turns_back():
+    """Issue 27: on a grid whose robot can turn back (end components), a solve with no time
+    limit ran on in policy iteration after Ctrl-C. Cancelled mid-solve from its own progress
+    callback (so the cancel lands inside the search, whatever the machine's speed), it returns
+    with the open budgets interrupted and every bound above the exhaustive optimum."""
+    from misdirect.scenarios import sensor_grid
+
+    problem = sensor_grid(12, 12, seed=1, goal="inside")
+    budgets = [0.0, 1.0, 2.0, 3.0]
+    token = CancelToken()
+    calls = []
+
+    def progress(done, total, **info):
+        calls.append(info.get("stage"))
+        if len(calls) >= 3:
+            token.cancel()
+
+    results = {}
+    thread = threading.Thread(
+        target=lambda: results.setdefault(
+            "cut",
+            solve(
+                problem, method="branch-and-bound", budgets=budgets, cancel=token, progress=progress
+            ),
+        )
+    )
+    thread.start()
+    thread.join(timeout=300)
+    assert not thread.is_alive()
+    cut = results["cut"]
+    oracle = solve(problem, method="incremental", budgets=budgets)
+    assert all(p.status == "optimal" for p in oracle.curve)
+    for mine, best in zip(cut.curve, oracle.curve, strict=True):
+        assert mine.probability <= best.probability + 1e-9
+        assert mine.upper_bound is None or mine.upper_bound >= best.probability - 1e-9
+    assert cut.interrupted and "interrupted" in {p.status for p in cut.curve}
+
+
+def test_policy_iterations_raise_once_their_deadline_has_passed():
+    """Both kinds check the deadline before every round (one linear solve each)."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    from misdirect.solvers.deadline import DeadlineExpiredError
+    from misdirect.solvers.engines.policy_iteration import (
+        MaxReachability,
+        TransientPolicyIteration,
+    )
+
+    cancelled = Deadline()
+    cancelled.cancel.cancel()
+    # two states, each with a choice to loop and one to reach the target (state 2)
+    owner = np.array([0, 0, 1, 1, 2])
+    moves = sp.csr_matrix(
+        ([1.0, 1.0, 1.0, 1.0, 1.0], ([0, 1, 2, 3, 4], [0, 2, 1, 2, 2])), shape=(5, 3)
+    )
+    mdp = MaxReachability(owner, moves, np.array([False, False, True]))
+    with pytest.raises(DeadlineExpiredError):
+        mdp.optimise(mdp.first_choices(), deadline=cancelled)
+    values, _ = mdp.optimise(mdp.first_choices(), deadline=Deadline())
+    assert values.tolist() == [1.0, 1.0, 1.0]  # by hand: both reach the target surely
+    transient = TransientPolicyIteration(
+        np.array([0, 1]), sp.csr_matrix(np.array([[0.0, 0.5], [0.0, 0.0]])), 2
+    )
+    with pytest.raises(DeadlineExpiredError):
+        transient.optimise(np.array([1.0, 2.0]), deadline=cancelled)

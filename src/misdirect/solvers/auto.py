@@ -7,16 +7,14 @@ each started from the answers before it. Every stage says whether it applies (an
 words the user reads as ``auto_reason``), what it would cost, and how it runs within a
 deadline from seed incumbents. How time is shared is :mod:`misdirect.solvers.schedule`'s.
 
-1. ``incremental``, the low-rank enumeration, when the chain cannot cycle without reaching the
-   decoy and the alterations within the budget are few enough for the time left
-   (:func:`~misdirect.solvers.schedule.enumeration_fits`). A curve whose top budget is too
-   large has its small budgets enumerated first, and the rest searched from their best answer.
+1. ``incremental``, the low-rank enumeration, when the alterations within the budget are few
+   enough for the time left (:func:`~misdirect.solvers.schedule.enumeration_fits`); on chains
+   with end components too (the alterations that could close a class are checked, and valued
+   exactly where one does). A curve whose top budget is too large has its small budgets
+   enumerated first, and the rest searched from their best answer.
 2. ``exhaustive`` when at most ``ENUMERATION_LIMIT`` alterations fit the budget, or as many as
-   one-by-one evaluation gets through in ``EVALUATION_SURE`` seconds, or, where the chain can
-   cycle (no low-rank updates), in the fair share of the time left that the low-rank
-   enumeration would get (:func:`~misdirect.solvers.schedule.evaluations_fit`), one
-   evaluation's cost measured on a sample of alterations. There the search's bound is often
-   1, so enumerating what fits is the one known way to a proof. Curves are split the same way.
+   one-by-one evaluation gets through in ``EVALUATION_SURE`` seconds (one evaluation's cost
+   measured on a sample of alterations).
 3. the MILP when every relevant observation owns at most ``KNAPSACK_STATES`` live product
    states (knapsack-like): the per-state relaxation then only drops the budget, its bound is
    weak and branch-and-bound degenerates to enumeration, while the MILP's LP handles the budget
@@ -25,8 +23,7 @@ deadline from seed incumbents. How time is shared is :mod:`misdirect.solvers.sch
    states, where the MILP's is weak), with the MILP taking over any budget on which it hits
    its node limit; on a tiny chain (under ``TINY_CHAIN`` product states) it has no node limit,
    since a node costs microseconds there. Where the enumeration would finish, but not soon, the
-   search goes first with part of the time and the enumeration (exhaustive on a chain that can
-   cycle) takes what it did not certify.
+   search goes first with part of the time and the enumeration takes what it did not certify.
 
 Every hand-over is reported to the progress callback, and every answer records which method
 certified it and why.
@@ -182,14 +179,7 @@ class _Enumeration(_Stage):
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
         needed = self.estimate_s(facts)
-        if not schedule.enumeration_fits(facts.count, needed, deadline, limit=INCREMENTAL_LIMIT):
-            return False
-        if facts.cycling:
-            facts.reasons.append(
-                "no low-rank updates: the chain can cycle without reaching the decoy"
-            )
-            return False
-        return True
+        return schedule.enumeration_fits(facts.count, needed, deadline, limit=INCREMENTAL_LIMIT)
 
     def estimate_s(self, facts: _Facts) -> float:
         return schedule.enumeration_seconds(facts.count)
@@ -227,15 +217,7 @@ class _Exhaustive(_Stage):
             return (
                 f"one evaluation is quick enough to try all within {schedule.EVALUATION_SURE:g} s"
             )
-        # elsewhere the low-rank enumeration, far cheaper per alteration, did not fit either
-        if not facts.cycling:
-            return None
-        if not schedule.evaluations_fit(count, needed, deadline, limit=_exhaustive_limit()):
-            return None
-        return (
-            f"{count:,} exact evaluations (about {needed:.3g} s) fit a fair share of the time "
-            "left, so exhaustive enumeration"
-        )
+        return None  # the low-rank enumeration, far cheaper per alteration, did not fit
 
     def estimate_s(self, facts: _Facts) -> float:
         return schedule.enumeration_seconds(facts.count, facts.evaluation_s)
@@ -312,9 +294,8 @@ class _Search(_Stage):
                     f"a tiny chain ({facts.product_states:,} product states): no node limit"
                 )
                 self.max_nodes = UNLIMITED_NODES
-        # where the chain can cycle, the enumeration is one exact evaluation per alteration
-        later = _Exhaustive(self.auto) if facts.cycling else _Enumeration(self.auto)
-        limit = _exhaustive_limit() if facts.cycling else INCREMENTAL_LIMIT
+        later = _Enumeration(self.auto)
+        limit = INCREMENTAL_LIMIT
         enumerating = later.estimate_s(facts)
         search_s = schedule.search_before_enumerating(
             facts.count, enumerating, deadline, limit=limit
@@ -324,9 +305,8 @@ class _Search(_Stage):
             # often certifies in seconds) and the enumeration takes what it did not certify
             self.search_first_s = search_s
             self.then = later
-            kept = "exhaustive enumeration" if facts.cycling else "enumeration"
             facts.reasons.append(
-                f"{facts.count:,} alterations kept for {kept} (about {enumerating:.3g} s) "
+                f"{facts.count:,} alterations kept for enumeration (about {enumerating:.3g} s) "
                 f"after the search ({search_s:.3g} s)"
             )
         return True
@@ -425,17 +405,13 @@ class AutoSolver:
         progress: ProgressCallback | None,
     ) -> list[Solution] | None:
         """A curve whose top budget is too large to enumerate may still have small budgets
-        that are: prove those first, and search the larger ones from their best answer (by
-        low-rank updates, or where the chain can cycle one exact evaluation each)."""
+        that are: prove those first, and search the larger ones from their best answer."""
         if len(budgets) < 2:
             return None
-        exhaustive = _Exhaustive(self)
-        enumeration: _Stage = exhaustive if facts.cycling else _Enumeration(self)
-        limit = _exhaustive_limit() if facts.cycling else INCREMENTAL_LIMIT
+        enumeration = _Enumeration(self)
+        limit = INCREMENTAL_LIMIT
 
         def takes(count: int) -> str | None:
-            if facts.cycling:
-                return exhaustive.takes(facts, count, deadline)
             needed = schedule.enumeration_seconds(count)
             fits = schedule.enumeration_fits(count, needed, deadline, limit=INCREMENTAL_LIMIT)
             return "" if fits else None

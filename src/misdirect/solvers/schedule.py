@@ -50,16 +50,6 @@ def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: in
     return count <= INCREMENTAL_SURE or (count <= limit and needed <= _fair_share(deadline))
 
 
-def evaluations_fit(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:
-    """Whether auto enumerates ``count`` alterations (at most ``limit``) by one exact
-    evaluation each, about ``needed`` seconds in all, before anything else: when that is at
-    most ``EVALUATION_SURE`` seconds, or at most the same fair share of the time left as the
-    low-rank enumeration gets. A search's estimates do not enter: on a chain whose relaxation
-    is loose (bound 1 where the chain can cycle), a search may never prove what this proves
-    in a known time."""
-    return count <= limit and needed <= max(EVALUATION_SURE, _fair_share(deadline))
-
-
 def search_before_enumerating(
     count: int, needed: float, deadline: Deadline, *, limit: int
 ) -> float | None:
