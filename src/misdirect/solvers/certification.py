@@ -9,6 +9,7 @@ promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tole
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -16,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from misdirect.core import tolerance
-from misdirect.core.evaluate import decoy_probability
+from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
+from misdirect.core.reachability import Bounded
 from misdirect.solvers.stats import MethodStats
 from misdirect.solvers.status import Status
 
@@ -25,17 +27,25 @@ from misdirect.solvers.status import Status
 class ExactValues:
     """Exact values of alterations of one problem, each computed once (a curve often repeats
     one, and auto compares its stages' answers on the same numbers the user will see): one per
-    ``solve`` call, which stages reach through :func:`exact_values`."""
+    ``solve`` call, which stages reach through :func:`exact_values`. Each comes with its
+    proven error bound (:meth:`error`), which :func:`decide` charges to the answer."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
-        self._values: dict[bytes, float] = {}
+        self._values: dict[bytes, Bounded] = {}
 
     def __call__(self, alteration: np.ndarray) -> float:
+        return self.bounded(alteration).value
+
+    def error(self, alteration: np.ndarray) -> float:
+        """Proven bound on the error of the value (``inf`` when none could be proven)."""
+        return self.bounded(alteration).error
+
+    def bounded(self, alteration: np.ndarray) -> Bounded:
         alpha = np.asarray(alteration, dtype=np.int64)
         key = alpha.tobytes()
         if key not in self._values:
-            self._values[key] = decoy_probability(self.problem, alpha)
+            self._values[key] = decoy_value(self.problem, alpha)
         return self._values[key]
 
 
@@ -58,13 +68,15 @@ def exact_values(problem: Problem) -> ExactValues:
     return current if current is not None and current.problem is problem else ExactValues(problem)
 
 
-def decide(stopped: Status, exact: float, bound: float | None) -> Status:
-    """The status of an answer worth ``exact`` whose method stopped as ``stopped``, given the
-    best proven upper bound on its budget's optimum: ``optimal`` exactly when ``bound`` meets
-    ``exact``; a method that says it finished without such a bound gets ``feasible``."""
+def decide(stopped: Status, exact: float, bound: float | None, error: float = 0.0) -> Status:
+    """The status of an answer worth ``exact`` (within its proven ``error``) whose method
+    stopped as ``stopped``, given the best proven upper bound on its budget's optimum:
+    ``optimal`` exactly when ``bound`` meets the least value ``exact`` may have, so an answer
+    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` never is; a
+    method that says it finished without such a bound gets ``feasible``."""
     if stopped == Status.UNVERIFIED:
         return stopped
-    if tolerance.proven(exact, bound):
+    if tolerance.proven(exact - error, bound):
         return Status.OPTIMAL
     return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
 
@@ -83,6 +95,7 @@ class CurvePoint:
     stats: MethodStats
     certified_by: str | None
     notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
+    error_bound: float = 0.0  # proven bound on the error of ``probability`` (inf: none)
 
 
 def check_claims(point: CurvePoint, method: str) -> list[str]:
@@ -137,14 +150,9 @@ def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
             point.upper_bound = max(bound, point.probability)
         if point.upper_bound is not None:
             bound = point.upper_bound
-        status = decide(point.status, point.probability, point.upper_bound)
+        status = decide(point.status, point.probability, point.upper_bound, point.error_bound)
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
-            point.notes["not_certified"] = (
-                f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
-                if point.upper_bound is None
-                else f"proven bound {point.upper_bound:.12f} is "
-                f"{point.upper_bound - point.probability:.2e} above the exact value"
-            )
+            point.notes["not_certified"] = _why_not(point)
         elif status == Status.OPTIMAL and point.status.cut_short:
             point.notes["certified_by_bound"] = "a bound at this or a larger budget meets it"
         point.status = status
@@ -152,6 +160,27 @@ def certify_curve(curve: list[CurvePoint], *, cancelled: bool = False) -> None:
         for point in curve:
             if point.status == Status.TIME_LIMIT:
                 point.status = Status.INTERRUPTED
+
+
+def _why_not(point: CurvePoint) -> str:
+    """Why a finished method's answer is not called optimal."""
+    if point.error_bound > tolerance.CERTIFY:
+        proven = (
+            "has no proven error bound"
+            if not math.isfinite(point.error_bound)
+            else f"is proven only within {point.error_bound:.2e}"
+        )
+        return (
+            f"the exact value {point.probability:.12f} {proven}: the chain is too "
+            "ill-conditioned for double precision, even refined"
+        )
+    if point.upper_bound is None:
+        return f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
+    error = f" (its error is up to {point.error_bound:.2e})" if point.error_bound else ""
+    return (
+        f"proven bound {point.upper_bound:.12f} is "
+        f"{point.upper_bound - point.probability:.2e} above the exact value{error}"
+    )
 
 
 def _carry_answers_up(curve: list[CurvePoint]) -> None:
@@ -162,10 +191,11 @@ def _carry_answers_up(curve: list[CurvePoint]) -> None:
                 f"the solver's answer ({point.probability:.9f}) was worse than budget "
                 f"{best.budget:g}'s, whose alteration it takes"
             )
-            point.alteration, point.probability, point.cost = (
+            point.alteration, point.probability, point.cost, point.error_bound = (
                 best.alteration,
                 best.probability,
                 best.cost,
+                best.error_bound,
             )
             if point.upper_bound is not None:
                 point.upper_bound = max(point.upper_bound, point.probability)
