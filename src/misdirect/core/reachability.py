@@ -584,7 +584,7 @@ def reach_probability_bounded(
     result = scale * min(max(found.value, 0.0), 1.0)
     # scaling the scores rounds each by u at most, and so their expectation; so does `scale *`
     rounding = (0.0 if scaled is None else 2 * UNIT_ROUNDOFF * scale) + UNIT_ROUNDOFF * result
-    return Bounded(result, scale * found.error + rounding)
+    return Bounded(float(result), float(scale * found.error + rounding))
 
 
 def _can_reach_dense(dense: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -673,7 +673,7 @@ def _prove_forward(
     ``max|r| T``, with the residual ``r = rows @ z - x`` (``z``: ``known`` with ``x`` in place)
     bounded in exact arithmetic. The residual of a double ``x`` is no smaller than about ``u``,
     so on a chain absorbed after ``10^9`` steps the bound cannot get below about ``10^-7``:
-    then ``x`` is refined as a double-double, residuals computed exactly
+    then ``x`` is refined (:func:`_refine`) as a double-double, residuals computed exactly
     (:mod:`misdirect.core.residual`) and corrections solved with the same factorisation, until
     the bound is small enough or stops falling (each round gains about a factor ``cond · u``).
     """
@@ -698,18 +698,35 @@ def _prove_forward(
     if error <= EXACT_TOL or not np.isfinite(error):
         return best
     csr = sp.csr_matrix(rows)
-    hi, lo = x.copy(), np.zeros(unknown.size)
     z_lo = np.zeros(known.size)
-    previous = np.inf
-    for _ in range(EXACT_ROUNDS):
+
+    def proven(hi: np.ndarray, lo: np.ndarray) -> tuple[np.ndarray, float]:
         z[unknown], z_lo[unknown] = hi, lo
         r, bound = residual.residual(csr, z, z_lo, unknown)
-        value = float(hi[k] + lo[k])
-        error = float(bound.max(initial=0.0) * steps) + UNIT_ROUNDOFF * abs(value)
-        if error < best.error:
-            best = Bounded(value, error)
+        return r, float(bound.max(initial=0.0) * steps + UNIT_ROUNDOFF * abs(hi[k] + lo[k]))
+
+    refined, hi, lo = _refine(x, proven, solve)
+    return best if best.error <= refined else Bounded(float(hi[k] + lo[k]), refined)
+
+
+def _refine(
+    x: np.ndarray,
+    proven: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, float]],
+    solve: Callable[[np.ndarray], np.ndarray | None],
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Iterative refinement of ``x`` as a double-double ``hi + lo``: ``proven(hi, lo)`` gives
+    the residual (computed exactly enough) and the error bound it proves, ``solve`` the
+    correction. Stops once the bound is at most :data:`EXACT_TOL`, or when it no longer halves
+    (``cond · u`` near 1), and returns the best bound with its ``hi`` and ``lo``."""
+    hi, lo = x.copy(), np.zeros_like(x)
+    best = (np.inf, hi, lo)
+    previous = np.inf
+    for _ in range(EXACT_ROUNDS):
+        r, error = proven(hi, lo)
+        if error < best[0]:
+            best = (error, hi, lo)
         if error <= EXACT_TOL or not error < 0.5 * previous:
-            break  # proven, or no longer converging (cond · u near 1)
+            break
         previous = error
         correction = solve(r)
         if correction is None or not np.isfinite(correction).all():
@@ -917,30 +934,21 @@ def _prove_transposed(
 
     With ``r = start - (I - Q)ᵀ x`` bounded in exact arithmetic, the error of ``cᵀx`` is
     ``rᵀ (I - Q)⁻¹ c``, at most ``Σ|r|`` for the ``c`` that matter (probabilities of leaving
-    into a set of states; :meth:`Certified.functional_error`): no time bound is needed. The
-    refinement is :func:`_prove_forward`'s, on the transposed system.
+    into a set of states; :meth:`Certified.functional_error`): no time bound is needed.
+    Refined by :func:`_refine`, as the forward solve is.
     """
     gamma = 1.01 * (np.diff(a_t.indptr) + 2) * UNIT_ROUNDOFF  # as in _prove_forward
     magnitude = np.abs(x)
     r = start - x + a_t @ x
     floor = gamma * (np.abs(start) + magnitude + abs(a_t) @ magnitude)
     error = float((np.abs(r) + floor).sum())
-    best = (error, x)
     if error <= EXACT_TOL or not np.isfinite(error):
         return x, error
     own = np.arange(x.size)
-    hi, lo = x.copy(), np.zeros(x.size)
-    previous = np.inf
-    for _ in range(EXACT_ROUNDS):
+
+    def proven(hi: np.ndarray, lo: np.ndarray) -> tuple[np.ndarray, float]:
         r, bound = residual.residual(a_t, hi, lo, own, start)
-        error = float(bound.sum())
-        if error < best[0]:
-            best = (error, hi + lo)
-        if error <= EXACT_TOL or not error < 0.5 * previous:
-            break
-        previous = error
-        correction = solve(r)
-        if correction is None or not np.isfinite(correction).all():
-            break
-        hi, lo = residual.add(hi, lo, np.asarray(correction).reshape(hi.shape))
-    return best[1], best[0]
+        return r, float(bound.sum())
+
+    refined, hi, lo = _refine(x, proven, solve)
+    return (x, error) if error <= refined else (hi + lo, refined)
