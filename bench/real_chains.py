@@ -158,7 +158,7 @@ def markdown(rows: list[dict], machine: str, quick: bool) -> str:
         storm = r.get("storm_default_s")
         fastest = r.get("storm_fastest")
         fastest_s = r.get(f"storm_{fastest}_s") if fastest else None
-        bound = "direct" if r["error_bound"] is None else f"{r['error_bound']:.1e}"
+        bound = "none proven" if r["error_bound"] is None else f"{r['error_bound']:.1e}"
         lines.append(
             f"| {r['case']} | {r['pomdp_states']:,} | {r['observations']:,} | "
             f"{r['product_states']:,} | {r['product_transitions']:,} | {r['evaluate_s']:.3f} | "

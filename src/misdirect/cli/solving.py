@@ -43,6 +43,7 @@ from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.evaluate import Evaluation, decoy_probability
 from misdirect.core.evaluate import evaluate as evaluate_alteration
 from misdirect.core.model import Alteration, Problem
+from misdirect.core.tolerance import CERTIFY
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, one_line, write_output
 from misdirect.solvers import SOLVERS
@@ -96,6 +97,10 @@ def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> 
     budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
     table.add_row("cost", f"{result.cost:g}{budget_note}")
     table.add_row(problem.objective.label, f"[bold]{result.probability:.6f}[/]")
+    table.add_row(
+        "  proven error",
+        "none proven" if result.error_bound is None else f"at most {result.error_bound:.1e}",
+    )
     for name, probability in result.decoy_sets.items():
         table.add_row(f"  Pr(first decoy in {escape(name)})", f"{probability:.6f}")
     table.add_row("without alteration", f"{baseline:.6f}")
@@ -267,6 +272,10 @@ def _print_solve(result: SolveResult, problem: Problem) -> None:
 
 def _solve_summary(result: SolveResult) -> list[str]:
     parts = [f"without alteration {result.baseline_probability:.6f}", f"{result.time_s:.2f} s"]
+    errors = [point.error_bound for point in result.curve]
+    if any(e is None or e > CERTIFY for e in errors):  # the chain defeats double precision
+        worst = "none proven" if None in errors else f"{max(e or 0.0 for e in errors):.1e}"
+        parts.insert(0, f"values proven only within {worst} (ill-conditioned chain)")
     if result.budget_clamped_from is not None:
         parts.insert(
             0,

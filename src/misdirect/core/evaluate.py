@@ -6,6 +6,7 @@ report a person reads (outcomes, sizes, expected visits per cell).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -15,14 +16,26 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.model import Alteration, Problem
 from misdirect.core.product import ProductChain, build_product
-from misdirect.core.reachability import occupation, reach_probability
+from misdirect.core.reachability import (
+    UNIT_ROUNDOFF,
+    Bounded,
+    occupation,
+    reach_probability_bounded,
+)
 
 
 def decoy_probability(problem: Problem, alteration: Alteration) -> float:
     """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU); with
     weighted decoy sets, the expected weight of the first decoy state entered."""
+    return decoy_value(problem, alteration).value
+
+
+def decoy_value(problem: Problem, alteration: Alteration) -> Bounded:
+    """:func:`decoy_probability` with a proven bound on its error on the product chain as
+    built (``inf`` when none could be proven; see
+    :func:`misdirect.core.reachability.reach_probability_bounded`)."""
     chain = build_product(problem, alteration)
-    return _decoy_probability(problem, chain)
+    return _decoy_value(problem, chain)
 
 
 def evaluation_time(problem: Problem, repeats: int = 3) -> float:
@@ -39,11 +52,13 @@ def evaluation_time(problem: Problem, repeats: int = 3) -> float:
     return best
 
 
-def _decoy_probability(problem: Problem, chain: ProductChain) -> float:
+def _decoy_value(problem: Problem, chain: ProductChain) -> Bounded:
     objective = problem.objective
     target = objective.target[chain.world_state]
     value = None if objective.is_probability else objective.value[chain.world_state]
-    return reach_probability(chain.matrix, target, chain.initial, blocks=chain.node, value=value)
+    return reach_probability_bounded(
+        chain.matrix, target, chain.initial, blocks=chain.node, value=value
+    )
 
 
 @dataclass(frozen=True)
@@ -53,9 +68,11 @@ class Evaluation:
     ``outcomes`` lists the decoy and absorbing states a run can end in first, with non-zero
     probability only (a model may have thousands of absorbing states, most never entered);
     ``all_outcomes`` and ``first_entry`` keep every terminal state, zeros included.
-    ``error_bound`` is the proven bound on the error of ``probability`` and of each outcome
-    when the chain was solved by the certified iterative route (a wide chain, see
-    :func:`misdirect.core.reachability.solve_certified`); ``None`` after a direct solve.
+    ``error_bound`` is a proven bound on the error of ``probability``, of each outcome and of
+    each decoy set's probability, on the product chain as built (its doubles taken as exact);
+    ``None`` when none could be proven (a chain too ill-conditioned for double precision
+    even with refinement). The expected visits are proven only on wide chains, solved by the
+    certified iterative route (:func:`misdirect.core.reachability.solve_certified`).
     """
 
     probability: float  # with weighted decoy sets: the expected weight (see `objective`)
@@ -121,11 +138,14 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
     decoy = objective.target[chain.world_state]
     terminal = decoy | pomdp.absorbing[chain.world_state]
     occ = occupation(chain.matrix, terminal, chain.initial, blocks=chain.node)
-    if occ.error_bound is not None:  # a run scores iff the first terminal state is a decoy
+    if occ.iterative:  # a run scores iff the first terminal state is a decoy
         worth = objective.value[chain.world_state[decoy]]
         probability = float(np.clip(occ.entered[decoy] @ worth, 0.0, objective.max_value))
+        # the error of a sum of entries weighted by at most max_value, and its rounding
+        error = occ.error_bound * objective.max_value + decoy.sum() * UNIT_ROUNDOFF * probability
     else:
-        probability = _decoy_probability(problem, chain)
+        probability, error = _decoy_value(problem, chain)
+    error = max(error, occ.error_bound)
     first_entry = np.bincount(
         chain.world_state, weights=np.where(terminal, occ.entered, 0.0), minlength=pomdp.n_states
     )
@@ -147,7 +167,7 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         time_s=time.perf_counter() - started,
         expected_visits=visits,
         first_entry=first_entry,
-        error_bound=occ.error_bound,
+        error_bound=error if math.isfinite(error) else None,
         terminal_states=terminal_states,
         state_names=names,
         decoy_sets={d.name: float(first_entry[d.states].sum()) for d in objective.sets},

@@ -36,6 +36,7 @@ class Attack:
     cost: float
     # the alteration itself, to hand to the curve as evidence (not compared: an array)
     alteration_array: np.ndarray | None = field(default=None, compare=False, repr=False)
+    error: float = 0.0  # proven bound on the error of ``value`` (inf: none proven)
 
     @property
     def certified(self) -> bool:
@@ -67,6 +68,7 @@ def attack_of(point: BudgetResult, problem: Problem) -> Attack:
         changed=changed,
         cost=point.cost,
         alteration_array=alpha,
+        error=math.inf if point.error_bound is None else point.error_bound,
     )
 
 

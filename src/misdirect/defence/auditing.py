@@ -169,6 +169,7 @@ def _single_sensor_evidence(
                 alteration=None if best is None else best.alteration_array,
                 probability=None if best is None else best.value,
                 cost=None if best is None else best.cost,
+                error_bound=0.0 if best is None else best.error,
             )
         )
     return evidence

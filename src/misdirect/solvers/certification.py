@@ -9,6 +9,7 @@ promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tole
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -16,8 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from misdirect.core import tolerance
-from misdirect.core.evaluate import decoy_probability
+from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
+from misdirect.core.reachability import Bounded
 from misdirect.solvers.stats import MethodStats
 from misdirect.solvers.status import Status
 
@@ -25,17 +27,25 @@ from misdirect.solvers.status import Status
 class ExactValues:
     """Exact values of alterations of one problem, each computed once (a curve often repeats
     one, and auto compares its stages' answers on the same numbers the user will see): one per
-    ``solve`` call, which stages reach through :func:`exact_values`."""
+    ``solve`` call, which stages reach through :func:`exact_values`. Each comes with its
+    proven error bound (:meth:`error`), which :func:`decide` charges to the answer."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
-        self._values: dict[bytes, float] = {}
+        self._values: dict[bytes, Bounded] = {}
 
     def __call__(self, alteration: np.ndarray) -> float:
+        return self.bounded(alteration).value
+
+    def error(self, alteration: np.ndarray) -> float:
+        """Proven bound on the error of the value (``inf`` when none could be proven)."""
+        return self.bounded(alteration).error
+
+    def bounded(self, alteration: np.ndarray) -> Bounded:
         alpha = np.asarray(alteration, dtype=np.int64)
         key = alpha.tobytes()
         if key not in self._values:
-            self._values[key] = decoy_probability(self.problem, alpha)
+            self._values[key] = decoy_value(self.problem, alpha)
         return self._values[key]
 
 
@@ -58,13 +68,15 @@ def exact_values(problem: Problem) -> ExactValues:
     return current if current is not None and current.problem is problem else ExactValues(problem)
 
 
-def decide(stopped: Status, exact: float, bound: float | None) -> Status:
-    """The status of an answer worth ``exact`` whose method stopped as ``stopped``, given the
-    best proven upper bound on its budget's optimum: ``optimal`` exactly when ``bound`` meets
-    ``exact``; a method that says it finished without such a bound gets ``feasible``."""
+def decide(stopped: Status, exact: float, bound: float | None, error: float = 0.0) -> Status:
+    """The status of an answer worth ``exact`` (within its proven ``error``) whose method
+    stopped as ``stopped``, given the best proven upper bound on its budget's optimum:
+    ``optimal`` exactly when ``bound`` meets the least value ``exact`` may have, so an answer
+    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` never is; a
+    method that says it finished without such a bound gets ``feasible``."""
     if stopped == Status.UNVERIFIED:
         return stopped
-    if tolerance.proven(exact, bound):
+    if tolerance.proven(exact - error, bound):
         return Status.OPTIMAL
     return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
 
@@ -83,6 +95,7 @@ class CurvePoint:
     stats: MethodStats
     certified_by: str | None
     notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
+    error_bound: float = 0.0  # proven bound on the error of ``probability`` (inf: none)
 
 
 @dataclass(frozen=True)
@@ -98,6 +111,7 @@ class Evidence:
     alteration: np.ndarray | None = None
     probability: float | None = None  # exact value of ``alteration``
     cost: float | None = None
+    error_bound: float = math.inf  # proven bound on the error of ``probability``
 
 
 def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
@@ -124,6 +138,7 @@ def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
         )
         point.alteration = np.asarray(evidence.alteration, dtype=np.int64)
         point.probability, point.cost = evidence.probability, evidence.cost
+        point.error_bound = evidence.error_bound
         point.certified_by = evidence.source
     bound = max(evidence.upper_bound, point.probability)
     if point.upper_bound is None or bound < point.upper_bound:
@@ -171,12 +186,13 @@ def certify_curve(
     curve: list[CurvePoint],
     *,
     cancelled: bool = False,
-    unaltered: tuple[np.ndarray, float] | None = None,
+    unaltered: tuple[np.ndarray, float, float] | None = None,
 ) -> None:
     """What one budget's answer proves about the others, and "optimal" only when proven.
 
     * A larger budget can do whatever a smaller one can: a point worse than one at a smaller
-      budget (or than altering nothing, ``unaltered``: the identity and its exact value) takes
+      budget (or than altering nothing, ``unaltered``: the identity, its exact value and that
+      value's proven error) takes
       that alteration (a method cut short may not have found it again).
     * Ties go to the cheapest: a point whose exact value does not beat a cheaper known answer
       by more than :data:`~misdirect.core.tolerance.TIE` takes that answer (an alteration that
@@ -194,14 +210,9 @@ def certify_curve(
             point.upper_bound = max(bound, point.probability)
         if point.upper_bound is not None:
             bound = point.upper_bound
-        status = decide(point.status, point.probability, point.upper_bound)
+        status = decide(point.status, point.probability, point.upper_bound, point.error_bound)
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
-            point.notes["not_certified"] = (
-                f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
-                if point.upper_bound is None
-                else f"proven bound {point.upper_bound:.12f} is "
-                f"{point.upper_bound - point.probability:.2e} above the exact value"
-            )
+            point.notes["not_certified"] = _why_not(point)
         elif status == Status.OPTIMAL and point.status.cut_short:
             point.notes["certified_by_bound"] = "a bound at this or a larger budget meets it"
         if status == Status.OPTIMAL:  # a second pass (with evidence) may prove what was not
@@ -213,6 +224,27 @@ def certify_curve(
                 point.status = Status.INTERRUPTED
 
 
+def _why_not(point: CurvePoint) -> str:
+    """Why a finished method's answer is not called optimal."""
+    if point.error_bound > tolerance.CERTIFY:
+        proven = (
+            "has no proven error bound"
+            if not math.isfinite(point.error_bound)
+            else f"is proven only within {point.error_bound:.2e}"
+        )
+        return (
+            f"the exact value {point.probability:.12f} {proven}: the chain is too "
+            "ill-conditioned for double precision, even refined"
+        )
+    if point.upper_bound is None:
+        return f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
+    error = f" (its error is up to {point.error_bound:.2e})" if point.error_bound else ""
+    return (
+        f"proven bound {point.upper_bound:.12f} is "
+        f"{point.upper_bound - point.probability:.2e} above the exact value{error}"
+    )
+
+
 @dataclass(frozen=True)
 class _Known:
     """An answer a point may take instead of its own: a smaller budget's, or altering nothing."""
@@ -221,10 +253,16 @@ class _Known:
     probability: float
     cost: float
     name: str  # "budget 1's", "altering nothing"
+    error_bound: float = 0.0
 
 
-def _carry_answers_up(curve: list[CurvePoint], unaltered: tuple[np.ndarray, float] | None) -> None:
-    best = None if unaltered is None else _Known(*unaltered, 0.0, "altering nothing")
+def _carry_answers_up(
+    curve: list[CurvePoint], unaltered: tuple[np.ndarray, float, float] | None
+) -> None:
+    best = None
+    if unaltered is not None:
+        identity, value, error = unaltered
+        best = _Known(identity, value, 0.0, "altering nothing", error)
     for point in sorted(curve, key=lambda p: p.budget):
         if best is not None:
             worse = point.probability < best.probability - tolerance.TIE
@@ -242,10 +280,11 @@ def _carry_answers_up(curve: list[CurvePoint], unaltered: tuple[np.ndarray, floa
             else:
                 worse = costlier = False
             if worse or costlier:
-                point.alteration, point.probability, point.cost = (
+                point.alteration, point.probability, point.cost, point.error_bound = (
                     best.alteration,
                     best.probability,
                     best.cost,
+                    best.error_bound,
                 )
                 if point.upper_bound is not None:
                     point.upper_bound = max(point.upper_bound, point.probability)
@@ -255,5 +294,9 @@ def _carry_answers_up(curve: list[CurvePoint], unaltered: tuple[np.ndarray, floa
             or point.cost < best.cost - tolerance.BUDGET_SLACK
         ):
             best = _Known(
-                point.alteration, point.probability, point.cost, f"budget {point.budget:g}'s"
+                point.alteration,
+                point.probability,
+                point.cost,
+                f"budget {point.budget:g}'s",
+                point.error_bound,
             )

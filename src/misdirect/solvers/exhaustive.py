@@ -15,7 +15,7 @@ import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.attack import prepare
-from misdirect.core.evaluate import decoy_probability
+from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
 from misdirect.errors import SolverError
 from misdirect.solvers import schedule
@@ -63,6 +63,7 @@ class ExhaustiveSolver:
         order = np.argsort(costs, kind="stable")
         table, costs = table[order], costs[order]
         values = np.full(len(costs), -np.inf)
+        worst_error = 0.0  # of the values evaluated: the best one may be off by as much
         alterations: dict[int, np.ndarray] = {}
         done = 0
         for i, picked in enumerate(table):
@@ -70,7 +71,8 @@ class ExhaustiveSolver:
                 break
             alpha = space.alteration(problem, picked)
             alterations[i] = alpha
-            values[i] = decoy_probability(problem, alpha)
+            values[i], error = decoy_value(problem, alpha)
+            worst_error = max(worst_error, error)
             done = i + 1
             report(progress, done, len(costs), stage="exhaustive")
         finished = done == len(costs)
@@ -89,19 +91,22 @@ class ExhaustiveSolver:
             if all(complete)
             else relaxation_bound(problem, top, schedule.closing_bound(deadline))
         )
+        top_value = problem.objective.max_value
         return [
             Solution(
                 b,
                 alterations[i],
                 float(values[i]),
                 status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
-                upper_bound=_bound(float(values[i]), proven, bound),
+                upper_bound=_bound(float(values[i]), proven, bound, worst_error, top_value),
                 stats=stats,
             )
             for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]
 
 
-def _bound(value: float, proven: bool, relaxed: float | None) -> float:
-    """A budget whose every alteration was evaluated is bounded by its best value."""
-    return value if proven or relaxed is None else max(value, relaxed)
+def _bound(value: float, proven: bool, relaxed: float | None, error: float, top: float) -> float:
+    """A budget whose every alteration was evaluated is bounded by its best value, plus the
+    largest proven error of the values compared (at most ``top``, the objective's maximum)."""
+    bound = min(value + error, top)
+    return bound if proven or relaxed is None else max(bound, relaxed)

@@ -53,13 +53,16 @@ class BudgetResult:
     notes: dict[str, str] = field(default_factory=dict)
     alteration_array: Alteration | None = field(default=None, repr=False)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
+    # proven bound on the error of ``probability`` on the chain as built; None: none proven
+    error_bound: float | None = 0.0
 
     @property
     def gap(self) -> float | None:
-        """Proven distance to the optimum, in probability (0 when solved to optimality)."""
-        if self.upper_bound is None:
+        """Proven distance to the optimum, in probability (0 when solved to optimality), the
+        error of the exact value included: ``None`` when either is unknown."""
+        if self.upper_bound is None or self.error_bound is None:
             return None
-        return max(self.upper_bound - self.probability, 0.0)
+        return max(self.upper_bound - self.probability, 0.0) + self.error_bound
 
     def to_dict(self) -> dict[str, Any]:
         """JSON fields: the dataclass's own (arrays and the solver's claim left out), the gap,
@@ -105,6 +108,7 @@ class SolveResult:
     cost = property(lambda self: self.final.cost)
     budget = property(lambda self: self.final.budget)
     upper_bound = property(lambda self: self.final.upper_bound)
+    error_bound = property(lambda self: self.final.error_bound)
     stats = property(lambda self: self.final.stats)
     certified_by = property(lambda self: self.final.certified_by)
 
@@ -120,6 +124,7 @@ class SolveResult:
             "baseline_probability": self.baseline_probability,
             "upper_bound": final["upper_bound"],
             "gap": final["gap"],
+            "error_bound": final["error_bound"],
             "method": self.method,
             "time_s": self.time_s,
             "curve": [point.to_dict() for point in self.curve],
@@ -230,6 +235,7 @@ def solve(
             budget=solution.budget,
             status=Status(solution.status),
             probability=exact_value(alpha),
+            error_bound=exact_value.error(alpha),
             alteration=alpha,
             cost=problem.alteration_cost(alpha),
             upper_bound=solution.upper_bound,
@@ -240,7 +246,8 @@ def solve(
         warnings += check_claims(point, method_solver.name)
         curve.append(point)
     identity = problem.identity()
-    certify_curve(curve, cancelled=interrupted, unaltered=(identity, exact_value(identity)))
+    unaltered = (identity, exact_value(identity), exact_value.error(identity))
+    certify_curve(curve, cancelled=interrupted, unaltered=unaltered)
     return SolveResult(
         problem=problem.name,
         method=method_solver.name,
@@ -285,6 +292,7 @@ def _point(answer: BudgetResult) -> CurvePoint:
         stats=answer.stats,
         certified_by=answer.certified_by,
         notes=dict(answer.notes),
+        error_bound=math.inf if answer.error_bound is None else answer.error_bound,
     )
 
 
@@ -324,4 +332,5 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         notes=point.notes,
         alteration_array=point.alteration,
         certified_by=point.certified_by,
+        error_bound=point.error_bound if math.isfinite(point.error_bound) else None,
     )
