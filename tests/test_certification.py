@@ -191,11 +191,13 @@ def test_evidence_from_other_work_certifies_by_the_same_policy(monkeypatch):
     open_curve = solve(problem, method="scripted", budgets=[1, 2])
     assert [p.status for p in open_curve.curve] == ["time_limit", "time_limit"]
     found = problem.alteration({"o1": "o3"})
-    evidence = Evidence(1.0, "elsewhere", "proven there", exact, found, exact, 1.0)
+    evidence = Evidence(1.0, "elsewhere", "proven there", exact, found, exact, 1.0, 1e-12)
     one, two = recertify(open_curve, problem, [evidence]).curve
     assert one.status == "optimal" and one.certified_by == "elsewhere"
     assert one.alteration == {"o1": "o3"} and one.probability == exact
     assert one.notes["bound_from"] == "elsewhere: proven there"
+    unproven = Evidence(1.0, "elsewhere", "proven there", exact, found, exact, 1.0)
+    assert recertify(open_curve, problem, [unproven]).curve[0].status != "optimal"
     assert two.status == "time_limit" and two.probability == exact and two.upper_bound == 1.0
     low = Evidence(1.0, "elsewhere", "wrong", 0.01)  # below "alter nothing" (0.084957)
     one, _ = recertify(open_curve, problem, [low]).curve
