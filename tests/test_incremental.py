@@ -238,3 +238,34 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
         checked += 1
     assert checked >= 4
     assert bases._bases  # the bases were kept and reused
+
+
+def test_every_value_on_chains_with_end_components_equals_its_chain():
+    """Each value the enumeration lists (low-rank, or exact where an alteration may close a
+    class, and the extensions of those), against the exact value of its own chain; the
+    suite has alterations that do close a class."""
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.solvers.engines.lowrank import LowRankEnumeration
+
+    closing = 0
+    for seed in range(120):
+        rng = np.random.default_rng(50_000 + seed)
+        problem = random_problem(
+            seed + 1000,
+            states=int(rng.integers(3, 9)),
+            actions=int(rng.integers(1, 4)),
+            observations=int(rng.integers(2, 5)),
+            nodes=int(rng.integers(1, 4)),
+        )
+        instance = prepare(problem, 4.0)
+        if not instance.cycling.any():
+            continue
+        enumeration = LowRankEnumeration(instance)
+        found = enumeration.run(4.0)
+        closing += enumeration.exact_evaluations > 0
+        space = instance.space
+        for index in range(len(found.values)):
+            alteration = space.alteration(problem, found.picks(index))
+            exact = decoy_probability(problem, alteration)
+            assert found.values[index] == pytest.approx(exact, abs=1e-9), (seed, index)
+    assert closing >= 10

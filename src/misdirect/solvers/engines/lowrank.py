@@ -31,7 +31,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core import tolerance
-from misdirect.core.alterations import AlterationSpace, AlteredEntries, ObservationChoices
+from misdirect.core.alterations import (
+    AlterationSpace,
+    AlteredEntries,
+    ObservationChoices,
+    rank_in_group,
+)
 from misdirect.core.attack import AttackInstance
 from misdirect.core.evaluate import decoy_probability
 from misdirect.errors import SolverError
@@ -59,6 +64,7 @@ INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their s
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
 BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
+TRAP_BATCH = 100_000  # alterations per trap search between two looks at the deadline
 COMPILED_FROM = 5_000  # alterations: fewer are corrected by numpy, not by the numba loop, whose
 # first call in a process loads numba's compiler (even from its cache), a one-off cost that a
 # small enumeration never repays; a search (many enumerations, bases kept) always takes the loop
@@ -118,9 +124,48 @@ class _Cycles(NamedTuple):
     slot_group: np.ndarray
 
 
+class _Trap(NamedTuple):
+    """The alterations of a block that take an unsafe option (``flagged``), their row slots
+    (``slots``, each owned by ``owner``, ``counts`` per alteration), and which of them may
+    close a class (``closes``; None when the deadline cut the search short)."""
+
+    flagged: np.ndarray
+    slots: np.ndarray
+    owner: np.ndarray
+    counts: np.ndarray
+    closes: np.ndarray | None
+
+
 class _KeptBasis(NamedTuple):
     basis: Basis
     cycles: _Cycles | None
+
+
+def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """Mask of the alterations ``roots`` and every alteration that extends one of them (whose
+    chain of parents reaches it)."""
+    marked = np.zeros(parent.size, dtype=bool)
+    marked[roots] = True
+    has_parent = parent >= 0
+    while True:
+        grown = marked | (has_parent & marked[np.maximum(parent, 0)])
+        if (grown == marked).all():
+            return marked
+        marked = grown
+
+
+def _restricted(altered: AlteredEntries, keep: np.ndarray) -> AlteredEntries:
+    """The alterations ``keep`` selects, renumbered; each one's parent must be kept too."""
+    number = np.cumsum(keep) - 1
+    entries = keep[altered.alteration]
+    parent = altered.parent[keep]
+    return AlteredEntries(
+        alteration=number[altered.alteration[entries]],
+        choice=altered.choice[entries],
+        option=altered.option[entries],
+        costs=altered.costs[keep],
+        parent=np.where(parent >= 0, number[np.maximum(parent, 0)], -1),
+    )
 
 
 class _BlockBase(NamedTuple):
@@ -346,12 +391,10 @@ class LowRankEnumeration:
             began = time.perf_counter()
             base = self._block_base(outer, outer_pick, inner, fixed, bases)
             factored = time.perf_counter()
-            block = self._block(top - outer_cost, inner, base, deadline, evaluations, compiled)
+            block = self._block(
+                top - outer_cost, inner, base, deadline, evaluations, compiled, outer_pick
+            )
             inner_costs, found, altered, cut_at = block
-            if base.cycles is not None and base.cycles.unsafe.any():
-                cut_at = min(
-                    cut_at, self._value_flagged(block, base, outer, outer_pick, inner, deadline)
-                )
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
@@ -502,18 +545,22 @@ class LowRankEnumeration:
         deadline: Deadline,
         evaluations: int,
         compiled: bool,
+        outer_pick: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
-        alterations within ``budget``; a cost is ``inf`` where the deadline cut it short."""
+        alterations within ``budget``; a cost is ``inf`` where the deadline cut it short.
+
+        With end components, the alterations taking an option that may close a class are
+        searched for a trap first (:func:`closing_alterations`). The batch then values every
+        alteration but those that close one and their extensions (it builds each from its
+        parent, and must not divide by a singular system); :meth:`_value_flagged` values
+        those after it. If the deadline cuts the trap search, the risky options change no row
+        in the batch and their alterations are left unvalued."""
         chain = self.instance.chain
         x_start, w_start, deltas = base.x_start, base.w_start, base.deltas
         usable = deltas.flat_length > 0
         if base.cycles is not None:
-            # the options that may close a class change no row in the batch (it must not
-            # divide by a singular system); their alterations are valued after it
-            unsafe = base.cycles.unsafe[:, : usable.shape[1]]
-            usable |= unsafe
-            deltas = deltas._replace(flat_length=np.where(unsafe, 0, deltas.flat_length))
+            usable |= base.cycles.unsafe[:, : usable.shape[1]]
         # an option that changes no live row is worth its base value at a higher cost
         altered = self.instance.space.altered_within(
             budget,
@@ -523,88 +570,159 @@ class LowRankEnumeration:
         )
         if altered is None:
             raise SolverError(f"more than {self.max_evaluations:,} alterations")
-        inner_costs = altered.costs
+        trap, batch, in_batch = None, altered, np.ones(len(altered.costs), dtype=bool)
+        if base.cycles is not None and base.cycles.unsafe.any():
+            trap = self._trap_search(altered, base, deadline)
+            if trap.closes is None:  # cut short: the risky options change no row
+                unsafe = base.cycles.unsafe[:, : usable.shape[1]]
+                deltas = deltas._replace(flat_length=np.where(unsafe, 0, deltas.flat_length))
+            elif trap.closes.any():
+                in_batch = ~_with_extensions(altered.parent, trap.flagged[trap.closes])
+                batch = _restricted(altered, in_batch)
+            else:
+                trap = None  # no class closes: the batch values every alteration
+        inner_costs = altered.costs if trap is None else altered.costs.copy()  # cut in place
         found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
         cut_at = np.inf
         if self.start >= 0:
             assert w_start is not None  # the start is live: it has a row of W
             found[:] = x_start
+            part = found[in_batch]
             corrected = add_corrections(
-                found, altered, deltas, w_start, deadline, threads=self.threads, compiled=compiled
+                part, batch, deltas, w_start, deadline, threads=self.threads, compiled=compiled
             )
+            found[in_batch] = part
             if not corrected.all():  # cut short: those alterations were not evaluated
-                cut_at = float(inner_costs[~corrected].min())
-                inner_costs = np.where(corrected, inner_costs, np.inf)
+                cut = np.flatnonzero(in_batch)[~corrected]
+                cut_at = float(inner_costs[cut].min())
+                inner_costs = inner_costs.copy()
+                inner_costs[cut] = np.inf
+        if trap is not None:
+            cut_at = min(
+                cut_at,
+                self._value_flagged(
+                    found, inner_costs, altered, trap, base, inner, outer_pick, deadline
+                ),
+            )
         return inner_costs, found, altered, cut_at
+
+    def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> _Trap:
+        """The alterations of a block that take an unsafe option, their row slots, and which
+        of them may close a class (None when ``deadline`` cut the search short)."""
+        cycles, table = base.cycles, base.deltas
+        assert cycles is not None
+        risky = cycles.unsafe[altered.choice, altered.option]
+        flagged = np.unique(altered.alteration[risky])
+        entries = np.flatnonzero(np.isin(altered.alteration, flagged))
+        choice, option = altered.choice[entries], altered.option[entries]
+        lengths = table.flat_length[choice, option]
+        slots = np.repeat(table.flat_start[choice, option], lengths) + rank_in_group(lengths)
+        owner = np.searchsorted(flagged, np.repeat(altered.alteration[entries], lengths))
+        counts = np.bincount(owner, minlength=flagged.size)
+        start = np.concatenate([[0], np.cumsum(counts)])
+        closes = np.zeros(flagged.size, dtype=bool)
+        for lo in range(0, flagged.size, TRAP_BATCH):
+            if deadline.expired():
+                return _Trap(flagged, slots, owner, counts, None)
+            hi = min(lo + TRAP_BATCH, flagged.size)
+            part = slots[start[lo] : start[hi]]
+            closes[lo:hi] = closing_alterations(
+                self._inside,
+                self._leaks,
+                cycles.classes,
+                cycles.base_groups,
+                start[lo : hi + 1] - start[lo],
+                cycles.slot_state[part],
+                cycles.slot_group[part],
+                base.fixed_rows,
+            )
+        # one that changes a row of a closed class may open it: valued exactly too
+        touched = cycles.classes.closed[cycles.slot_state[slots]]
+        closes |= np.bincount(owner, weights=touched, minlength=flagged.size) > 0
+        return _Trap(flagged, slots, owner, counts, closes)
 
     def _value_flagged(
         self,
-        block: tuple[np.ndarray, np.ndarray, AlteredEntries, float],
+        found: np.ndarray,
+        inner_costs: np.ndarray,
+        altered: AlteredEntries,
+        trap: _Trap,
         base: _BlockBase,
-        outer: list[int],
-        outer_pick: np.ndarray,
         inner: list[int],
+        outer_pick: np.ndarray,
         deadline: Deadline,
     ) -> float:
-        """Value (in place) the block's alterations that take an unsafe option: by a low-rank
-        update of their own where the trap search shows no class closes through their changed
-        rows (and they change no row of a closed class), else exactly, one chain each. One cut
-        short by ``deadline`` gets cost ``inf`` (not valued), as in :func:`add_corrections`;
-        returns the cheapest of those (``inf``: none)."""
-        inner_costs, found, altered, _ = block
-        cycles, table = base.cycles, base.deltas
-        assert cycles is not None
-        flagged = np.unique(altered.alteration[cycles.unsafe[altered.choice, altered.option]])
-        flagged = flagged[np.isfinite(inner_costs[flagged])]  # the rest was cut short already
-        if not flagged.size:
-            return np.inf
-        # each flagged alteration's changed rows: its entries' row slots
-        lo = np.searchsorted(altered.alteration, flagged)
-        hi = np.searchsorted(altered.alteration, flagged, side="right")
-        slots_of = [
-            np.concatenate(
-                [np.zeros(0, dtype=np.int64)]
-                + [
-                    table.flat_start[j, k] + np.arange(table.flat_length[j, k])
-                    for j, k in zip(altered.choice[a:b], altered.option[a:b], strict=True)
-                ]
-            ).astype(np.int64)
-            for a, b in zip(lo, hi, strict=True)
-        ]
-        start = np.cumsum([0, *(len(x) for x in slots_of)])
-        slots = np.concatenate([np.zeros(0, dtype=np.int64), *slots_of])
-        closes = closing_alterations(
-            self._inside,
-            self._leaks,
-            cycles.classes,
-            cycles.base_groups,
-            start,
-            cycles.slot_state[slots],
-            cycles.slot_group[slots],
-            base.fixed_rows,
-        )
-        closes |= np.add.reduceat(
-            np.append(cycles.classes.closed[cycles.slot_state[slots]], False), start[:-1]
-        ).astype(bool) & (np.diff(start) > 0)
+        """Value (in place) the flagged alterations the batch left out: by their own low-rank
+        update where the trap search found no class closing, else exactly, one chain each.
+        One cut short by ``deadline`` (or by a trap search cut short) gets cost ``inf`` (not
+        valued), as in :func:`add_corrections`; returns the cheapest of those (``inf``: none)."""
+        flagged = trap.flagged
+        if trap.closes is None:  # the trap search was cut: none of them is valued
+            cut = flagged[np.isfinite(inner_costs[flagged])]
+            inner_costs[cut] = np.inf
+            return float(altered.costs[cut].min(initial=np.inf))
+        # the batch left out those that close a class and their extensions
+        left_out = _with_extensions(altered.parent, flagged[trap.closes])[flagged]
+        keep = left_out & ~trap.closes
+        cut_at = np.inf
+        if base.w_start is not None:
+            cut_at = self._update_in_batches(
+                found, inner_costs, flagged, trap, keep, base, deadline
+            )
         problem, space = self.instance.problem, self.instance.space
+        outer = [i for i in range(len(self.observations)) if i not in inner]
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        cut_at = np.inf
-        for index, own, exact in zip(flagged.tolist(), slots_of, closes.tolist(), strict=True):
+        for index in flagged[trap.closes].tolist():  # the chain, solved exactly
             if deadline.expired():
                 cut_at = min(cut_at, float(inner_costs[index]))
                 inner_costs[index] = np.inf
                 continue
-            if exact:  # a class may close: the chain itself, solved exactly
-                picked[inner] = altered.picks(index, len(inner))
-                found[index] = decoy_probability(problem, space.alteration(problem, picked))
-                self.exact_evaluations += 1
-            elif base.w_start is not None and own.size:
-                columns = table.column[own]
-                system = np.eye(own.size) - table.d_w[np.ix_(own, columns)]
-                z = np.linalg.solve(system, table.rhs[own])
-                found[index] = base.x_start + float(base.w_start[columns] @ z)
+            picked[inner] = altered.picks(index, len(inner))
+            found[index] = decoy_probability(problem, space.alteration(problem, picked))
+            self.exact_evaluations += 1
         return cut_at
+
+    @staticmethod
+    def _update_in_batches(
+        found: np.ndarray,
+        inner_costs: np.ndarray,
+        flagged: np.ndarray,
+        trap: _Trap,
+        keep: np.ndarray,
+        base: _BlockBase,
+        deadline: Deadline,
+        batch: int = 4_096,
+    ) -> float:
+        """The low-rank values of the flagged alterations ``keep`` selects: their Woodbury
+        systems padded to one width with the table's pad slot (an identity row), solved in
+        batches. Those the deadline leaves get cost ``inf``; returns the cheapest of them."""
+        table, w_start = base.deltas, base.w_start
+        slots, owner, counts = trap.slots, trap.owner, trap.counts
+        indices = flagged[keep]
+        assert w_start is not None
+        if not indices.size:
+            return np.inf
+        pad = table.d_w.shape[0] - 1  # zero row, zero right-hand side, the zero column
+        kept = keep[owner]
+        position = rank_in_group(counts)[kept]
+        row = np.cumsum(keep) - 1  # each kept alteration's row in the padded table
+        width = int(counts[keep].max(initial=1))
+        padded = np.full((indices.size, width), pad, dtype=np.int64)
+        padded[row[owner[kept]], position] = slots[kept]
+        weight = np.append(w_start, 0.0)  # W(q0, ·) with the pad's column
+        for lo in range(0, indices.size, batch):
+            if deadline.expired():
+                cut = indices[lo:]
+                cut_at = float(inner_costs[cut].min())
+                inner_costs[cut] = np.inf
+                return cut_at
+            part = padded[lo : lo + batch]
+            z = np.linalg.solve(table.system(part), table.rhs[part][..., None])[..., 0]
+            found[indices[lo : lo + batch]] = base.x_start + np.einsum(
+                "ni,ni->n", weight[table.column[part]], z
+            )
+        return np.inf
 
     def _block_fits(
         self,

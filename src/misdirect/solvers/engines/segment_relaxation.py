@@ -293,8 +293,6 @@ class SegmentMdp:
         self.layer_of_row[n_moving + free_states.size : n_moving + n_entries] = layer_of
         self.entry_obs = np.full(n, -1)
         self.entry_obs[entry_index[free_states]] = state_obs[free_states]
-        self.entry_cycling = np.zeros(n, dtype=bool)  # entries into an end component
-        self.entry_cycling[entry_index[free_states]] = cycling[free_states]
         self.free_states, self.entry_index = free_states, entry_index
         self.keys = np.arange(len(layers)) if keys is None else np.asarray(keys, dtype=np.int64)
         self.rank = rank
@@ -335,19 +333,20 @@ class SegmentMdp:
 
     def entries(self, observations: Sequence[int], deadline: Deadline | None = None) -> np.ndarray:
         """Per observation: the maximal expected number of entries into its live region over
-        the schedulers of this MDP (every alteration of the node is one), from the start;
-        infinite where an end component holds an entry (a run may enter it again and again)."""
+        the schedulers of this MDP (every alteration of the node is one), from the start.
+        Infinite for all where the chain has end components: a run may then circle back into
+        a region nearly surely (the maximum grew past 10^7 on a turn-back grid), and nothing is
+        charged."""
         coo = self.matrix.tocoo()
         into = self.entry_obs[coo.col]
         result = np.zeros(len(observations))
         if self.start is None:
             return result
+        if self.solver.stop_row is not None:
+            return np.full(len(observations), np.inf)
         policy = None
         for j, o in enumerate(observations):
             hit = into == o
-            if self.entry_cycling[coo.col[hit]].any():
-                result[j] = np.inf
-                continue
             reward = np.bincount(
                 coo.row[hit], weights=coo.data[hit], minlength=self.matrix.shape[0]
             )
