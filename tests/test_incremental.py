@@ -26,17 +26,25 @@ def test_grid_curve_equals_exhaustive(n):
         assert a.cost <= a.budget
 
 
+def random_suite(count):
+    """(seed, problem) of small random models, a share of them with end components."""
+    for seed in range(count):
+        rng = np.random.default_rng(50_000 + seed)
+        yield (
+            seed,
+            random_problem(
+                seed + 1000,
+                states=int(rng.integers(3, 9)),
+                actions=int(rng.integers(1, 4)),
+                observations=int(rng.integers(2, 5)),
+                nodes=int(rng.integers(1, 4)),
+            ),
+        )
+
+
 def test_random_models_equal_exhaustive():
     cycling = 0
-    for seed in range(200):
-        rng = np.random.default_rng(50_000 + seed)
-        problem = random_problem(
-            seed + 1000,
-            states=int(rng.integers(3, 9)),
-            actions=int(rng.integers(1, 4)),
-            observations=int(rng.integers(2, 5)),
-            nodes=int(rng.integers(1, 4)),
-        )
+    for seed, problem in random_suite(200):
         budgets = [0.0, 1.0, 2.5, 4.0]
         mine = solve(problem, method="incremental", budgets=budgets)
         cycling += bool(prepare(problem, 4.0).cycling.any())
@@ -248,15 +256,7 @@ def test_every_value_on_chains_with_end_components_equals_its_chain():
     from misdirect.solvers.engines.lowrank import LowRankEnumeration
 
     closing = 0
-    for seed in range(120):
-        rng = np.random.default_rng(50_000 + seed)
-        problem = random_problem(
-            seed + 1000,
-            states=int(rng.integers(3, 9)),
-            actions=int(rng.integers(1, 4)),
-            observations=int(rng.integers(2, 5)),
-            nodes=int(rng.integers(1, 4)),
-        )
+    for seed, problem in random_suite(120):
         instance = prepare(problem, 4.0)
         if not instance.cycling.any():
             continue
