@@ -38,7 +38,7 @@ from misdirect.core.alterations import (
     rank_in_group,
 )
 from misdirect.core.attack import AttackInstance
-from misdirect.core.evaluate import decoy_probability
+from misdirect.core.reachability import reach_probabilities
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
 from misdirect.solvers.deadline import Deadline
@@ -669,7 +669,6 @@ class LowRankEnumeration:
             cut_at = self._update_in_batches(
                 found, inner_costs, flagged, trap, keep, base, deadline
             )
-        problem, space = self.instance.problem, self.instance.space
         outer = [i for i in range(len(self.observations)) if i not in inner]
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
@@ -679,9 +678,34 @@ class LowRankEnumeration:
                 inner_costs[index] = np.inf
                 continue
             picked[inner] = altered.picks(index, len(inner))
-            found[index] = decoy_probability(problem, space.alteration(problem, picked))
+            found[index] = self._exact_value(picked)
             self.exact_evaluations += 1
         return cut_at
+
+    def _exact_value(self, picked: np.ndarray) -> float:
+        """Exact value at the start of the alteration taking option ``picked[i]`` of every
+        choice ``i``: its chain within the choice product, solved as the least fixed point."""
+        chain = self.instance.chain
+        policy = self._unaltered_policy.copy()
+        for i in np.flatnonzero(picked).tolist():
+            rows = self.rows_of[self.observations[i]]
+            policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
+        values = reach_probabilities(
+            chain.transitions[policy], chain.target, blocks=chain.node, value=chain.target_value
+        )
+        return float(values[chain.initial])
+
+    @cached_property
+    def _unaltered_policy(self) -> np.ndarray:
+        """Every product state's group with nothing altered (a state that cannot reach the
+        decoy keeps its first group: its value is 0 whatever it takes)."""
+        chain, live = self.instance.chain, self.instance.live
+        policy = np.zeros(chain.n_states, dtype=np.int64)
+        policy[chain.group_state[::-1]] = np.arange(chain.n_groups)[::-1]
+        chosen = np.zeros(chain.options.size, dtype=bool)
+        chosen[self.first_option[:-1]] = True
+        policy[live] = selected_groups(chain, live, chain.group_of_option, chosen)
+        return policy
 
     @staticmethod
     def _update_in_batches(
