@@ -392,7 +392,7 @@ class LowRankEnumeration:
             base = self._block_base(outer, outer_pick, inner, fixed, bases)
             factored = time.perf_counter()
             block = self._block(
-                top - outer_cost, inner, base, deadline, evaluations, compiled, outer_pick
+                top - outer_cost, inner, base, deadline, evaluations, compiled, outer, outer_pick
             )
             inner_costs, found, altered, cut_at = block
             evaluations += int(np.isfinite(inner_costs).sum())
@@ -545,6 +545,7 @@ class LowRankEnumeration:
         deadline: Deadline,
         evaluations: int,
         compiled: bool,
+        outer: list[int],
         outer_pick: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
@@ -601,7 +602,7 @@ class LowRankEnumeration:
             cut_at = min(
                 cut_at,
                 self._value_flagged(
-                    found, inner_costs, altered, trap, base, inner, outer_pick, deadline
+                    found, inner_costs, altered, trap, base, (outer, outer_pick, inner), deadline
                 ),
             )
         return inner_costs, found, altered, cut_at
@@ -648,11 +649,11 @@ class LowRankEnumeration:
         altered: AlteredEntries,
         trap: _Trap,
         base: _BlockBase,
-        inner: list[int],
-        outer_pick: np.ndarray,
+        block: tuple[list[int], np.ndarray, list[int]],
         deadline: Deadline,
     ) -> float:
-        """Value (in place) the flagged alterations the batch left out: by their own low-rank
+        """Value (in place) the flagged alterations the batch left out (``block``: its outer
+        choices, their picks, and its inner choices): by their own low-rank
         update where the trap search found no class closing, else exactly, one chain each.
         One cut short by ``deadline`` (or by a trap search cut short) gets cost ``inf`` (not
         valued), as in :func:`add_corrections`; returns the cheapest of those (``inf``: none)."""
@@ -669,7 +670,7 @@ class LowRankEnumeration:
             cut_at = self._update_in_batches(
                 found, inner_costs, flagged, trap, keep, base, deadline
             )
-        outer = [i for i in range(len(self.observations)) if i not in inner]
+        outer, outer_pick, inner = block
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
         for index in flagged[trap.closes].tolist():  # the chain, solved exactly
