@@ -304,32 +304,19 @@ class LowRankEnumeration:
         ]
         return closed_base, option_groups, (classes, unsafe)
 
+    @staticmethod
     def _cycles(
-        self,
         closing: tuple[ClosedClasses, np.ndarray] | None,
         base_groups: np.ndarray,
-        option_groups: list[np.ndarray],
-        regions: list[np.ndarray],
+        deltas: RowDeltas,
+        inner_rows: np.ndarray,
     ) -> _Cycles | None:
-        """The :class:`_Cycles` of a base, its row slots listed as :func:`row_deltas` lists
-        them (per choice, per option, the rows that differ from the base)."""
+        """The :class:`_Cycles` of a base: its row slots' live states (``inner_rows``: the
+        live state of each column of ``W``) and new groups, as ``deltas`` lists them."""
         if closing is None:
             return None
-        states, groups = [], []
-        for g, region in zip(option_groups, regions, strict=True):
-            base = base_groups[region]
-            for k in range(g.shape[1]):
-                changed = np.flatnonzero(g[:, k] != base)
-                states.append(region[changed])
-                groups.append(g[changed, k])
-        empty = np.zeros(0, dtype=np.int64)
-        return _Cycles(
-            closing[0],
-            base_groups,
-            closing[1],
-            np.concatenate([empty, *states]).astype(np.int64),
-            np.concatenate([empty, *groups]).astype(np.int64),
-        )
+        slots = deltas.column[:-1]  # without the pad
+        return _Cycles(closing[0], base_groups, closing[1], inner_rows[slots], deltas.group[:-1])
 
     @cached_property
     def _live_node(self) -> np.ndarray:
@@ -495,7 +482,6 @@ class LowRankEnumeration:
             for i in inner
         ]
         base_groups, option_groups, closing = self._closing(base_groups, option_groups, regions)
-        cycles = self._cycles(closing, base_groups, option_groups, regions)
         rows = self._rows_within(inner)
         x0, W = base_solve(
             self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
@@ -508,6 +494,7 @@ class LowRankEnumeration:
             x0,
             W,
         )
+        cycles = self._cycles(closing, base_groups, deltas, self.live_index[rows])
         if start < 0:
             return _BlockBase(0.0, None, deltas, cycles)
         return _BlockBase(float(x0[start]), W[start], deltas, cycles)
@@ -530,7 +517,9 @@ class LowRankEnumeration:
         basis = Basis.of(
             self._inside, self._to_target, root_groups, regions, option_groups, self._live_node
         )
-        return _KeptBasis(basis, self._cycles(closing, root_groups, option_groups, regions))
+        inner_rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
+        cycles = self._cycles(closing, root_groups, basis.options, inner_rows)
+        return _KeptBasis(basis, cycles)
 
     def _rows_within(self, choices: list[int]) -> np.ndarray:
         """The live product states of ``choices``' observations, choice by choice."""

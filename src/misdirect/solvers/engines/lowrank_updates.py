@@ -111,7 +111,12 @@ class Basis(NamedTuple):
             x_start + float(w_start[own] @ z[:, 0]),
             w_start + w_start[own] @ z[:, 1:],
             RowDeltas(
-                flat_start, flat_length, table.column, table.rhs + reach @ z[:, 0], updated_d_w
+                flat_start,
+                flat_length,
+                table.column,
+                table.rhs + reach @ z[:, 0],
+                updated_d_w,
+                table.group,
             ),
         )
 
@@ -123,13 +128,14 @@ class RowDeltas(NamedTuple):
     column among the inner rows (``column``). Rows an option leaves alone have zero ``D`` and
     ``Δb``, so the Woodbury system needs only the changed ones. A last row slot pads batches:
     its row of ``D W`` and its right-hand side are zero, and so is its column (the last one of
-    ``d_w``)."""
+    ``d_w``). ``group``: each slot's new group (what a trap search follows)."""
 
     flat_start: np.ndarray
     flat_length: np.ndarray
     column: np.ndarray
     rhs: np.ndarray
     d_w: np.ndarray
+    group: np.ndarray
 
     def system(self, slots: np.ndarray) -> np.ndarray:
         """``F = I − D W`` on each row of row ``slots`` (n, k): (n, k, k)."""
@@ -174,6 +180,7 @@ def row_deltas(
         np.concatenate([*columns, [W.shape[1]]]).astype(np.int64),
         np.asarray(delta @ x0).ravel() + (to_target[new_g] - to_target[old_g]),
         d_w,
+        new_g,
     )
 
 
