@@ -21,7 +21,7 @@ test: $(STAMP)
 # mkdocs-material + mkdocstrings into the same .venv; --strict: any warning fails the build
 docs: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[docs]'
-	$(BIN)/mkdocs build --strict
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
 # NB: overwrites the committed results in bench/results/ (compare with git diff)
 bench: $(STAMP)

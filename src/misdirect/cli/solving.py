@@ -365,7 +365,12 @@ def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
 
 
 def _simulation_payload(
-    problem: Problem, alpha: AlterationArray, result: Simulation, runs: int, seed: int, max_steps: int
+    problem: Problem,
+    alpha: AlterationArray,
+    result: Simulation,
+    runs: int,
+    seed: int,
+    max_steps: int,
 ) -> dict[str, Any]:
     """The ``--json`` object of simulate: each outcome's count, frequency and 95 % interval,
     and the exact decoy probability beside the simulated one."""

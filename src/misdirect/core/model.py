@@ -23,8 +23,6 @@ from misdirect.core import tolerance
 from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
 
-
-
 # an alteration as a plain int array, ``alpha[o]`` = the observation received instead of ``o``:
 # what the solvers pass around (an :class:`Alteration` is one too)
 AlterationArray = np.ndarray
@@ -99,7 +97,9 @@ class Alteration(np.ndarray[Any, np.dtype[np.int64]]):
         """``{observation: received observation}`` for the observations that change."""
         plain = np.asarray(self)
         names = self.observations
-        return {names[o]: names[int(plain[o])] for o in np.flatnonzero(plain != np.arange(plain.size))}
+        return {
+            names[o]: names[int(plain[o])] for o in np.flatnonzero(plain != np.arange(plain.size))
+        }
 
     def to_dict(self) -> dict[str, str]:
         """The changes as names (:attr:`changes`), the form of every ``--json`` output."""
@@ -363,7 +363,9 @@ class Controller:
 
     def __repr__(self) -> str:
         kind = "deterministic" if self.is_deterministic else "randomized"
-        return f"Controller({self.n_nodes} nodes, {kind}, initial {self.nodes[self.initial_node]!r})"
+        return (
+            f"Controller({self.n_nodes} nodes, {kind}, initial {self.nodes[self.initial_node]!r})"
+        )
 
     @property
     def n_nodes(self) -> int:

@@ -585,7 +585,9 @@ def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray
     return fig
 
 
-def draw_grid(problem: Problem, alteration: AlterationArray, cells: np.ndarray, output: Path) -> Path:
+def draw_grid(
+    problem: Problem, alteration: AlterationArray, cells: np.ndarray, output: Path
+) -> Path:
     fig = grid_figure(problem, alteration, cells)
     try:  # atomic, like every output: a temporary file beside it, then os.replace
         write_output(output, lambda path: fig.savefig(path, dpi=150, bbox_inches="tight"))

@@ -363,7 +363,7 @@ def solve(
     [0.085, 0.72, 0.86, 0.862, 0.864]
     >>> misdirect.solve(paper_grid(5), time_limt=10)
     Traceback (most recent call last):
-    TypeError: solve() got an unexpected keyword argument 'time_limt' (did you mean 'time_limit'?); ...
+    TypeError: solve() got an unexpected keyword argument 'time_limt' (did you mean ...
     """
     overrides: dict[str, Any] = {  # SolveOptions' fields, each of its own type
         "time_limit": time_limit,

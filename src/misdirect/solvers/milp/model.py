@@ -35,7 +35,9 @@ class MilpModel:
     column_blocks: dict[str, slice]
     row_blocks: dict[str, slice]
     decode: Callable[[np.ndarray], AlterationArray]  # column values -> alteration
-    start_for: Callable[[AlterationArray], tuple[np.ndarray, np.ndarray]]  # alteration -> (cols, vals)
+    start_for: Callable[
+        [AlterationArray], tuple[np.ndarray, np.ndarray]
+    ]  # alteration -> (cols, vals)
     sound: bool = True  # does the optimum equal the true optimum (and the bound bound it)?
     row_scale: np.ndarray | None = None  # factor each row was multiplied by (None: all 1)
     build_time_s: float = 0.0
