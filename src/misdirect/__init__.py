@@ -6,15 +6,16 @@ The library in a few names (the package layout: docs/architecture.md)::
 
     problem = misdirect.scenarios.paper_grid(5)   # or misdirect.load_problem("model.yaml")
     report = misdirect.evaluate(problem, problem.alteration({"o1": "o3"}))
-    result = misdirect.solve(problem, method="exhaustive")   # verified optimum + budget curve
+    result = misdirect.solve(problem, budgets=range(5))   # verified optimum + budget curve
     result.probability, result.status, [point.probability for point in result.curve]
 """
 
 from misdirect import scenarios
 from misdirect.core.attack import shared_preparation
 from misdirect.core.evaluate import Evaluation, decoy_probability, evaluate
-from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+from misdirect.core.model import Alteration, Controller, CostModel, Pomdp, Problem
 from misdirect.core.product import ProductChain, build_product
+from misdirect.core.simulate import Simulation, simulate
 from misdirect.defence import (
     AuditResult,
     HardenResult,
@@ -23,14 +24,18 @@ from misdirect.defence import (
     harden,
     online_attack_value,
 )
-from misdirect.errors import MisdirectError, ProblemError, SolverError
-from misdirect.io.problem_file import load_problem, write_problem
+from misdirect.errors import MisdirectError, OptionError, ProblemError, SolverError
+from misdirect.io.problem_file import load_problem, problem_from_dict, write_problem
+from misdirect.solvers.base import ProgressCallback
+from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.run import BudgetResult, SolveResult, solve
 from misdirect.solvers.status import Status
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Alteration",
     "AuditResult",
     "BudgetResult",
     "CancelToken",
@@ -46,6 +51,8 @@ __all__ = [
     "Problem",
     "ProblemError",
     "ProductChain",
+    "ProgressCallback",
+    "Simulation",
     "SolveOptions",
     "SolveResult",
     "SolverError",
@@ -57,8 +64,10 @@ __all__ = [
     "harden",
     "load_problem",
     "online_attack_value",
+    "problem_from_dict",
     "scenarios",
     "shared_preparation",
+    "simulate",
     "solve",
     "write_problem",
 ]

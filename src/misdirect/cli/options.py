@@ -20,7 +20,7 @@ from typing import Annotated, Any
 import typer
 
 from misdirect.cli.common import check_range
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import ProblemError
 from misdirect.io.problem_file import load_problem
 from misdirect.scenarios import knapsack, paper_grid, random_problem
@@ -209,7 +209,7 @@ def parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[st
     return changes
 
 
-def alteration(problem: Problem, alter: list[str] | None) -> Alteration:
+def alteration(problem: Problem, alter: list[str] | None) -> AlterationArray:
     """The alteration ``--alter`` names, checked against ``problem``."""
     changes = parse_alter(alter or [], problem.pomdp.observations)
     return problem.alteration(changes, source="--alter")

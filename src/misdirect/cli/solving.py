@@ -42,7 +42,7 @@ from misdirect.cli.options import (
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.evaluate import Evaluation, decoy_probability
 from misdirect.core.evaluate import evaluate as evaluate_alteration
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.tolerance import CERTIFY
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, one_line, write_output
@@ -365,7 +365,12 @@ def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
 
 
 def _simulation_payload(
-    problem: Problem, alpha: Alteration, result: Simulation, runs: int, seed: int, max_steps: int
+    problem: Problem,
+    alpha: AlterationArray,
+    result: Simulation,
+    runs: int,
+    seed: int,
+    max_steps: int,
 ) -> dict[str, Any]:
     """The ``--json`` object of simulate: each outcome's count, frequency and 95 % interval,
     and the exact decoy probability beside the simulated one."""

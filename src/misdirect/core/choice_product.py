@@ -24,7 +24,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from misdirect.core.alterations import AlterationSpace
-from misdirect.core.model import Alteration, Problem, reachable_from
+from misdirect.core.model import AlterationArray, Problem, reachable_from
 
 
 @dataclass(frozen=True)
@@ -53,14 +53,14 @@ class Options:
     def size(self) -> int:
         return int(self.observation.size)
 
-    def decode(self, problem: Problem, chosen: np.ndarray) -> Alteration:
+    def decode(self, problem: Problem, chosen: np.ndarray) -> AlterationArray:
         """Alteration from a 0/1 (or near 0/1) vector over the options."""
         alpha = problem.identity()
         picked = np.flatnonzero(np.asarray(chosen) > 0.5)
         alpha[self.observation[picked]] = self.target[picked]
         return alpha
 
-    def encode(self, alteration: Alteration) -> np.ndarray:
+    def encode(self, alteration: AlterationArray) -> np.ndarray:
         """0/1 vector over the options selecting ``alteration`` (which must lie in the space)."""
         return cast(np.ndarray, (alteration[self.observation] == self.target).astype(np.float64))
 
@@ -119,7 +119,7 @@ class ChoiceProduct:
         """States from which *some* alteration (indeed some MDP scheduler) reaches the decoy."""
         return reachable_from(self.union_graph().T.tocsr(), np.flatnonzero(self.target))
 
-    def selected_groups(self, alteration: Alteration) -> np.ndarray:
+    def selected_groups(self, alteration: AlterationArray) -> np.ndarray:
         """One group per state: the one the alteration selects (the matrix rows of its chain)."""
         chosen = self.options.encode(alteration)
         hits = np.asarray(self.group_options @ chosen).ravel() > 0.5

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from misdirect.core import tolerance
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.keywords import checked_keywords
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.product import ProductChain, build_product
 from misdirect.core.reachability import (
     UNIT_ROUNDOFF,
@@ -24,13 +25,13 @@ from misdirect.core.reachability import (
 )
 
 
-def decoy_probability(problem: Problem, alteration: Alteration) -> float:
+def decoy_probability(problem: Problem, alteration: AlterationArray) -> float:
     """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU); with
     weighted decoy sets, the expected weight of the first decoy state entered."""
     return decoy_value(problem, alteration).value
 
 
-def decoy_value(problem: Problem, alteration: Alteration) -> Bounded:
+def decoy_value(problem: Problem, alteration: AlterationArray) -> Bounded:
     """:func:`decoy_probability` with a proven bound on its error on the product chain as
     built (``inf`` when none could be proven; see
     :func:`misdirect.core.reachability.reach_probability_bounded`)."""
@@ -63,7 +64,7 @@ def _decoy_value(problem: Problem, chain: ProductChain) -> Bounded:
 
 @dataclass(frozen=True)
 class Evaluation:
-    """Everything known about one alteration, computed exactly.
+    """Everything known about one alteration, computed exactly (:func:`evaluate`).
 
     ``outcomes`` lists the decoy and absorbing states a run can end in first, with non-zero
     probability only (a model may have thousands of absorbing states, most never entered);
@@ -73,6 +74,27 @@ class Evaluation:
     ``None`` when none could be proven (a chain too ill-conditioned for double precision
     even with refinement). The expected visits are proven only on wide chains, solved by the
     certified iterative route (:func:`misdirect.core.reachability.solve_certified`).
+
+    Attributes
+    ----------
+    probability : float
+        Pr(reach decoy); with weighted decoy sets the expected weight of the first decoy
+        state entered (``objective`` says which).
+    alteration : dict of str to str
+        The alteration as names, only the observations that change.
+    cost : float
+        What the alteration costs; ``within_budget`` says whether the problem's budget
+        affords it.
+    outcomes : dict of str to float
+        First decoy or absorbing state entered, with its probability (non-zero only).
+    never_absorbed : float
+        Probability of running forever without entering a decoy or absorbing state.
+    product_states, product_transitions : int
+        Size of the product chain (world state, memory node) that was solved.
+    expected_visits : ndarray
+        Expected steps spent in each world state.
+    error_bound : float or None
+        Proven bound on the error of the probabilities.
     """
 
     probability: float  # with weighted decoy sets: the expected weight (see `objective`)
@@ -122,13 +144,48 @@ class Evaluation:
         }
 
 
-def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluation:
-    """Exact report for ``alteration`` (the identity when ``None``).
+@checked_keywords
+def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Evaluation:
+    """The exact value of one alteration, with every outcome and the expected visits.
 
+    Parameters
+    ----------
+    problem : Problem
+        The POMDP, controller, costs, decoy and budget.
+    alteration : Alteration or array of int, optional
+        What the robot receives for each observation (:meth:`Problem.alteration` builds one
+        from names). Default: no alteration.
+
+    Returns
+    -------
+    Evaluation
+        Pr(reach decoy) (or the expected decoy weight) with its proven error bound, the
+        first decoy or absorbing state entered with its probability, the cost and the
+        expected visits per world state.
+
+    Raises
+    ------
+    ProblemError
+        An alteration that the problem does not allow is refused by
+        :meth:`Problem.alteration`; an array given directly is taken as is.
+
+    Notes
+    -----
     One transposed solve gives expected visits and every outcome at once
-    (:func:`misdirect.core.reachability.occupation`); where it took the certified iterative route,
-    the probability is read off it too (the mass first entering a decoy state), else it comes
-    from the forward solve every solver uses.
+    (:func:`misdirect.core.reachability.occupation`); where it took the certified iterative
+    route, the probability is read off it too (the mass first entering a decoy state), else
+    it comes from the forward solve every solver uses.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> problem = paper_grid(5)
+    >>> report = misdirect.evaluate(problem, problem.alteration({"o1": "o3"}))
+    >>> round(report.probability, 6), report.cost
+    (0.719924, 1.0)
+    >>> {state: round(p, 4) for state, p in report.outcomes.items()}
+    {'(2,2)': 0.7199, '(4,4)': 0.2801}
     """
     started = time.perf_counter()
     alpha = problem.identity() if alteration is None else np.asarray(alteration, dtype=np.int64)

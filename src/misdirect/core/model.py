@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,10 +23,101 @@ from misdirect.core import tolerance
 from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
 
-Alteration = np.ndarray  # int array, alpha[o] = received observation
+# an alteration as a plain int array, ``alpha[o]`` = the observation received instead of ``o``:
+# what the solvers pass around (an :class:`Alteration` is one too)
+AlterationArray = np.ndarray
 
 
-@dataclass(frozen=True, eq=False)
+class Alteration(np.ndarray[Any, np.dtype[np.int64]]):
+    """An alteration ``α: Ω → Ω`` that names its observations.
+
+    It *is* the integer array ``alpha`` (``alpha[o]`` is the observation the robot receives
+    instead of ``o``), so every function taking an alteration array takes it, and
+    ``np.asarray(alteration)`` is the plain array; it also knows the observation names, so it
+    prints and converts as names. Build one with :meth:`Problem.alteration`.
+
+    Attributes
+    ----------
+    observations : tuple of str
+        The problem's observation names, indexed like the array.
+
+    Examples
+    --------
+    >>> from misdirect.scenarios import paper_grid
+    >>> alteration = paper_grid(5).alteration({"o1": "o3"})
+    >>> alteration
+    Alteration({'o1': 'o3'})
+    >>> alteration.changes
+    {'o1': 'o3'}
+    >>> alteration["o1"], int(alteration[1])
+    ('o3', 3)
+    >>> import numpy as np
+    >>> np.asarray(alteration).tolist()
+    [0, 3, 2, 3, 4, 5, 6, 7]
+    """
+
+    observations: tuple[str, ...]
+
+    def __new__(cls, values: Any, observations: Iterable[str]) -> Alteration:
+        names = tuple(observations)
+        array = np.array(values, dtype=np.int64)
+        if array.shape != (len(names),):
+            raise ValueError(
+                f"an alteration has one entry per observation ({len(names)}), "
+                f"got shape {array.shape}"
+            )
+        alteration = array.view(cls)
+        alteration.observations = names
+        return alteration
+
+    def __array_finalize__(self, obj: Any) -> None:
+        self.observations = getattr(obj, "observations", ())
+
+    def __array_wrap__(self, array: Any, context: Any = None, return_scalar: bool = False) -> Any:
+        # arithmetic and comparisons give plain arrays: ``alpha != identity`` is a mask,
+        # not an alteration
+        plain = np.asarray(array)
+        return plain[()] if return_scalar else plain
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, str):  # by name: the observation received instead of ``key``
+            return self.observations[int(np.asarray(self)[self._index(key)])]
+        item = super().__getitem__(key)
+        return np.asarray(item) if isinstance(item, np.ndarray) else item
+
+    def _index(self, name: str) -> int:
+        try:
+            return self.observations.index(name)
+        except ValueError:
+            known = _preview(self.observations)
+            raise KeyError(f"unknown observation {name!r} (known: {known})") from None
+
+    @property
+    def changes(self) -> dict[str, str]:
+        """``{observation: received observation}`` for the observations that change."""
+        plain = np.asarray(self)
+        names = self.observations
+        return {
+            names[o]: names[int(plain[o])] for o in np.flatnonzero(plain != np.arange(plain.size))
+        }
+
+    def to_dict(self) -> dict[str, str]:
+        """The changes as names (:attr:`changes`), the form of every ``--json`` output."""
+        return self.changes
+
+    def __repr__(self) -> str:
+        if self.ndim != 1 or len(self.observations) != self.size:
+            return repr(np.asarray(self))
+        return f"Alteration({self.changes!r})"
+
+    def __str__(self) -> str:
+        return format_alteration(self.changes) if self.ndim == 1 else str(np.asarray(self))
+
+    def __reduce__(self) -> Any:  # pickles (worker processes) as names and values
+        return (Alteration, (np.asarray(self).copy(), self.observations))
+
+
+@dataclass(frozen=True, eq=False, repr=False)
 class Pomdp:
     """World dynamics with a deterministic, state-based observation function.
 
@@ -42,6 +133,12 @@ class Pomdp:
     observation_of: np.ndarray  # (|S|,) int
     transitions: sp.csr_matrix  # (|A|*|S|, |S|)
     absorbing: np.ndarray  # (|S|,) bool
+
+    def __repr__(self) -> str:
+        return (
+            f"Pomdp({self.n_states} states, {self.n_actions} actions, "
+            f"{self.n_observations} observations, {self.transitions.nnz} transitions)"
+        )
 
     @classmethod
     def from_triplets(
@@ -116,7 +213,7 @@ class Pomdp:
         return graph
 
 
-@dataclass(frozen=True, eq=False, init=False)
+@dataclass(frozen=True, eq=False, init=False, repr=False)
 class Controller:
     """Finite-state controller, deterministic or randomized.
 
@@ -264,6 +361,12 @@ class Controller:
         )
         return controller
 
+    def __repr__(self) -> str:
+        kind = "deterministic" if self.is_deterministic else "randomized"
+        return (
+            f"Controller({self.n_nodes} nodes, {kind}, initial {self.nodes[self.initial_node]!r})"
+        )
+
     @property
     def n_nodes(self) -> int:
         return len(self.nodes)
@@ -402,18 +505,45 @@ class CostModel:
         """Dense ``|Ω| x |Ω|`` cost table (for small models, reports and MILP export)."""
         return np.vstack([self.row(o) for o in range(self.n_observations)])
 
-    def cost(self, alteration: Alteration) -> float:
+    def cost(self, alteration: AlterationArray) -> float:
         changed = np.flatnonzero(alteration != np.arange(self.n_observations))
         return float(sum(self.row(int(o))[alteration[o]] for o in changed))
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, repr=False)
 class Problem:
     """One OSA_DGM instance: maximise Pr(reach decoy) over alterations with cost ≤ budget.
 
     With ``decoy_sets`` (weighted decoys) the objective is the expected weight of the first
     decoy state entered instead; ``decoy`` is then their union. Solvers read the objective
     through :attr:`objective` only, so both cases are one code path.
+
+    Build one with :func:`misdirect.load_problem` (a file), :func:`misdirect.problem_from_dict`
+    (the same document in memory) or a generator of :mod:`misdirect.scenarios`.
+
+    Attributes
+    ----------
+    pomdp : Pomdp
+        The world: states, actions, observations, transitions (names in ``pomdp.states``,
+        ``pomdp.observations``, ...).
+    controller : Controller
+        The robot's finite-state controller.
+    cost : CostModel
+        What altering each observation into each other costs (``inf``: not allowed).
+    decoy : ndarray of bool
+        The decoy states.
+    budget : float
+        The attacker's budget.
+    name : str
+        A name for reports.
+    source : str or None
+        The file it came from.
+
+    Examples
+    --------
+    >>> from misdirect.scenarios import paper_grid
+    >>> paper_grid(5)
+    Problem('paper grid 5x5': 25 states, 4 actions, 8 observations, 3 memory nodes, budget 4)
     """
 
     pomdp: Pomdp
@@ -427,6 +557,14 @@ class Problem:
     # doubts the reader had about the input (a PAYNT controller made for another build of the
     # model): every result about this problem repeats them
     warnings: tuple[str, ...] = ()
+
+    def __repr__(self) -> str:
+        pomdp = self.pomdp
+        return (
+            f"Problem({self.name!r}: {pomdp.n_states} states, {pomdp.n_actions} actions, "
+            f"{pomdp.n_observations} observations, {self.controller.n_nodes} memory nodes, "
+            f"budget {self.budget:g})"
+        )
 
     @cached_property
     def objective(self) -> Objective:
@@ -458,13 +596,13 @@ class Problem:
         return replace(self, decoy_sets=()) if self.decoy_sets else self
 
     # -- alterations -------------------------------------------------------------------------
-    def identity(self) -> Alteration:
+    def identity(self) -> AlterationArray:
         return np.arange(self.pomdp.n_observations, dtype=np.int64)
 
-    def alteration_cost(self, alteration: Alteration) -> float:
+    def alteration_cost(self, alteration: AlterationArray) -> float:
         return self.cost.cost(alteration)
 
-    def changed_observations(self, alteration: Alteration) -> dict[str, str]:
+    def changed_observations(self, alteration: AlterationArray) -> dict[str, str]:
         """The alteration as names, listing only observations that change."""
         names = self.pomdp.observations
         return {
@@ -473,7 +611,33 @@ class Problem:
         }
 
     def alteration(self, changes: Mapping[str, str], *, source: str = "alteration") -> Alteration:
-        """Build and check an alteration from ``{observation: received observation}`` names."""
+        """Build and check an alteration from ``{observation: received observation}`` names.
+
+        Parameters
+        ----------
+        changes : mapping of str to str
+            Each observation to alter, with the observation the robot receives instead.
+            Observations not named are left unaltered.
+        source : str, optional
+            What to name in an error message (a file, a flag).
+
+        Returns
+        -------
+        Alteration
+            The alteration, an integer array that names its observations.
+
+        Raises
+        ------
+        ProblemError
+            An unknown observation name, the initial observation altered, or a pair the cost
+            model forbids (or protects).
+
+        Examples
+        --------
+        >>> from misdirect.scenarios import paper_grid
+        >>> paper_grid(5).alteration({"o1": "o3", "o2": "o0"})
+        Alteration({'o1': 'o3', 'o2': 'o0'})
+        """
         index = {name: i for i, name in enumerate(self.pomdp.observations)}
         alpha = self.identity()
         for original, received in changes.items():
@@ -487,9 +651,9 @@ class Problem:
                     )
             alpha[index[original]] = index[received]
         self.check_alteration(alpha, source=source)
-        return alpha
+        return Alteration(alpha, self.pomdp.observations)
 
-    def check_alteration(self, alteration: Alteration, *, source: str = "alteration") -> None:
+    def check_alteration(self, alteration: AlterationArray, *, source: str = "alteration") -> None:
         """Reject alterations the problem does not allow (initial observation, forbidden pairs)."""
         names = self.pomdp.observations
         o_init = self.pomdp.initial_observation

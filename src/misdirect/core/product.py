@@ -18,7 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core.memory import check_memory
-from misdirect.core.model import Alteration, Problem, reachable_from
+from misdirect.core.model import AlterationArray, Problem, reachable_from
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,7 +67,7 @@ def check_product_fits(problem: Problem) -> None:
     )
 
 
-def full_product_matrix(problem: Problem, alteration: Alteration) -> sp.csr_matrix:
+def full_product_matrix(problem: Problem, alteration: AlterationArray) -> sp.csr_matrix:
     """Transition matrix over all ``|S|·|N|`` pairs, product index ``s * |N| + n``."""
     pomdp, controller = problem.pomdp, problem.controller
     n_states, n_nodes = pomdp.n_states, controller.n_nodes
@@ -96,7 +96,7 @@ def full_product_matrix(problem: Problem, alteration: Alteration) -> sp.csr_matr
     return matrix
 
 
-def build_product(problem: Problem, alteration: Alteration) -> ProductChain:
+def build_product(problem: Problem, alteration: AlterationArray) -> ProductChain:
     """The product chain restricted to states reachable from ``(s0, n0)``."""
     n_nodes = problem.controller.n_nodes
     full = full_product_matrix(problem, alteration)

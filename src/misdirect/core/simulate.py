@@ -10,18 +10,38 @@ node) pairs can still reach a decoy or absorbing state, on the product's transit
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
-from misdirect.core.model import Alteration, Problem, reachable_from
+from misdirect.core.keywords import checked_keywords
+from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.core.product import full_product_matrix
 
 
 @dataclass(frozen=True)
 class Simulation:
-    """Outcome counts of ``runs`` simulated runs; they add up to ``runs``:
-    ``decoy_hits + sum(absorbed) + trapped + unfinished``."""
+    """Outcome counts of ``runs`` simulated runs (:func:`simulate`); they add up to ``runs``:
+    ``decoy_hits + sum(absorbed) + trapped + unfinished``.
+
+    Attributes
+    ----------
+    runs : int
+        Runs simulated.
+    decoy_hits : int
+        Runs that ended in a decoy state (``decoys`` splits them by state).
+    absorbed : dict of str to int
+        Runs that stopped in each absorbing non-decoy (goal) state.
+    unfinished : int
+        Runs still going after ``max_steps``.
+    mean_steps : float
+        Mean length of the runs that stopped in a decoy or goal state.
+    trapped : int
+        Runs stopped where no decoy or goal state is reachable any more.
+    trajectories : list of tuple
+        ``(run, step, state, memory node, observation received, action)`` of the recorded
+        runs.
+    """
 
     runs: int
     decoy_hits: int
@@ -37,6 +57,21 @@ class Simulation:
         """Wilson score interval for the decoy frequency (z = 1.96: 95 %)."""
         return wilson_interval(self.decoy_hits, self.runs, z)
 
+    def to_dict(self) -> dict[str, Any]:
+        """The counts, the decoy frequency and its 95 % interval (trajectories left out)."""
+        low, high = self.confidence_interval()
+        return {
+            "runs": self.runs,
+            "decoy_hits": self.decoy_hits,
+            "decoy_frequency": self.decoy_hits / self.runs,
+            "confidence_interval": [low, high],
+            "decoys": self.decoys,
+            "absorbed": self.absorbed,
+            "trapped": self.trapped,
+            "unfinished": self.unfinished,
+            "mean_steps": self.mean_steps,
+        }
+
 
 def wilson_interval(hits: int, runs: int, z: float = 1.96) -> tuple[float, float]:
     """Wilson score interval for a frequency ``hits / runs`` (z = 1.96: 95 %)."""
@@ -46,16 +81,54 @@ def wilson_interval(hits: int, runs: int, z: float = 1.96) -> tuple[float, float
     return float(centre - half), float(centre + half)
 
 
+@checked_keywords
 def simulate(
     problem: Problem,
-    alteration: Alteration | None = None,
+    alteration: AlterationArray | None = None,
     *,
     runs: int = 10_000,
     seed: int = 0,
     max_steps: int = 10_000,
     record: int = 0,
 ) -> Simulation:
-    """Run the robot ``runs`` times; a run stops in a decoy or absorbing state.
+    """Monte-Carlo runs of the attacked robot, straight from the POMDP and the controller.
+
+    An independent check of :func:`evaluate`: it never builds the product chain the exact
+    value comes from. A run stops in a decoy or absorbing state.
+
+    Parameters
+    ----------
+    problem : Problem
+        The POMDP, controller and decoy.
+    alteration : Alteration or array of int, optional
+        What the robot receives for each observation. Default: no alteration.
+    runs : int
+        Number of runs, simulated together (vectorised over runs).
+    seed : int
+        Seed of the random generator: the same seed gives the same runs.
+    max_steps : int
+        Steps after which a run still going counts as ``unfinished``.
+    record : int
+        Keep the first ``record`` runs step by step (``Simulation.trajectories``).
+
+    Returns
+    -------
+    Simulation
+        The outcome counts; ``confidence_interval()`` is the Wilson interval of the decoy
+        frequency.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> problem = paper_grid(5)
+    >>> runs = misdirect.simulate(problem, problem.alteration({"o1": "o3"}), runs=20_000)
+    >>> low, high = runs.confidence_interval()
+    >>> low < misdirect.evaluate(problem, problem.alteration({"o1": "o3"})).probability < high
+    True
+
+    Notes
+    -----
 
     A run that enters a product state (world state, memory node) from which no decoy or
     absorbing state is reachable under this alteration is stopped there too and counted as

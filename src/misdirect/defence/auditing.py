@@ -16,6 +16,7 @@ from misdirect.core import tolerance
 from misdirect.core.alterations import alteration_space
 from misdirect.core.attack import shared_preparation
 from misdirect.core.grid import grid_cells
+from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
@@ -35,6 +36,7 @@ from misdirect.solvers.run import SolveResult, default_budgets, recertify, solve
 SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
 
 
+@checked_keywords
 def audit(
     problem: Problem,
     *,
@@ -44,8 +46,40 @@ def audit(
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
 ) -> AuditResult:
-    """Budget curve, per-sensor single value and criticality, online value (docs/defence.md).
+    """Which sensors are weak: the attacker's optimum at every budget up to ``budget``, each
+    sensor's criticality and single-sensor value, and the online attacker's value.
 
+    Parameters
+    ----------
+    problem : Problem
+        The POMDP, controller, costs and decoy.
+    budget : float, optional
+        The attacker's budget ``B``; default ``problem.budget``.
+    time_limit : float, optional
+        Seconds for the whole audit, every solve of it included.
+    method : str
+        The method of every attacker solve (:func:`misdirect.solve`); default ``auto``.
+    deadline : Deadline, optional
+        A deadline shared with other work; ``time_limit`` limits the audit further.
+    cancel : CancelToken, optional
+        Cancelling it stops every solve of the audit, which returns what it has.
+
+    Returns
+    -------
+    AuditResult
+        The curve, one :class:`~misdirect.defence.results.SensorAudit` row per sensor
+        alterable within ``B`` (most critical first) and the online attacker's value;
+        ``certified`` says whether every number is proven.
+
+    Raises
+    ------
+    ProblemError
+        A negative budget, or one no sensor is alterable within.
+    TypeError
+        An unknown keyword argument (the message lists the valid ones).
+
+    Notes
+    -----
     Criticality uses the exact shortcut: protecting a sensor the optimal alteration at ``B``
     does not alter leaves that alteration feasible and the optimum unchanged (protection only
     removes alterations), so only the sensors of the optimal attack are re-solved. A budget
@@ -54,6 +88,17 @@ def audit(
 
     ``time_limit`` (seconds) bounds the whole audit, within ``deadline`` when one is shared
     with other work; cancelling ``cancel`` (or the deadline's token) stops every solve of it.
+    Details and proofs: docs/defence.md.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> report = misdirect.audit(paper_grid(5), budget=4)
+    >>> report.certified, round(report.probability, 6)
+    (True, 0.863622)
+    >>> [(row.observation, round(row.criticality, 3)) for row in report.sensors[:2]]
+    [('o1', 0.123), ('o2', 0.088)]
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)

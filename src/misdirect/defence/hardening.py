@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
@@ -120,6 +121,7 @@ def hitting_lower_bound(
     return 0.0  # unreachable when the unaltered attack is included
 
 
+@checked_keywords
 def harden(
     problem: Problem,
     *,
@@ -134,6 +136,42 @@ def harden(
     """The protection set within ``protect_budget`` minimising the attacker's optimum at
     ``budget``, with the trade-off curve over every whole protection budget up to it.
 
+    Parameters
+    ----------
+    problem : Problem
+        The POMDP, controller, costs and decoy.
+    protect_budget : float
+        The defender's budget ``D``: what the protected sensors may cost in all.
+    budget : float, optional
+        The attacker's budget ``B``; default ``problem.budget``.
+    protect_costs : mapping of str to float, optional
+        What protecting each sensor costs, by observation name (``"default"`` for the
+        rest); default 1 each.
+    time_limit : float, optional
+        Seconds for the whole search; on expiry the best protection found, with a proven
+        lower bound (``status`` ``time_limit``).
+    method : str
+        The method of every attacker solve (:func:`misdirect.solve`); default ``auto``.
+    deadline : Deadline, optional
+        A deadline shared with other work; ``time_limit`` limits the search further.
+    cancel : CancelToken, optional
+        Cancelling it stops every solve of the search.
+
+    Returns
+    -------
+    HardenResult
+        The protection, the attacker's optimum before and after, and the trade-off curve.
+
+    Raises
+    ------
+    ProblemError
+        A negative protection budget, an unknown sensor in ``protect_costs``, or a negative
+        cost.
+    TypeError
+        An unknown keyword argument (the message lists the valid ones).
+
+    Notes
+    -----
     Hitting-set branching: with α*(P) the attacker's optimum under protection P, every
     superset of P that protects none of α*(P)'s sensors keeps α*(P) feasible and so has the
     same optimum (it cannot be higher: protecting more only removes alterations). The search
@@ -143,6 +181,14 @@ def harden(
 
     ``time_limit`` (seconds) bounds the whole search, within ``deadline`` when one is shared
     with other work; cancelling ``cancel`` (or the deadline's token) stops every solve of it.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> plan = misdirect.harden(paper_grid(5), protect_budget=2, budget=4)
+    >>> print(plan.status, plan.protection, round(plan.value_before, 6), round(plan.value_after, 6))
+    optimal ['o1', 'o2'] 0.863622 0.100971
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)

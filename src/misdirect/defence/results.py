@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from misdirect.core import tolerance
+from misdirect.core.model import format_alteration
 from misdirect.core.objective import LABELS
+from misdirect.core.tables import dataframe, short_float
 from misdirect.solvers.run import BudgetResult
 from misdirect.solvers.status import Status
 
@@ -79,13 +81,47 @@ class SensorAudit:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class AuditResult:
-    """Which sensors are weak, for the attacker's budget ``B``.
+    """Which sensors are weak, for the attacker's budget ``B`` (:func:`misdirect.audit`).
 
     ``curve`` holds the attacker's optimum at every budget up to ``B``; ``status``,
     ``probability``, ``upper_bound`` and ``alteration`` are its last point, the optimum at
     ``B``. ``sensors`` has one row per sensor alterable within ``B``, the most critical first.
+
+    Attributes
+    ----------
+    problem : str
+        The problem's name.
+    budget : float
+        The attacker's budget ``B``.
+    baseline_probability : float
+        The value with no alteration.
+    curve : list of BudgetResult
+        The attacker's verified optimum at every whole budget up to ``B``.
+    status : str
+        Of the optimum at ``B``: ``optimal`` when proven.
+    probability : float
+        The exact value of ``alteration``, the attacker's best at ``B``.
+    upper_bound : float or None
+        A proven bound on the optimum at ``B``.
+    alteration : dict of str to str
+        The attacker's best alteration found at ``B``, as names.
+    sensors : list of SensorAudit
+        Per alterable sensor: its criticality (how much protecting it lowers the optimum at
+        ``B``; exactly 0 for a sensor the optimal attack leaves alone), the optimum with it
+        protected, and its single-sensor value. :meth:`to_dataframe` tabulates them.
+    online : OnlineAttack
+        The online attacker's value (sees the state and the controller's memory): an upper
+        bound of the offline optimum.
+    online_budgeted_note : str or None
+        Why the budgeted online value is missing, if it is.
+    certified : bool
+        The optimum at ``B`` and every criticality are proven.
+    notes : list of str
+        What is not proven, and the solver's warnings.
+    time_s : float
+        Wall time of the audit.
     """
 
     problem: str  # the problem's name
@@ -109,6 +145,52 @@ class AuditResult:
     @property
     def objective_label(self) -> str:
         return LABELS[self.objective]
+
+    def __repr__(self) -> str:
+        return (
+            f"AuditResult(problem={self.problem!r}, budget={self.budget:g}, "
+            f"status={self.status}, probability={short_float(self.probability)}, "
+            f"alteration={self.alteration!r}, sensors={len(self.sensors)}, "
+            f"certified={self.certified})"
+        )
+
+    def to_dataframe(self) -> Any:
+        """The sensors as a ``pandas.DataFrame``, one row per alterable sensor, most critical
+        first (the columns of :meth:`SensorAudit.to_dict`, alterations as ``o1 → o2``).
+
+        Raises
+        ------
+        ImportError
+            pandas is not installed (it is optional: ``pip install pandas``).
+        """
+        columns = [
+            "observation",
+            "criticality",
+            "criticality_upper",
+            "protected_probability",
+            "protected_status",
+            "single_probability",
+            "single_status",
+            "in_optimal_attack",
+            "protected_alteration",
+            "single_alteration",
+        ]
+        rows = [
+            {
+                "observation": row.observation,
+                "criticality": row.criticality,
+                "criticality_upper": row.criticality_upper,
+                "protected_probability": row.protected_probability,
+                "protected_status": row.protected_status,
+                "single_probability": row.single_probability,
+                "single_status": row.single_status,
+                "in_optimal_attack": row.in_optimal_attack,
+                "protected_alteration": format_alteration(row.protected_alteration),
+                "single_alteration": format_alteration(row.single_alteration),
+            }
+            for row in self.sensors
+        ]
+        return dataframe(rows, columns)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -160,13 +242,49 @@ class HardenPoint:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class HardenResult:
     """Which sensors to protect: the protection within ``protect_budget`` (``D``) that
-    minimises the attacker's optimum at ``budget`` (``B``).
+    minimises the attacker's optimum at ``budget`` (``B``) (:func:`misdirect.harden`).
 
     ``curve`` has one :class:`HardenPoint` per whole protection budget up to ``D``; the
     fields from ``protection`` to ``status`` repeat its last point, the answer at ``D``.
+
+    Attributes
+    ----------
+    problem : str
+        The problem's name.
+    budget : float
+        The attacker's budget ``B``.
+    protect_budget : float
+        The defender's budget ``D``.
+    protect_costs : dict of str to float
+        What protecting each sensor alterable within ``B`` costs.
+    protection : list of str
+        The sensors to protect, in the problem's order.
+    protection_cost : float
+        What that protection costs.
+    value_before : float
+        The attacker's optimum with nothing protected (exact value).
+    value_after : float
+        The exact value of the attacker's best reply under ``protection``.
+    value_after_upper : float
+        A proven bound on the attacker's optimum under ``protection``.
+    lower_bound : float
+        Proven: no protection within ``D`` holds the attacker below this.
+    best_reply : dict of str to str
+        The attacker's best reply under ``protection``, as names.
+    status : str
+        ``optimal`` when the min–max is proven, else ``time_limit`` or ``feasible``.
+    curve : list of HardenPoint
+        The trade-off: the best protection within every whole budget up to ``D``
+        (:meth:`to_dataframe` tabulates it).
+    solves, nodes, pruned : int
+        Attacker solves, search nodes, and nodes cut off by the hitting-set bound.
+    time_s : float
+        Wall time of the search.
+    notes : list of str
+        What is not proven, and why.
     """
 
     problem: str  # the problem's name
@@ -187,6 +305,39 @@ class HardenResult:
     pruned: int  # of which cut off by the hitting-set lower bound
     time_s: float
     notes: list[str] = field(default_factory=list)  # what is not proven, and why
+
+    def __repr__(self) -> str:
+        return (
+            f"HardenResult(problem={self.problem!r}, budget={self.budget:g}, "
+            f"protect_budget={self.protect_budget:g}, status={self.status}, "
+            f"protection={self.protection!r}, value_before={short_float(self.value_before)}, "
+            f"value_after={short_float(self.value_after)})"
+        )
+
+    def to_dataframe(self) -> Any:
+        """The trade-off curve as a ``pandas.DataFrame``: one row per protection budget.
+
+        Raises
+        ------
+        ImportError
+            pandas is not installed (it is optional: ``pip install pandas``).
+        """
+        columns = ["protect_budget", "protection", "protection_cost", "probability"]
+        columns += ["upper_bound", "lower_bound", "attack", "status"]
+        rows = [
+            {
+                "protect_budget": point.protect_budget,
+                "protection": ", ".join(point.protection),
+                "protection_cost": point.protection_cost,
+                "probability": point.probability,
+                "upper_bound": point.upper_bound,
+                "lower_bound": point.lower_bound,
+                "attack": format_alteration(point.attack),
+                "status": str(point.status),
+            }
+            for point in self.curve
+        ]
+        return dataframe(rows, columns)
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -408,12 +409,103 @@ def parse_spec(document: Any) -> ProblemFileV1:
 
 
 def load_problem(path: str | Path) -> Problem:
-    """Read and check a problem file (YAML or JSON)."""
+    """Read and check a problem file (YAML or JSON; docs/problem-format.md).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``misdirect/v1`` problem file: JSON by its ``.json`` suffix, else YAML. Files it
+        names (a PRISM or DRN model, a PAYNT controller) are found relative to it.
+
+    Returns
+    -------
+    Problem
+        The checked problem, names compiled into integer arrays.
+
+    Raises
+    ------
+    ProblemError
+        The file cannot be read, or is not a valid problem: the message names the file, the
+        field and the reason (``model.yaml: pomdp.transitions: ...``).
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> problem = misdirect.load_problem("examples/paper-grid-map.yaml")
+    >>> problem.pomdp.n_states, problem.budget
+    (25, 4.0)
+    """
     path = Path(path)
     try:
         return compile_problem(parse_spec(_read_document(path)), source=str(path))
     except ProblemError as error:
         raise error.located(str(path)) from None
+
+
+def problem_from_dict(
+    document: Mapping[str, Any], *, source: str = "<dict>", base_dir: str | Path | None = None
+) -> Problem:
+    """Build a problem from a ``misdirect/v1`` document already in memory.
+
+    The same document as a problem file's (docs/problem-format.md), as nested dicts and
+    lists: ``problem_from_dict(yaml.safe_load(text))`` is ``load_problem`` of that text.
+
+    Parameters
+    ----------
+    document : mapping
+        The problem: ``format: misdirect/v1``, then ``pomdp`` (or ``grid``), ``controller``
+        and ``deception``.
+    source : str
+        What error messages name as the file.
+    base_dir : str or Path, optional
+        Where relative file names inside the document (a PRISM model, a PAYNT controller)
+        are found; default the current directory.
+
+    Returns
+    -------
+    Problem
+        The checked problem.
+
+    Raises
+    ------
+    ProblemError
+        The document is not a valid problem; the message names ``source``, the field and
+        the reason.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> problem = misdirect.problem_from_dict({
+    ...     "format": "misdirect/v1",
+    ...     "pomdp": {
+    ...         "states": ["start", "loop", "exit", "goal", "decoy"],
+    ...         "actions": ["stay", "go"],
+    ...         "initial": "start",
+    ...         "observe": {"start": "o0", "loop": "o1", "exit": "o2", "goal": "g", "decoy": "g"},
+    ...         "transitions": [
+    ...             ["start", "stay", "loop", 0.6], ["start", "stay", "exit", 0.4],
+    ...             ["start", "go", "loop", 0.6], ["start", "go", "exit", 0.4],
+    ...             ["loop", "stay", "loop", 1.0],
+    ...             ["loop", "go", "decoy", 0.5], ["loop", "go", "goal", 0.5],
+    ...             ["exit", "stay", "decoy", 0.25], ["exit", "stay", "goal", 0.75],
+    ...             ["exit", "go", "goal", 1.0],
+    ...         ],
+    ...         "absorbing": ["goal", "decoy"],
+    ...     },
+    ...     "controller": {"nodes": ["m"], "initial": "m", "rules": [
+    ...         {"node": "*", "obs": "o0", "action": "go", "next": "m"},
+    ...         {"node": "*", "obs": "*", "action": "stay", "next": "m"},
+    ...     ]},
+    ...     "deception": {"decoy": ["decoy"], "budget": 1},
+    ... })
+    >>> misdirect.solve(problem).alteration   # the loop's sensor read as the start's
+    {'o1': 'o0'}
+    """
+    where = source if base_dir is None else str(Path(base_dir) / source)
+    try:
+        return compile_problem(parse_spec(dict(document)), source=where)
+    except ProblemError as error:
+        raise error.located(source) from None
 
 
 def _index(names: list[str], field: str) -> dict[str, int]:

@@ -24,7 +24,7 @@ from matplotlib.typing import LineStyleType
 
 from misdirect.core.evaluate import evaluate
 from misdirect.core.grid import grid_cells as grid_cells  # re-exported: now lives in core.grid
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.io.files import write_output
 
 SENSOR_COLOURS = plt.get_cmap("tab10").colors  # type: ignore[attr-defined]  # a ListedColormap
@@ -493,7 +493,7 @@ def grid_arrays(
     return values, walls
 
 
-def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
+def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray):
     """The attack on a grid world: expected visits per cell (heat map), walls, sensor regions
     (hatched when altered), start S, every goal G and every decoy X."""
     import matplotlib
@@ -585,7 +585,9 @@ def grid_figure(problem: Problem, alteration: Alteration, cells: np.ndarray):
     return fig
 
 
-def draw_grid(problem: Problem, alteration: Alteration, cells: np.ndarray, output: Path) -> Path:
+def draw_grid(
+    problem: Problem, alteration: AlterationArray, cells: np.ndarray, output: Path
+) -> Path:
     fig = grid_figure(problem, alteration, cells)
     try:  # atomic, like every output: a temporary file beside it, then os.replace
         write_output(output, lambda path: fig.savefig(path, dpi=150, bbox_inches="tight"))

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from misdirect.core.grid import grid_cells
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.product import build_product
 from misdirect.errors import ProblemError
 from misdirect.io.files import one_line, write_output
@@ -20,7 +20,7 @@ MAX_DOT_STATES = 200
 PICTURE_SUFFIXES = (".png", ".svg", ".pdf")
 
 
-def draw(problem: Problem, alteration: Alteration, output: Path) -> Path:
+def draw(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
     suffix = output.suffix.lower()
     cells = grid_cells(problem)
     if suffix == ".dot":
@@ -40,7 +40,7 @@ def draw(problem: Problem, alteration: Alteration, output: Path) -> Path:
     return draw_grid(problem, alteration, cells, output)
 
 
-def _write_dot(problem: Problem, alteration: Alteration, output: Path) -> Path:
+def _write_dot(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
     chain = build_product(problem, alteration)
     if chain.n_states > MAX_DOT_STATES:
         raise ProblemError(

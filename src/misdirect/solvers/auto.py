@@ -42,7 +42,7 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
@@ -169,7 +169,7 @@ class _Stage:
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
-        seeds: Sequence[Alteration | None] | None,
+        seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
         raise NotImplementedError
 
@@ -190,7 +190,7 @@ class _Enumeration(_Stage):
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
-        seeds: Sequence[Alteration | None] | None,
+        seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
         solver = IncrementalSolver(SolveOptions(threads=self.auto.options.threads))
         return solver.solve(problem, budgets, progress=progress, deadline=deadline)
@@ -228,7 +228,7 @@ class _Exhaustive(_Stage):
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
-        seeds: Sequence[Alteration | None] | None,
+        seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
         return ExhaustiveSolver().solve(problem, budgets, progress=progress, deadline=deadline)
 
@@ -266,7 +266,7 @@ class _Milp(_Stage):
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
-        seeds: Sequence[Alteration | None] | None,
+        seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
         # the MILP warm-starts from its own previous budget, not from seeds
         return self.auto.milp.solve(problem, budgets, progress=progress, deadline=deadline)
@@ -332,7 +332,7 @@ class _Search(_Stage):
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
-        seeds: Sequence[Alteration | None] | None,
+        seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
         solver = self.auto.branch_and_bound(self.max_nodes or self.auto.node_limit)
         return solver.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds)
@@ -372,7 +372,7 @@ class AutoSolver:
         *,
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
-        seeds: Sequence[Alteration | None] | None = None,
+        seeds: Sequence[AlterationArray | None] | None = None,
     ) -> list[Solution]:
         """``seeds`` (one alteration per budget, optional) start the searches."""
         deadline = deadline or Deadline(self.options.time_limit)

@@ -14,7 +14,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from misdirect.core import tolerance
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
@@ -44,7 +44,7 @@ class Solution:
     """One solver answer for one budget."""
 
     budget: float
-    alteration: Alteration
+    alteration: AlterationArray
     solver_probability: float | None  # the solver's own value for it (None: no incumbent)
     status: Status = Status.OPTIMAL
     upper_bound: float | None = None  # proven bound on the optimum, if the solver has one

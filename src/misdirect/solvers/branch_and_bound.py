@@ -31,7 +31,7 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
-from misdirect.core.model import Alteration, Problem, reachable_from
+from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
@@ -71,7 +71,7 @@ class _Budget:
     budget: float
     done: int  # budgets already solved
     total: int
-    seed: Alteration | None = field(default=None, repr=False)
+    seed: AlterationArray | None = field(default=None, repr=False)
 
     @property
     def left(self) -> int:
@@ -102,7 +102,7 @@ class BranchAndBoundSolver:
         *,
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
-        seeds: Sequence[Alteration | None] | None = None,
+        seeds: Sequence[AlterationArray | None] | None = None,
     ) -> list[Solution]:
         """``seeds`` (one per budget, optional): known good alterations, e.g. a MILP's
         incumbents, that the search starts from."""

@@ -17,7 +17,9 @@ import numpy as np
 
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.keywords import checked_keywords
+from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
+from misdirect.core.tables import dataframe, short_float
 from misdirect.core.tolerance import BUDGET_SLACK
 from misdirect.errors import ProblemError
 from misdirect.solvers import get_solver
@@ -37,9 +39,40 @@ from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class BudgetResult:
-    """The verified answer for one budget."""
+    """The verified answer for one budget: one point of :attr:`SolveResult.curve`.
+
+    Attributes
+    ----------
+    budget : float
+        The attacker's budget of this point.
+    status : Status
+        ``optimal`` only when a proven upper bound meets the exact value; otherwise how the
+        method stopped (``time_limit``, ``gap_limit``, ``feasible``, ``interrupted``,
+        ``unverified``).
+    probability : float
+        The exact value of :attr:`alteration` (Pr(reach decoy), or the expected decoy weight
+        with weighted decoy sets), recomputed on its own product chain.
+    alteration : dict of str to str
+        The alteration as names, only the observations that change.
+    cost : float
+        What the alteration costs.
+    upper_bound : float or None
+        A proven bound on the optimum at this budget, if one is known.
+    solver_probability : float or None
+        The method's own value for the alteration, kept to detect disagreement.
+    stats : MethodStats
+        The method's counters (nodes, alterations, ...); readable as a mapping.
+    notes : dict of str to str
+        What certification found worth saying (``replaced``, ``not_certified``, ...).
+    alteration_array : Alteration or None
+        The alteration as an :class:`~misdirect.core.model.Alteration` (an integer array).
+    certified_by : str or None
+        The method whose answer or bound proved the point optimal.
+    error_bound : float or None
+        A proven bound on the error of :attr:`probability` on the chain as built.
+    """
 
     budget: float
     status: Status
@@ -51,7 +84,7 @@ class BudgetResult:
     stats: MethodStats = field(default_factory=NoStats)  # the method's own counters
     # what certification found worth saying: "replaced", "not_certified", "certified_by_bound"
     notes: dict[str, str] = field(default_factory=dict)
-    alteration_array: Alteration | None = field(default=None, repr=False)
+    alteration_array: AlterationArray | None = field(default=None, repr=False)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
     # proven bound on the error of ``probability`` on the chain as built; None: none proven
     error_bound: float | None = 0.0
@@ -64,6 +97,13 @@ class BudgetResult:
             return None
         return max(self.upper_bound - self.probability, 0.0) + self.error_bound
 
+    def __repr__(self) -> str:
+        return (
+            f"BudgetResult(budget={self.budget:g}, status={self.status.value}, "
+            f"probability={short_float(self.probability)}, alteration={self.alteration!r}, "
+            f"upper_bound={short_float(self.upper_bound)})"
+        )
+
     def to_dict(self) -> dict[str, Any]:
         """JSON fields: the dataclass's own (arrays and the solver's claim left out), the gap,
         and the certification's notes and ``certified_by`` inside ``stats``, where the JSON has
@@ -75,10 +115,51 @@ class BudgetResult:
         return {**shown, "gap": self.gap, "stats": stats}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class SolveResult:
-    """The curve over every budget solved; the answer is its last point (the largest budget
-    asked for), whose fields the result also offers directly."""
+    """What :func:`misdirect.solve` returns: the curve over every budget solved.
+
+    The answer is the curve's last point (the largest budget asked for), whose fields the
+    result offers directly: ``status``, ``probability``, ``alteration``,
+    ``alteration_array``, ``cost``, ``budget``, ``upper_bound``, ``error_bound``, ``stats``
+    and ``certified_by`` (see :class:`BudgetResult`).
+
+    Attributes
+    ----------
+    problem : str
+        The problem's name.
+    method : str
+        The method that ran (``auto``, ``exhaustive``, ...).
+    baseline_probability : float
+        The exact value with no alteration.
+    time_s : float
+        Wall time of the whole call, exact re-evaluation included.
+    curve : list of BudgetResult
+        One verified answer per budget, in increasing budget order.
+    warnings : list of str
+        Disagreements between a method and the exact chain, and the problem's own doubts.
+    notes : list of str
+        What the answer should be read with, though nothing is wrong.
+    budget_clamped_from, budget_clamped_to : float or None
+        Set when the largest budget exceeded the cost of the most expensive complete
+        alteration, which the methods then ran at instead.
+    interrupted : bool
+        Stopped early on request: the answers are the best found so far.
+    objective : str
+        ``probability``, or ``expected_decoy_weight`` with weighted decoy sets.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> result = misdirect.solve(paper_grid(5), budgets=[0, 1])
+    >>> result
+    SolveResult(problem='paper grid 5x5', method='auto', status=optimal, probability=0.719924,
+                budget=1, alteration={'o1': 'o2'}, curve=2 points, time_s=...)
+    >>> result.curve[0]
+    BudgetResult(budget=0, status=optimal, probability=0.0849571, alteration={},
+                 upper_bound=0.0849571)
+    """
 
     problem: str
     method: str
@@ -111,6 +192,44 @@ class SolveResult:
     error_bound = property(lambda self: self.final.error_bound)
     stats = property(lambda self: self.final.stats)
     certified_by = property(lambda self: self.final.certified_by)
+
+    def __repr__(self) -> str:
+        return (
+            f"SolveResult(problem={self.problem!r}, method={self.method!r}, "
+            f"status={self.status.value}, probability={short_float(self.probability)}, "
+            f"budget={self.budget:g}, alteration={self.alteration!r}, "
+            f"curve={len(self.curve)} point{'s' * (len(self.curve) != 1)}, "
+            f"time_s={self.time_s:.3g})"
+        )
+
+    def to_dataframe(self) -> Any:
+        """The curve as a ``pandas.DataFrame``, one row per budget.
+
+        Columns: ``budget``, ``status``, ``probability``, ``upper_bound``, ``gap``, ``cost``,
+        ``alteration`` (as ``o1 → o2, ...``), ``certified_by``, ``error_bound``.
+
+        Raises
+        ------
+        ImportError
+            pandas is not installed (it is optional: ``pip install pandas``).
+        """
+        columns = ["budget", "status", "probability", "upper_bound", "gap", "cost"]
+        columns += ["alteration", "certified_by", "error_bound"]
+        rows = [
+            {
+                "budget": point.budget,
+                "status": point.status.value,
+                "probability": point.probability,
+                "upper_bound": point.upper_bound,
+                "gap": point.gap,
+                "cost": point.cost,
+                "alteration": format_alteration(point.alteration),
+                "certified_by": point.certified_by,
+                "error_bound": point.error_bound,
+            }
+            for point in self.curve
+        ]
+        return dataframe(rows, columns)
 
     def to_dict(self) -> dict[str, Any]:
         """The answer's fields (the last point's) at the top level, then the run's; clamping
@@ -146,6 +265,7 @@ def default_budgets(budget: float) -> list[float]:
     return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
 
 
+@checked_keywords
 def solve(
     problem: Problem,
     *,
@@ -162,38 +282,88 @@ def solve(
     cancel: CancelToken | None = None,
     progress: ProgressCallback | None = None,
 ) -> SolveResult:
-    """Optimal alteration for ``problem.budget`` (or for each of ``budgets``), certified exactly.
+    """The optimal alteration for ``problem.budget`` (or each of ``budgets``), certified exactly.
+
+    Every probability returned is the exact value of the returned alteration, recomputed on
+    its own product chain, and a point is ``optimal`` only when a proven bound meets it
+    (:mod:`misdirect.solvers.certification`), whatever the method or backend claimed.
 
     Parameters
     ----------
-    problem:
-        The POMDP, controller, costs, decoy and budget (:func:`misdirect.load_problem`).
-    method:
-        ``auto`` (default: picks and combines the exact methods), ``exhaustive``,
-        ``incremental``, ``branch-and-bound`` or ``milp``.
-    budgets:
-        Budgets to solve (the curve); default: ``problem.budget``, plus every whole budget
+    problem : Problem
+        The POMDP, controller, costs, decoy and budget (:func:`misdirect.load_problem`,
+        :func:`misdirect.problem_from_dict` or a generator of :mod:`misdirect.scenarios`).
+    method : {"auto", "exhaustive", "incremental", "branch-and-bound", "milp"}
+        ``auto`` (default) picks and combines the exact methods; the others run one method.
+    budgets : sequence of float, optional
+        Budgets to solve (the curve). Default: ``problem.budget``, plus every whole budget
         below it where the method gets them for free.
-    options:
-        A :class:`~misdirect.solvers.options.SolveOptions`; the keyword arguments
-        ``time_limit`` (seconds for the whole call), ``threads``, and the MILP's ``solver``,
-        ``formulation``, ``mip_gap`` and ``verbose`` override its fields. An option the method
-        does not take raises :class:`~misdirect.errors.OptionError`.
-    deadline:
+    options : SolveOptions, optional
+        All options as one record; the keyword arguments below override its fields.
+    time_limit : float, optional
+        Seconds for the whole call, every stage and budget. On expiry each budget keeps the
+        best alteration found, with status ``time_limit`` and its proven bound.
+    threads : int, optional
+        Worker threads (enumeration, segment search, MILP backend); default 2.
+    solver : {"highs", "scip", "gurobi"}, optional
+        MILP backend (methods ``milp`` and ``auto``); default ``highs``.
+    formulation : {"compact", "paper", "paper-pinned"}, optional
+        MILP formulation; ``paper`` is the paper's, larger and not exact (its points are
+        reported ``unverified`` when its claim disagrees with the exact chain).
+    mip_gap : float, optional
+        MILP: relative gap to stop at (default 1e-9).
+    verbose : bool, optional
+        MILP: the backend's log on standard output.
+    deadline : Deadline, optional
         A :class:`~misdirect.solvers.deadline.Deadline` shared with other work (an audit's
         solves share one); ``time_limit`` then limits this call further.
-    cancel:
-        A :class:`~misdirect.solvers.deadline.CancelToken`: cancelling it (from another
-        thread, a signal handler) stops this solve with its best answers so far, marked
-        ``interrupted``. Default: the deadline's token, else a fresh one.
-    progress:
-        Called as ``progress(done, total, stage=..., detail=..., note=...)`` while solving.
+    cancel : CancelToken, optional
+        Cancelling it (from another thread or a signal handler) stops this solve, and only
+        this one, with its best answers so far, marked ``interrupted``. Default: the
+        deadline's token, else a fresh one.
+    progress : callable, optional
+        Called as ``progress(done, total, stage=..., detail=..., note=...)`` while solving:
+        ``done`` of ``total`` steps of ``stage`` (a method's name), ``detail`` a short status
+        line (incumbent, bound, gap), ``note`` a hand-over worth a line of its own. It is
+        called from the solving thread; keep it quick. See
+        :class:`~misdirect.solvers.base.ProgressCallback`.
 
-    Every probability returned is the exact value of the returned alteration, and a point is
-    ``optimal`` only when a proven bound meets it (:mod:`misdirect.solvers.certification`).
-    A budget above the cost of the most expensive complete alteration affords everything, so
-    the methods run at that cost instead and its answer is reported at the budget asked for
-    (``budget_clamped_from`` / ``budget_clamped_to`` say so).
+    Returns
+    -------
+    SolveResult
+        The verified curve; its last point (the largest budget) is the answer.
+
+    Raises
+    ------
+    TypeError
+        An unknown keyword argument; the message names it, the likely one meant and every
+        valid one.
+    OptionError
+        An option out of range, or one the method does not take (``solver`` with
+        ``method="exhaustive"``).
+    ProblemError
+        A negative or non-finite budget.
+    SolverError
+        A MILP backend that is not installed.
+
+    Notes
+    -----
+    A budget above the cost of the most expensive complete alteration affords everything,
+    so the methods run at that cost instead and its answer is reported at the budget asked
+    for (``budget_clamped_from`` / ``budget_clamped_to`` say so).
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.scenarios import paper_grid
+    >>> result = misdirect.solve(paper_grid(5), budgets=range(5))
+    >>> print(result.status, round(result.probability, 6), result.cost, result.certified_by)
+    optimal 0.863622 4.0 incremental
+    >>> [round(point.probability, 3) for point in result.curve]
+    [0.085, 0.72, 0.86, 0.862, 0.864]
+    >>> misdirect.solve(paper_grid(5), time_limt=10)
+    Traceback (most recent call last):
+    TypeError: solve() got an unexpected keyword argument 'time_limt' (did you mean ...
     """
     overrides: dict[str, Any] = {  # SolveOptions' fields, each of its own type
         "time_limit": time_limit,
@@ -248,6 +418,9 @@ def solve(
     identity = problem.identity()
     unaltered = (identity, exact_value(identity), exact_value.error(identity))
     certify_curve(curve, cancelled=interrupted, unaltered=unaltered)
+    for point in curve:  # a single method that proved its own point names itself
+        if point.status == Status.OPTIMAL and point.certified_by is None:
+            point.certified_by = method_solver.name
     return SolveResult(
         problem=problem.name,
         method=method_solver.name,
@@ -330,7 +503,7 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         solver_probability=point.claimed,
         stats=point.stats,
         notes=point.notes,
-        alteration_array=point.alteration,
+        alteration_array=Alteration(point.alteration, problem.pomdp.observations),
         certified_by=point.certified_by,
         error_bound=point.error_bound if math.isfinite(point.error_bound) else None,
     )

@@ -26,7 +26,7 @@ from misdirect.core import tolerance
 from misdirect.core.alterations import AlterationSpace
 from misdirect.core.attack import prepare
 from misdirect.core.choice_product import ChoiceProduct
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.policy_iteration import MaxReachability
 
@@ -123,7 +123,7 @@ class PerStateRelaxation:
         """Exact value at the start of the complete assignment ``picks`` (least fixed point)."""
         return float(self.evaluate(self.policy_of(picks))[self.chain.initial])
 
-    def picks_of(self, alteration: Alteration) -> tuple[int, ...] | None:
+    def picks_of(self, alteration: AlterationArray) -> tuple[int, ...] | None:
         """The search's picks for ``alteration``, None if it takes a target outside the
         space (not the cheapest of its behaviour class)."""
         picks = []

@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 
 from misdirect.core.attack import prepare
 from misdirect.core.choice_product import ChoiceProduct
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.reachability import reach_probabilities
 from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 
@@ -117,10 +117,10 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     elif chain.target[chain.initial]:
         offset = float(chain.target_value[chain.initial])
 
-    def decode(values: np.ndarray) -> Alteration:
+    def decode(values: np.ndarray) -> AlterationArray:
         return options.decode(problem, values[y0 : y0 + options.size])
 
-    def start_for(alteration: Alteration) -> tuple[np.ndarray, np.ndarray]:
+    def start_for(alteration: AlterationArray) -> tuple[np.ndarray, np.ndarray]:
         """A start for the solver: the binaries, and the probabilities too when the model has
         no witness columns. A complete start spares the solver its own completion LP, which is
         where HiGHS crashed on the 45x45 grid."""

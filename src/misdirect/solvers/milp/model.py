@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from misdirect.core.model import Alteration
+from misdirect.core.model import AlterationArray
 
 
 @dataclass(eq=False)
@@ -34,8 +34,10 @@ class MilpModel:
     budget_row: int
     column_blocks: dict[str, slice]
     row_blocks: dict[str, slice]
-    decode: Callable[[np.ndarray], Alteration]  # column values -> alteration
-    start_for: Callable[[Alteration], tuple[np.ndarray, np.ndarray]]  # alteration -> (cols, vals)
+    decode: Callable[[np.ndarray], AlterationArray]  # column values -> alteration
+    start_for: Callable[
+        [AlterationArray], tuple[np.ndarray, np.ndarray]
+    ]  # alteration -> (cols, vals)
     sound: bool = True  # does the optimum equal the true optimum (and the bound bound it)?
     row_scale: np.ndarray | None = None  # factor each row was multiplied by (None: all 1)
     build_time_s: float = 0.0

@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from misdirect.core.alterations import alteration_space
 from misdirect.core.choice_product import build_choice_product
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import SolverError
 from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 
@@ -202,6 +202,6 @@ def _edge_index(
     return cast(np.ndarray, np.searchsorted(keys, source * width + target))
 
 
-def _decode(problem: Problem, x_values: np.ndarray) -> Alteration:
+def _decode(problem: Problem, x_values: np.ndarray) -> AlterationArray:
     n_o = problem.pomdp.n_observations
-    return cast(Alteration, np.argmax(x_values.reshape(n_o, n_o), axis=1).astype(np.int64))
+    return cast(AlterationArray, np.argmax(x_values.reshape(n_o, n_o), axis=1).astype(np.int64))
