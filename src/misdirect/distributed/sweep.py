@@ -33,7 +33,7 @@ from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.pool import LocalPool, TaskPool
 from misdirect.solvers.run import solve
 
-FORMAT = "misdirect-sweep/v1"
+FORMAT: Literal["misdirect-sweep/v1"] = "misdirect-sweep/v1"
 PARQUET_EVERY_S = 5.0  # the Parquet copy is rewritten at most this often (and at the end)
 
 GENERATORS: dict[str, Callable[..., Problem]] = {
@@ -142,14 +142,18 @@ def load_sweep(path: Path) -> tuple[SweepSpec, Path]:
         else parse_yaml(text, source=source)
     )
     if not isinstance(document, dict):
-        raise ProblemError("the file must contain a mapping with budgets, methods, ...", source=source)
+        raise ProblemError(
+            "the file must contain a mapping with budgets, methods, ...", source=source
+        )
     try:
         spec = SweepSpec.model_validate(document)
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(part) for part in first["loc"])
-        reason = "unknown field (check the spelling)" if first["type"] == "extra_forbidden" else (
-            first["msg"].removeprefix("Value error, ")
+        reason = (
+            "unknown field (check the spelling)"
+            if first["type"] == "extra_forbidden"
+            else (first["msg"].removeprefix("Value error, "))
         )
         raise ProblemError(reason, source=source, field=where or None) from None
     if not spec.problems and not spec.scenarios:
@@ -171,9 +175,7 @@ def _check_parameters(item: ScenarioSpec, source: str, where: str) -> None:
                 field=f"{where}.parameters.{name}",
             )
     if item.seeds is not None and "seed" not in accepted:
-        raise ProblemError(
-            f"{item.scenario} takes no seed", source=source, field=f"{where}.seeds"
-        )
+        raise ProblemError(f"{item.scenario} takes no seed", source=source, field=f"{where}.seeds")
 
 
 def row_id(instance: dict[str, Any], budget: float, method: str) -> str:
@@ -215,8 +217,17 @@ def expand(spec: SweepSpec, folder: Path, pool: TaskPool | None = None) -> list[
                 for m in spec.methods:
                     rid = row_id(key, b, m)
                     rows.append(
-                        Row(rid, label, float(b), m, spec.time_limit, None, item.scenario,
-                            dict(item.parameters), seed)
+                        Row(
+                            rid,
+                            label,
+                            float(b),
+                            m,
+                            spec.time_limit,
+                            None,
+                            item.scenario,
+                            dict(item.parameters),
+                            seed,
+                        )
                     )
     return rows
 
@@ -244,9 +255,7 @@ def run_row(row: Row) -> dict[str, Any]:
                 problem = generate(row.seed, **row.parameters)
             else:
                 problem = generate(**row.parameters, **extra)
-        solved = solve(
-            problem, method=row.method, budgets=[row.budget], time_limit=row.time_limit
-        )
+        solved = solve(problem, method=row.method, budgets=[row.budget], time_limit=row.time_limit)
         point = solved.final
         result.update(
             status=str(point.status),
@@ -289,7 +298,9 @@ def read_table(path: Path) -> list[dict[str, Any]]:
     """The rows of a results CSV written by :func:`write_csv` (types restored)."""
     with open(path, newline="", encoding="utf-8") as handle:
         reader = csv.DictReader(handle)
-        return [{name: _cell(line.get(name) or "", kind) for name, kind in COLUMNS} for line in reader]
+        return [
+            {name: _cell(line.get(name) or "", kind) for name, kind in COLUMNS} for line in reader
+        ]
 
 
 def table_csv(rows: Sequence[dict[str, Any]]) -> str:
@@ -298,7 +309,9 @@ def table_csv(rows: Sequence[dict[str, Any]]) -> str:
     writer.writerow([name for name, _ in COLUMNS])
     for row in rows:
         cells = [row.get(name) for name, _ in COLUMNS]
-        writer.writerow(["" if c is None else repr(c) if isinstance(c, float) else c for c in cells])
+        writer.writerow(
+            ["" if c is None else repr(c) if isinstance(c, float) else c for c in cells]
+        )
     return buffer.getvalue()
 
 

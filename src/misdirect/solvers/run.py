@@ -33,6 +33,7 @@ from misdirect.solvers.certification import (
 )
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
@@ -158,6 +159,7 @@ def solve(
     formulation: str | None = None,
     mip_gap: float | None = None,
     verbose: bool | None = None,
+    pool: TaskPool | None = None,
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
     progress: ProgressCallback | None = None,
@@ -177,7 +179,9 @@ def solve(
     options:
         A :class:`~misdirect.solvers.options.SolveOptions`; the keyword arguments
         ``time_limit`` (seconds for the whole call), ``threads``, and the MILP's ``solver``,
-        ``formulation``, ``mip_gap`` and ``verbose`` override its fields. An option the method
+        ``formulation``, ``mip_gap``, ``verbose`` and ``pool`` (branch-and-bound and auto:
+        the segment search's subtrees on a Dask cluster, :func:`misdirect.distributed.connect`)
+        override its fields. An option the method
         does not take raises :class:`~misdirect.errors.OptionError`.
     deadline:
         A :class:`~misdirect.solvers.deadline.Deadline` shared with other work (an audit's
@@ -202,6 +206,7 @@ def solve(
         "formulation": formulation,
         "mip_gap": mip_gap,
         "verbose": verbose,
+        "pool": pool,
     }
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)
