@@ -140,7 +140,7 @@ def _relaxation(problem, budget):
 
 CASES = [
     *[(scenarios.random_problem(s, states=8, observations=6), 2) for s in (3, 4, 5)],
-    (scenarios.sensor_grid(8, 6, seed=1, budget=3), 3),
+    (scenarios.sensor_grid(6, 4, seed=1, budget=2), 2),
 ]
 
 
@@ -155,21 +155,21 @@ def test_the_distributed_search_certifies_the_exhaustive_optimum(case, pool):
     local = SegmentSearch(seg, budget)
     assert local.run() == Status.OPTIMAL
     search = DistributedSegmentSearch(
-        seg, budget, pool, problem=pool.share(problem), max_budget=budget
+        seg, budget, pool, problem=pool.share(problem), max_budget=budget, frontier=2
     )
     assert search.run() == Status.OPTIMAL
     for found in (local, search):
         assert found.best_value == pytest.approx(expected.probability, abs=1e-9)
         assert found.open_bound() == pytest.approx(expected.probability, abs=1e-9)
-    if search.local.nodes >= 8:  # the tree was large enough to hand out
+    if case == len(CASES) - 1:  # the grid's tree is large enough to hand out
         assert search.tasks
 
 
 def test_a_solve_on_the_cluster_certifies_what_a_local_one_does(pool):
-    problem = scenarios.sensor_grid(8, 6, seed=1, budget=3)
-    local = solve(problem, method="branch-and-bound", budgets=[1, 2, 3])
-    remote = solve(problem, method="branch-and-bound", budgets=[1, 2, 3], pool=pool)
-    inline = solve(problem, method="branch-and-bound", budgets=[1, 2, 3], pool=LocalPool())
+    problem = scenarios.random_problem(3, states=8, observations=6, budget=2)
+    local = solve(problem, method="branch-and-bound", budgets=[1, 2])
+    remote = solve(problem, method="branch-and-bound", budgets=[1, 2], pool=pool)
+    inline = solve(problem, method="branch-and-bound", budgets=[1, 2], pool=LocalPool())
     for other in (remote, inline):
         assert [p.status for p in other.curve] == [p.status for p in local.curve]
         for a, b in zip(other.curve, local.curve, strict=True):

@@ -125,9 +125,13 @@ class DistributedSegmentSearch(IncumbentSearch):
         max_budget: float,
         seeds: Sequence[Picks | None] = (),
         enumerate_at: int = 0,
+        frontier: int | None = None,
     ):
         """``problem``: the problem (or the pool's handle of it) the tasks rebuild ``seg``
-        from, at ``max_budget`` (as ``seg`` was built); ``key`` names that build."""
+        from, at ``max_budget`` (as ``seg`` was built); ``key`` names that build;
+        ``frontier``: open subtrees to reach before handing them out (default: a few per
+        worker)."""
+        self.frontier = frontier
         self.local = SegmentSearch(seg, budget, seeds, enumerate_at)
         self.incumbent = self.local.incumbent
         self.pool, self.problem, self.budget = pool, problem, budget
@@ -169,7 +173,7 @@ class DistributedSegmentSearch(IncumbentSearch):
     ) -> Status:
         """As :meth:`SegmentSearch.run`; ``workers`` is the pool's business here."""
         deadline = deadline or Deadline()
-        target = FRONTIER_PER_WORKER * self.pool.size
+        target = self.frontier or FRONTIER_PER_WORKER * self.pool.size
         while len(self.local.heap) < target:
             limit = self.local.nodes + EXPAND_STEP
             if max_nodes is not None:
