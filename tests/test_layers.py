@@ -22,9 +22,20 @@ FORBIDDEN = {
         "misdirect.defence",
         "misdirect.cli",
         "misdirect.scenarios",
+        "misdirect.distributed",
     ),
-    "misdirect.io": ("misdirect.report", "misdirect.defence", "misdirect.cli"),
-    "misdirect.solvers": ("misdirect.report", "misdirect.defence", "misdirect.cli"),
+    "misdirect.io": (
+        "misdirect.report",
+        "misdirect.defence",
+        "misdirect.cli",
+        "misdirect.distributed",
+    ),
+    "misdirect.solvers": (
+        "misdirect.report",
+        "misdirect.defence",
+        "misdirect.cli",
+        "misdirect.distributed",
+    ),
     "misdirect.solvers.engines": (
         "misdirect.solvers.auto",
         "misdirect.solvers.exhaustive",
@@ -33,7 +44,9 @@ FORBIDDEN = {
         "misdirect.solvers.milp",
         "misdirect.solvers.run",
     ),
-    "misdirect.defence": ("misdirect.report", "misdirect.cli"),
+    # the defence takes a pool (solvers.pool), never Dask's
+    "misdirect.defence": ("misdirect.report", "misdirect.cli", "misdirect.distributed"),
+    "misdirect.distributed": ("misdirect.report", "misdirect.cli"),
     "misdirect.report": ("misdirect.cli",),
     "misdirect.scenarios": ("misdirect.solvers", "misdirect.report", "misdirect.cli"),
 }

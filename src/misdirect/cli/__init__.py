@@ -20,7 +20,7 @@ import typer
 from rich.markup import escape
 
 from misdirect import __version__
-from misdirect.cli import defence, models, reproduce, solving
+from misdirect.cli import cluster, defence, models, reproduce, solving
 from misdirect.cli.common import (
     INPUT_ERROR,
     INTERRUPTED,
@@ -94,6 +94,7 @@ _add(app, models.export_milp, "export-milp")
 _add(app, models.schema)
 _add(app, defence.audit)
 _add(app, defence.harden)
+_add(app, cluster.sweep)
 _add(scenario_app, models.scenario_paper_grid, "paper-grid")
 _add(scenario_app, models.scenario_knapsack, "knapsack")
 _add(scenario_app, models.scenario_sensor_grid, "sensor-grid")

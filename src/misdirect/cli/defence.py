@@ -9,6 +9,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from misdirect.cli.cluster import ClusterOption, WorkersOption, check_workers
 from misdirect.cli.common import (
     check_budget,
     check_seconds,
@@ -43,18 +44,23 @@ def audit(
         float | None,
         typer.Option(help="Seconds for the whole audit; what is not proven is labelled."),
     ] = None,
+    cluster: ClusterOption = None,
+    workers: WorkersOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
     criticality and single-sensor value, and the online attacker's value."""
     from misdirect.defence import audit as run_audit
+    from misdirect.distributed import connect
 
+    check_workers(workers)
     check_budget(budget, "--budget")
     check_seconds(time_limit)
     if output is not None:
         prepare_output_dir(output, field="-o")
     problem = source.load()
-    result = run_audit(problem, budget=budget, time_limit=time_limit)
+    with connect(cluster, workers) as pool:
+        result = run_audit(problem, budget=budget, time_limit=time_limit, pool=pool)
     written: list[str] = []
     if output is not None:
         from misdirect.report.defence import write_audit_report
@@ -144,25 +150,31 @@ def harden(
         float | None,
         typer.Option(help="Seconds; then the best protection found and a proven lower bound."),
     ] = None,
+    cluster: ClusterOption = None,
+    workers: WorkersOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors to protect: the set within cost D that minimises the attacker's optimum
     at budget B (exact min-max), with the trade-off over every protection budget up to D."""
     from misdirect.defence import harden as run_harden
+    from misdirect.distributed import connect
 
+    check_workers(workers)
     check_budget(protect_budget, "--protect-budget")
     check_budget(budget, "--budget")
     check_seconds(time_limit)
     costs = parse_protect_costs(protect_cost)
     problem = source.load()
     try:
-        result = run_harden(
-            problem,
-            protect_budget=protect_budget,
-            budget=budget,
-            protect_costs=costs,
-            time_limit=time_limit,
-        )
+        with connect(cluster, workers) as pool:
+            result = run_harden(
+                problem,
+                protect_budget=protect_budget,
+                budget=budget,
+                protect_costs=costs,
+                time_limit=time_limit,
+                pool=pool,
+            )
     except ProblemError as error:
         if error.field == "protect_costs":
             error.field = "--protect-cost"

@@ -13,6 +13,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from misdirect.cli.cluster import ClusterOption, WorkersOption, check_workers
 from misdirect.cli.common import (
     INTERRUPTED,
     TERMINATED,
@@ -170,9 +171,12 @@ def solve(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
     ] = False,
+    cluster: ClusterOption = None,
+    workers: WorkersOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Optimal alteration within the budget, with the best value for every smaller budget."""
+    """Optimal alteration within the budget, with the best value for every smaller budget.
+    With --cluster or --workers, the search's subtrees run on Dask (branch-and-bound, auto)."""
     if threads is not None:
         check_range("--threads", threads, 1, 1024)
     check_seconds(time_limit)
@@ -194,8 +198,19 @@ def solve(
         raise ProblemError(
             "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
         )
-    given = {k: v for k, v in milp_options.items() if v is not None}
-    result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
+    given: dict[str, Any] = {k: v for k, v in milp_options.items() if v is not None}
+    check_workers(workers)
+    if (cluster is not None or workers is not None) and method not in ("auto", "branch-and-bound"):
+        field = "--cluster" if cluster is not None else "--workers"
+        raise ProblemError(
+            f"does not apply to method {method} (auto and branch-and-bound only)", field=field
+        )
+    from misdirect.distributed import connect
+
+    with connect(cluster, workers) as pool:
+        if pool is not None:
+            given["pool"] = pool
+        result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
     if as_json:
         print_json(result.to_dict())
     else:

@@ -10,7 +10,7 @@ the attacker's choices for the solvers.)
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -20,6 +20,7 @@ from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import check_time_limit
+from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.run import BudgetResult, solve
 from misdirect.solvers.status import Status
 
@@ -107,3 +108,42 @@ def alterable_sensors(problem: Problem, budget: float) -> list[int]:
     """Observations the attacker can alter within ``budget`` to something the controller
     reacts to differently (the others cannot change the outcome)."""
     return [int(c.observation) for c in alteration_space(problem.with_budget(budget)).choices]
+
+
+def _solve_job(problem: Problem, budget: float, seconds: float | None, method: str) -> Attack:
+    """One solve of :func:`solve_many`, where the pool runs it (no cancel token crosses a
+    process: the time limit does)."""
+    return solve_at(problem, budget, Deadline(None), seconds, method=method)
+
+
+def solve_many(
+    problems: Sequence[Problem],
+    budget: float,
+    clock: Deadline,
+    method: str = "auto",
+    *,
+    pool: TaskPool | None = None,
+    later: int = 0,
+) -> list[Attack]:
+    """:func:`solve_at` for each of ``problems``: one after another sharing ``clock`` (with
+    ``later`` solves still to come after them), or all at once on ``pool``, each with the
+    share of the time that a pool's width gives it. Each answer is the same either way when
+    every solve finishes: a solve depends on its problem alone."""
+    n = len(problems)
+    if pool is None:
+        return [
+            solve_at(p, budget, clock, clock.share(n - k + later), method=method)
+            for k, p in enumerate(problems)
+        ]
+    rounds = max(1, math.ceil((n + later) / pool.size))
+    seconds = clock.share(rounds)
+    tickets = {
+        pool.submit(_solve_job, p, budget, seconds, method): k for k, p in enumerate(problems)
+    }
+    found: dict[int, Attack] = {}
+    while pool.pending():
+        ticket, attack, error = pool.next_done()
+        if error is not None:
+            raise error
+        found[tickets[ticket]] = attack
+    return [found[k] for k in range(n)]

@@ -24,13 +24,14 @@ from misdirect.defence.attack import (
     attacker_budget,
     protect,
     shared_deadline,
-    solve_at,
+    solve_many,
 )
 from misdirect.defence.online import online_attack_value
 from misdirect.defence.results import AuditResult, OnlineAttack, SensorAudit
 from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.run import SolveResult, default_budgets, recertify, solve
 
 SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
@@ -45,6 +46,7 @@ def audit(
     method: str = "auto",
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
+    pool: TaskPool | None = None,
 ) -> AuditResult:
     """Which sensors are weak: the attacker's optimum at every budget up to ``budget``, each
     sensor's criticality and single-sensor value, and the online attacker's value.
@@ -63,6 +65,9 @@ def audit(
         A deadline shared with other work; ``time_limit`` limits the audit further.
     cancel : CancelToken, optional
         Cancelling it stops every solve of the audit, which returns what it has.
+    pool : TaskPool, optional
+        Where the single-sensor solves and the re-solves run, all at once
+        (:func:`misdirect.distributed.connect`); the curve's own solve stays here.
 
     Returns
     -------
@@ -109,11 +114,11 @@ def audit(
         cheapest = _cheapest_alterations(problem, budget)
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
-        singles = _single_values(problem, budget, list(cheapest), clock, likely)
+        singles = _single_values(problem, budget, list(cheapest), clock, likely, pool)
         evidence = _single_sensor_evidence(curve_result, cheapest, singles)
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
-        rows = _sensor_rows(problem, budget, optimum, singles, clock, method)
+        rows = _sensor_rows(problem, budget, optimum, singles, clock, method, pool)
     notes = _not_certified(optimum, curve_result, budget)
     online, note = _online_value(problem, budget, optimum)
     certified = optimum.certified and all(r.exact for r in rows)
@@ -168,22 +173,20 @@ def _cheapest_alterations(problem: Problem, budget: float) -> dict[int, float]:
 
 
 def _single_values(
-    problem: Problem, budget: float, sensors: list[int], clock: Deadline, later: int
+    problem: Problem,
+    budget: float,
+    sensors: list[int],
+    clock: Deadline,
+    later: int,
+    pool: TaskPool | None = None,
 ) -> dict[int, Attack]:
     """The attacker's optimum at ``budget`` with only one sensor alterable, for each sensor:
     one observation's few candidates, cheap; ``later`` re-solves at B (as hard as the optimum
     itself) then share what is left of the time."""
     everything = frozenset(range(problem.pomdp.n_observations))
-    singles = {}
-    for k, o in enumerate(sensors):
-        singles[o] = solve_at(
-            protect(problem, everything - {o}),
-            budget,
-            clock,
-            clock.share(len(sensors) - k + later),
-            method="exhaustive",
-        )
-    return singles
+    problems = [protect(problem, everything - {o}) for o in sensors]
+    found = solve_many(problems, budget, clock, "exhaustive", pool=pool, later=later)
+    return dict(zip(sensors, found, strict=True))
 
 
 def _single_sensor_evidence(
@@ -232,16 +235,16 @@ def _sensor_rows(
     singles: dict[int, Attack],
     clock: Deadline,
     method: str,
+    pool: TaskPool | None = None,
 ) -> list[SensorAudit]:
     """One row per sensor alterable within ``budget``, the most critical first."""
     sensors = list(singles)
     names = problem.pomdp.observations
     needs = [o for o in sensors if o in optimum.changed]
-    re_solved = {}
-    for k, o in enumerate(needs):
-        re_solved[o] = solve_at(
-            protect(problem, [o]), budget, clock, clock.share(len(needs) - k), method=method
-        )
+    problems = [protect(problem, [o]) for o in needs]
+    re_solved = dict(
+        zip(needs, solve_many(problems, budget, clock, method, pool=pool), strict=True)
+    )
     rows: list[SensorAudit] = []
     for o in sensors:
         single = singles[o]

@@ -25,10 +25,12 @@ from misdirect.defence.attack import (
     protect,
     shared_deadline,
     solve_at,
+    solve_many,
 )
 from misdirect.defence.results import HardenPoint, HardenResult
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.run import default_budgets
 from misdirect.solvers.status import Status
 
@@ -132,6 +134,7 @@ def harden(
     method: str = "auto",
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
+    pool: TaskPool | None = None,
 ) -> HardenResult:
     """The protection set within ``protect_budget`` minimising the attacker's optimum at
     ``budget``, with the trade-off curve over every whole protection budget up to it.
@@ -156,6 +159,10 @@ def harden(
         A deadline shared with other work; ``time_limit`` limits the search further.
     cancel : CancelToken, optional
         Cancelling it stops every solve of the search.
+    pool : TaskPool, optional
+        Where the children of each node are solved, all at once, before the search visits
+        them (:func:`misdirect.distributed.connect`): a child it then prunes was solved for
+        nothing, but every answer is the one a local run finds.
 
     Returns
     -------
@@ -199,7 +206,7 @@ def harden(
     budget = attacker_budget(problem, budget)
     problem = problem.with_budget(budget)
     costs = protection_costs(problem, protect_costs)
-    search = _Search(problem, budget, costs, clock, method)
+    search = _Search(problem, budget, costs, clock, method, pool)
     curve: list[HardenPoint] = []
     best: frozenset[int] = frozenset()
     for d in (float(d) for d in default_budgets(protect_budget)):
@@ -238,8 +245,15 @@ class _Search:
     evidence for the hitting-set lower bound (``attacks``)."""
 
     def __init__(
-        self, problem: Problem, budget: float, costs: np.ndarray, clock: Deadline, method: str
+        self,
+        problem: Problem,
+        budget: float,
+        costs: np.ndarray,
+        clock: Deadline,
+        method: str,
+        pool: TaskPool | None = None,
     ) -> None:
+        self.pool = pool
         self.problem = problem
         self.budget = budget
         self.costs = costs
@@ -258,17 +272,34 @@ class _Search:
     def attack(self, protection: frozenset[int]) -> Attack:
         """The attacker's answer under ``protection`` (solved on first use)."""
         if protection not in self.memo:
-            self.memo[protection] = solve_at(
+            found = solve_at(
                 protect(self.problem, protection),
                 self.budget,
                 self.clock,
                 self.clock.share(4),
                 method=self.method,
             )
-            found = self.memo[protection]
-            self.attacks.append((found.value, found.changed))
-            self.certified &= found.certified
+            self._keep(protection, found)
         return self.memo[protection]
+
+    def _keep(self, protection: frozenset[int], found: Attack) -> None:
+        self.memo[protection] = found
+        self.attacks.append((found.value, found.changed))
+        self.certified &= found.certified
+
+    def prefetch(self, protections: list[frozenset[int]]) -> None:
+        """Solve the protection sets not solved yet at once on the pool (each with the share
+        of time a lone solve gets: a quarter of what is left)."""
+        new = [p for p in protections if p not in self.memo]
+        if self.pool is None or len(new) < 2:
+            return
+        later = max(4 * self.pool.size - len(new), 0)
+        problems = [protect(self.problem, p) for p in new]
+        found = solve_many(
+            problems, self.budget, self.clock, self.method, pool=self.pool, later=later
+        )
+        for protection, attack in zip(new, found, strict=True):
+            self._keep(protection, attack)
 
     def cost_of(self, protection: frozenset[int]) -> float:
         return float(sum(self.costs[o] for o in protection))
@@ -302,6 +333,7 @@ class _Search:
                 for o in sorted(here.changed, key=lambda o: (self.costs[o], self.names[o]))
                 if self.costs[o] <= room + tolerance.BUDGET_SLACK and (node | {o}) not in seen
             ]
+            self.prefetch(children)
             stack.extend(reversed(children))  # the cheapest sensor first
         return best
 

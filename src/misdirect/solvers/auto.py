@@ -345,7 +345,7 @@ STAGES: tuple[Callable[[AutoSolver], _Stage], ...] = (_Enumeration, _Exhaustive,
 class AutoSolver:
     name: ClassVar[str] = "auto"
     curve_is_free: ClassVar[bool] = False
-    accepts: ClassVar[tuple[str, ...]] = MilpSolver.accepts
+    accepts: ClassVar[tuple[str, ...]] = (*MilpSolver.accepts, "pool")
 
     def __init__(
         self,
@@ -363,7 +363,8 @@ class AutoSolver:
 
     def branch_and_bound(self, max_nodes: int) -> BranchAndBoundSolver:
         """The search of the search stages (a hook: tests give auto a scripted one)."""
-        return BranchAndBoundSolver(SolveOptions(threads=self.options.threads), max_nodes=max_nodes)
+        options = SolveOptions(threads=self.options.threads, pool=self.options.pool)
+        return BranchAndBoundSolver(options, max_nodes=max_nodes)
 
     def solve(
         self,

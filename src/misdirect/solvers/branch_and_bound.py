@@ -21,6 +21,7 @@ shared between them is :mod:`misdirect.solvers.schedule`'s.
 
 from __future__ import annotations
 
+import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
@@ -40,6 +41,7 @@ from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Pick
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
+from misdirect.solvers.engines.subtrees import DistributedSegmentSearch
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import BranchAndBoundStats, SegmentStats
 from misdirect.solvers.status import Status
@@ -59,6 +61,9 @@ class _Curve:
     incumbent: tuple[Picks, float] | None = None  # feasible at every larger budget
     segment_backs_up: bool = False
     segments: SegmentRelaxation | None = None  # built when first needed
+    max_budget: float = 0.0  # the budget ``instance`` was prepared for
+    shared_problem: object = None  # the problem as the pool's tasks receive it
+    key: str = field(default_factory=lambda: uuid.uuid4().hex)  # names it on the workers
     # once the per-state search fails a budget the segment search had to take, it fails the
     # larger ones too (its bound only loosens with the budget): they go to the segment search
     per_state_failed: bool = False
@@ -83,7 +88,7 @@ class BranchAndBoundSolver:
 
     name: ClassVar[str] = "branch-and-bound"
     curve_is_free: ClassVar[bool] = False
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads")
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "pool")
 
     def __init__(self, options: SolveOptions | None = None, *, max_nodes: int = 20_000):
         if max_nodes < 1:
@@ -114,8 +119,13 @@ class BranchAndBoundSolver:
             relax,
             policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
             # the segment search backs a budget up on large chains
-            segment_backs_up=instance.chain.n_states >= SEGMENT_MIN_STATES,
+            # with a pool, every budget goes to the (distributed) segment search
+            segment_backs_up=instance.chain.n_states >= SEGMENT_MIN_STATES
+            or self.options.pool is not None,
+            max_budget=max(budgets),
         )
+        if self.options.pool is not None:
+            curve.shared_problem = self.options.pool.share(problem)
         order = sorted(range(len(budgets)), key=lambda j: budgets[j])
         answers: dict[int, Solution] = {}
         for done, j in enumerate(order):
@@ -129,7 +139,9 @@ class BranchAndBoundSolver:
         self, curve: _Curve, step: _Budget, deadline: Deadline, progress: ProgressCallback | None
     ) -> Solution:
         relax, budget = curve.relax, step.budget
-        search = _Search(relax, budget, self.max_nodes, curve.incumbent, curve.policy)
+        # with a pool, the per-state search bounds its root only: the pool takes the rest
+        nodes = 1 if self.options.pool is not None else self.max_nodes
+        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
         picks = None if step.seed is None else relax.picks_of(step.seed)
         if picks is not None and tolerance.affordable(relax.cost(picks), budget):
             search.incumbent.offer_exact(picks)
@@ -162,13 +174,13 @@ class BranchAndBoundSolver:
             curve.segments = SegmentRelaxation(curve.instance, relax, threads=1)  # one a worker
         if answer.status != Status.OPTIMAL and curve.segments is not None:
             curve.per_state_failed = True
-            answer = self._segment_phase(curve.segments, search, answer, step, deadline, progress)
+            answer = self._segment_phase(curve, search, answer, step, deadline, progress)
         curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
         return answer
 
     def _segment_phase(
         self,
-        segments: SegmentRelaxation,
+        curve: _Curve,
         search: _Search,
         answer: Solution,
         step: _Budget,
@@ -177,9 +189,24 @@ class BranchAndBoundSolver:
     ) -> Solution:
         """Continue a budget the per-state search did not certify with the segment search,
         from its incumbent; keep the better answer and the smaller of the two proven bounds."""
-        second = SegmentSearch(
-            segments, step.budget, seeds=[search.best_picks], enumerate_at=SEGMENT_ENUMERATE_AT
-        )
+        segments = curve.segments
+        assert segments is not None
+        second: SegmentSearch | DistributedSegmentSearch
+        if self.options.pool is None:
+            second = SegmentSearch(
+                segments, step.budget, seeds=[search.best_picks], enumerate_at=SEGMENT_ENUMERATE_AT
+            )
+        else:
+            second = DistributedSegmentSearch(
+                segments,
+                step.budget,
+                self.options.pool,
+                problem=curve.shared_problem,
+                key=curve.key,
+                max_budget=curve.max_budget,
+                seeds=[search.best_picks],
+                enumerate_at=SEGMENT_ENUMERATE_AT,
+            )
 
         def tick() -> None:
             report(

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from misdirect.errors import OptionError
+from misdirect.solvers.pool import TaskPool
 
 MILP_OPTIONS = ("solver", "formulation", "mip_gap", "verbose")
 
@@ -35,6 +36,9 @@ class SolveOptions:
     formulation: str | None = None  # MILP formulation: compact (default), paper, paper-pinned
     mip_gap: float | None = None  # MILP: relative gap to stop at (default 1e-9)
     verbose: bool | None = None  # MILP: the backend's log on stdout
+    # branch-and-bound: the segment search's subtrees run on this pool (a Dask cluster's,
+    # misdirect.distributed.connect); None: in this process
+    pool: TaskPool | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         check_time_limit(self.time_limit)

@@ -35,6 +35,7 @@ from misdirect.solvers.certification import (
 )
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
@@ -278,6 +279,7 @@ def solve(
     formulation: str | None = None,
     mip_gap: float | None = None,
     verbose: bool | None = None,
+    pool: TaskPool | None = None,
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
     progress: ProgressCallback | None = None,
@@ -314,6 +316,9 @@ def solve(
         MILP: relative gap to stop at (default 1e-9).
     verbose : bool, optional
         MILP: the backend's log on standard output.
+    pool : TaskPool, optional
+        branch-and-bound and auto: where the segment search's subtrees run, with the
+        incumbent shared (:func:`misdirect.distributed.connect`); default: here.
     deadline : Deadline, optional
         A :class:`~misdirect.solvers.deadline.Deadline` shared with other work (an audit's
         solves share one); ``time_limit`` then limits this call further.
@@ -372,6 +377,7 @@ def solve(
         "formulation": formulation,
         "mip_gap": mip_gap,
         "verbose": verbose,
+        "pool": pool,
     }
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)

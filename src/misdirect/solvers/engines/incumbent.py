@@ -45,6 +45,9 @@ class Incumbent:
         self.improved = True  # the incumbent changed (by more than a tie) since last asked
         self.pruned = 0
         self.pruned_bound = -np.inf  # largest bound of any pruned subtree
+        # a value attained elsewhere (another worker's incumbent): pruning is against the
+        # larger of it and ours, so that it stays global when a search is split up
+        self.floor = -np.inf
         self._values: dict[Picks, float] = {}
 
     def value_of(self, picks: Picks) -> float:
@@ -73,7 +76,7 @@ class Incumbent:
     def prune(self, bound: float) -> bool:
         """Whether a subtree of ``bound`` cannot beat the incumbent (then counted as pruned)."""
         with self._lock:
-            if bound <= self.value + tolerance.PRUNE:
+            if bound <= max(self.value, self.floor) + tolerance.PRUNE:
                 self.pruned += 1
                 self.pruned_bound = max(self.pruned_bound, bound)
                 return True

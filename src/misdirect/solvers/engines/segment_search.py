@@ -34,10 +34,15 @@ from misdirect.core import tolerance
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.segment_relaxation import Layer, SegmentRelaxation
+from misdirect.solvers.pool import SharedBest
 from misdirect.solvers.status import Status
 
 NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most this many
 BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
+SHARE_EVERY_S = 0.2  # a search with a shared incumbent reads and raises it at most this often
+
+# an open node handed between processes: picks, remaining budget, bound, bounded (its own)
+Subtree = tuple[dict[int, int], float, float, bool]
 
 
 @dataclass(order=True)
@@ -72,8 +77,15 @@ class SegmentSearch(IncumbentSearch):
         budget: float,
         seeds: Sequence[Picks | None] = (),
         enumerate_at: int = 0,
+        *,
+        roots: Sequence[Subtree] | None = None,
+        shared: SharedBest | None = None,
     ):
+        """``roots``: search these subtrees only (default: the whole tree); ``shared``: the
+        best value of every search of this budget, read and raised as this one runs."""
         self.seg, self.budget = seg, budget
+        self.shared = shared
+        self._shared_at = -np.inf  # when it was last read
         # a node with at most this many completions is enumerated instead of bounded
         self.enumerate_at = enumerate_at if seg.space.choices else 0
         self.enumerated = 0  # nodes
@@ -95,7 +107,10 @@ class SegmentSearch(IncumbentSearch):
         self.counter = 0
         self.nodes = 0
         self.root_bound: float | None = None
-        self._push_roots()
+        if roots is None:
+            self._push_roots()
+        for fixed, remaining, bound, bounded in roots or ():
+            self._push(dict(fixed), remaining, bound, bounded)
 
     def _push_roots(self) -> None:
         seg, budget = self.seg, self.budget
@@ -149,6 +164,21 @@ class SegmentSearch(IncumbentSearch):
                     return  # out of time, or the search is over
                 if found[0] > self.best_value + tolerance.PRUNE:
                     self.incumbent.offer_exact(found[1])
+
+    def open_nodes(self) -> list[Subtree]:
+        """The nodes still open (none is held by a worker once ``run`` returns)."""
+        with self._lock:
+            return [(e.picks, e.remaining, e.bound, e.bounded) for e in self.heap]
+
+    def _share(self) -> None:
+        """Raise the shared best to ours, and prune against it (at most every
+        ``SHARE_EVERY_S``: each is a round trip to the scheduler on a cluster)."""
+        now = time.monotonic()
+        if self.shared is None or now - self._shared_at < SHARE_EVERY_S:
+            return
+        self._shared_at = now
+        self.shared.offer(self.incumbent.value)
+        self.incumbent.floor = max(self.incumbent.floor, self.shared.get())
 
     def open_bound(self) -> float:
         """The proven bound on this budget's optimum so far."""
@@ -225,6 +255,7 @@ class SegmentSearch(IncumbentSearch):
             try:
                 while True:
                     self._check_over(deadline, max_nodes)
+                    self._share()
                     if self.incumbent.improved and self.enumerate_at and not self._local_running:
                         self._local_running = True
                         return "local", None

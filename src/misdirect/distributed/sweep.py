@@ -1,0 +1,403 @@
+"""``misdirect sweep SPEC``: many problems or generated scenarios × budgets × methods, one
+results table.
+
+Each row is one solve, identified by a stable ``row_id`` (a hash of its instance, budget and
+method, not of the time limit or of where it runs). The table is rewritten atomically after
+every row that completes (CSV; Parquet too, at most every few seconds and at the end), so a
+run stopped in any way loses no finished row, and a second run with the same output skips
+every row already there with a result (rows that failed with an error are run again).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import inspect
+import io
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from misdirect.core.model import Problem, format_alteration
+from misdirect.errors import MisdirectError, ProblemError
+from misdirect.io.files import parse_json, parse_yaml, read_text_file, write_output
+from misdirect.io.problem_file import load_problem
+from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
+from misdirect.solvers import SOLVERS
+from misdirect.solvers.deadline import CancelToken
+from misdirect.solvers.pool import LocalPool, TaskPool
+from misdirect.solvers.run import solve
+
+FORMAT: Literal["misdirect-sweep/v1"] = "misdirect-sweep/v1"
+PARQUET_EVERY_S = 5.0  # the Parquet copy is rewritten at most this often (and at the end)
+
+GENERATORS: dict[str, Callable[..., Problem]] = {
+    "random": random_problem,
+    "sensor-grid": sensor_grid,
+    "paper-grid": paper_grid,
+    "knapsack": knapsack,
+    "drone": drone,
+}
+
+# the results table: column, type (how a CSV cell reads back)
+COLUMNS: tuple[tuple[str, type], ...] = (
+    ("row_id", str),
+    ("instance", str),
+    ("seed", int),
+    ("budget", float),
+    ("method", str),
+    ("status", str),
+    ("probability", float),
+    ("upper_bound", float),
+    ("gap", float),
+    ("cost", float),
+    ("alteration", str),
+    ("time_s", float),
+    ("host", str),
+    ("worker", str),
+    ("pid", int),
+    ("error", str),
+)
+ERROR = "error"  # the status of a row that raised: run again on resume
+
+
+class ScenarioSpec(BaseModel):
+    """Generated instances: one per seed (or one, for generators without a seed)."""
+
+    model_config = ConfigDict(extra="forbid")
+    scenario: Literal["random", "sensor-grid", "paper-grid", "knapsack", "drone"]
+    parameters: dict[str, Any] = Field(default_factory=dict)
+    seeds: list[int] | None = None
+
+
+class SweepSpec(BaseModel):
+    """A sweep file (``format: misdirect-sweep/v1``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    format: Literal["misdirect-sweep/v1"] = FORMAT
+    problems: list[str] = Field(default_factory=list)  # files, relative to the sweep file
+    scenarios: list[ScenarioSpec] = Field(default_factory=list)
+    budgets: list[float] = Field(min_length=1)
+    methods: list[str] = Field(default_factory=lambda: ["auto"], min_length=1)
+    time_limit: float | None = Field(default=None, gt=0)  # seconds per row
+
+    @field_validator("budgets")
+    @classmethod
+    def _budgets(cls, budgets: list[float]) -> list[float]:
+        for b in budgets:
+            if not b >= 0 or b == float("inf"):
+                raise ValueError(f"a budget must be a non-negative number, got {b}")
+        return budgets
+
+    @field_validator("methods")
+    @classmethod
+    def _methods(cls, methods: list[str]) -> list[str]:
+        for m in methods:
+            if m not in SOLVERS:
+                raise ValueError(f"unknown method {m!r} (choose from {', '.join(SOLVERS)})")
+        return methods
+
+
+@dataclass(frozen=True)
+class Row:
+    """One row to compute: an instance (a loaded problem, or a generator call), a budget, a
+    method."""
+
+    row_id: str
+    instance: str
+    budget: float
+    method: str
+    time_limit: float | None
+    problem: Any = None  # a Problem (or the pool's handle of one), for a file
+    scenario: str | None = None
+    parameters: dict[str, Any] = field(default_factory=dict)
+    seed: int | None = None
+
+
+@dataclass
+class SweepReport:
+    """What a run did: the whole table, and how many rows it computed, skipped or lost."""
+
+    rows: list[dict[str, Any]]
+    computed: int
+    skipped: int
+    failed: int
+    csv: Path
+    parquet: Path | None
+    notes: list[str] = field(default_factory=list)
+
+
+def load_sweep(path: Path) -> tuple[SweepSpec, Path]:
+    """The validated sweep file and its folder; errors name the file and the field."""
+    source = str(path)
+    text = read_text_file(path)
+    document = (
+        parse_json(text, source=source)
+        if path.suffix.lower() == ".json"
+        else parse_yaml(text, source=source)
+    )
+    if not isinstance(document, dict):
+        raise ProblemError(
+            "the file must contain a mapping with budgets, methods, ...", source=source
+        )
+    try:
+        spec = SweepSpec.model_validate(document)
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(str(part) for part in first["loc"])
+        reason = (
+            "unknown field (check the spelling)"
+            if first["type"] == "extra_forbidden"
+            else (first["msg"].removeprefix("Value error, "))
+        )
+        raise ProblemError(reason, source=source, field=where or None) from None
+    if not spec.problems and not spec.scenarios:
+        raise ProblemError("lists no problems and no scenarios", source=source, field="problems")
+    for k, item in enumerate(spec.scenarios):
+        _check_parameters(item, source, f"scenarios[{k}]")
+    return spec, path.parent
+
+
+def _check_parameters(item: ScenarioSpec, source: str, where: str) -> None:
+    """The generator takes every parameter given (and a seed, when seeds are given)."""
+    accepted = inspect.signature(GENERATORS[item.scenario]).parameters
+    for name in item.parameters:
+        if name not in accepted or name == "seed":
+            known = ", ".join(p for p in accepted if p != "seed")
+            raise ProblemError(
+                f"{item.scenario} takes no parameter {name!r} (it takes {known})",
+                source=source,
+                field=f"{where}.parameters.{name}",
+            )
+    if item.seeds is not None and "seed" not in accepted:
+        raise ProblemError(f"{item.scenario} takes no seed", source=source, field=f"{where}.seeds")
+
+
+def row_id(instance: dict[str, Any], budget: float, method: str) -> str:
+    """The stable key of a row: its instance, budget and method (not the time limit)."""
+    key = json.dumps(
+        {"instance": instance, "budget": float(budget), "method": method}, sort_keys=True
+    )
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def expand(spec: SweepSpec, folder: Path, pool: TaskPool | None = None) -> list[Row]:
+    """Every row of the sweep, in the file's order: instances × budgets × methods. Problem
+    files are read (and checked) here, once, and handed to the pool once each."""
+    rows: list[Row] = []
+    for k, name in enumerate(spec.problems):
+        path = folder / name
+        try:
+            problem = load_problem(path)
+        except ProblemError as error:
+            error.field = error.field or f"problems[{k}]"
+            raise
+        handle = pool.share(problem) if pool is not None else problem
+        for b in spec.budgets:
+            for m in spec.methods:
+                rid = row_id({"file": name}, b, m)
+                rows.append(Row(rid, name, float(b), m, spec.time_limit, problem=handle))
+    for item in spec.scenarios:
+        accepted = inspect.signature(GENERATORS[item.scenario]).parameters
+        seeds: Sequence[int | None] = item.seeds if item.seeds is not None else [None]
+        if item.seeds is None and "seed" in accepted:
+            seeds = [0]
+        for seed in seeds:
+            shown = ", ".join(f"{p}={v}" for p, v in item.parameters.items())
+            label = f"{item.scenario}({shown}{', ' if shown else ''}seed={seed})"
+            if seed is None:
+                label = f"{item.scenario}({shown})"
+            key = {"scenario": item.scenario, "parameters": item.parameters, "seed": seed}
+            for b in spec.budgets:
+                for m in spec.methods:
+                    rid = row_id(key, b, m)
+                    rows.append(
+                        Row(
+                            rid,
+                            label,
+                            float(b),
+                            m,
+                            spec.time_limit,
+                            None,
+                            item.scenario,
+                            dict(item.parameters),
+                            seed,
+                        )
+                    )
+    return rows
+
+
+def run_row(row: Row) -> dict[str, Any]:
+    """Compute one row where it runs; an error becomes the row's ``error`` (it never takes the
+    sweep down)."""
+    from misdirect.distributed.pool import where_am_i
+
+    started = time.perf_counter()
+    result: dict[str, Any] = {
+        "row_id": row.row_id,
+        "instance": row.instance,
+        "seed": row.seed,
+        "budget": row.budget,
+        "method": row.method,
+        **where_am_i(),
+    }
+    try:
+        problem = row.problem
+        if problem is None:
+            generate = GENERATORS[row.scenario or ""]
+            extra = {} if row.seed is None else {"seed": row.seed}
+            if row.scenario == "random" and row.seed is not None:
+                problem = generate(row.seed, **row.parameters)
+            else:
+                problem = generate(**row.parameters, **extra)
+        solved = solve(problem, method=row.method, budgets=[row.budget], time_limit=row.time_limit)
+        point = solved.final
+        result.update(
+            status=str(point.status),
+            probability=point.probability,
+            upper_bound=point.upper_bound,
+            gap=point.gap,
+            cost=point.cost,
+            alteration=format_alteration(point.alteration),
+            error=None,
+        )
+    except (MisdirectError, ValueError, MemoryError) as error:
+        result.update(status=ERROR, error=f"{type(error).__name__}: {error}")
+    result["time_s"] = time.perf_counter() - started
+    return result
+
+
+def lost_row(row: Row, error: BaseException) -> dict[str, Any]:
+    """The row of a task the cluster could not finish (its worker lost, more than once)."""
+    return {
+        "row_id": row.row_id,
+        "instance": row.instance,
+        "seed": row.seed,
+        "budget": row.budget,
+        "method": row.method,
+        "status": ERROR,
+        "error": f"{type(error).__name__}: {error}",
+    }
+
+
+# -- the table ------------------------------------------------------------------------------
+
+
+def _cell(value: str, kind: type) -> Any:
+    if value == "":
+        return None
+    return kind(value)
+
+
+def read_table(path: Path) -> list[dict[str, Any]]:
+    """The rows of a results CSV written by :func:`write_csv` (types restored)."""
+    with open(path, newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        return [
+            {name: _cell(line.get(name) or "", kind) for name, kind in COLUMNS} for line in reader
+        ]
+
+
+def table_csv(rows: Sequence[dict[str, Any]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow([name for name, _ in COLUMNS])
+    for row in rows:
+        cells = [row.get(name) for name, _ in COLUMNS]
+        writer.writerow(
+            ["" if c is None else repr(c) if isinstance(c, float) else c for c in cells]
+        )
+    return buffer.getvalue()
+
+
+def write_parquet(rows: Sequence[dict[str, Any]], path: Path) -> bool:
+    """The table as Parquet (atomically); False when pyarrow is not installed."""
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        return False
+    types = {str: pa.string(), int: pa.int64(), float: pa.float64()}
+    schema = pa.schema([(name, types[kind]) for name, kind in COLUMNS])
+    table = pa.Table.from_pylist(
+        [{name: row.get(name) for name, _ in COLUMNS} for row in rows], schema=schema
+    )
+    write_output(path, lambda staged: pq.write_table(table, staged), field="--out")
+    return True
+
+
+def run_sweep(
+    spec: SweepSpec,
+    folder: Path,
+    out: Path,
+    *,
+    pool: TaskPool | None = None,
+    on_row: Callable[[dict[str, Any], int, int], None] | None = None,
+    cancel: CancelToken | None = None,
+) -> SweepReport:
+    """Run every row of ``spec`` not already in ``out``/results.csv, writing the table after
+    each; ``on_row(row, done, total)`` after each row (the progress bar). Without ``pool`` the
+    rows run here, one after another."""
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path, parquet_path = out / "results.csv", out / "results.parquet"
+    rows = expand(spec, folder, pool)
+    wanted = {row.row_id for row in rows}
+    previous = read_table(csv_path) if csv_path.exists() else []
+    # rows of other sweeps written to the same table are kept, after this sweep's
+    done = {r["row_id"]: r for r in previous if r["status"] != ERROR}
+    others = [r for r in previous if r["row_id"] not in wanted]
+    todo = [row for row in rows if row.row_id not in done]
+    pool = pool if pool is not None else LocalPool()
+    by_ticket: dict[Any, Row] = {}
+    finished: dict[str, dict[str, Any]] = dict(done)
+    computed = failed = 0
+    notes: list[str] = []
+    last_parquet = time.monotonic()
+    window = 2 * pool.size - 1  # a local pool runs a row when it is submitted: one at a time
+
+    def table() -> list[dict[str, Any]]:
+        return [finished[r.row_id] for r in rows if r.row_id in finished] + others
+
+    queue = list(reversed(todo))
+    total, count = len(rows), len(done)
+    try:
+        while queue or pool.pending():
+            while queue and pool.pending() < window and not (cancel and cancel.cancelled):
+                row = queue.pop()
+                by_ticket[pool.submit(run_row, row)] = row
+            if not pool.pending():
+                break  # cancelled
+            ticket, result, error = pool.next_done()
+            row = by_ticket.pop(ticket)
+            if error is not None:
+                result = lost_row(row, error)
+            finished[row.row_id] = result
+            computed += 1
+            failed += result["status"] == ERROR
+            count += 1
+            write_output(csv_path, table_csv(table()), field="--out")
+            if time.monotonic() - last_parquet > PARQUET_EVERY_S:
+                write_parquet(table(), parquet_path)
+                last_parquet = time.monotonic()
+            if on_row is not None:
+                on_row(result, count, total)
+    finally:
+        if computed or not parquet_path.exists():
+            if not csv_path.exists():
+                write_output(csv_path, table_csv(table()), field="--out")
+            if not write_parquet(table(), parquet_path):
+                notes.append("pyarrow is not installed: wrote the CSV table only")
+    return SweepReport(
+        rows=table(),
+        computed=computed,
+        skipped=sum(r.row_id in done for r in rows),
+        failed=failed,
+        csv=csv_path,
+        parquet=parquet_path if parquet_path.exists() else None,
+        notes=notes,
+    )

@@ -1,0 +1,207 @@
+"""Past one machine: the sweep, audit/harden fan-out and the distributed segment search on a
+Dask LocalCluster of two workers give the answers a local run gives, and a sweep loses no
+finished row when stopped or when a worker dies."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from misdirect import scenarios, solve
+from misdirect.core.attack import prepare
+from misdirect.errors import ProblemError
+from misdirect.solvers.engines.per_state import PerStateRelaxation
+from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
+from misdirect.solvers.engines.segment_search import SegmentSearch
+from misdirect.solvers.engines.subtrees import DistributedSegmentSearch
+from misdirect.solvers.pool import LocalPool
+from misdirect.solvers.status import Status
+
+distributed = pytest.importorskip("distributed")
+from misdirect.distributed import DaskPool, load_sweep, run_sweep  # noqa: E402
+
+SPEC = """
+scenarios:
+  - scenario: random
+    parameters: {states: 7, observations: 5}
+    seeds: [0, 1, 2]
+budgets: [1, 2]
+methods: [exhaustive, branch-and-bound]
+time_limit: 60
+"""
+WHERE = {"time_s", "host", "worker", "pid"}  # where and how long: the rest must agree
+
+
+@pytest.fixture(scope="module")
+def pool():
+    cluster = distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+    )
+    with cluster, distributed.Client(cluster) as client:
+        yield DaskPool(client)
+
+
+def _spec(tmp_path: Path, text: str = SPEC):
+    path = tmp_path / "sweep.yaml"
+    path.write_text(textwrap.dedent(text))
+    return load_sweep(path)
+
+
+def _what(rows):
+    return [{k: v for k, v in row.items() if k not in WHERE} for row in rows]
+
+
+def test_importing_misdirect_does_not_import_dask():
+    code = "import sys, misdirect, misdirect.cli; print(any(m.split('.')[0] in "
+    code += "('dask', 'distributed', 'pyarrow') for m in sys.modules))"
+    found = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert found.stdout.strip() == "False", found.stderr
+
+
+def test_sweep_on_the_cluster_equals_the_local_sweep_row_for_row(tmp_path, pool):
+    spec, folder = _spec(tmp_path)
+    local = run_sweep(spec, folder, tmp_path / "local")
+    remote = run_sweep(spec, folder, tmp_path / "remote", pool=pool)
+    assert len(local.rows) == 3 * 2 * 2 and local.failed == 0
+    assert _what(remote.rows) == _what(local.rows)
+    assert {r["worker"] for r in local.rows} == {"local"}
+    assert all(r["worker"].startswith(("inproc://", "tcp://")) for r in remote.rows)
+    # the two methods are independent: exhaustive enumeration and the search certify one value
+    by_key: dict = {}
+    for row in local.rows:
+        by_key.setdefault((row["instance"], row["budget"]), []).append(row)
+    for pair in by_key.values():
+        assert [r["status"] for r in pair] == ["optimal", "optimal"]
+        assert pair[0]["probability"] == pytest.approx(pair[1]["probability"], abs=1e-9)
+    # the Parquet copy holds the same table
+    import pyarrow.parquet as pq
+
+    assert _what(pq.read_table(remote.parquet).to_pylist()) == _what(remote.rows)
+
+
+def test_a_stopped_sweep_keeps_its_rows_and_resumes(tmp_path):
+    spec, folder = _spec(tmp_path)
+    seen = []
+
+    def stop_after_three(row, done, total):
+        seen.append(row["row_id"])
+        if len(seen) == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(spec, folder, tmp_path / "out", on_row=stop_after_three)
+    from misdirect.distributed.sweep import read_table
+
+    kept = read_table(tmp_path / "out" / "results.csv")
+    assert [r["row_id"] for r in kept] == seen  # every finished row is on disk, complete
+    resumed = run_sweep(spec, folder, tmp_path / "out")
+    assert (resumed.skipped, resumed.computed) == (3, 9)
+    full = run_sweep(spec, folder, tmp_path / "fresh")
+    assert _what(resumed.rows) == _what(full.rows)
+    again = run_sweep(spec, folder, tmp_path / "out")
+    assert (again.skipped, again.computed) == (12, 0)
+
+
+def test_a_worker_killed_mid_sweep_loses_no_row(tmp_path):
+    """A worker process is killed (SIGKILL) while rows run: the scheduler hands its rows to
+    the other worker (the nanny restarts the dead one), and every row ends in the table."""
+    spec, folder = _spec(tmp_path)
+    cluster = distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    )
+    with cluster, distributed.Client(cluster) as client:
+        pids = list(client.run(os.getpid).values())
+        killed = []
+
+        def kill_one(row, done, total):
+            if done == 2 and not killed:
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+
+        report = run_sweep(spec, folder, tmp_path / "out", pool=DaskPool(client), on_row=kill_one)
+    assert killed
+    assert len(report.rows) == 12 and report.failed == 0
+    assert all(r["status"] == "optimal" for r in report.rows)
+    again = run_sweep(spec, folder, tmp_path / "out")
+    assert (again.skipped, again.computed) == (12, 0)
+
+
+def _relaxation(problem, budget):
+    instance = prepare(problem, budget)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    return SegmentRelaxation(instance, relax, threads=1)
+
+
+CASES = [
+    *[(scenarios.random_problem(s, states=8, observations=6), 2) for s in (3, 4, 5)],
+    (scenarios.sensor_grid(6, 4, seed=1, budget=2), 2),
+]
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+def test_the_distributed_search_certifies_the_exhaustive_optimum(case, pool):
+    """Subtrees handed to two workers (enumeration off, so that there is a tree to hand
+    out): the same certified optimum as exhaustive enumeration, an independent method."""
+    problem, budget = CASES[case]
+    expected = solve(problem, method="exhaustive", budgets=[budget]).final
+    assert expected.status == Status.OPTIMAL
+    seg = _relaxation(problem, budget)
+    local = SegmentSearch(seg, budget)
+    assert local.run() == Status.OPTIMAL
+    search = DistributedSegmentSearch(
+        seg, budget, pool, problem=pool.share(problem), max_budget=budget, frontier=2
+    )
+    assert search.run() == Status.OPTIMAL
+    for found in (local, search):
+        assert found.best_value == pytest.approx(expected.probability, abs=1e-9)
+        assert found.open_bound() == pytest.approx(expected.probability, abs=1e-9)
+    if case == len(CASES) - 1:  # the grid's tree is large enough to hand out
+        assert search.tasks
+
+
+def test_a_solve_on_the_cluster_certifies_what_a_local_one_does(pool):
+    problem = scenarios.random_problem(3, states=8, observations=6, budget=2)
+    local = solve(problem, method="branch-and-bound", budgets=[1, 2])
+    remote = solve(problem, method="branch-and-bound", budgets=[1, 2], pool=pool)
+    inline = solve(problem, method="branch-and-bound", budgets=[1, 2], pool=LocalPool())
+    for other in (remote, inline):
+        assert [p.status for p in other.curve] == [p.status for p in local.curve]
+        for a, b in zip(other.curve, local.curve, strict=True):
+            assert a.probability == pytest.approx(b.probability, abs=1e-9)
+
+
+def test_audit_and_harden_on_the_cluster_answer_as_locally(pool):
+    from misdirect.defence import audit, harden
+
+    problem = scenarios.paper_grid(5, budget=2)
+    local, remote = audit(problem), audit(problem, pool=pool)
+    assert [r.to_dict() for r in remote.sensors] == [r.to_dict() for r in local.sensors]
+    assert remote.probability == local.probability
+    local_h = harden(problem, protect_budget=1)
+    remote_h = harden(problem, protect_budget=1, pool=pool)
+    assert remote_h.protection == local_h.protection
+    assert remote_h.value_after == pytest.approx(local_h.value_after, abs=1e-12)
+    assert remote_h.status == local_h.status
+
+
+@pytest.mark.parametrize(
+    ("text", "field"),
+    [
+        ("budgets: [1]\nmethods: [auto]\nproblem: [a.yaml]\n", "problem"),
+        ("budgets: [1]\nmethods: [nope]\nproblems: [a.yaml]\n", "methods"),
+        ("budgets: [-1]\nproblems: [a.yaml]\n", "budgets"),
+        ("budgets: [1]\nscenarios: [{scenario: random, parameters: {size: 3}}]\n", "size"),
+        ("budgets: [1]\n", "problems"),
+    ],
+)
+def test_a_bad_sweep_file_names_the_file_and_the_field(tmp_path, text, field):
+    with pytest.raises(ProblemError) as raised:
+        _spec(tmp_path, text)
+    assert str(tmp_path / "sweep.yaml") in str(raised.value)
+    assert field in str(raised.value)
