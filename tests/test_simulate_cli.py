@@ -103,7 +103,10 @@ def test_simulate_stops_trapped_runs_and_names_outcomes():
         low, high = totals[name]["interval_95"]
         assert low <= expected <= high, (name, totals[name])
     by_state = {(o["kind"], o["state"]): o["runs"] for o in payload["outcomes"]}
-    assert by_state == {("decoy", "decoy"): totals["decoy"]["runs"], ("goal", "goal"): totals["goal"]["runs"]}
+    assert by_state == {
+        ("decoy", "decoy"): totals["decoy"]["runs"],
+        ("goal", "goal"): totals["goal"]["runs"],
+    }
     assert totals["unfinished"]["runs"] == 0
     assert sum(row["runs"] for row in totals.values()) == 40000
     assert payload["mean_steps_finished"] == 2.0

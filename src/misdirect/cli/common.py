@@ -108,9 +108,7 @@ def fmt_alteration(alteration: dict[str, str]) -> str:
     return escape(format_alteration(alteration))
 
 
-def write_text(
-    command: str, text: str, output: Path | None, as_json: bool, **about: Any
-) -> None:
+def write_text(command: str, text: str, output: Path | None, as_json: bool, **about: Any) -> None:
     """Write ``text`` to ``output``, or to standard output when there is none (with --json,
     as the ``content`` of the one JSON object)."""
     if output is not None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
@@ -310,7 +309,9 @@ def export_milp(
     write_model(model, output)
     if as_json:
         print_json(
-            json_output.written_files("export-milp", [output], problem=problem.name, **model.stats())
+            json_output.written_files(
+                "export-milp", [output], problem=problem.name, **model.stats()
+            )
         )
     else:
         note(

@@ -16,12 +16,12 @@ from rich.table import Table
 
 from misdirect.cli.common import (
     INTERRUPTED,
-    flag,
     TERMINATED,
     ProgressBars,
     check_range,
     check_seconds,
     err,
+    flag,
     fmt_alteration,
     note,
     out,
@@ -44,7 +44,7 @@ from misdirect.cli.options import (
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.evaluate import Evaluation, decoy_probability
 from misdirect.core.evaluate import evaluate as evaluate_alteration
-from misdirect.core.model import Alteration, Problem
+from misdirect.core.model import Problem
 from misdirect.core.tolerance import CERTIFY
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, one_line, write_output

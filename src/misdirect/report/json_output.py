@@ -348,11 +348,8 @@ def written_files(command: str, paths: Iterable[str | Path], **fields: Any) -> d
     return document(command, **fields, written=paths)
 
 
-def text_output(
-    command: str, output: Path | None, text: str, **fields: Any
-) -> dict[str, Any]:
+def text_output(command: str, output: Path | None, text: str, **fields: Any) -> dict[str, Any]:
     """A command that writes one text: the file, or, without one, the text as ``content``."""
     if output is not None:
         return document(command, **fields, written=[output])
     return document(command, **fields, content=text)
-
