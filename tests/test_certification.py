@@ -224,7 +224,7 @@ def test_every_method_takes_a_time_limit(method):
     )
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    assert payload["probability"] == pytest.approx(0.860130, abs=5e-7)  # the paper's grid
+    assert payload["value"] == pytest.approx(0.860130, abs=5e-7)  # the paper's grid
 
 
 @pytest.mark.parametrize(
@@ -252,7 +252,7 @@ def test_incremental_honours_threads():
         args += ["--method", "incremental", "--threads", threads, "--json"]
         result = runner.invoke(app, args)
         assert result.exit_code == 0, result.output
-        curves.append([p["probability"] for p in json.loads(result.stdout)["curve"]])
+        curves.append([p["value"] for p in json.loads(result.stdout)["curve"]])
     assert curves[0] == curves[1]
     assert curves[0][1] == pytest.approx(0.719924, abs=5e-7)
 
@@ -278,12 +278,12 @@ def test_cli_honours_a_short_time_limit():
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    values = [p["probability"] for p in payload["curve"]]
+    values = [p["value"] for p in payload["curve"]]
     assert values == sorted(values)
     assert payload["status"] == "time_limit"
     for point in payload["curve"]:
         assert point["upper_bound"] is not None
-        assert point["upper_bound"] >= point["probability"]
+        assert point["upper_bound"] >= point["value"]
         assert point["status"] in ("optimal", "time_limit")
 
 
@@ -403,7 +403,7 @@ def test_ctrl_c_during_a_solve_prints_the_best_answers_so_far():
     assert stderr.decode().count("\n") == 1 and b"interrupted" in stderr
     payload = json.loads(stdout)
     assert payload["interrupted"] is True
-    values = [p["probability"] for p in payload["curve"]]
+    values = [p["value"] for p in payload["curve"]]
     assert values == sorted(values) and len(values) == 8
     assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}
     assert payload["curve"][-1]["status"] == "interrupted"

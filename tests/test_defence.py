@@ -356,11 +356,11 @@ def test_cli_audit_json_and_report(tmp_path, hand_file):
     result = runner.invoke(app, ["audit", str(hand_file), "--budget", "2", "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
-    assert data["probability"] == pytest.approx(0.45, abs=1e-12)
-    assert [p["probability"] for p in data["curve"]] == pytest.approx([0, 0.3, 0.45], abs=1e-12)
+    assert data["value"] == pytest.approx(0.45, abs=1e-12)
+    assert [p["value"] for p in data["curve"]] == pytest.approx([0, 0.3, 0.45], abs=1e-12)
     sensors = {s["observation"]: s for s in data["sensors"]}
     assert sensors["a"]["criticality"] == pytest.approx(0.3, abs=1e-12)
-    assert data["online"]["unlimited_probability"] == pytest.approx(0.45, abs=1e-12)
+    assert data["online"]["unlimited_value"] == pytest.approx(0.45, abs=1e-12)
     assert data["certified"] is True
     out = tmp_path / "report"
     result = runner.invoke(
@@ -381,9 +381,9 @@ def test_cli_harden_json(hand_file):
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
     assert data["protection"] == ["a"] and data["status"] == "optimal"
-    assert data["value_before"] == pytest.approx(0.45, abs=1e-12)
-    assert data["value_after"] == pytest.approx(0.15, abs=1e-12)
-    assert [p["probability"] for p in data["curve"]] == pytest.approx([0.45, 0.15], abs=1e-12)
+    assert data["value_unprotected"] == pytest.approx(0.45, abs=1e-12)
+    assert data["value"] == pytest.approx(0.15, abs=1e-12)
+    assert [p["value"] for p in data["curve"]] == pytest.approx([0.45, 0.15], abs=1e-12)
     # protecting a costs 2 now: only b is affordable within D = 1 (attacker keeps a: 0.3)
     result = runner.invoke(
         app,
@@ -391,7 +391,7 @@ def test_cli_harden_json(hand_file):
          "--protect-cost", "default=1,a=2", "--json"],
     )  # fmt: skip
     data = json.loads(result.stdout)
-    assert data["protection"] == ["b"] and data["value_after"] == pytest.approx(0.3, abs=1e-12)
+    assert data["protection"] == ["b"] and data["value"] == pytest.approx(0.3, abs=1e-12)
 
 
 @pytest.mark.parametrize(

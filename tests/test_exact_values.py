@@ -254,7 +254,7 @@ def test_evaluate_reports_a_proven_bound(tmp_path):
     assert result.exit_code == 0, result.output
     payload = json.loads(result.output)
     assert 0 < payload["error_bound"] <= tolerance.CERTIFY
-    assert _off(payload["probability"], exact) <= payload["error_bound"]
+    assert _off(payload["value"], exact) <= payload["error_bound"]
 
 
 @pytest.mark.parametrize("method", ["exhaustive", "auto"])

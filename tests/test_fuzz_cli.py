@@ -90,7 +90,7 @@ def check_contract(result, path: Path) -> dict | None:
     assert "Traceback" not in result.output, result.output
     if result.exit_code == 0:
         payload = json.loads(result.stdout)
-        probability = payload["probability"]
+        probability = payload["value"]
         assert math.isfinite(probability) and -1e-9 <= probability <= 1 + 1e-9, payload
         return payload
     assert result.exit_code == 2, (result.exit_code, result.output)

@@ -271,7 +271,7 @@ def test_huge_budgets_are_clamped_not_enumerated(method, budget):
     assert len(curve) <= 6 and asked in curve
     if cap in curve:  # the budget asked for is answered exactly like the cap
         assert curve[asked]["alteration"] == curve[cap]["alteration"]
-        assert curve[asked]["probability"] == curve[cap]["probability"]
+        assert curve[asked]["value"] == curve[cap]["value"]
 
 
 def test_huge_budget_in_the_file_is_clamped(tmp_path):
@@ -305,14 +305,14 @@ def test_clamped_range_lists_every_budget_asked():
     assert [point["budget"] for point in curve] == [0, 1, 2, 3, 4, 5, 6, 7]
     for point in curve[5:]:
         assert point["alteration"] == curve[4]["alteration"]
-        assert point["probability"] == curve[4]["probability"]
+        assert point["value"] == curve[4]["value"]
 
 
 def test_budget_within_reach_is_not_clamped():
     result = runner.invoke(app, ["solve", str(TINY), "--budget", "2", "--json"])
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    assert payload["budget"] == 2.0 and "budget_clamped_from" not in payload
+    assert payload["budget"] == 2.0 and payload["budget_clamped_from"] is None
 
 
 # -- memory -------------------------------------------------------------------------------------

@@ -438,9 +438,9 @@ def test_cli_time_limit_json():
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
     assert payload["status"] == "time_limit"
-    raw_bound = payload["curve"][0]["stats"]["bound"]
+    raw_bound = payload["curve"][0].get("stats", payload["stats"])["bound"]
     assert raw_bound >= _grid45_optimum_at_budget_1() - 1e-9
-    assert payload["gap"] == pytest.approx(raw_bound - payload["probability"], abs=1e-12)
+    assert payload["gap"] == pytest.approx(raw_bound - payload["value"], abs=1e-12)
     assert payload["gap"] > 1e-9
 
 
@@ -520,7 +520,7 @@ def test_cli_curve_with_stats():
     )
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    assert [p["probability"] for p in payload["curve"]] == pytest.approx(GRID_OPTIMA, abs=5e-7)
+    assert [p["value"] for p in payload["curve"]] == pytest.approx(GRID_OPTIMA, abs=5e-7)
     for point in payload["curve"]:
         stats = point["stats"]
         assert {
@@ -567,9 +567,9 @@ def test_cli_budgets_list_json():
     curve = payload["curve"]
     assert isinstance(curve, list) and len(curve) == 3
     assert [p["budget"] for p in curve] == [0, 1, 2]
-    assert [p["probability"] for p in curve] == pytest.approx(GRID_OPTIMA[:3], abs=5e-7)
+    assert [p["value"] for p in curve] == pytest.approx(GRID_OPTIMA[:3], abs=5e-7)
     assert all(p["cost"] <= p["budget"] for p in curve)
-    assert payload["probability"] == pytest.approx(GRID_OPTIMA[2], abs=5e-7)
+    assert payload["value"] == pytest.approx(GRID_OPTIMA[2], abs=5e-7)
     assert payload["budget"] == 2
 
 

@@ -59,8 +59,8 @@ def test_cli_evaluate_matches_spec(budget):
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    assert payload["probability"] == pytest.approx(value, abs=5e-7)
-    assert payload["baseline_probability"] == pytest.approx(0.084957, abs=5e-7)
+    assert payload["value"] == pytest.approx(value, abs=5e-7)
+    assert payload["baseline_value"] == pytest.approx(0.084957, abs=5e-7)
     assert payload["cost"] == len(changes)
 
 
@@ -82,11 +82,11 @@ def test_cli_solve_curve_matches_spec():
     payload = json.loads(result.stdout)
     assert payload["status"] == "optimal"
     assert payload["budget"] == 4
-    assert payload["probability"] == pytest.approx(0.863622, abs=5e-7)
-    assert payload["baseline_probability"] == pytest.approx(0.084957, abs=5e-7)
+    assert payload["value"] == pytest.approx(0.863622, abs=5e-7)
+    assert payload["baseline_value"] == pytest.approx(0.084957, abs=5e-7)
     assert [p["budget"] for p in payload["curve"]] == [0, 1, 2, 3, 4]
     for point in payload["curve"]:
-        assert point["probability"] == pytest.approx(GRID_OPTIMA[point["budget"]][0], abs=5e-7)
+        assert point["value"] == pytest.approx(GRID_OPTIMA[point["budget"]][0], abs=5e-7)
     assert len(payload["alteration"]) == payload["cost"] <= 4
     assert {"method", "time_s", "cost", "alteration"} <= payload.keys()
 
@@ -117,5 +117,5 @@ def test_cli_knapsack_solve():
     )
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    assert payload["probability"] == pytest.approx(0.25, abs=1e-12)
+    assert payload["value"] == pytest.approx(0.25, abs=1e-12)
     assert payload["alteration"] == {"o1": "o_club", "o2": "o_club", "o4": "o_club"}

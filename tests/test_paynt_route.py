@@ -22,6 +22,7 @@ from typer.testing import CliRunner
 
 from misdirect import decoy_probability, load_problem, solve
 from misdirect.cli import app
+from result_schema import checked
 
 stormpy = pytest.importorskip("stormpy")
 try:
@@ -231,7 +232,8 @@ def test_cli_synthesize_writes_what_paynt_writes(tmp_path):
         ],
     )
     assert result.exit_code == 0, result.output
-    report = json.loads(result.stdout)
+    report = checked(result.stdout)  # the result schema (misdirect-result/1)
+    assert report["written"] == [str(output)]
     fsc = json.loads(output.read_text())
     assert "grid_cmd_0" in fsc["action_labels"] and "__no_label__" in fsc["action_labels"]
     problem = load_problem(_problem(tmp_path, "grid", decoy="goal"))

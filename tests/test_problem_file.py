@@ -119,7 +119,7 @@ def test_scenario_command_writes_loadable_files(tmp_path):
     )
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["solve", str(sack), "--json"])
-    assert json.loads(result.stdout)["probability"] == pytest.approx(0.25)
+    assert json.loads(result.stdout)["value"] == pytest.approx(0.25)
     rand = tmp_path / "random.yaml"
     result = runner.invoke(app, ["scenario", "random", "--seed", "3", "-o", str(rand)])
     assert result.exit_code == 0, result.output

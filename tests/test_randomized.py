@@ -337,7 +337,7 @@ def test_cli_evaluate_solve_simulate_show_convert(tmp_path):
     path = _tiny(tmp_path)
     result = runner.invoke(app, ["evaluate", str(path), "--json"])
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["probability"] == pytest.approx(57 / 160, abs=1e-12)
+    assert json.loads(result.stdout)["value"] == pytest.approx(57 / 160, abs=1e-12)
     result = runner.invoke(app, ["solve", str(path), "--json"])
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["simulate", str(path), "--runs", "2000", "--json"])

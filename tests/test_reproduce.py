@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 import misdirect.cli as cli
 from misdirect.cli import app
 from misdirect.report import figures
+from result_schema import checked
 
 ROOT = Path(__file__).resolve().parents[1]
 # SPEC §3: exact optima of the 5x5 grid for budgets 0..7
@@ -54,7 +55,7 @@ def results(tmp_path_factory):
             app, ["reproduce", "--quick", "--out", str(folder), "--time-limit", "5", "--json"]
         )
     assert outcome.exit_code == 0, outcome.output
-    return folder, json.loads(outcome.stdout), list(_RecordingProgress.calls)
+    return folder, checked(outcome.stdout), list(_RecordingProgress.calls)
 
 
 def _rows(folder, name):
@@ -405,3 +406,11 @@ def test_bad_reproduce_options(tmp_path, args, field):
     outcome = runner.invoke(app, ["reproduce", "--out", str(tmp_path), *args, "--json"])
     assert outcome.exit_code == 2, outcome.output
     assert json.loads(outcome.stdout)["error"]["field"] == field
+
+
+def test_json_lists_every_file_written(results):
+    folder, document, _ = results
+    assert document["command"] == "reproduce"
+    written = [Path(p) for p in document["written"]]
+    assert {"report.md", "grid.csv", "grid.md", "scalability.png"} <= {p.name for p in written}
+    assert all(p.parent == folder and p.exists() for p in written)

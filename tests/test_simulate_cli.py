@@ -8,6 +8,7 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from misdirect.cli import app
+from result_schema import checked
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
 runner = CliRunner()
@@ -34,14 +35,12 @@ def test_simulate_trap_brackets_hand_value(tmp_path):
         ],
     )
     assert result.exit_code == 0, result.output
-    payload = json.loads(result.stdout)
-    low, high = payload["outcomes"]["decoy"]["interval_95"]
+    payload = checked(result.stdout)
+    low, high = payload["totals"]["decoy"]["interval_95"]
     assert low <= 0.4 <= high  # hand value: 0.6·0.5 + 0.4·0.25
-    assert (
-        payload["exact_decoy_probability"] == 0.4
-        or abs(payload["exact_decoy_probability"] - 0.4) < 1e-12
-    )
-    goal_low, goal_high = payload["outcomes"]["goal"]["interval_95"]
+    assert payload["value"] == 0.4 or abs(payload["value"] - 0.4) < 1e-12
+    assert payload["written"] == [str(path)]
+    goal_low, goal_high = payload["totals"]["goal"]["interval_95"]
     assert goal_low <= 0.6 <= goal_high
     rows = list(csv.DictReader(path.open()))
     assert sorted({int(r["run"]) for r in rows}) == [0, 1, 2, 3, 4]
@@ -98,15 +97,18 @@ def test_simulate_stops_trapped_runs_and_names_outcomes():
         app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "40000", "--seed", "5", "--json"]
     )
     assert result.exit_code == 0, result.output
-    payload = json.loads(result.stdout)
-    outcomes = payload["outcomes"]
+    payload = checked(result.stdout)
+    totals = payload["totals"]
     for name, expected in (("decoy", 0.1), ("goal", 0.3), ("trapped", 0.6)):
-        low, high = outcomes[name]["interval_95"]
-        assert low <= expected <= high, (name, outcomes[name])
-    assert outcomes["decoy"]["states"] == {"decoy": outcomes["decoy"]["runs"]}
-    assert outcomes["goal"]["states"] == {"goal": outcomes["goal"]["runs"]}
-    assert outcomes["unfinished"]["runs"] == payload["unfinished"] == 0
-    assert sum(row["runs"] for row in outcomes.values()) == 40000
+        low, high = totals[name]["interval_95"]
+        assert low <= expected <= high, (name, totals[name])
+    by_state = {(o["kind"], o["state"]): o["runs"] for o in payload["outcomes"]}
+    assert by_state == {
+        ("decoy", "decoy"): totals["decoy"]["runs"],
+        ("goal", "goal"): totals["goal"]["runs"],
+    }
+    assert totals["unfinished"]["runs"] == 0
+    assert sum(row["runs"] for row in totals.values()) == 40000
     assert payload["mean_steps_finished"] == 2.0
     text = runner.invoke(app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "2000"]).stdout
     assert "trapped: never stops" in text and "finished runs" in text

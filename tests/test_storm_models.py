@@ -532,12 +532,12 @@ def test_simulate_storm_maze_stops_runs_at_dead_ends(tmp_path):
     result = runner.invoke(app, ["simulate", str(path), "--runs", "26000", "--json"])
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
-    outcomes = payload["outcomes"]
+    totals = payload["totals"]
     for name, expected in (("decoy", 3 / 13), ("trapped", 10 / 13)):
-        low, high = outcomes[name]["interval_95"]
-        assert low <= expected <= high, (name, outcomes[name])
-    assert list(outcomes["decoy"]["states"]) == ["s=13,o=7"]
-    assert outcomes["goal"]["runs"] == 0 and payload["unfinished"] == 0
+        low, high = totals[name]["interval_95"]
+        assert low <= expected <= high, (name, totals[name])
+    assert [o["state"] for o in payload["outcomes"] if o["kind"] == "decoy"] == ["s=13,o=7"]
+    assert totals["goal"]["runs"] == 0 and totals["unfinished"]["runs"] == 0
     assert payload["mean_steps_finished"] == pytest.approx(3.0, abs=0.05)
 
 

@@ -255,7 +255,7 @@ def test_cli_names_the_objective(two_branches, tmp_path):
     result = runner.invoke(app, ["solve", str(path), "--json"])
     payload = json.loads(result.stdout)
     assert payload["objective"] == "expected_decoy_weight"
-    assert payload["probability"] == pytest.approx(0.5)
+    assert payload["value"] == pytest.approx(0.5)
     shown = runner.invoke(app, ["solve", str(path)])
     assert "expected decoy weight" in shown.output
 

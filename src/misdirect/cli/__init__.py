@@ -79,7 +79,12 @@ app.add_typer(controller_app, name="controller")
 
 def _add(group: typer.Typer, command: Callable[..., None], name: str | None = None) -> None:
     """Register ``command``, its errors turned into one line and an exit code."""
-    group.command(name)(handle_errors(command))
+    typed = name or command.__name__
+    if group is scenario_app:
+        typed = f"scenario {typed}"
+    elif group is controller_app:
+        typed = f"controller {typed}"
+    group.command(name)(handle_errors(command, typed))
 
 
 # in the order of misdirect --help

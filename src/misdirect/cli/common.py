@@ -25,6 +25,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from misdirect.core.model import format_alteration
 from misdirect.errors import MisdirectError, OptionError, ProblemError
 from misdirect.io.files import one_line, write_output
+from misdirect.report import json_output
 from misdirect.solvers.deadline import CancelToken
 
 out = Console()
@@ -80,7 +81,9 @@ def as_flags(text: str) -> str:
 
 
 def print_json(payload: dict[str, Any]) -> None:
-    """The one JSON object of ``--json`` on stdout."""
+    """The one JSON object of ``--json`` on stdout: a document of
+    :mod:`misdirect.report.json_output`, which names its schema."""
+    assert payload.get("schema") == json_output.SCHEMA, "built by report.json_output"
     sys.stdout.write(json.dumps(payload, indent=2, default=_json_default) + "\n")
 
 
@@ -105,16 +108,14 @@ def fmt_alteration(alteration: dict[str, str]) -> str:
     return escape(format_alteration(alteration))
 
 
-def write_text(text: str, output: Path | None, as_json: bool, **about: Any) -> None:
+def write_text(command: str, text: str, output: Path | None, as_json: bool, **about: Any) -> None:
     """Write ``text`` to ``output``, or to standard output when there is none (with --json,
     as the ``content`` of the one JSON object)."""
     if output is not None:
         write_output(output, text)  # atomic; a bad path or a failed write is one line
-        if as_json:
-            print_json({"written": str(output), **about})
-    elif as_json:
-        print_json({"written": None, **about, "content": text})
-    else:
+    if as_json:
+        print_json(json_output.text_output(command, output, text, **about))
+    elif output is None:
         sys.stdout.write(text)
 
 
@@ -177,13 +178,14 @@ def stop_gracefully() -> Iterator[StopRequest]:
             signal.signal(sig, handler)
 
 
-def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
+def handle_errors(command: Callable[..., None], name: str | None = None) -> Callable[..., None]:
     """Turn library errors into exit code 2 and one readable line, never a traceback;
-    Ctrl-C and SIGTERM into one line and exit code 130 or 143."""
+    Ctrl-C and SIGTERM into one line and exit code 130 or 143. ``name``: the command as typed
+    (``scenario knapsack``), the ``command`` of its ``--json`` error."""
 
     @wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> None:
-        as_json = kwargs.get("as_json", False)
+        as_json: bool | str = kwargs.get("as_json", False) and (name or command.__name__)
         try:
             with _signals_as_exceptions():
                 command(*args, **kwargs)
@@ -222,11 +224,13 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
     return wrapper
 
 
-def fail(message: str, code: int, as_json: bool, **context: Any) -> None:
-    """One error line on stderr (and the error object on stdout with --json), then exit."""
+def fail(message: str, code: int, as_json: bool | str, **context: Any) -> None:
+    """One error line on stderr (and the error document on stdout with --json: ``as_json``
+    is then the command's name), then exit."""
     message = one_line(message)  # a name with a newline must not split the one line
     if as_json:
-        print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
+        command = as_json if isinstance(as_json, str) else None
+        print_json(json_output.error_document(command, message, **context))
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 

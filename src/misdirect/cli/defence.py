@@ -22,6 +22,7 @@ from misdirect.cli.common import (
 from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
+from misdirect.report import json_output
 
 if TYPE_CHECKING:
     from misdirect.defence import AuditResult, HardenResult
@@ -67,7 +68,7 @@ def audit(
 
         written = [str(p) for p in write_audit_report(problem, result, output)]
     if as_json:
-        print_json({**result.to_dict(), "written": written})
+        print_json(json_output.audit(result, written=written))
     elif output is not None:
         note(f"wrote {len(written)} files to {output}/ (report.md, curve.csv, sensors.csv, …)")
     else:
@@ -180,7 +181,7 @@ def harden(
             error.field = "--protect-cost"
         raise
     if as_json:
-        print_json(result.to_dict())
+        print_json(json_output.harden(result, objective=problem.objective.kind))
     else:
         _print_harden(result)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
@@ -28,6 +27,7 @@ from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, write_output
 from misdirect.io.problem_file import json_schema, write_problem
+from misdirect.report import json_output
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers.milp.backends import write_model
 from misdirect.solvers.milp.solver import build_formulation
@@ -39,11 +39,13 @@ RandomSeedOption = Annotated[int, typer.Option(help="Random seed.")]
 # -- scenario * ---------------------------------------------------------------------------------
 
 
-def _write_scenario(problem: Problem, output: Path, as_json: bool) -> None:
+def _write_scenario(problem: Problem, output: Path, as_json: bool, command: str) -> None:
     write_problem(problem, output)  # atomic: nothing is reported unless the file is in place
     if as_json:
         print_json(
-            {"written": str(output), "problem": problem.name, "states": problem.pomdp.n_states}
+            json_output.written_files(
+                command, [output], problem=problem.name, states=problem.pomdp.n_states
+            )
         )
     else:
         note(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
@@ -60,7 +62,7 @@ def scenario_paper_grid(
     check_range("--size", size, 5, MAX_GRID_SIZE)
     if not (math.isfinite(budget) and budget >= 0):
         raise ProblemError(f"must be a non-negative number, got {budget}", field="--budget")
-    _write_scenario(paper_grid(size, budget=budget), output, as_json)
+    _write_scenario(paper_grid(size, budget=budget), output, as_json, "scenario paper-grid")
 
 
 def scenario_knapsack(
@@ -73,7 +75,7 @@ def scenario_knapsack(
     """The knapsack reduction of the NP-hardness proof (paper Sec. V)."""
     check_output_path(output)
     problem = knapsack(numbers(weights, "--weights"), numbers(values, "--values"), capacity)
-    _write_scenario(problem, output, as_json)
+    _write_scenario(problem, output, as_json, "scenario knapsack")
 
 
 def scenario_sensor_grid(
@@ -108,7 +110,7 @@ def scenario_sensor_grid(
     problem = sensor_grid(
         size, sensors, seed=seed, memory=memory, costs=costs, budget=budget, goal=goal
     )
-    _write_scenario(problem, output, as_json)
+    _write_scenario(problem, output, as_json, "scenario sensor-grid")
 
 
 def scenario_drone(
@@ -125,7 +127,7 @@ def scenario_drone(
     of observations; docs/sensor-grid.md)."""
     check_output_path(output)
     problem = drone(size, agents=agents, rows=rows, radius=radius, slip=slip, budget=budget)
-    _write_scenario(problem, output, as_json)
+    _write_scenario(problem, output, as_json, "scenario drone")
 
 
 def scenario_random(
@@ -152,7 +154,7 @@ def scenario_random(
     problem = random_problem(
         seed, states=states, actions=actions, observations=observations, nodes=nodes
     )
-    _write_scenario(problem, output, as_json)
+    _write_scenario(problem, output, as_json, "scenario random")
 
 
 # -- controller synthesize ----------------------------------------------------------------------
@@ -187,14 +189,15 @@ def controller_synthesize(
     nodes = result.document.get("num_nodes")
     if as_json:
         print_json(
-            {
-                "written": str(output),
-                "value": result.value,
-                "property": result.property,
-                "nodes": nodes,
-                "memory": result.memory,
-                "seconds": result.seconds,
-            }
+            json_output.written_files(
+                "controller synthesize",
+                [output],
+                value=result.value,
+                property=result.property,
+                nodes=nodes,
+                memory=result.memory,
+                time_s=result.seconds,
+            )
         )
         return
     value = "not reported" if result.value is None else f"{result.value:.6g}"
@@ -236,7 +239,8 @@ def convert(
         wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
         if output.suffix.lower() not in wanted:
             raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
-    write_text(_converted(problem, to), output, as_json, format=to.value)
+    text = _converted(problem, to)
+    write_text("convert", text, output, as_json, problem=problem.name, format=to.value)
     if output is not None and not as_json:
         note(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
 
@@ -274,7 +278,7 @@ def export_fsc(
         check_output_path(output)
     problem = source.load()
     text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
-    write_text(text, output, as_json, format="paynt")
+    write_text("export-fsc", text, output, as_json, problem=problem.name, format="paynt")
     if output is not None and not as_json:
         note(f"wrote {output} ({problem.controller.n_nodes} nodes)")
 
@@ -304,7 +308,11 @@ def export_milp(
     model = build_formulation(problem, formulation, budget)
     write_model(model, output)
     if as_json:
-        print_json({"written": str(output), **model.stats()})
+        print_json(
+            json_output.written_files(
+                "export-milp", [output], problem=problem.name, **model.stats()
+            )
+        )
     else:
         note(
             f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
@@ -315,13 +323,17 @@ def export_milp(
 
 def schema(
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Write to a file.")] = None,
+    result: Annotated[
+        bool,
+        typer.Option(
+            "--result", help="The schema of the --json output (misdirect-result/1) instead."
+        ),
+    ] = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Print the JSON Schema of the problem file format."""
-    text = json.dumps(json_schema(), indent=2) + "\n"
-    if output is None:
-        sys.stdout.write(text)
-    else:
-        write_output(output, text)
-        if as_json:
-            print_json({"written": str(output)})
+    """Print the JSON Schema of the problem file format (or, with --result, of --json)."""
+    document = json_output.result_schema() if result else json_schema()
+    text = json.dumps(document, indent=2) + "\n"
+    if output is not None:
+        check_output_path(output)
+    write_text("schema", text, output, as_json)

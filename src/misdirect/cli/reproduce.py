@@ -13,6 +13,7 @@ from misdirect.cli.common import ProgressBars, check_seconds, out, print_json
 from misdirect.cli.options import MAX_GRID_SIZE, JsonOption
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
+from misdirect.report import json_output
 from misdirect.solvers.milp.backends import BACKENDS
 
 if TYPE_CHECKING:
@@ -77,14 +78,22 @@ def _parse_sizes(sizes: str | None) -> list[int] | None:
 
 
 def _report_payload(report: ReproduceReport) -> dict[str, object]:
-    return {
-        "out": str(report.out),
-        "mode": report.mode,
-        "time_s": report.time_s,
-        "summary": report.summary,
-        "tables": {name: f"{name}.csv" for name in report.tables},
-        "figures": {name: [p.name for p in paths] for name, paths in report.figures.items()},
-    }
+    """The tables and figures by name (relative to ``out``), and every file written."""
+    names = [f"{name}{suffix}" for name in report.tables for suffix in (".csv", ".md")]
+    names += [p.name for paths in report.figures.values() for p in paths]
+    written = [report.out / name for name in names if (report.out / name).exists()]
+    if (report.out / "report.md").exists():
+        written.append(report.out / "report.md")
+    return json_output.document(
+        "reproduce",
+        out=str(report.out),
+        mode=report.mode,
+        time_s=report.time_s,
+        summary=report.summary,
+        tables={name: f"{name}.csv" for name in report.tables},
+        figures={name: [p.name for p in paths] for name, paths in report.figures.items()},
+        written=written,
+    )
 
 
 def _print_report(report: ReproduceReport) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import signal
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -21,6 +22,7 @@ from misdirect.cli.common import (
     check_range,
     check_seconds,
     err,
+    flag,
     fmt_alteration,
     note,
     out,
@@ -47,9 +49,11 @@ from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.tolerance import CERTIFY
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, one_line, write_output
+from misdirect.report import json_output
 from misdirect.solvers import SOLVERS
 from misdirect.solvers.milp.backends import BACKENDS
 from misdirect.solvers.milp.solver import FORMULATIONS
+from misdirect.solvers.options import MILP_OPTIONS
 from misdirect.solvers.run import SolveResult
 from misdirect.solvers.run import solve as solve_problem
 from misdirect.solvers.stats import AutoStats, MethodStats, MilpStats
@@ -72,7 +76,7 @@ def evaluate(source: ProblemSource, alter: AlterOption = None, as_json: JsonOpti
         else decoy_probability(problem, problem.identity())
     )
     if as_json:
-        print_json({"problem": problem.name, **result.to_dict(), "baseline_probability": baseline})
+        print_json(json_output.evaluation(problem, result, baseline))
     else:
         _print_evaluation(result, baseline, problem)
         _print_notes(result.notes)
@@ -129,13 +133,15 @@ def solve(
     ] = None,
     budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
     method: Annotated[
-        str,
+        str | None,
         typer.Option(
-            help=f"Method: {', '.join(SOLVERS)} (auto: enumerate small alteration spaces, "
-            "with low-rank updates where it can, else branch-and-bound, or the MILP on "
-            "knapsack-like models; all exact)."
+            help=f"Method: {', '.join(SOLVERS)} (default auto: enumerate small alteration "
+            "spaces, with low-rank updates where it can, else branch-and-bound, or the MILP "
+            "on knapsack-like models; all exact). A MILP option (--solver, --formulation, "
+            "--mip-gap, --verbose) without --method means --method milp.",
+            show_default=False,
         ),
-    ] = "auto",
+    ] = None,
     solver: Annotated[
         str | None, typer.Option(help=f"MILP backend: {', '.join(BACKENDS)} (default highs).")
     ] = None,
@@ -199,6 +205,9 @@ def solve(
             "cannot be combined with --json: the solver's log goes to stdout", field="--verbose"
         )
     given: dict[str, Any] = {k: v for k, v in milp_options.items() if v is not None}
+    method, implied = milp_method(method, given)
+    if implied and not (quiet or as_json):
+        _print_notes([implied])
     check_workers(workers)
     if (cluster is not None or workers is not None) and method not in ("auto", "branch-and-bound"):
         field = "--cluster" if cluster is not None else "--workers"
@@ -212,11 +221,31 @@ def solve(
             given["pool"] = pool
         result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
     if as_json:
-        print_json(result.to_dict())
+        print_json(json_output.solve(result, notes=[implied] if implied else []))
     else:
         _print_solve(result, problem)
         _print_notes(result.notes)
     _finish_solve(result, received)
+
+
+def milp_method(method: str | None, given: dict[str, Any]) -> tuple[str, str | None]:
+    """The method to run, and the note saying so when a MILP option chose it.
+
+    A MILP-only flag means what it says: without ``--method`` it selects the MILP (auto
+    would often not run one, and the flag would silently do nothing); with another method
+    named, it is refused in one line."""
+    flags = [flag(name) for name in MILP_OPTIONS if name in given]
+    if not flags:
+        return method or "auto", None
+    if method is None:
+        return "milp", f"{', '.join(flags)} implies --method milp"
+    if method != "milp":
+        raise ProblemError(
+            f"is a MILP option: it applies to --method milp only, not --method {method} "
+            "(leave out --method to run the MILP)",
+            field=flags[0],
+        )
+    return method, None
 
 
 def _run_solve(
@@ -359,10 +388,21 @@ def simulate(
     problem = source.load()
     alpha = alteration(problem, alter)
     record = samples if trajectories is not None else 0
+    began = time.perf_counter()
     result = run_simulation(
         problem, alpha, runs=runs, seed=seed, max_steps=max_steps, record=record
     )
-    payload = _simulation_payload(problem, alpha, result, runs, seed, max_steps)
+    exact = decoy_probability(problem.unweighted(), alpha)  # a run hits a decoy or not
+    payload = json_output.simulation(
+        problem,
+        problem.changed_observations(alpha),
+        result,
+        exact=exact,
+        seed=seed,
+        max_steps=max_steps,
+        time_s=time.perf_counter() - began,
+        written=[] if trajectories is None else [trajectories],
+    )
     if trajectories is not None:
         _write_trajectories(result.trajectories, trajectories)
     if as_json:
@@ -449,10 +489,10 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
         "trapped": "trapped: never stops",
         "unfinished": f"unfinished after {max_steps:,} steps",
     }
-    for name, row in payload["outcomes"].items():
+    for name, row in payload["totals"].items():
         if name in ("trapped", "unfinished") and row["runs"] == 0:
             continue
-        states = row.get("states", {})
+        states = {o["state"]: o["runs"] for o in payload["outcomes"] if o["kind"] == name}
         listed = ", ".join(
             f"{state} ({hits:,})" if len(states) > 1 else state for state, hits in states.items()
         )
@@ -460,7 +500,7 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
             escape(labels[name]),
             escape(listed),
             f"{row['runs']:,}",
-            f"{row['frequency']:.4f}",
+            f"{row['probability']:.4f}",
             f"[{row['interval_95'][0]:.4f}, {row['interval_95'][1]:.4f}]",
         )
     out.print(table)
@@ -469,7 +509,7 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
     out.print(
         f"alteration {fmt_alteration(payload['alteration'])} · mean steps "
         f"{result.mean_steps:.2f} (over the {finished:,} finished runs, decoy or goal) · "
-        f"exact Pr(decoy) {payload['exact_decoy_probability']:.6f} ({verdict} the interval)",
+        f"exact Pr(decoy) {payload['value']:.6f} ({verdict} the interval)",
         highlight=False,
     )
 
@@ -493,6 +533,6 @@ def show(
     problem = source.load()
     written = draw(problem, alteration(problem, alter), output)
     if as_json:
-        print_json({"written": str(written)})
+        print_json(json_output.written_files("show", [written], problem=problem.name))
     else:
         note(f"wrote {written}")
