@@ -205,3 +205,25 @@ def test_a_bad_sweep_file_names_the_file_and_the_field(tmp_path, text, field):
         _spec(tmp_path, text)
     assert str(tmp_path / "sweep.yaml") in str(raised.value)
     assert field in str(raised.value)
+
+
+def test_the_sweep_command_prints_a_result_document_and_resumes(tmp_path):
+    """`misdirect sweep --json` follows misdirect-result/1; a second run computes nothing (6
+    rows: 3 seeds x 2 budgets x 1 method)."""
+    from typer.testing import CliRunner
+
+    from misdirect.cli import app
+    from result_schema import checked
+
+    spec = tmp_path / "sweep.yaml"
+    spec.write_text(textwrap.dedent(SPEC).replace("[exhaustive, branch-and-bound]", "[exhaustive]"))
+    out = tmp_path / "out"
+    runner = CliRunner()
+    first = runner.invoke(app, ["sweep", str(spec), "-o", str(out), "--json"])
+    assert first.exit_code == 0, first.output
+    document = checked(first.stdout)
+    assert document["command"] == "sweep"
+    assert (document["rows"], document["computed"], document["skipped"]) == (6, 6, 0)
+    assert str(out / "results.csv") in document["written"]
+    again = checked(runner.invoke(app, ["sweep", str(spec), "-o", str(out), "--json"]).stdout)
+    assert (again["rows"], again["computed"], again["skipped"]) == (6, 0, 6)

@@ -10,6 +10,7 @@ import typer
 
 from misdirect.cli.common import ProgressBars, check_range, note, print_json, stop_gracefully
 from misdirect.cli.options import JsonOption
+from misdirect.report import json_output
 
 ClusterOption = Annotated[
     str | None,
@@ -68,17 +69,19 @@ def sweep(
                 bars.track("sweep", done, total, detail=detail)
 
         report = run_sweep(loaded, folder, out, pool=pool, on_row=on_row, cancel=stop.token)
-    summary = {
-        "rows": len(report.rows),
-        "computed": report.computed,
-        "skipped": report.skipped,
-        "failed": report.failed,
-        "csv": str(report.csv),
-        "parquet": None if report.parquet is None else str(report.parquet),
-        "notes": report.notes,
-    }
     if as_json:
-        print_json(summary)
+        written = [report.csv] + ([] if report.parquet is None else [report.parquet])
+        print_json(
+            json_output.document(
+                "sweep",
+                rows=len(report.rows),
+                computed=report.computed,
+                skipped=report.skipped,
+                failed=report.failed,
+                written=written,
+                notes=report.notes,
+            )
+        )
     else:
         note(
             f"{report.computed} rows computed, {report.skipped} skipped (already done), "
