@@ -48,6 +48,7 @@ from misdirect.io.paynt import (
     unmet_rule_warning,
 )
 from misdirect.io.storm import StormPomdp, load_storm_pomdp
+from misdirect.io.storm_guard import run_isolated
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
@@ -537,7 +538,21 @@ def _compile_decoy(
 
 
 def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
-    """Resolve names and check consistency; returns the array model."""
+    """Resolve names and check consistency; returns the array model.
+
+    A PRISM or DRN model is read by Storm, native code that a malformed file can crash: that
+    whole compilation runs in a child process (:func:`~misdirect.io.storm_guard.run_isolated`),
+    which hands back the finished Problem, so a crash becomes one error naming the file."""
+    if isinstance(spec.pomdp, StormPomdpSpec) and spec.grid is None:
+        model = spec.pomdp.prism or spec.pomdp.drn or ""
+        kind = "prism" if spec.pomdp.prism is not None else "drn"
+        return run_isolated(
+            _compile_problem, spec, source, name=Path(model).name, field=f"pomdp.{kind}"
+        )
+    return _compile_problem(spec, source)
+
+
+def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     base = Path(source).parent if source is not None else None
     enabled = None  # Storm's enabled actions, when disabled ones must be forbidden
     aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)
