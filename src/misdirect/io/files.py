@@ -287,8 +287,17 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
             self.anchors[event.anchor] = node
             self.anchor_sizes[event.anchor] = self.nodes - before
 
+    def construct_written_int(self, node: Any) -> int:
+        """An integer, remembering how it was written when that is not how Python writes it
+        (``010``, YAML 1.1's octal 8): a name written so is read as written."""
+        value = SafeConstructor.construct_yaml_int(self, node)
+        return WrittenInt(value, node.value) if node.value != str(value) else value
+
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         if isinstance(node, MappingNode):
+            # keys are names or field names: text as written (``010`` stays "010", ``1`` is
+            # "1", so that 1 and "1" are one key, reported twice), never YAML's numbers
+            node.value = [(_as_text(key_node), value_node) for key_node, value_node in node.value]
             seen: dict[Any, int] = {}
             for key_node, _ in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge":
@@ -302,6 +311,32 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
                 except TypeError:
                     continue  # an unhashable key: BaseConstructor reports it
         return super().construct_mapping(node, deep=deep)
+
+
+BoundedSafeLoader.add_constructor("tag:yaml.org,2002:int", BoundedSafeLoader.construct_written_int)
+
+_TEXT_TAGS = {f"tag:yaml.org,2002:{kind}" for kind in ("int", "float", "bool", "null", "timestamp")}
+
+
+class WrittenInt(int):
+    """A YAML integer with the text it was written as (``010``), for names."""
+
+    written: str
+
+    def __new__(cls, value: int, written: str) -> WrittenInt:
+        number = super().__new__(cls, value)
+        number.written = written
+        return number
+
+
+def _as_text(node: Any) -> Any:
+    """A plain scalar key that YAML would read as a number, a boolean, null or a date, as the
+    text it was written."""
+    if isinstance(node, ScalarNode) and not node.style and node.tag in _TEXT_TAGS:
+        return ScalarNode(
+            "tag:yaml.org,2002:str", node.value, node.start_mark, node.end_mark, style=None
+        )
+    return node
 
 
 class _LimitError(yaml.YAMLError):

@@ -56,12 +56,13 @@ SUM_TOLERANCE = tolerance.STOCHASTIC
 
 
 def _name(value: Any) -> Any:
-    """Names are strings; YAML turns ``1`` into an int, which we accept, and ``yes`` into a bool,
-    which we refuse with a hint (quote it)."""
+    """Names are text: YAML turns ``1`` into an int, which we accept as "1", ``010`` into the
+    octal 8, which we read as written ("010", never merged with a name ``8``), and ``yes``
+    into a bool, which we refuse with a hint (quote it)."""
     if isinstance(value, bool) or value is None:
         raise ValueError(f"a name must be a string; YAML read {value!r} (quote it)")
     if isinstance(value, int):
-        return str(value)
+        return getattr(value, "written", str(value))
     return value
 
 
@@ -397,6 +398,7 @@ def parse_spec(document: Any) -> ProblemFileV1:
         raise ProblemError(
             f"expected format: {FORMAT}, got {document.get('format')!r}", field="format"
         )
+    _check_key_names(document)
     try:
         return ProblemFileV1.model_validate(document)
     except ValidationError as error:
@@ -406,6 +408,31 @@ def parse_spec(document: Any) -> ProblemFileV1:
         if first["type"] == "extra_forbidden":
             reason = "unknown field (check the spelling)"
         raise ProblemError(reason, field=_location(first["loc"])) from None
+
+
+def _check_key_names(document: dict) -> None:
+    """Keys are names, and names are text: a mapping (built in Python, say) whose keys ``1``
+    and ``"1"`` would become one name is refused, not silently merged. (The YAML reader keeps
+    every key as written, so a file reports such keys as duplicates.)"""
+    pending: list[tuple[Any, str]] = [(document, "")]
+    while pending:
+        value, where = pending.pop()
+        if isinstance(value, list):  # of dicts (rules): lists of scalars hold no keys
+            pending.extend((v, f"{where}[{i}]") for i, v in enumerate(value) if type(v) is dict)
+            continue
+        if not all(type(key) is str for key in value):
+            seen: dict[str, Any] = {}
+            for key in value:
+                text = key if isinstance(key, str) else getattr(key, "written", str(key))
+                if text in seen:
+                    raise ProblemError(
+                        f"keys {seen[text]!r} and {key!r} are the same name {text!r}",
+                        field=where.lstrip(".") or None,
+                    )
+                seen[text] = key
+        pending.extend(
+            (item, f"{where}.{key}") for key, item in value.items() if type(item) in (dict, list)
+        )
 
 
 def load_problem(path: str | Path) -> Problem:
