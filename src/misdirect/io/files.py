@@ -313,7 +313,10 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
         return super().construct_mapping(node, deep=deep)
 
 
-BoundedSafeLoader.add_constructor("tag:yaml.org,2002:int", BoundedSafeLoader.construct_written_int)
+# types-PyYAML types add_constructor for loaders, not for a constructor class of our own
+BoundedSafeLoader.add_constructor(  # type: ignore[type-var]
+    "tag:yaml.org,2002:int", BoundedSafeLoader.construct_written_int
+)
 
 _TEXT_TAGS = {f"tag:yaml.org,2002:{kind}" for kind in ("int", "float", "bool", "null", "timestamp")}
 
