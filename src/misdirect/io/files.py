@@ -290,7 +290,12 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
     def construct_written_int(self, node: Any) -> int:
         """An integer, remembering how it was written when that is not how Python writes it
         (``010``, YAML 1.1's octal 8): a name written so is read as written."""
-        value = SafeConstructor.construct_yaml_int(self, node)
+        try:
+            value = SafeConstructor.construct_yaml_int(self, node)
+        except ValueError:  # more digits than Python converts (4,300)
+            raise ConstructorError(
+                None, None, f"a number of {len(node.value):,} digits is too long", node.start_mark
+            ) from None
         return WrittenInt(value, node.value) if node.value != str(value) else value
 
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
@@ -358,11 +363,43 @@ def _where(mark: Any) -> str | None:
     return f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else None
 
 
+_SURROGATE_ESCAPE = re.compile(r"\\(?:u|U0000)[dD][89a-fA-F]")
+
+
+def check_text(document: Any, text: str, *, source: str) -> Any:
+    """``document`` (parsed from ``text``), refused if an escape (``\\ud800``) made a lone
+    surrogate of one of its strings: that is no text, and could not be printed or written."""
+    if _SURROGATE_ESCAPE.search(text) is None:  # only escapes make them: UTF-8 cannot
+        return document
+    pending: list[tuple[Any, str]] = [(document, "")]
+    while pending:
+        value, where = pending.pop()
+        items: Any = ()
+        if isinstance(value, dict):
+            items = [(f"{where}.{key}", key) for key in value] + [
+                (f"{where}.{key}", item) for key, item in value.items()
+            ]
+        elif isinstance(value, list):
+            items = [(f"{where}[{i}]", item) for i, item in enumerate(value)]
+        elif isinstance(value, str):
+            try:
+                value.encode("utf-8")
+            except UnicodeEncodeError as error:
+                bad = value[error.start]
+                raise ProblemError(
+                    f"{bad!r} is a lone surrogate, not text (write the character itself)",
+                    source=source,
+                    field=where.lstrip(".") or None,
+                ) from None
+        pending.extend((item, path) for path, item in items)
+    return document
+
+
 def parse_yaml(text: str, *, source: str) -> Any:
     """The document in ``text``, or a one-line ProblemError naming ``source`` and the line."""
     loader = BoundedSafeLoader(text)
     try:
-        return loader.get_single_data()
+        return check_text(loader.get_single_data(), text, source=source)
     except _DuplicateError as error:
         raise ProblemError(
             f"duplicate key {error.key!r} (first at line {error.first}); a second value would "
@@ -476,9 +513,15 @@ def parse_json(text: str, *, source: str) -> Any:
         raise ProblemError(
             f"invalid JSON: nested deeper than {MAX_DEPTH} levels", source=source
         ) from None
+    except ValueError:  # an integer of more digits than Python converts (4,300)
+        long = re.search(r"\d{4000,}", text)
+        line = f"line {text.count(chr(10), 0, long.start()) + 1}" if long else None
+        raise ProblemError(
+            "invalid JSON: a number is too long", source=source, field=line
+        ) from None
     if _depth(document) > MAX_DEPTH:
         raise ProblemError(f"invalid JSON: nested deeper than {MAX_DEPTH} levels", source=source)
-    return document
+    return check_text(document, text, source=source)
 
 
 # -- writing ------------------------------------------------------------------------------------
