@@ -27,7 +27,7 @@ from misdirect.core.reachability import (
 def decoy_probability(problem: Problem, alteration: Alteration) -> float:
     """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU); with
     weighted decoy sets, the expected weight of the first decoy state entered."""
-    return decoy_value(problem, alteration).value
+    return decoy_value(problem, problem.as_alteration(alteration)).value
 
 
 def decoy_value(problem: Problem, alteration: Alteration) -> Bounded:
@@ -131,7 +131,7 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
     from the forward solve every solver uses.
     """
     started = time.perf_counter()
-    alpha = problem.identity() if alteration is None else np.asarray(alteration, dtype=np.int64)
+    alpha = problem.identity() if alteration is None else problem.as_alteration(alteration)
     chain = build_product(problem, alpha)
 
     pomdp, objective = problem.pomdp, problem.objective
