@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import math
 import multiprocessing
+import os
 import signal
 import tempfile
 import threading
@@ -25,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core import tolerance
-from misdirect.errors import OptionError, ProblemError, SolverError
+from misdirect.errors import OptionError, ProblemError, SolverError, WriteError
 from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.milp.model import MilpModel
 
@@ -131,6 +132,13 @@ class HighsBackend:
         _pass_model(highs, _model_arrays(self.model))
         if highs.writeModel(str(path)) == highspy.HighsStatus.kError or not Path(path).is_file():
             raise SolverError(f"HiGHS could not write {path}")
+        # HiGHS does not check its writes: on a full disk it reports success for a cut-off
+        # file, which must not replace a complete one. Both formats end in a last keyword.
+        with open(path, "rb") as handle:
+            handle.seek(max(handle.seek(0, os.SEEK_END) - 64, 0))
+            tail = handle.read().split()
+        if not tail or tail[-1].lower() not in (b"endata", b"end"):
+            raise WriteError(f"cannot write {path}: HiGHS wrote an incomplete file (disk full?)")
 
     def solve(
         self,
