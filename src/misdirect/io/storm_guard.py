@@ -22,6 +22,7 @@ machine has available) set the limits; ``MISDIRECT_STORM_ISOLATION=0`` reads in 
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import os
 import re
 import select
@@ -59,7 +60,9 @@ def nesting_depth(text: str) -> int:
     if data.size == 0:
         return 0
     steps = (data == ord("(")).astype(np.int64) - (data == ord(")"))
-    return int(max(np.cumsum(steps).max(initial=0), 0))
+    level = np.cumsum(steps)
+    # measured from the lowest level before: stray ")" first must not hide the "(" after them
+    return int((level - np.minimum.accumulate(np.minimum(level, 0))).max(initial=0))
 
 
 def check_nesting(text: str, *, field: str, what: str) -> None:
@@ -180,6 +183,7 @@ def _child(conn: Connection, function: Callable[..., Any], args: tuple, memory: 
     # must not run the parent's handlers, inherited through fork)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    faulthandler.disable()  # a crash here is reported by the parent, in one line
     with contextlib.suppress(OSError, ValueError):  # Storm's own messages are not ours to print
         sink = os.open(os.devnull, os.O_WRONLY)
         os.dup2(sink, 1)
