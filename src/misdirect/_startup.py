@@ -16,7 +16,7 @@ import sys
 import threading
 from typing import Any
 
-_CODES = {
+_CODES: dict[int, tuple[int, bytes]] = {
     signal.SIGINT: (130, b"error: interrupted\n"),
     signal.SIGTERM: (143, b"error: terminated (SIGTERM)\n"),
 }

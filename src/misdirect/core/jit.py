@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numba
+from numba.core import config as numba_config
 
 
 def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
@@ -31,14 +32,15 @@ def njit(**options: Any) -> Callable[[Callable[..., Any]], Any]:
                 raise
         folder = _private_cache_dir()
         if folder is not None:
-            previous = numba.config.CACHE_DIR
-            numba.config.CACHE_DIR = folder  # read as the function is decorated, then restored
+            previous = numba_config.CACHE_DIR  # type: ignore[attr-defined]
+            # read as the function is decorated, then restored (numba declares no types)
+            numba_config.CACHE_DIR = folder  # type: ignore[attr-defined]
             try:
                 return numba.njit(**options)(function)
             except RuntimeError:
                 pass
             finally:
-                numba.config.CACHE_DIR = previous
+                numba_config.CACHE_DIR = previous  # type: ignore[attr-defined]
         return numba.njit(**{**options, "cache": False})(function)
 
     return decorate
