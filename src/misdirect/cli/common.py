@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from misdirect.core.model import format_alteration
-from misdirect.errors import MisdirectError, OptionError, ProblemError
+from misdirect.errors import MisdirectError, OptionError, ProblemError, WriteError
 from misdirect.io.files import one_line, write_output
 from misdirect.report import json_output
 from misdirect.solvers.deadline import CancelToken
@@ -82,9 +82,25 @@ def as_flags(text: str) -> str:
 
 def print_json(payload: dict[str, Any]) -> None:
     """The one JSON object of ``--json`` on stdout: a document of
-    :mod:`misdirect.report.json_output`, which names its schema."""
+    :mod:`misdirect.report.json_output`, which names its schema. A stdout that cannot take it
+    (a full disk, ``> /dev/full``) is a WriteError, and what is left unwritten is dropped."""
     assert payload.get("schema") == json_output.SCHEMA, "built by report.json_output"
-    sys.stdout.write(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    text = json.dumps(payload, indent=2, default=_json_default) + "\n"
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except OSError as error:
+        _drop_stdout()
+        raise WriteError(f"cannot write standard output: {error.strerror or error}") from None
+
+
+def _drop_stdout() -> None:
+    """Point stdout at /dev/null, so that the buffered rest neither fails again nor prints a
+    traceback when Python flushes it at exit."""
+    with contextlib.suppress(OSError, ValueError):
+        sink = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(sink, sys.stdout.fileno())
+        os.close(sink)
 
 
 def _json_default(value: Any) -> Any:
@@ -230,7 +246,8 @@ def fail(message: str, code: int, as_json: bool | str, **context: Any) -> None:
     message = one_line(message)  # a name with a newline must not split the one line
     if as_json:
         command = as_json if isinstance(as_json, str) else None
-        print_json(json_output.error_document(command, message, **context))
+        with contextlib.suppress(WriteError):  # stdout is full: the line on stderr remains
+            print_json(json_output.error_document(command, message, **context))
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 

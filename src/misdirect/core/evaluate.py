@@ -28,7 +28,7 @@ from misdirect.core.reachability import (
 def decoy_probability(problem: Problem, alteration: AlterationArray) -> float:
     """Pr(reach decoy) from ``(s0, n0)`` under ``alteration``, exactly (sparse LU); with
     weighted decoy sets, the expected weight of the first decoy state entered."""
-    return decoy_value(problem, alteration).value
+    return decoy_value(problem, problem.as_alteration(alteration)).value
 
 
 def decoy_value(problem: Problem, alteration: AlterationArray) -> Bounded:
@@ -188,7 +188,7 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
     {'(2,2)': 0.7199, '(4,4)': 0.2801}
     """
     started = time.perf_counter()
-    alpha = problem.identity() if alteration is None else np.asarray(alteration, dtype=np.int64)
+    alpha = problem.identity() if alteration is None else problem.as_alteration(alteration)
     chain = build_product(problem, alpha)
 
     pomdp, objective = problem.pomdp, problem.objective

@@ -653,6 +653,44 @@ class Problem:
         self.check_alteration(alpha, source=source)
         return Alteration(alpha, self.pomdp.observations)
 
+    def as_alteration(self, alteration: Any, *, source: str = "alteration") -> AlterationArray:
+        """An alteration given as an array (``alpha[o]`` = the observation received instead
+        of ``o``), checked where the library takes one: integers (``0.9`` is no observation,
+        and is not truncated to 0), one per observation, each an observation's index (``-4``
+        does not wrap around), and the initial observation left as it is."""
+        array = np.asarray(alteration)
+        n = self.pomdp.n_observations
+        if array.shape != (n,):
+            raise ProblemError(
+                f"expected one observation index per observation ({n}), got shape {array.shape}",
+                source=source,
+            )
+        if array.dtype.kind not in "iu":
+            raise ProblemError(
+                f"expected integer observation indices, got {array.dtype} values "
+                f"({', '.join(map(str, array[:4].tolist()))}{', …' if n > 4 else ''})",
+                source=source,
+            )
+        outside = np.flatnonzero((array < 0) | (array >= n))
+        if outside.size:
+            o = int(outside[0])
+            raise ProblemError(
+                f"{self.pomdp.observations[o]!r} (index {o}) is sent to {array[o]}, not an "
+                f"observation index (0 to {n - 1})",
+                source=source,
+            )
+        array = array.astype(np.int64)
+        o_init = self.pomdp.initial_observation
+        if array[o_init] != o_init:
+            names = self.pomdp.observations
+            raise ProblemError(
+                f"the initial observation {names[o_init]!r} is never altered "
+                "(docs/problem-format.md)",
+                source=source,
+                field=f"{names[o_init]}={names[int(array[o_init])]}",
+            )
+        return array
+
     def check_alteration(self, alteration: AlterationArray, *, source: str = "alteration") -> None:
         """Reject alterations the problem does not allow (initial observation, forbidden pairs)."""
         names = self.pomdp.observations

@@ -287,8 +287,22 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
             self.anchors[event.anchor] = node
             self.anchor_sizes[event.anchor] = self.nodes - before
 
+    def construct_written_int(self, node: Any) -> int:
+        """An integer, remembering how it was written when that is not how Python writes it
+        (``010``, YAML 1.1's octal 8): a name written so is read as written."""
+        try:
+            value = SafeConstructor.construct_yaml_int(self, node)
+        except ValueError:  # more digits than Python converts (4,300)
+            raise ConstructorError(
+                None, None, f"a number of {len(node.value):,} digits is too long", node.start_mark
+            ) from None
+        return WrittenInt(value, node.value) if node.value != str(value) else value
+
     def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         if isinstance(node, MappingNode):
+            # keys are names or field names: text as written (``010`` stays "010", ``1`` is
+            # "1", so that 1 and "1" are one key, reported twice), never YAML's numbers
+            node.value = [(_as_text(key_node), value_node) for key_node, value_node in node.value]
             seen: dict[Any, int] = {}
             for key_node, _ in node.value:
                 if key_node.tag == "tag:yaml.org,2002:merge":
@@ -302,6 +316,35 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
                 except TypeError:
                     continue  # an unhashable key: BaseConstructor reports it
         return super().construct_mapping(node, deep=deep)
+
+
+# types-PyYAML types add_constructor for loaders, not for a constructor class of our own
+BoundedSafeLoader.add_constructor(  # type: ignore[type-var]
+    "tag:yaml.org,2002:int", BoundedSafeLoader.construct_written_int
+)
+
+_TEXT_TAGS = {f"tag:yaml.org,2002:{kind}" for kind in ("int", "float", "bool", "null", "timestamp")}
+
+
+class WrittenInt(int):
+    """A YAML integer with the text it was written as (``010``), for names."""
+
+    written: str
+
+    def __new__(cls, value: int, written: str) -> WrittenInt:
+        number = super().__new__(cls, value)
+        number.written = written
+        return number
+
+
+def _as_text(node: Any) -> Any:
+    """A plain scalar key that YAML would read as a number, a boolean, null or a date, as the
+    text it was written."""
+    if isinstance(node, ScalarNode) and not node.style and node.tag in _TEXT_TAGS:
+        return ScalarNode(
+            "tag:yaml.org,2002:str", node.value, node.start_mark, node.end_mark, style=None
+        )
+    return node
 
 
 class _LimitError(yaml.YAMLError):
@@ -320,11 +363,43 @@ def _where(mark: Any) -> str | None:
     return f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else None
 
 
+_SURROGATE_ESCAPE = re.compile(r"\\(?:u|U0000)[dD][89a-fA-F]")
+
+
+def check_text(document: Any, text: str, *, source: str) -> Any:
+    """``document`` (parsed from ``text``), refused if an escape (``\\ud800``) made a lone
+    surrogate of one of its strings: that is no text, and could not be printed or written."""
+    if _SURROGATE_ESCAPE.search(text) is None:  # only escapes make them: UTF-8 cannot
+        return document
+    pending: list[tuple[Any, str]] = [(document, "")]
+    while pending:
+        value, where = pending.pop()
+        items: Any = ()
+        if isinstance(value, dict):
+            items = [(f"{where}.{key}", key) for key in value] + [
+                (f"{where}.{key}", item) for key, item in value.items()
+            ]
+        elif isinstance(value, list):
+            items = [(f"{where}[{i}]", item) for i, item in enumerate(value)]
+        elif isinstance(value, str):
+            try:
+                value.encode("utf-8")
+            except UnicodeEncodeError as error:
+                bad = value[error.start]
+                raise ProblemError(
+                    f"{bad!r} is a lone surrogate, not text (write the character itself)",
+                    source=source,
+                    field=where.lstrip(".") or None,
+                ) from None
+        pending.extend((item, path) for path, item in items)
+    return document
+
+
 def parse_yaml(text: str, *, source: str) -> Any:
     """The document in ``text``, or a one-line ProblemError naming ``source`` and the line."""
     loader = BoundedSafeLoader(text)
     try:
-        return loader.get_single_data()
+        return check_text(loader.get_single_data(), text, source=source)
     except _DuplicateError as error:
         raise ProblemError(
             f"duplicate key {error.key!r} (first at line {error.first}); a second value would "
@@ -438,9 +513,15 @@ def parse_json(text: str, *, source: str) -> Any:
         raise ProblemError(
             f"invalid JSON: nested deeper than {MAX_DEPTH} levels", source=source
         ) from None
+    except ValueError:  # an integer of more digits than Python converts (4,300)
+        long = re.search(r"\d{4000,}", text)
+        line = f"line {text.count(chr(10), 0, long.start()) + 1}" if long else None
+        raise ProblemError(
+            "invalid JSON: a number is too long", source=source, field=line
+        ) from None
     if _depth(document) > MAX_DEPTH:
         raise ProblemError(f"invalid JSON: nested deeper than {MAX_DEPTH} levels", source=source)
-    return document
+    return check_text(document, text, source=source)
 
 
 # -- writing ------------------------------------------------------------------------------------

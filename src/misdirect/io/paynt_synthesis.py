@@ -29,6 +29,8 @@ from typing import Any
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import check_input_file, read_text_file
 from misdirect.io.paynt_model import paynt_prism_text
+from misdirect.io.storm_expressions import strip_comments
+from misdirect.io.storm_guard import check_drn_text, check_nesting, run_isolated
 
 NEEDS_PAYNT = "needs paynt: pip install 'misdirect[paynt]'"
 _CONSTANT = re.compile(
@@ -135,20 +137,21 @@ def synthesize(
         raise ProblemError("a DRN model has no constants to set", field="--constants")
     if not drn:
         text = _with_constants(paynt_prism_text(text), constants)
+    # what Storm would crash, hang or allocate without bound on is refused before it reads
+    if drn:
+        check_drn_text(text, name=str(model), field="MODEL")
+    else:
+        check_nesting(strip_comments(text), field="MODEL", what=str(model))
+    check_nesting(prop, field="--props", what="the property")
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         sketch, props = Path(folder) / model.name, Path(folder) / "sketch.props"
         sketch.write_text(text, encoding="utf-8")
         props.write_text(prop.strip() + "\n", encoding="utf-8")
-        program = None
-        if not drn:
-            try:
-                program = stormpy.parse_prism_program(str(sketch), prism_compatibility=True)
-            except Exception as error:
-                raise ProblemError(
-                    f"Storm cannot read it: {' '.join(str(error).split())}", source=str(model)
-                ) from None
-        _check_property(stormpy, program, prop)
+        # Storm's parser may still crash on the file: it reads it in a child process
+        run_isolated(
+            _check_sketch, str(sketch), drn, prop, str(model), name=str(model), field="MODEL"
+        )
         job = _Job(str(sketch), str(props), memory, drn, deadline=started + timeout)
         kind, payload = _run_bounded(job)
     if kind == "problem":
@@ -282,6 +285,22 @@ def is_drn(text: str) -> bool:
         if line.strip() and not line.lstrip().startswith("//"):
             return line.lstrip().startswith("@type:")
     return False
+
+
+def _check_sketch(sketch: str, drn: bool, prop: str, model: str) -> None:
+    """Storm reads the program (not a DRN model: PAYNT does) and the property against it."""
+    import stormpy
+
+    stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
+    program = None
+    if not drn:
+        try:
+            program = stormpy.parse_prism_program(sketch, prism_compatibility=True)
+        except Exception as error:
+            raise ProblemError(
+                f"Storm cannot read it: {' '.join(str(error).split())}", source=model
+            ) from None
+    _check_property(stormpy, program, prop)
 
 
 def _check_property(stormpy, program, prop: str) -> None:

@@ -49,6 +49,7 @@ from misdirect.io.paynt import (
     unmet_rule_warning,
 )
 from misdirect.io.storm import StormPomdp, load_storm_pomdp
+from misdirect.io.storm_guard import run_isolated
 
 FORMAT = "misdirect/v1"
 WILDCARD = "*"
@@ -56,12 +57,13 @@ SUM_TOLERANCE = tolerance.STOCHASTIC
 
 
 def _name(value: Any) -> Any:
-    """Names are strings; YAML turns ``1`` into an int, which we accept, and ``yes`` into a bool,
-    which we refuse with a hint (quote it)."""
+    """Names are text: YAML turns ``1`` into an int, which we accept as "1", ``010`` into the
+    octal 8, which we read as written ("010", never merged with a name ``8``), and ``yes``
+    into a bool, which we refuse with a hint (quote it)."""
     if isinstance(value, bool) or value is None:
         raise ValueError(f"a name must be a string; YAML read {value!r} (quote it)")
     if isinstance(value, int):
-        return str(value)
+        return getattr(value, "written", str(value))
     return value
 
 
@@ -397,6 +399,7 @@ def parse_spec(document: Any) -> ProblemFileV1:
         raise ProblemError(
             f"expected format: {FORMAT}, got {document.get('format')!r}", field="format"
         )
+    _check_key_names(document)
     try:
         return ProblemFileV1.model_validate(document)
     except ValidationError as error:
@@ -406,6 +409,31 @@ def parse_spec(document: Any) -> ProblemFileV1:
         if first["type"] == "extra_forbidden":
             reason = "unknown field (check the spelling)"
         raise ProblemError(reason, field=_location(first["loc"])) from None
+
+
+def _check_key_names(document: dict) -> None:
+    """Keys are names, and names are text: a mapping (built in Python, say) whose keys ``1``
+    and ``"1"`` would become one name is refused, not silently merged. (The YAML reader keeps
+    every key as written, so a file reports such keys as duplicates.)"""
+    pending: list[tuple[Any, str]] = [(document, "")]
+    while pending:
+        value, where = pending.pop()
+        if isinstance(value, list):  # of dicts (rules): lists of scalars hold no keys
+            pending.extend((v, f"{where}[{i}]") for i, v in enumerate(value) if type(v) is dict)
+            continue
+        if not all(type(key) is str for key in value):
+            seen: dict[str, Any] = {}
+            for key in value:
+                text = key if isinstance(key, str) else getattr(key, "written", str(key))
+                if text in seen:
+                    raise ProblemError(
+                        f"keys {seen[text]!r} and {key!r} are the same name {text!r}",
+                        field=where.lstrip(".") or None,
+                    )
+                seen[text] = key
+        pending.extend(
+            (item, f"{where}.{key}") for key, item in value.items() if type(item) in (dict, list)
+        )
 
 
 def load_problem(path: str | Path) -> Problem:
@@ -629,7 +657,21 @@ def _compile_decoy(
 
 
 def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
-    """Resolve names and check consistency; returns the array model."""
+    """Resolve names and check consistency; returns the array model.
+
+    A PRISM or DRN model is read by Storm, native code that a malformed file can crash: that
+    whole compilation runs in a child process (:func:`~misdirect.io.storm_guard.run_isolated`),
+    which hands back the finished Problem, so a crash becomes one error naming the file."""
+    if isinstance(spec.pomdp, StormPomdpSpec) and spec.grid is None:
+        model = spec.pomdp.prism or spec.pomdp.drn or ""
+        kind = "prism" if spec.pomdp.prism is not None else "drn"
+        return run_isolated(
+            _compile_problem, spec, source, name=Path(model).name, field=f"pomdp.{kind}"
+        )
+    return _compile_problem(spec, source)
+
+
+def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     base = Path(source).parent if source is not None else None
     enabled = None  # Storm's enabled actions, when disabled ones must be forbidden
     aliases: tuple[str, ...] = ()  # Storm's own observation texts (PAYNT's labels)

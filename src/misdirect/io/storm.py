@@ -26,6 +26,7 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.model import Pomdp
 from misdirect.errors import ProblemError
+from misdirect.io.files import check_input_file
 from misdirect.io.paynt_model import PAYNT_NO_LABEL, PayntView, build_paynt_view, paynt_prism_text
 from misdirect.io.storm_arrays import StormArrays, model_arrays
 from misdirect.io.storm_expressions import (
@@ -39,6 +40,7 @@ from misdirect.io.storm_expressions import (
     storm_message,
     strip_comments,
 )
+from misdirect.io.storm_guard import check_drn_text, check_nesting
 from misdirect.io.storm_names import (
     NO_LABEL,
     emitted_observations,
@@ -117,6 +119,13 @@ def load_storm_pomdp(
         raise ProblemError(f"file not found: {path}", field=field)
     if terminal is not None and terminal_from is not None:
         raise ProblemError("give terminal or terminal_from, not both", field="pomdp.terminal")
+    # what Storm would crash, hang or allocate without bound on is refused before it reads
+    check_input_file(path, field=field)  # a FIFO or a device would hang the read
+    text = path.read_text(encoding="utf-8", errors="replace")  # Storm reads bytes: so may we
+    if kind == "prism":
+        check_nesting(strip_comments(text), field=field, what=path.name)
+    else:
+        check_drn_text(text, name=path.name, field=field)
     model, program = _build(
         stormpy,
         path,
@@ -128,7 +137,7 @@ def load_storm_pomdp(
     )
     prism = None
     if program is not None:
-        source = strip_comments(path.read_text(encoding="utf-8", errors="replace"))
+        source = strip_comments(text)
         prism = PrismProgram(stormpy, program, source)
     try:
         world = _translate(stormpy, model, field, path, prism)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from misdirect.errors import ProblemError
+from misdirect.io.storm_guard import check_nesting
 
 
 def storm_message(error: Exception) -> str:
@@ -26,6 +27,7 @@ def storm_message(error: Exception) -> str:
 
 def instantiate_constants(stormpy, program, constants: str):
     """Set ``constants`` ("N=5,p=0.1"); a bad definition is an error in ``pomdp.constants``."""
+    check_nesting(constants, field="pomdp.constants", what="the constants")
     try:
         program, _ = stormpy.instantiate_constants(program, constants)
     except Exception as error:  # Storm raises RuntimeError (WrongFormatException) here
@@ -87,6 +89,7 @@ def _substitute_labels(program, text: str, field: str) -> str:
 
 def parse_property(stormpy, program, text: str, field: str):
     """Storm's formula of one property ``text``, against ``program`` (None: no program)."""
+    check_nesting(text, field=field, what="the expression")
     try:
         if program is None:
             properties = stormpy.parse_properties(text)
@@ -208,6 +211,7 @@ def label_condition(labels: dict[str, np.ndarray]) -> Callable[[str, str], np.nd
     n = next(iter(labels.values())).size if labels else 0
 
     def condition(text: str, field: str) -> np.ndarray:
+        check_nesting(text, field=field, what="the label expression")  # the parser recurses
         tokens: list[str] = []
         position = 0
         text = text.strip()
@@ -226,10 +230,17 @@ def label_condition(labels: dict[str, np.ndarray]) -> Callable[[str, str], np.nd
 
         def atom() -> np.ndarray:
             nonlocal at
+            negations = 0  # counted, not recursed: "!!!...!x" may be any length
+            while tokens[at] == "!":
+                negations += 1
+                at += 1
+            value = operand()
+            return ~value if negations % 2 else value
+
+        def operand() -> np.ndarray:
+            nonlocal at
             token = tokens[at]
             at += 1
-            if token == "!":
-                return ~atom()
             if token == "(":
                 value = disjunction()
                 if tokens[at] != ")":

@@ -38,9 +38,11 @@ HALO = [patheffects.withStroke(linewidth=3, foreground="white")]
 def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg")) -> list[Path]:
     """Write ``stem.png`` and ``stem.svg`` (or the given suffixes); returns the paths."""
     paths = [stem.with_suffix(suffix) for suffix in formats]
-    for path in paths:
-        fig.savefig(path, dpi=150, bbox_inches="tight")
-    plt.close(fig)
+    try:
+        for path in paths:  # atomic: a full disk leaves an earlier picture as it was
+            write_output(path, lambda staged: fig.savefig(staged, dpi=150, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
     return paths
 
 

@@ -12,6 +12,7 @@ tied together by ``report.md``:
 from __future__ import annotations
 
 import csv
+import io
 import platform
 import time
 from collections.abc import Callable, Sequence
@@ -23,6 +24,7 @@ import numpy as np
 
 from misdirect.core.evaluate import decoy_probability, evaluate, evaluation_time
 from misdirect.core.model import format_alteration
+from misdirect.io.files import write_output
 from misdirect.report import figures
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
@@ -69,11 +71,13 @@ class Table:
 
     def write(self, folder: Path) -> list[Path]:
         csv_path, md_path = folder / f"{self.name}.csv", folder / f"{self.name}.md"
-        with csv_path.open("w", newline="", encoding="utf-8") as handle:
-            writer = csv.DictWriter(handle, fieldnames=self.columns, extrasaction="ignore")
-            writer.writeheader()
-            writer.writerows(self.rows)
-        md_path.write_text(self.markdown(), encoding="utf-8")
+        buffer = io.StringIO(newline="")
+        writer = csv.DictWriter(buffer, fieldnames=self.columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(self.rows)
+        # atomic: a full disk leaves an earlier run's file as it was
+        write_output(csv_path, buffer.getvalue(), field="--out")
+        write_output(md_path, self.markdown(), field="--out")
         return [csv_path, md_path]
 
     def markdown(self) -> str:
@@ -476,7 +480,7 @@ def _write_report(report: ReproduceReport, solver: str, limit: float, sizes: lis
         "",
         "Heat-map data: [attack_visits.csv](attack_visits.csv). SVG versions sit beside each PNG.",
     ]
-    (report.out / "report.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_output(report.out / "report.md", "\n".join(lines) + "\n", field="--out")
 
 
 def _label(row: dict[str, Any]) -> str:

@@ -7,6 +7,7 @@ Item ``i`` is observation ``o<i>``; putting it in the knapsack is altering ``o<i
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -27,6 +28,13 @@ def knapsack(weights: Sequence[float], values: Sequence[float], capacity: float)
         if bad:
             raise OptionError(
                 f"every entry must be a positive number, got {bad[0]}", parameter=name
+            )
+        # the probabilities divide by the values' sum, and an alteration's cost adds weights
+        if not math.isfinite(sum(numbers, 0.0)):
+            raise OptionError(
+                f"the {name} sum to more than the largest number ({np.finfo(float).max:.3g}); "
+                "scale them down",
+                parameter=name,
             )
     if not np.isfinite(capacity) or capacity < 0:
         raise OptionError(f"must be a non-negative number, got {capacity}", parameter="capacity")

@@ -44,9 +44,9 @@ class SolveOptions:
         check_time_limit(self.time_limit)
         if self.threads is not None and self.threads < 1:
             raise OptionError(f"must be at least 1, got {self.threads}", parameter="threads")
-        if self.mip_gap is not None and not self.mip_gap >= 0:
+        if self.mip_gap is not None and not (0 <= self.mip_gap < float("inf")):
             raise OptionError(
-                f"must be a non-negative number, got {self.mip_gap}", parameter="mip_gap"
+                f"must be a non-negative finite number, got {self.mip_gap}", parameter="mip_gap"
             )
 
     def given(self) -> list[str]:

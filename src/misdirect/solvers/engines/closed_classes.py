@@ -31,11 +31,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from misdirect.core.jit import njit
 from misdirect.core.model import reachable_from
 
 
@@ -134,7 +134,7 @@ def unsafe_options(
     return unsafe
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _closes_a_class(
     indptr: np.ndarray,
     indices: np.ndarray,

@@ -20,12 +20,12 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, cast
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core.alterations import AlteredEntries, rank_in_group
 from misdirect.core.choice_product import ChoiceProduct
+from misdirect.core.jit import njit
 from misdirect.core.reachability import solve_chain
 from misdirect.solvers.deadline import Deadline
 
@@ -352,7 +352,7 @@ def _children_of(
     return out
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _schur_corrections(
     slots_p: np.ndarray,
     reach: np.ndarray,

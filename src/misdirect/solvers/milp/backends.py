@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import math
 import multiprocessing
+import os
 import signal
 import tempfile
 import threading
@@ -25,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core import tolerance
-from misdirect.errors import OptionError, ProblemError, SolverError
+from misdirect.errors import OptionError, ProblemError, SolverError, WriteError
 from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.milp.model import MilpModel
 
@@ -131,6 +132,13 @@ class HighsBackend:
         _pass_model(highs, _model_arrays(self.model))
         if highs.writeModel(str(path)) == highspy.HighsStatus.kError or not Path(path).is_file():
             raise SolverError(f"HiGHS could not write {path}")
+        # HiGHS does not check its writes: on a full disk it reports success for a cut-off
+        # file, which must not replace a complete one. Both formats end in a last keyword.
+        with open(path, "rb") as handle:
+            handle.seek(max(handle.seek(0, os.SEEK_END) - 64, 0))
+            tail = handle.read().split()
+        if not tail or tail[-1].lower() not in (b"endata", b"end"):
+            raise WriteError(f"cannot write {path}: HiGHS wrote an incomplete file (disk full?)")
 
     def solve(
         self,
@@ -482,6 +490,18 @@ class GurobiBackend:
         )
 
 
+SCIP_MAX_SECONDS = 1e20  # SCIP's range of limits/time
+SCIP_MAX_THREADS = 64  # SCIP's range of parallel/maxnthreads
+
+
+def _set_scip(scip: Any, name: str, value: float | int, parameter: str) -> None:
+    """One SCIP parameter; a value out of SCIP's range is an error in the option that set it."""
+    try:
+        scip.setParam(name, value)
+    except ValueError:  # pyscipopt: "the value is invalid for the given parameter"
+        raise OptionError(f"SCIP does not take {value!r} for {name}", parameter=parameter) from None
+
+
 class ScipBackend:
     name = "scip"
 
@@ -519,16 +539,21 @@ class ScipBackend:
             scip = self.pyscipopt.Model()
             scip.hideOutput(not self.options.verbose)
             scip.readProblem(str(path))
-        if limit is not None:
-            scip.setParam("limits/time", float(limit))
-        scip.setParam("limits/gap", float(self.options.mip_gap))
+        if limit is not None:  # SCIP takes at most 1e20 s, which is no limit at all
+            _set_scip(scip, "limits/time", min(float(limit), SCIP_MAX_SECONDS), "time_limit")
+        _set_scip(scip, "limits/gap", float(self.options.mip_gap), "mip_gap")
         scip.setParam("numerics/feastol", INTEGRALITY_TOLERANCE)  # also SCIP's integrality one
         threads = self.options.threads
         if threads is not None:
             # SCIP's branch and bound runs in one thread; more threads means its concurrent
             # mode (several solvers with different settings racing on the same model)
-            scip.setParam("parallel/maxnthreads", int(threads))
-            scip.setParam("parallel/minnthreads", int(threads))
+            if threads > SCIP_MAX_THREADS:
+                raise OptionError(
+                    f"SCIP takes at most {SCIP_MAX_THREADS}, got {threads}",
+                    parameter="threads",
+                )
+            _set_scip(scip, "parallel/maxnthreads", int(threads), "threads")
+            _set_scip(scip, "parallel/minnthreads", int(threads), "threads")
         by_index = {int(v.name[1:]): v for v in scip.getVars()}
         variables = [by_index[i] for i in range(self.source.n_columns)]
         values: np.ndarray | None  # the start's, then the answer's
