@@ -112,7 +112,7 @@ def test_well_formed_models_still_load(tmp_path, storm):
     for kind, text in (("prism", PRISM.replace("P1", "0.5")), ("drn", DRN.replace("OBS", "1"))):
         result = evaluate_json(storm_problem(tmp_path, kind, text))
         assert result.exit_code == 0, result.output
-        assert json.loads(result.stdout)["probability"] == pytest.approx(0.5, abs=1e-12)
+        assert json.loads(result.stdout)["value"] == pytest.approx(0.5, abs=1e-12)
 
 
 def test_prism_zero_over_zero_is_one_line_not_sigfpe(tmp_path, storm):
@@ -132,7 +132,7 @@ def test_nesting_just_within_the_limit_is_read(tmp_path, storm):
     text = PRISM.replace("P1", "(" * (limit - 1) + "0.5" + ")" * (limit - 1))
     result = evaluate_json(storm_problem(tmp_path, "prism", text))
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["probability"] == pytest.approx(0.5, abs=1e-12)
+    assert json.loads(result.stdout)["value"] == pytest.approx(0.5, abs=1e-12)
 
 
 def test_deep_drn_label_expression_is_refused(tmp_path, storm):
@@ -151,10 +151,10 @@ def test_long_negation_chains_are_counted_not_recursed(tmp_path, storm, negation
     if negations % 2:  # the decoy set holds the initial state: refused or 1, never a crash
         assert result.exit_code in (0, 2), result.output
         if result.exit_code == 0:
-            assert json.loads(result.stdout)["probability"] == pytest.approx(1.0)
+            assert json.loads(result.stdout)["value"] == pytest.approx(1.0)
         return
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["probability"] == pytest.approx(expected, abs=1e-12)
+    assert json.loads(result.stdout)["value"] == pytest.approx(expected, abs=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -169,7 +169,7 @@ def test_drn_observation_ids_with_gaps_are_read(tmp_path, storm):
     """Ids 0, 1, 7 in a 3-state file: gaps are allowed, within a few per state."""
     result = evaluate_json(storm_problem(tmp_path, "drn", DRN.replace("OBS", "7")))
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["probability"] == pytest.approx(0.5, abs=1e-12)
+    assert json.loads(result.stdout)["value"] == pytest.approx(0.5, abs=1e-12)
 
 
 def test_drn_state_count_beyond_the_file_is_refused(tmp_path, storm):
@@ -318,7 +318,7 @@ def test_mutated_storm_models_answer_or_fail_in_one_line(tmp_path, storm, case):
     result = evaluate_json(path)
     assert "Traceback" not in result.output
     if result.exit_code == 0:
-        probability = json.loads(result.stdout)["probability"]
+        probability = json.loads(result.stdout)["value"]
         assert 0 <= probability <= 1 + 1e-9
     else:
         one_line_error(result, 2, str(path))
@@ -392,7 +392,7 @@ def test_scip_parameters_out_of_range():
     one_line_error(runner.invoke(app, [*base, "--threads", "1000"]), 2, "--threads", "64")
     result = runner.invoke(app, [*base, "--time-limit", "1e30"])  # SCIP's 1e20 s: no limit
     assert result.exit_code == 0, result.output
-    assert json.loads(result.stdout)["probability"] == pytest.approx(0.5, abs=1e-9)
+    assert json.loads(result.stdout)["value"] == pytest.approx(0.5, abs=1e-9)
 
 
 @pytest.mark.parametrize("suffix", [".yaml", ".json"])
@@ -508,7 +508,7 @@ def test_a_read_only_install_and_home_still_run(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr
     payload = json.loads(done.stdout)
-    assert 0 <= payload["probability"] <= 1
+    assert 0 <= payload["value"] <= 1
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
