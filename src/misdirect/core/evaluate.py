@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from misdirect.core import tolerance
 from misdirect.core.model import Alteration, Problem
 from misdirect.core.product import ProductChain, build_product
 from misdirect.core.reachability import (
@@ -159,7 +158,7 @@ def evaluate(problem: Problem, alteration: Alteration | None = None) -> Evaluati
         probability=probability,
         alteration=problem.changed_observations(alpha),
         cost=cost,
-        within_budget=bool(tolerance.affordable(cost, problem.budget)),
+        within_budget=problem.cost.fits(alpha, problem.budget),
         outcomes=outcomes,
         never_absorbed=float(occ.entered[occ.trapped].sum()),
         product_states=chain.n_states,

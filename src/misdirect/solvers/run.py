@@ -18,7 +18,6 @@ import numpy as np
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.model import Alteration, Problem
-from misdirect.core.tolerance import BUDGET_SLACK
 from misdirect.errors import ProblemError
 from misdirect.solvers import get_solver
 from misdirect.solvers.base import ProgressCallback
@@ -142,8 +141,8 @@ class SolveResult:
 
 def default_budgets(budget: float) -> list[float]:
     """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
-    whole = [float(b) for b in range(math.floor(budget + BUDGET_SLACK) + 1)]
-    return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
+    whole = [float(b) for b in range(math.floor(budget) + 1)]
+    return whole if whole[-1] == budget else [*whole, float(budget)]
 
 
 def solve(
@@ -228,9 +227,13 @@ def solve(
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
     curve, warnings = [], list(problem.warnings)
-    for solution in solutions:
-        alpha = np.asarray(solution.alteration, dtype=np.int64)
+    identity = problem.identity()
+    alterations = [np.asarray(s.alteration, dtype=np.int64) for s in solutions]
+    for alpha in alterations:
         problem.check_alteration(alpha, source=f"{method_solver.name} solver")
+    # the problem's scale, which a claim is compared relative to: the largest exact value
+    scale = max([exact_value(identity), *map(exact_value, alterations)])
+    for solution, alpha in zip(solutions, alterations, strict=True):
         point = CurvePoint(
             budget=solution.budget,
             status=Status(solution.status),
@@ -238,14 +241,14 @@ def solve(
             error_bound=exact_value.error(alpha),
             alteration=alpha,
             cost=problem.alteration_cost(alpha),
+            fits=problem.cost.fits(alpha, solution.budget),
             upper_bound=solution.upper_bound,
             claimed=solution.solver_probability,
             stats=solution.stats,
             certified_by=solution.certified_by,
         )
-        warnings += check_claims(point, method_solver.name)
+        warnings += check_claims(point, method_solver.name, scale)
         curve.append(point)
-    identity = problem.identity()
     unaltered = (identity, exact_value(identity), exact_value.error(identity))
     certify_curve(curve, cancelled=interrupted, unaltered=unaltered)
     return SolveResult(
@@ -272,7 +275,10 @@ def recertify(result: SolveResult, problem: Problem, evidence: Sequence[Evidence
     for item in evidence:
         point = by_budget.get(item.budget)
         if point is not None and point.status != Status.UNVERIFIED:
-            take_evidence(point, item)
+            fits = item.alteration is not None and problem.cost.fits(
+                np.asarray(item.alteration, dtype=np.int64), item.budget
+            )
+            take_evidence(point, item, fits)
     certify_curve(curve, cancelled=result.interrupted)
     return replace(result, curve=[_result(point, problem) for point in curve])
 
