@@ -33,7 +33,6 @@ from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
-import scipy.sparse as sp
 
 from misdirect.core import tolerance
 from misdirect.core.model import Problem
@@ -121,7 +120,11 @@ class MilpSolver:
         deadline: Deadline | None = None,
     ) -> list[Solution]:
         deadline = deadline or Deadline(self.options.time_limit)
-        model = _scaled(problem, build_formulation(problem, self.formulation, max(budgets)))
+        built = build_formulation(problem, self.formulation, max(budgets))
+        # the values' scale: the relaxation's bound on the optimum, at the largest budget (a
+        # decoy behind a branch of 1e-6 has values of 1e-6, below HiGHS's tolerances)
+        relaxed = relaxation_bound(problem, max(budgets), schedule.closing_bound(deadline))
+        model = _scaled(problem, built, relaxed)
         backend = make_backend(self.backend_name, self.options)
         try:
             return self._solve_curve(problem, model, backend, budgets, progress, deadline)
@@ -251,25 +254,30 @@ def _claim(model: MilpModel, result: BackendResult, violation: float, row: float
     return claimed
 
 
-def _scaled(problem: Problem, model: MilpModel) -> MilpModel:
-    """``model`` as the backend gets it: objective (and offset) divided by its largest
-    coefficient, the budget row by the largest cost, so that both are about 1 whatever the
-    problem's scale; the model keeps the two units (``value_unit``, ``cost_unit``)."""
+def _scaled(problem: Problem, model: MilpModel, relaxed: float) -> MilpModel:
+    """``model`` as the backend gets it: objective (and offset) divided by the value's scale
+    (``relaxed``, a bound on the optimum, or else the largest objective coefficient), the
+    budget row by the largest cost, so that both are about 1 whatever the problem's scale;
+    the model keeps the two units (``value_unit``, ``cost_unit``)."""
     objective = np.abs(model.objective)
-    value_unit = float(objective.max()) if objective.size and objective.max() > 0 else 1.0
-    row = model.matrix.getrow(model.budget_row).data
+    largest = float(objective.max()) if objective.size else 0.0
+    value_unit = min(largest, relaxed) if 0 < relaxed < np.inf else largest
+    value_unit = value_unit if value_unit > 0 else 1.0
+    matrix = model.matrix.copy().tocsr()
+    begin, end = matrix.indptr[model.budget_row], matrix.indptr[model.budget_row + 1]
+    row = matrix.data[begin:end]
     finite = np.abs(row[np.isfinite(row)])
     cost_unit = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
-    factor = np.ones(model.n_rows)
-    factor[model.budget_row] = 1.0 / cost_unit
-    upper = model.row_upper.copy()
+    matrix.data[begin:end] = row / cost_unit  # divided, not multiplied: 1 / 5e-324 is inf
+    lower, upper = model.row_lower.copy(), model.row_upper.copy()
+    lower[model.budget_row] = lower[model.budget_row] / cost_unit
     upper[model.budget_row] = _row_bound(problem, upper[model.budget_row], cost_unit)
     return replace(
         model,
         objective=model.objective / value_unit,
         offset=model.offset / value_unit,
-        matrix=sp.diags(factor, format="csr") @ model.matrix,
-        row_lower=model.row_lower * factor,
+        matrix=matrix,
+        row_lower=lower,
         row_upper=upper,
         value_unit=value_unit,
         cost_unit=cost_unit,
