@@ -81,10 +81,14 @@ def better(a: float, b: float, rel: float = TIE) -> bool:
     return bool(a > b + slack(a, b, rel=rel))
 
 
-def proven(value: float, bound: float | None) -> bool:
+def proven(value: float, bound: float | None, scale: float = 0.0) -> bool:
     """Whether ``bound`` (a proven upper bound) certifies ``value`` as the optimum: within
-    :data:`CERTIFY` of it, relative to the larger (an exact 0 needs a bound of 0)."""
-    return bound is not None and bool(bound - value <= slack(value, bound, rel=CERTIFY + TIE))
+    :data:`CERTIFY` of it, relative to the larger, or to ``scale``, the problem's (the
+    largest exact value of its curve: a bound of 1e-15 proves 0 on a problem of values about
+    1, not on one of values about 1e-15)."""
+    if bound is None:
+        return False
+    return bool(bound - value <= slack(value, scale, rel=CERTIFY + TIE))
 
 
 def mismatch(exact: float, claimed: float, scale: float = 0.0) -> bool:

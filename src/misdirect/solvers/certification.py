@@ -71,16 +71,18 @@ def exact_values(problem: Problem) -> ExactValues:
     return current if current is not None and current.problem is problem else ExactValues(problem)
 
 
-def decide(stopped: Status, exact: float, bound: float | None, error: float = 0.0) -> Status:
+def decide(
+    stopped: Status, exact: float, bound: float | None, error: float = 0.0, scale: float = 0.0
+) -> Status:
     """The status of an answer worth ``exact`` (within its proven ``error``) whose method
     stopped as ``stopped``, given the best proven upper bound on its budget's optimum:
     ``optimal`` exactly when ``bound`` meets the least value ``exact`` may have, so an answer
-    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` (relative)
-    never is; a
-    method that says it finished without such a bound gets ``feasible``."""
+    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` (relative to
+    the value, or to ``scale``, the problem's largest exact value) never is; a method that
+    says it finished without such a bound gets ``feasible``."""
     if stopped == Status.UNVERIFIED:
         return stopped
-    if tolerance.proven(exact - error, bound):
+    if tolerance.proven(exact - error, bound, scale):
         return Status.OPTIMAL
     return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
 
@@ -218,6 +220,8 @@ def certify_curve(
       time limit) is ``interrupted``.
     """
     _carry_answers_up(curve, unaltered)
+    # the problem's scale: the largest exact value known (bounds may be trivial)
+    scale = max([p.probability for p in curve] + ([unaltered[1]] if unaltered else []))
     bound: float | None = None
     for point in sorted(curve, key=lambda p: p.budget, reverse=True):
         if point.status == Status.UNVERIFIED:
@@ -226,7 +230,9 @@ def certify_curve(
             point.upper_bound = max(bound, point.probability)
         if point.upper_bound is not None:
             bound = point.upper_bound
-        status = decide(point.status, point.probability, point.upper_bound, point.error_bound)
+        status = decide(
+            point.status, point.probability, point.upper_bound, point.error_bound, scale
+        )
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
             point.notes["not_certified"] = _why_not(point)
         elif status == Status.OPTIMAL and point.status.cut_short:
