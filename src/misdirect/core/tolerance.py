@@ -60,6 +60,12 @@ EXACT = CERTIFY / 10
 """A value's proven error must be this small relative to the value (a tenth of what
 certification allows, so a method's own gap keeps its room): reachability refines until it is."""
 
+ROUNDING = 2.0**-50
+"""A difference this small relative to the objective's largest value (the largest decoy
+weight: every chain's values lie below it) is the rounding of double arithmetic on the chain,
+whatever the answer's own size: a claim of 2e-18 where the chain gives 0 is no contradiction,
+and a bound of 2e-18 proves 0."""
+
 UNIT_ROUNDOFF = 2.0**-53
 SMALLEST = 2.0**-1074  # the smallest subnormal: every float is a multiple of it
 
@@ -81,20 +87,22 @@ def better(a: float, b: float, rel: float = TIE) -> bool:
     return bool(a > b + slack(a, b, rel=rel))
 
 
-def proven(value: float, bound: float | None, scale: float = 0.0) -> bool:
+def proven(value: float, bound: float | None, scale: float = 0.0, floor: float = 0.0) -> bool:
     """Whether ``bound`` (a proven upper bound) certifies ``value`` as the optimum: within
     :data:`CERTIFY` of it, relative to the larger, or to ``scale``, the problem's (the
     largest exact value of its curve: a bound of 1e-15 proves 0 on a problem of values about
-    1, not on one of values about 1e-15)."""
+    1, not on one of values about 1e-15); ``floor``: a gap this small is rounding
+    (:data:`ROUNDING` times the objective's largest value)."""
     if bound is None:
         return False
-    return bool(bound - value <= slack(value, scale, rel=CERTIFY + TIE))
+    return bool(bound - value <= max(slack(value, scale, rel=CERTIFY + TIE), floor))
 
 
-def mismatch(exact: float, claimed: float, scale: float = 0.0) -> bool:
+def mismatch(exact: float, claimed: float, scale: float = 0.0, floor: float = 0.0) -> bool:
     """Whether a solver's ``claimed`` value contradicts the ``exact`` one, on a problem whose
-    values are about ``scale`` (the largest exact value known)."""
-    return bool(abs(exact - claimed) > slack(exact, scale, rel=MISMATCH))
+    values are about ``scale`` (the largest exact value known); ``floor`` as for
+    :func:`proven`."""
+    return bool(abs(exact - claimed) > max(slack(exact, scale, rel=MISMATCH), floor))
 
 
 def exact_enough(error: float, value: float) -> bool:

@@ -72,7 +72,12 @@ def exact_values(problem: Problem) -> ExactValues:
 
 
 def decide(
-    stopped: Status, exact: float, bound: float | None, error: float = 0.0, scale: float = 0.0
+    stopped: Status,
+    exact: float,
+    bound: float | None,
+    error: float = 0.0,
+    scale: float = 0.0,
+    floor: float = 0.0,
 ) -> Status:
     """The status of an answer worth ``exact`` (within its proven ``error``) whose method
     stopped as ``stopped``, given the best proven upper bound on its budget's optimum:
@@ -82,7 +87,7 @@ def decide(
     says it finished without such a bound gets ``feasible``."""
     if stopped == Status.UNVERIFIED:
         return stopped
-    if tolerance.proven(exact - error, bound, scale):
+    if tolerance.proven(exact - error, bound, scale, floor):
         return Status.OPTIMAL
     return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
 
@@ -159,14 +164,17 @@ def take_evidence(point: CurvePoint, evidence: Evidence, fits: bool) -> None:
             point.certified_by = evidence.source
 
 
-def check_claims(point: CurvePoint, method: str, scale: float = 0.0) -> list[str]:
+def check_claims(
+    point: CurvePoint, method: str, scale: float = 0.0, floor: float = 0.0
+) -> list[str]:
     """Contradictions between the method's numbers and the chain: a claim or a bound off the
     exact value by more than :data:`~misdirect.core.tolerance.MISMATCH` (relative) makes the
     point ``unverified``; a bound slightly below the exact value (solver tolerance) is raised
     to it. ``scale`` is the problem's (the largest exact value of its curve, the baseline's):
     a claim of 1e-16 where the chain gives 0 is rounding on a problem of values about 1, but
-    not on one of values about 1e-16. An alteration whose exact cost exceeds the budget is no
-    answer: the point is ``unverified``. Returns the warnings for the user."""
+    not on one of values about 1e-16 (``floor``: below it, every difference is rounding,
+    :data:`~misdirect.core.tolerance.ROUNDING`). An alteration whose exact cost exceeds the
+    budget is no answer: the point is ``unverified``. Returns the warnings for the user."""
     warnings = []
     exact, claimed = point.probability, point.claimed
     # An incumbent cut short (time or gap limit, node limit) may claim less than its
@@ -175,7 +183,7 @@ def check_claims(point: CurvePoint, method: str, scale: float = 0.0) -> list[str
     # optimum, contradicts the chain.
     if (
         claimed is not None
-        and tolerance.mismatch(exact, claimed, scale)
+        and tolerance.mismatch(exact, claimed, scale, floor)
         and not (point.status.cut_short and claimed < exact)
     ):
         point.status = Status.UNVERIFIED
@@ -190,7 +198,8 @@ def check_claims(point: CurvePoint, method: str, scale: float = 0.0) -> list[str
             f"{point.cost:g}, over the budget; it is not an answer"
         )
     if point.upper_bound is not None and point.upper_bound < exact:
-        if exact - point.upper_bound > tolerance.slack(exact, scale, rel=tolerance.MISMATCH):
+        room = max(tolerance.slack(exact, scale, rel=tolerance.MISMATCH), floor)
+        if exact - point.upper_bound > room:
             point.status = Status.UNVERIFIED
             warnings.append(
                 f"budget {point.budget:g}: the {method} solver's bound "
@@ -205,6 +214,7 @@ def certify_curve(
     *,
     cancelled: bool = False,
     unaltered: tuple[np.ndarray, float, float] | None = None,
+    floor: float = 0.0,
 ) -> None:
     """What one budget's answer proves about the others, and "optimal" only when proven.
 
@@ -231,7 +241,7 @@ def certify_curve(
         if point.upper_bound is not None:
             bound = point.upper_bound
         status = decide(
-            point.status, point.probability, point.upper_bound, point.error_bound, scale
+            point.status, point.probability, point.upper_bound, point.error_bound, scale, floor
         )
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
             point.notes["not_certified"] = _why_not(point)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.model import Alteration, Problem
@@ -247,10 +248,10 @@ def solve(
             stats=solution.stats,
             certified_by=solution.certified_by,
         )
-        warnings += check_claims(point, method_solver.name, scale)
+        warnings += check_claims(point, method_solver.name, scale, _floor(problem))
         curve.append(point)
     unaltered = (identity, exact_value(identity), exact_value.error(identity))
-    certify_curve(curve, cancelled=interrupted, unaltered=unaltered)
+    certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))
     return SolveResult(
         problem=problem.name,
         method=method_solver.name,
@@ -279,7 +280,7 @@ def recertify(result: SolveResult, problem: Problem, evidence: Sequence[Evidence
                 np.asarray(item.alteration, dtype=np.int64), item.budget
             )
             take_evidence(point, item, fits)
-    certify_curve(curve, cancelled=result.interrupted)
+    certify_curve(curve, cancelled=result.interrupted, floor=_floor(problem))
     return replace(result, curve=[_result(point, problem) for point in curve])
 
 
@@ -318,6 +319,12 @@ def _budgets(
         if not math.isfinite(b) or b < 0:
             raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
     return ordered, cap, clamped_from
+
+
+def _floor(problem: Problem) -> float:
+    """Differences of values below this are rounding (:data:`~misdirect.core.tolerance.ROUNDING`
+    times the objective's largest value)."""
+    return tolerance.ROUNDING * float(problem.objective.max_value)
 
 
 def _clean(value: float) -> float:
