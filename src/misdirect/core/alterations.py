@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple, cast
 
 import numpy as np
@@ -73,6 +74,15 @@ def rank_in_group(counts: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class AlterationSpace:
     choices: tuple[ObservationChoices, ...]
+    # how its costs add up and fit a budget (default: from the choices' own costs)
+    given_scale: tolerance.CostScale | None = None
+
+    @cached_property
+    def scale(self) -> tolerance.CostScale:
+        if self.given_scale is not None:
+            return self.given_scale
+        costs = [float(c) for choice in self.choices for c in np.asarray(choice.costs).tolist()]
+        return tolerance.CostScale.of(costs, len(self.choices))
 
     @property
     def size(self) -> int:
@@ -91,11 +101,12 @@ class AlterationSpace:
         dropping partial vectors already over the budget; since candidate 0 is free, a
         partial vector always completes, so ``None`` (more than ``limit``) is known early.
         """
+        cap = self.scale.cap(budget)
         costs = np.zeros(1)
         steps = []  # per choice: (row of the previous step each vector extends, its option)
         for i in range(len(self.choices)) if indices is None else indices:
             grown = costs[:, None] + np.asarray(self.choices[i].costs, dtype=np.float64)
-            keep_row, keep_option = np.nonzero(grown <= budget + tolerance.BUDGET_SLACK)
+            keep_row, keep_option = np.nonzero(grown <= cap)
             if limit is not None and keep_row.size > limit:
                 return None
             steps.append((keep_row, keep_option))
@@ -127,10 +138,11 @@ class AlterationSpace:
         entry at a time, so ``None`` (more than ``limit``) is known before listing them.
         """
         positions = list(range(len(self.choices))) if indices is None else list(indices)
+        cap = self.scale.cap(budget)
         choice, option, cost = [], [], []
         for j, i in enumerate(positions):
             costs = np.asarray(self.choices[i].costs, dtype=np.float64)
-            keep = np.flatnonzero(costs[1:] <= budget + tolerance.BUDGET_SLACK) + 1
+            keep = np.flatnonzero(costs[1:] <= cap) + 1
             if usable is not None:
                 keep = keep[usable[j, keep]] if usable.shape[1] else keep[:0]
             choice.append(np.full(keep.size, j, dtype=np.int64))
@@ -147,9 +159,7 @@ class AlterationSpace:
         while last.size:
             first = after[last]  # last = -1 (nothing altered yet): from the first candidate
             # only vectors that can still afford a later candidate grow
-            growing = np.flatnonzero(
-                level_cost + cheapest_from[first] <= budget + tolerance.BUDGET_SLACK
-            )
+            growing = np.flatnonzero(level_cost + cheapest_from[first] <= cap)
             counts = cand_cost.size - first[growing]
             parents, cands = [], []
             for chunk in _chunks(counts, GROW_CHUNK):  # candidates listed a chunk at a time
@@ -157,7 +167,7 @@ class AlterationSpace:
                 cand = np.repeat(first[growing[chunk]], counts[chunk]) + rank_in_group(
                     counts[chunk]
                 )
-                fits = level_cost[parent] + cand_cost[cand] <= budget + tolerance.BUDGET_SLACK
+                fits = level_cost[parent] + cand_cost[cand] <= cap
                 parents.append(parent[fits])
                 cands.append(cand[fits])
                 total += int(fits.sum())
@@ -201,25 +211,27 @@ class AlterationSpace:
         it takes, under its lock, so it must be cheap). Counts are capped at
         ``limit + 1``: ``min(a·b, cap)`` and ``min(a + b, cap)`` only need capped terms."""
         cap = limit + 1
+        scale = self.scale
+        top = scale.units_cap(budget)  # costs in units that add up exactly
 
         def times(a: dict[float, int], b: dict[float, int]) -> dict[float, int]:
             product: dict[float, int] = {}
             for cost_a, count_a in a.items():
                 for cost_b, count_b in b.items():
-                    key = round(cost_a + cost_b, 9)
-                    if key <= budget + tolerance.BUDGET_SLACK:
+                    key = cost_a + cost_b
+                    if key <= top:
                         product[key] = min(product.get(key, 0) + count_a * count_b, cap)
             return product
 
         alike: dict[tuple[float, ...], int] = {}
         for choice in self.choices:
-            costs = tuple(sorted(round(c, 9) for c in np.asarray(choice.costs).tolist()))
+            costs = tuple(sorted(scale.units(c) for c in np.asarray(choice.costs).tolist()))
             alike[costs] = alike.get(costs, 0) + 1
         total = {0.0: 1}
         for costs, size in alike.items():
             one: dict[float, int] = {}  # one choice of the group: options per cost
             for c in costs:
-                if c <= budget + tolerance.BUDGET_SLACK:
+                if c <= top:
                     one[c] = min(one.get(c, 0) + 1, cap)
             power = {0.0: 1}
             while size:
@@ -257,7 +269,7 @@ def alteration_space(problem: Problem) -> AlterationSpace:
         o = int(o)
         costs = problem.cost.row(o)
         allowed = np.flatnonzero(
-            np.isfinite(costs) & (costs <= problem.budget + tolerance.BUDGET_SLACK)
+            np.isfinite(costs) & (costs <= problem.cost.scale.cap(problem.budget))
         )
         # cheapest per class; ties go to the lowest index, and o itself (cost 0) wins its class
         order = allowed[np.lexsort((allowed, allowed != o, costs[allowed]))]
@@ -266,7 +278,7 @@ def alteration_space(problem: Problem) -> AlterationSpace:
         picked = np.concatenate([[o], picked[picked != o]])
         if picked.size > 1:
             choices.append(ObservationChoices(o, picked, costs[picked]))
-    return AlterationSpace(tuple(choices))
+    return AlterationSpace(tuple(choices), problem.cost.scale)
 
 
 def max_alteration_cost(problem: Problem) -> float:
@@ -279,7 +291,7 @@ def max_alteration_cost(problem: Problem) -> float:
     cost = problem.cost
     n = cost.n_observations
     overrides = cost._pairs_by_source
-    total = 0.0
+    mosts = []
     for o in problem.relevant_observations.tolist():
         if o in cost.protected:
             continue
@@ -290,5 +302,5 @@ def max_alteration_cost(problem: Problem) -> float:
         uncovered = n - 1 - np.unique(targets[targets != o]).size  # targets at the default
         if uncovered > 0 and math.isfinite(cost.default):
             most = max(most, float(cost.default))
-        total += most
-    return total
+        mosts.append(most)
+    return float(cost.scale.exact(mosts))  # the exact sum: a float sum may fall short of it

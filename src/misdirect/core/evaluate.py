@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from misdirect.core import tolerance
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.product import ProductChain, build_product
@@ -216,7 +215,7 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
         probability=probability,
         alteration=problem.changed_observations(alpha),
         cost=cost,
-        within_budget=bool(tolerance.affordable(cost, problem.budget)),
+        within_budget=problem.cost.fits(alpha, problem.budget),
         outcomes=outcomes,
         never_absorbed=float(occ.entered[occ.trapped].sum()),
         product_states=chain.n_states,

@@ -505,9 +505,26 @@ class CostModel:
         """Dense ``|Ω| x |Ω|`` cost table (for small models, reports and MILP export)."""
         return np.vstack([self.row(o) for o in range(self.n_observations)])
 
-    def cost(self, alteration: AlterationArray) -> float:
+    @cached_property
+    def scale(self) -> tolerance.CostScale:
+        """How this model's costs add up and fit a budget, exactly (budgets become caps)."""
+        values = [self.default, *self.pairs.values()]
+        return tolerance.CostScale.of(values, self.n_observations - len(self.protected))
+
+    def terms(self, alteration: AlterationArray) -> list[float]:
+        """The costs an alteration adds up, one per altered observation."""
         changed = np.flatnonzero(alteration != np.arange(self.n_observations))
-        return float(sum(self.row(int(o))[alteration[o]] for o in changed))
+        return [float(self.row(int(o))[alteration[o]]) for o in changed]
+
+    def cost(self, alteration: AlterationArray) -> float:
+        """The alteration's cost: the float nearest its exact sum (:meth:`fits` decides)."""
+        terms = self.terms(alteration)
+        return float(self.scale.exact(terms)) if np.isfinite(terms).all() else np.inf
+
+    def fits(self, alteration: AlterationArray, budget: float) -> bool:
+        """Whether the alteration's exact cost fits ``budget``: the final word on a budget."""
+        terms = self.terms(alteration)
+        return bool(np.isfinite(terms).all()) and self.scale.fits_exactly(terms, budget)
 
 
 @dataclass(frozen=True, eq=False, repr=False)

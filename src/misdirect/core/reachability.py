@@ -695,7 +695,9 @@ def _prove_forward(
     floor = gamma * ((rz if (z >= 0).all() else rows @ np.abs(z)) + np.abs(x))
     error = float((np.abs(rz - x) + floor).max(initial=0.0) * steps)
     best = Bounded(float(x[k]), error)
-    if error <= EXACT_TOL or not np.isfinite(error):
+    # small enough relative to the value itself: a decoy reached through a 1e-10 branch has
+    # a value of 1e-10 and needs an error far below 1e-10 to be certified
+    if tolerance.exact_enough(error, x[k]) or not np.isfinite(error):
         return best
     csr = sp.csr_matrix(rows)
     z_lo = np.zeros(known.size)
@@ -705,7 +707,7 @@ def _prove_forward(
         r, bound = residual.residual(csr, z, z_lo, unknown)
         return r, float(bound.max(initial=0.0) * steps + UNIT_ROUNDOFF * abs(hi[k] + lo[k]))
 
-    refined, hi, lo = _refine(x, proven, solve)
+    refined, hi, lo = _refine(x, proven, solve, lambda hi, lo: float(hi[k] + lo[k]))
     return best if best.error <= refined else Bounded(float(hi[k] + lo[k]), refined)
 
 
@@ -713,11 +715,14 @@ def _refine(
     x: np.ndarray,
     proven: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, float]],
     solve: Callable[[np.ndarray], np.ndarray | None],
+    value: Callable[[np.ndarray, np.ndarray], float] | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Iterative refinement of ``x`` as a double-double ``hi + lo``: ``proven(hi, lo)`` gives
     the residual (computed exactly enough) and the error bound it proves, ``solve`` the
-    correction. Stops once the bound is at most :data:`EXACT_TOL`, or when it no longer halves
-    (``cond · u`` near 1), and returns the best bound with its ``hi`` and ``lo``."""
+    correction. Stops once the bound is small enough (relative to ``value(hi, lo)``, by
+    :func:`~misdirect.core.tolerance.exact_enough`; without ``value``, at most
+    :data:`EXACT_TOL`), or when it no longer halves (``cond · u`` near 1), and returns the
+    best bound with its ``hi`` and ``lo``."""
     hi, lo = x.copy(), np.zeros_like(x)
     best = (np.inf, hi, lo)
     previous = np.inf
@@ -725,7 +730,10 @@ def _refine(
         r, error = proven(hi, lo)
         if error < best[0]:
             best = (error, hi, lo)
-        if error <= EXACT_TOL or not error < 0.5 * previous:
+        enough = (
+            error <= EXACT_TOL if value is None else tolerance.exact_enough(error, value(hi, lo))
+        )
+        if enough or not error < 0.5 * previous:
             break
         previous = error
         correction = solve(r)

@@ -4,48 +4,281 @@ An exactness tool hides its soundness bugs in tolerances, so there is one place 
 close is close enough, and why. Every solver, engine and report compares through these names;
 none writes a literal. The decision "is this answer optimal?" built on them lives in
 :mod:`misdirect.solvers.certification`.
+
+Nothing here is absolute, because a problem may live at any scale (costs of 1e-10, decoy
+weights of 1e-12, a decoy reached through a 1e-10 branch):
+
+* **Costs** are compared exactly. A :class:`CostScale` (one per cost model) turns a budget into
+  a *cap*: a float sum of the model's costs is ``<= cap`` exactly when the exact sum of the
+  costs as written fits the budget (see :class:`CostScale` for the three cases).
+* **Values** (probabilities, expected weights, bounds) are compared relative to the numbers
+  compared (:func:`slack`): a gap of ``CERTIFY`` times the larger of them, so 1e-13 against
+  4e-13 is as different as 0.1 against 0.4.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from fractions import Fraction
+
 import numpy as np
 
-BUDGET_SLACK = 1e-9
-"""A cost within this of a budget fits it: costs are sums of decimal inputs (0.1 + 0.2)."""
-
 CERTIFY = 1e-9
-""""Optimal" means a proven upper bound within this of the exact value of the answer."""
+""""Optimal" means a proven upper bound within this (relative) of the exact value."""
 
 PRUNE = CERTIFY
-"""A subtree whose bound is this close to the incumbent cannot beat it by more than a tie."""
+"""A subtree whose bound is this close (relative) to the incumbent cannot beat it but by a tie."""
 
 NEAR_TIE = CERTIFY
-"""Values of low-rank updates this close count as equal: within the updates' rounding error."""
+"""Values of low-rank updates this close (relative) count as equal: their rounding error."""
 
 STOCHASTIC = 1e-9
-"""A distribution (a model's row, a controller's move) sums to 1 within this."""
+"""A distribution (a model's row, a controller's move) sums to 1 within this (its scale is 1)."""
 
 TIE = 1e-12
-"""Two exact values (or two costs) this close are the same number up to rounding."""
+"""Two exact values this close (relative) are the same number up to rounding."""
 
 IMPROVE = 1e-12
-"""Policy iteration switches a choice only on a gain larger than this (else it may cycle)."""
+"""Policy iteration switches a choice only on a gain larger than this, relative to the values
+(else rounding may make it cycle)."""
 
 MISMATCH = 1e-6
-"""A solver's claim this far from the exact value of its alteration contradicts the chain."""
+"""A solver's claim this far (relative) from the exact value of its alteration contradicts the
+chain."""
 
 GAP = CERTIFY
-"""A MILP backend's bound this close to its incumbent proves it (relative above 1)."""
+"""A MILP backend's bound this close (relative) to its incumbent proves it. The MILP hands the
+backend a model scaled so that its values are about 1 (:mod:`misdirect.solvers.milp`)."""
 
 FEASIBILITY = 1e-9
-"""A MILP point further than this from feasible gets its claim recomputed with rounded binaries."""
+"""A MILP point further than this from feasible (in the scaled model, values about 1) gets its
+claim recomputed with rounded binaries."""
+
+EXACT = CERTIFY / 10
+"""A value's proven error must be this small relative to the value (a tenth of what
+certification allows, so a method's own gap keeps its room): reachability refines until it is."""
+
+ROUNDING = 2.0**-50
+"""A difference this small relative to the objective's largest value (the largest decoy
+weight: every chain's values lie below it) is the rounding of double arithmetic on the chain,
+whatever the answer's own size: a claim of 2e-18 where the chain gives 0 is no contradiction,
+and a bound of 2e-18 proves 0."""
+
+UNIT_ROUNDOFF = 2.0**-53
+SMALLEST = 2.0**-1074  # the smallest subnormal: every float is a multiple of it
 
 
-def affordable(cost: float | np.ndarray, budget: float) -> bool | np.ndarray:
-    """Whether ``cost`` fits ``budget`` (element-wise on arrays), within :data:`BUDGET_SLACK`."""
-    return cost <= budget + BUDGET_SLACK
+def slack(*values: float, rel: float = CERTIFY) -> float:
+    """``rel`` times the largest finite magnitude among ``values``: the room two values of
+    this size may differ by and still count as equal (an infinite bound leaves no room,
+    rather than infinite room)."""
+    return rel * max((abs(float(v)) for v in values if math.isfinite(v)), default=0.0)
 
 
-def proven(value: float, bound: float | None) -> bool:
-    """Whether ``bound`` (a proven upper bound) certifies ``value`` as the optimum."""
-    return bound is not None and bound - value <= CERTIFY + TIE
+def tied(a: float, b: float, rel: float = TIE) -> bool:
+    """Whether ``a`` and ``b`` are the same number up to rounding (relative ``rel``)."""
+    return bool(abs(a - b) <= slack(a, b, rel=rel))
+
+
+def better(a: float, b: float, rel: float = TIE) -> bool:
+    """Whether ``a`` exceeds ``b`` by more than a tie (relative ``rel``)."""
+    return bool(a > b + slack(a, b, rel=rel))
+
+
+def proven(value: float, bound: float | None, scale: float = 0.0, floor: float = 0.0) -> bool:
+    """Whether ``bound`` (a proven upper bound) certifies ``value`` as the optimum: within
+    :data:`CERTIFY` of it, relative to the larger, or to ``scale``, the problem's (the
+    largest exact value of its curve: a bound of 1e-15 proves 0 on a problem of values about
+    1, not on one of values about 1e-15); ``floor``: a gap this small is rounding
+    (:data:`ROUNDING` times the objective's largest value)."""
+    if bound is None:
+        return False
+    return bool(bound - value <= max(slack(value, scale, rel=CERTIFY + TIE), floor))
+
+
+def mismatch(exact: float, claimed: float, scale: float = 0.0, floor: float = 0.0) -> bool:
+    """Whether a solver's ``claimed`` value contradicts the ``exact`` one, on a problem whose
+    values are about ``scale`` (the largest exact value known); ``floor`` as for
+    :func:`proven`."""
+    return bool(abs(exact - claimed) > max(slack(exact, scale, rel=MISMATCH), floor))
+
+
+def exact_enough(error: float, value: float) -> bool:
+    """Whether a value's proven ``error`` is small enough to certify with (:data:`EXACT`)."""
+    return error <= EXACT * abs(value)
+
+
+def whole_units(budget: float, unit: float) -> int:
+    """How many costs ``unit`` fit ``budget`` exactly (both as written): the largest ``k``
+    with ``k unit <= budget``."""
+    if not unit > 0:
+        raise ValueError("a cost unit must be positive")
+    return max(math.floor(_written(budget) / _written(unit)), 0)
+
+
+def _written(cost: float) -> Fraction:
+    """The decimal a float cost was written as (its shortest repr): 0.1 is 1/10."""
+    return Fraction(repr(float(cost)))
+
+
+@dataclass(frozen=True)
+class CostScale:
+    """How the costs of one cost model add up and fit a budget, exactly.
+
+    Costs are floats from a file, and "0.1 + 0.2 fits 0.3" is what the file means, so a cost is
+    the decimal it was written as, and the cost of an alteration is the exact sum of its costs.
+    Solvers add costs in floats, so a budget becomes a *cap* (:meth:`cap`), and a float sum of at
+    most ``terms`` costs is compared with it by plain ``<=``:
+
+    * ``decimal``: every cost (as written) is a multiple of ``step`` and float sums stay within a
+      quarter ``step`` of their exact sums. The cap lies half a step above the last multiple of
+      ``step`` within the budget, so ``<=`` is exact (1e-10 does not fit 0; 0.1 + 0.2 fits 0.3).
+    * ``binary``: otherwise, every cost is a multiple of the power of two ``step`` and sums stay
+      below ``2^53`` steps: float sums are exact, costs are their float values, the cap is the
+      budget (5e-324 + 5e-324 does not fit 5e-324).
+    * ``rounded``: neither (costs of very different magnitudes). The cap lies below the budget
+      by the largest rounding error of a sum, so what fits surely fits; a sum within that
+      rounding of the budget is refused.
+
+    The cap also absorbs ``cap - spent`` (a remaining budget) for sums of costs ``spent``.
+    """
+
+    kind: str  # "decimal", "binary" or "rounded"
+    step: Fraction
+    terms: int  # most costs ever added up (one per observation)
+    largest: float  # largest finite cost
+    _caps: dict[float, float] = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def of(cls, costs: Iterable[float], terms: int) -> CostScale:
+        """The scale of a cost model whose finite costs are ``costs`` (one alteration adds at
+        most ``terms`` of them)."""
+        values = sorted({float(c) for c in costs if math.isfinite(c) and c > 0})
+        terms = max(int(terms), 1)
+        if not values:
+            return cls("binary", Fraction(1), terms, 0.0)
+        largest = values[-1]
+        total = terms * largest  # no sum of costs exceeds it
+        # the error of a float sum of ``terms`` costs against their decimals: each cost is
+        # rounded once (u relative, or half the least subnormal), each addition once
+        error = 2 * (terms + 1) * UNIT_ROUNDOFF * total + terms * SMALLEST
+        step = Fraction(0)
+        for value in values:
+            written = _written(value)
+            step = (
+                written
+                if step == 0
+                else Fraction(
+                    math.gcd(
+                        step.numerator * written.denominator, written.numerator * step.denominator
+                    ),
+                    step.denominator * written.denominator,
+                )
+            )
+            if step.denominator > 10**340:
+                break
+        if step > 0 and error <= float(step) / 4 and total / float(step) < 2.0**50:
+            return cls("decimal", step, terms, largest)
+        low = min(_lowest_bit(v) for v in values)
+        binary = Fraction(2) ** low
+        if math.ldexp(total, -low) < 2.0**52:
+            return cls("binary", binary, terms, largest)
+        return cls("rounded", binary, terms, largest)
+
+    def cap(self, budget: float) -> float:
+        """The float a float sum of costs (or a cost, against ``cap - spent``) is compared with
+        by ``<=``: exactly when the exact sum fits ``budget`` (``rounded``: only then)."""
+        budget = float(budget)
+        if budget in self._caps:
+            return self._caps[budget]
+        if math.isnan(budget) or budget < 0:
+            cap = -math.inf
+        elif budget == math.inf or budget >= 2 * self.terms * self.largest:
+            cap = math.inf  # every sum fits (the factor 2 is room for rounding)
+        elif self.kind == "decimal":
+            whole = math.floor(_written(budget) / self.step)
+            cap = float((whole + Fraction(1, 2)) * self.step)
+        elif self.kind == "binary":
+            cap = budget
+        else:
+            error = 4 * (self.terms + 2) * UNIT_ROUNDOFF
+            cap = max(budget * (1 - error) - 2 * self.terms * SMALLEST, 0.0)
+        self._caps[budget] = cap
+        return cap
+
+    def remaining(self, budget: float, spent: float) -> float:
+        """A budget for what is left of ``budget`` once ``spent`` (a float sum of costs) is
+        paid: a sum ``c`` fits it (:meth:`cap`) exactly when ``spent + c`` fits ``budget``."""
+        if math.isinf(self.cap(budget)) and budget > 0:
+            return math.inf
+        if self.kind == "decimal":
+            left = math.floor(_written(float(budget)) / self.step) - round(spent / float(self.step))
+            return -1.0 if left < 0 else float((left + Fraction(1, 2)) * self.step)
+        if self.kind == "binary":
+            return budget - spent  # exact: both are multiples of a step the budget's ulp divides
+        error = 4 * (self.terms + 2) * UNIT_ROUNDOFF * abs(budget)
+        return budget - spent - error
+
+    def snap(self, cap: float) -> float:
+        """The largest sum of costs a ``cap`` admits, about (``decimal``: the last step below
+        it), for relaxations that weigh the budget itself rather than compare with it."""
+        if self.kind != "decimal" or not math.isfinite(cap) or cap < 0:
+            return cap
+        step = float(self.step)
+        return math.floor(cap / step) * step
+
+    def fits(self, cost: float | np.ndarray, budget: float) -> bool | np.ndarray:
+        """Whether the float sum ``cost`` of some costs fits ``budget`` (element-wise)."""
+        return cost <= self.cap(budget)
+
+    def value(self, cost: float) -> Fraction:
+        """One cost as a number: as written (``decimal``), else its float value."""
+        return _written(cost) if self.kind == "decimal" else Fraction(float(cost))
+
+    def exact(self, costs: Iterable[float]) -> Fraction:
+        """The exact sum of ``costs``."""
+        return sum((self.value(c) for c in costs), Fraction(0))
+
+    def fits_exactly(self, costs: Iterable[float], budget: float) -> bool:
+        """Whether the exact sum of ``costs`` fits ``budget``: the final word on a budget."""
+        if math.isnan(budget):
+            return False
+        if budget == math.inf:
+            return True
+        return self.exact(costs) <= self.value(budget)
+
+    def same(self, a: float, b: float) -> bool:
+        """Whether two float sums of costs stand for the same exact sum."""
+        if self.kind == "decimal":
+            return abs(a - b) < float(self.step) / 2
+        if self.kind == "binary":
+            return a == b
+        return abs(a - b) <= 4 * (self.terms + 2) * UNIT_ROUNDOFF * max(abs(a), abs(b))
+
+    def cheaper(self, a: float, b: float) -> bool:
+        """Whether the sum ``a`` is less than ``b`` (and not the same sum)."""
+        return a < b and not self.same(a, b)
+
+    def units(self, cost: float) -> float:
+        """A float sum of costs as a number that adds exactly (``decimal``: whole steps)."""
+        return float(round(cost / float(self.step))) if self.kind == "decimal" else cost
+
+    def units_cap(self, budget: float) -> float:
+        """:meth:`cap` for sums of :meth:`units`."""
+        cap = self.cap(budget)
+        if self.kind != "decimal" or not math.isfinite(cap):
+            return cap
+        return float(math.floor(_written(float(budget)) / self.step))
+
+
+def _lowest_bit(value: float) -> int:
+    """The exponent of the lowest set bit of a positive float: it is a multiple of 2^that."""
+    mantissa, exponent = math.frexp(value)
+    numerator = int(math.ldexp(mantissa, 53))
+    exponent -= 53
+    while numerator and numerator % 2 == 0:
+        numerator //= 2
+        exponent += 1
+    return max(exponent, -1074)

@@ -115,7 +115,7 @@ def audit(
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
         singles = _single_values(problem, budget, list(cheapest), clock, likely, pool)
-        evidence = _single_sensor_evidence(curve_result, cheapest, singles)
+        evidence = _single_sensor_evidence(curve_result, cheapest, singles, problem.cost.scale)
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
         rows = _sensor_rows(problem, budget, optimum, singles, clock, method, pool)
@@ -190,7 +190,10 @@ def _single_values(
 
 
 def _single_sensor_evidence(
-    curve_result: SolveResult, cheapest: dict[int, float], singles: dict[int, Attack]
+    curve_result: SolveResult,
+    cheapest: dict[int, float],
+    singles: dict[int, Attack],
+    scale: tolerance.CostScale,
 ) -> list[Evidence]:
     """What the single-sensor optima prove about the curve: a budget that affords no two
     sensors together (their two cheapest alterations cost more) only affords alterations of
@@ -203,11 +206,11 @@ def _single_sensor_evidence(
     evidence = []
     for point in curve_result.curve:
         b = point.budget
-        if tolerance.affordable(pair, b):
+        if scale.fits(pair, b):
             continue
-        fits = [singles[o] for o, cost in cheapest.items() if tolerance.affordable(cost, b)]
+        fits = [singles[o] for o, cost in cheapest.items() if scale.fits(cost, b)]
         upper = max([a.upper for a in fits], default=curve_result.baseline_probability)
-        best = _best_within([a for a in fits if tolerance.affordable(a.cost, b)])
+        best = _best_within([a for a in fits if scale.fits(a.cost, b)])
         evidence.append(
             Evidence(
                 budget=b,
@@ -296,7 +299,7 @@ def _online_value(
         note = error.reason
         online = online_attack_value(problem, None)
     # the online attacker sees more than the offline one: below it would contradict a theorem
-    if online.unlimited_probability < optimum.value - tolerance.CERTIFY:
+    if tolerance.better(optimum.value, online.unlimited_probability, rel=tolerance.CERTIFY):
         raise SolverError(
             f"online value {online.unlimited_probability:.12f} below the offline value "
             f"{optimum.value:.12f}"

@@ -68,6 +68,8 @@ def _can_hit(
     sets: Sequence[frozenset[int]], room: float, costs: np.ndarray, work: list[int]
 ) -> bool:
     """Is there a set of sensors of total cost ≤ ``room`` meeting every one of ``sets``?
+    (``room`` is a cap: :meth:`~misdirect.core.tolerance.CostScale.cap` of the protection
+    budget, less what was spent; ``cost <= room`` is then exact.)
 
     Branches on the elements of the smallest set not yet met (every hitting set contains one
     of them). Beyond ``HITTING_NODE_LIMIT`` nodes it answers True, which only ever weakens the
@@ -85,7 +87,7 @@ def _can_hit(
             return True
         smallest = min(open_sets, key=len)
         for o in sorted(smallest, key=lambda o: costs[o]):
-            if costs[o] <= room + tolerance.BUDGET_SLACK and search(chosen | {o}, room - costs[o]):
+            if costs[o] <= room and search(chosen | {o}, room - costs[o]):
                 return True
         failed.add(chosen)
         return False
@@ -257,6 +259,8 @@ class _Search:
         self.problem = problem
         self.budget = budget
         self.costs = costs
+        # protection budgets become caps: a float sum of these costs fits by ``<=`` exactly
+        self.scale = tolerance.CostScale.of(costs.tolist(), len(costs))
         self.clock = clock
         self.method = method
         self.names = problem.pomdp.observations
@@ -302,7 +306,8 @@ class _Search:
             self._keep(protection, attack)
 
     def cost_of(self, protection: frozenset[int]) -> float:
-        return float(sum(self.costs[o] for o in protection))
+        """The exact sum, rounded once: equal sums compare equal, whatever their order."""
+        return float(self.scale.exact(self.costs[o] for o in protection))
 
     def best_within(self, d: float, best: frozenset[int]) -> frozenset[int]:
         """The best protection of cost ≤ ``d``, starting from the incumbent ``best`` (the
@@ -319,10 +324,10 @@ class _Search:
                 continue
             seen.add(node)
             self.nodes += 1
-            room = d - self.cost_of(node)
+            room = self.scale.cap(d) - self.cost_of(node)
             best_value = self.attack(best).upper
             bound = hitting_lower_bound(self.attacks, node, room, self.costs)
-            if bound >= best_value - tolerance.CERTIFY:
+            if not tolerance.better(best_value, bound, rel=tolerance.CERTIFY):
                 self.pruned += 1
                 continue
             here = self.attack(node)
@@ -331,7 +336,7 @@ class _Search:
             children = [
                 node | {o}
                 for o in sorted(here.changed, key=lambda o: (self.costs[o], self.names[o]))
-                if self.costs[o] <= room + tolerance.BUDGET_SLACK and (node | {o}) not in seen
+                if self.costs[o] <= room and (node | {o}) not in seen
             ]
             self.prefetch(children)
             stack.extend(reversed(children))  # the cheapest sensor first
@@ -344,7 +349,10 @@ class _Search:
         lower = (
             reply.upper
             if proven
-            else min(hitting_lower_bound(self.attacks, frozenset(), d, self.costs), reply.upper)
+            else min(
+                hitting_lower_bound(self.attacks, frozenset(), self.scale.cap(d), self.costs),
+                reply.upper,
+            )
         )
         status = (
             Status.OPTIMAL
@@ -376,7 +384,8 @@ class _Search:
 
 
 def _better(candidate: Attack, cost: float, best: Attack, best_cost: float) -> bool:
-    """Lower guaranteed attacker value, or tied within the tolerance and cheaper."""
-    if candidate.upper < best.upper - tolerance.CERTIFY:
+    """Lower guaranteed attacker value, or tied within the tolerance (relative) and cheaper."""
+    if tolerance.better(best.upper, candidate.upper, rel=tolerance.CERTIFY):
         return True
-    return candidate.upper <= best.upper + tolerance.CERTIFY and cost < best_cost - tolerance.TIE
+    tied = not tolerance.better(candidate.upper, best.upper, rel=tolerance.CERTIFY)
+    return tied and cost < best_cost

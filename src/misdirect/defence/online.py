@@ -94,7 +94,7 @@ def _budgeted_value(chain: ChoiceProduct, budget: float) -> tuple[float, float, 
             "of a common unit (e.g. 0.5); these are not, so it is not computed",
             field="budget",
         )
-    levels = math.floor(budget / unit + tolerance.BUDGET_SLACK) + 1
+    levels = tolerance.whole_units(budget, unit) + 1
     if levels > MAX_BUDGET_LEVELS or levels * chain.n_states > MAX_BUDGETED_STATES:
         raise ProblemError(
             f"budget {budget:g} is {levels - 1:,} cost units of {unit:g}: too many budget "

@@ -63,7 +63,7 @@ class SensorAudit:
 
     @property
     def exact(self) -> bool:
-        return self.criticality_upper - self.criticality <= tolerance.CERTIFY
+        return tolerance.proven(self.criticality, self.criticality_upper)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -208,8 +208,9 @@ class AuditResult:
             "online": {
                 **self.online.to_dict(),
                 "budgeted_note": self.online_budgeted_note,
-                "upper_bounds_offline": self.online.unlimited_probability
-                >= self.probability - tolerance.CERTIFY,
+                "upper_bounds_offline": not tolerance.better(
+                    self.probability, self.online.unlimited_probability, rel=tolerance.CERTIFY
+                ),
             },
             "notes": self.notes,
             "time_s": self.time_s,

@@ -484,7 +484,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
     """The better answer of two stages for one budget, with the tighter of their bounds; how
     they stopped is carried, not judged: certification is the front door's."""
     values = [exact(np.asarray(s.alteration, dtype=np.int64)) for s in (first, second)]
-    pick = second if values[1] > values[0] + tolerance.TIE else first
+    pick = second if tolerance.better(values[1], values[0]) else first
     value = max(values)
     bounds = [s.upper_bound for s in (first, second) if s.upper_bound is not None]
     bound = max(min(bounds), value) if bounds else None

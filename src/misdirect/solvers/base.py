@@ -94,17 +94,22 @@ def thread_count(threads: int | None, default: int = DEFAULT_THREADS) -> int:
 
 
 def best_per_budget(
-    costs: np.ndarray, values: np.ndarray, budgets: Sequence[float], tie: float = tolerance.TIE
+    costs: np.ndarray,
+    values: np.ndarray,
+    budgets: Sequence[float],
+    scale: tolerance.CostScale,
+    tie: float = tolerance.TIE,
 ) -> list[int]:
-    """Index of the best candidate within each budget: highest value, then lowest cost.
+    """Index of the best candidate within each budget (``scale`` says which fit exactly):
+    highest value, then lowest cost; values within ``tie`` (relative) of the best are tied.
 
     Preferring the cheaper of two equally good alterations means the answer never spends more of
     the budget than it needs.
     """
     picks = []
     for budget in budgets:
-        within = np.flatnonzero(tolerance.affordable(costs, budget))
+        within = np.flatnonzero(costs <= scale.cap(budget))
         best = values[within].max()
-        tied = within[values[within] >= best - tie]
+        tied = within[values[within] >= best - tolerance.slack(best, rel=tie)]
         picks.append(int(tied[np.argmin(costs[tied])]))
     return picks

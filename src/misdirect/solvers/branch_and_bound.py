@@ -143,7 +143,7 @@ class BranchAndBoundSolver:
         nodes = 1 if self.options.pool is not None else self.max_nodes
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
         picks = None if step.seed is None else relax.picks_of(step.seed)
-        if picks is not None and tolerance.affordable(relax.cost(picks), budget):
+        if picks is not None and relax.cost(picks) <= relax.space.scale.cap(budget):
             search.incumbent.offer_exact(picks)
         # a good incumbent before the search: the previous budget's, improved locally
         if search.best_value < 0:
@@ -276,7 +276,8 @@ class _Search(IncumbentSearch):
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy
-        self.stack = [_Node((), budget, np.inf, policy)]
+        # a node's ``remaining`` is the budget's cap less what it spent: ``cost <= remaining``
+        self.stack = [_Node((), relax.space.scale.cap(budget), np.inf, policy)]
         self.nodes = 0
         self.root_bound: float | None = None
         self.evaluations_before = relax.evaluations
@@ -410,7 +411,7 @@ def _hill_climb(
                 break
             candidate = (*picks[:j], k, *picks[j + 1 :])
             found = relax.value_of(candidate)
-            if found > best[0] + tolerance.PRUNE:
+            if tolerance.better(found, best[0], rel=tolerance.PRUNE):
                 best = (found, candidate)
         if best[1] is picks:
             return picks, value
@@ -432,14 +433,14 @@ def _ranked_moves(
     chain = relax.chain
     state_obs = relax.problem.pomdp.observation_of[chain.world_state]
     score = np.asarray(chain.transitions @ values).ravel()
-    spent = relax.cost(picks)
+    spent, cap = relax.cost(picks), relax.space.scale.cap(budget)
     moves = []
     for position_in_order, i in enumerate(relax.order):
         first = relax.first_option[i]
         costs = relax.option_cost[first : relax.first_option[i + 1]]
         current = picks[position_in_order]
         owned = inner[state_obs[inner] == relax.space.choices[i].observation]
-        for k in np.flatnonzero(spent - costs[current] + costs <= budget + tolerance.BUDGET_SLACK):
+        for k in np.flatnonzero(spent - costs[current] + costs <= cap):
             if k == current:
                 continue
             groups = chain.group_of_option[owned, first + k]

@@ -3,7 +3,10 @@
 Methods only report how they stopped (finished, time or node limit, gap) with the bound they
 proved; the front door (:func:`misdirect.solve`) re-evaluates every returned alteration
 exactly (:class:`ExactValues`) and hands the curve to :func:`certify_curve`, the only code that
-promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tolerance`.
+promotes or demotes a status. The tolerances come from :mod:`misdirect.core.tolerance`:
+values are compared relative to their size (an answer of 1e-13 against 4e-13 is no tie), and
+an alteration fits its budget only when its exact cost does (``CurvePoint.fits``, from
+:meth:`misdirect.core.model.CostModel.fits`), with no slack.
 """
 
 from __future__ import annotations
@@ -68,15 +71,23 @@ def exact_values(problem: Problem) -> ExactValues:
     return current if current is not None and current.problem is problem else ExactValues(problem)
 
 
-def decide(stopped: Status, exact: float, bound: float | None, error: float = 0.0) -> Status:
+def decide(
+    stopped: Status,
+    exact: float,
+    bound: float | None,
+    error: float = 0.0,
+    scale: float = 0.0,
+    floor: float = 0.0,
+) -> Status:
     """The status of an answer worth ``exact`` (within its proven ``error``) whose method
     stopped as ``stopped``, given the best proven upper bound on its budget's optimum:
     ``optimal`` exactly when ``bound`` meets the least value ``exact`` may have, so an answer
-    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` never is; a
-    method that says it finished without such a bound gets ``feasible``."""
+    whose value is not proven within :data:`~misdirect.core.tolerance.CERTIFY` (relative to
+    the value, or to ``scale``, the problem's largest exact value) never is; a method that
+    says it finished without such a bound gets ``feasible``."""
     if stopped == Status.UNVERIFIED:
         return stopped
-    if tolerance.proven(exact - error, bound):
+    if tolerance.proven(exact - error, bound, scale, floor):
         return Status.OPTIMAL
     return Status.FEASIBLE if stopped == Status.OPTIMAL else stopped
 
@@ -96,6 +107,7 @@ class CurvePoint:
     certified_by: str | None
     notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
     error_bound: float = 0.0  # proven bound on the error of ``probability`` (inf: none)
+    fits: bool = True  # the alteration's exact cost fits ``budget`` (CostModel.fits)
 
 
 @dataclass(frozen=True)
@@ -114,12 +126,15 @@ class Evidence:
     error_bound: float = math.inf  # proven bound on the error of ``probability``
 
 
-def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
+def take_evidence(point: CurvePoint, evidence: Evidence, fits: bool) -> None:
     """Fold ``evidence`` into ``point`` before :func:`certify_curve` decides: a better
     alteration (by more than a tie) replaces the point's, a tighter bound its bound. How the
     method stopped is kept; only the certification turns it into ``optimal``. A bound below
-    the point's exact value contradicts the chain: the evidence is then not taken."""
-    if evidence.upper_bound < point.probability - tolerance.MISMATCH:
+    the point's exact value contradicts the chain: the evidence is then not taken. ``fits``:
+    the evidence's alteration fits the budget exactly (``CostModel.fits``)."""
+    if point.probability - evidence.upper_bound > tolerance.slack(
+        point.probability, rel=tolerance.MISMATCH
+    ):
         point.notes["evidence_ignored"] = (
             f"{evidence.source}'s bound {evidence.upper_bound:.9f} is below the exact value "
             f"{point.probability:.9f}"
@@ -129,8 +144,8 @@ def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
         evidence.alteration is not None
         and evidence.probability is not None
         and evidence.cost is not None
-        and tolerance.affordable(evidence.cost, point.budget)
-        and evidence.probability > point.probability + tolerance.TIE
+        and fits
+        and tolerance.better(evidence.probability, point.probability)
     ):
         point.notes["replaced"] = (
             f"the solver's answer ({point.probability:.9f}) was worse than {evidence.source}'s, "
@@ -139,6 +154,7 @@ def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
         point.alteration = np.asarray(evidence.alteration, dtype=np.int64)
         point.probability, point.cost = evidence.probability, evidence.cost
         point.error_bound = evidence.error_bound
+        point.fits = True
         point.certified_by = evidence.source
     bound = max(evidence.upper_bound, point.probability)
     if point.upper_bound is None or bound < point.upper_bound:
@@ -148,11 +164,17 @@ def take_evidence(point: CurvePoint, evidence: Evidence) -> None:
             point.certified_by = evidence.source
 
 
-def check_claims(point: CurvePoint, method: str) -> list[str]:
+def check_claims(
+    point: CurvePoint, method: str, scale: float = 0.0, floor: float = 0.0
+) -> list[str]:
     """Contradictions between the method's numbers and the chain: a claim or a bound off the
-    exact value by more than :data:`~misdirect.core.tolerance.MISMATCH` makes the point
-    ``unverified``; a bound slightly below the exact value (solver tolerance) is raised to it.
-    Returns the warnings for the user."""
+    exact value by more than :data:`~misdirect.core.tolerance.MISMATCH` (relative) makes the
+    point ``unverified``; a bound slightly below the exact value (solver tolerance) is raised
+    to it. ``scale`` is the problem's (the largest exact value of its curve, the baseline's):
+    a claim of 1e-16 where the chain gives 0 is rounding on a problem of values about 1, but
+    not on one of values about 1e-16 (``floor``: below it, every difference is rounding,
+    :data:`~misdirect.core.tolerance.ROUNDING`). An alteration whose exact cost exceeds the
+    budget is no answer: the point is ``unverified``. Returns the warnings for the user."""
     warnings = []
     exact, claimed = point.probability, point.claimed
     # An incumbent cut short (time or gap limit, node limit) may claim less than its
@@ -161,18 +183,23 @@ def check_claims(point: CurvePoint, method: str) -> list[str]:
     # optimum, contradicts the chain.
     if (
         claimed is not None
-        and abs(exact - claimed) > tolerance.MISMATCH
+        and tolerance.mismatch(exact, claimed, scale, floor)
         and not (point.status.cut_short and claimed < exact)
     ):
         point.status = Status.UNVERIFIED
         warnings.append(
-            f"budget {point.budget:g}: the {method} solver claimed {claimed:.9f} but the chain "
-            f"gives {exact:.9f}; the answer is not optimal as far as anyone can tell"
+            f"budget {point.budget:g}: the {method} solver claimed {claimed:.9g} but the chain "
+            f"gives {exact:.9g}; the answer is not optimal as far as anyone can tell"
         )
-    if point.cost > point.budget + tolerance.BUDGET_SLACK:
-        warnings.append(f"budget {point.budget:g}: returned alteration costs {point.cost:g}")
+    if not point.fits:
+        point.status = Status.UNVERIFIED
+        warnings.append(
+            f"budget {point.budget:g}: the {method} solver returned an alteration costing "
+            f"{point.cost:g}, over the budget; it is not an answer"
+        )
     if point.upper_bound is not None and point.upper_bound < exact:
-        if exact - point.upper_bound > tolerance.MISMATCH:
+        room = max(tolerance.slack(exact, scale, rel=tolerance.MISMATCH), floor)
+        if exact - point.upper_bound > room:
             point.status = Status.UNVERIFIED
             warnings.append(
                 f"budget {point.budget:g}: the {method} solver's bound "
@@ -187,6 +214,7 @@ def certify_curve(
     *,
     cancelled: bool = False,
     unaltered: tuple[np.ndarray, float, float] | None = None,
+    floor: float = 0.0,
 ) -> None:
     """What one budget's answer proves about the others, and "optimal" only when proven.
 
@@ -195,13 +223,15 @@ def certify_curve(
       value's proven error) takes
       that alteration (a method cut short may not have found it again).
     * Ties go to the cheapest: a point whose exact value does not beat a cheaper known answer
-      by more than :data:`~misdirect.core.tolerance.TIE` takes that answer (an alteration that
-      gains nothing is not worth paying for).
+      by more than :data:`~misdirect.core.tolerance.TIE` (relative) takes that answer (an
+      alteration that gains nothing is not worth paying for).
     * An upper bound at a larger budget bounds every smaller one too.
     * Each point's status is :func:`decide`'s; a point cut short by a cancellation (not by its
       time limit) is ``interrupted``.
     """
     _carry_answers_up(curve, unaltered)
+    # the problem's scale: the largest exact value known (bounds may be trivial)
+    scale = max([p.probability for p in curve] + ([unaltered[1]] if unaltered else []))
     bound: float | None = None
     for point in sorted(curve, key=lambda p: p.budget, reverse=True):
         if point.status == Status.UNVERIFIED:
@@ -210,7 +240,9 @@ def certify_curve(
             point.upper_bound = max(bound, point.probability)
         if point.upper_bound is not None:
             bound = point.upper_bound
-        status = decide(point.status, point.probability, point.upper_bound, point.error_bound)
+        status = decide(
+            point.status, point.probability, point.upper_bound, point.error_bound, scale, floor
+        )
         if status == Status.FEASIBLE and point.status == Status.OPTIMAL:
             point.notes["not_certified"] = _why_not(point)
         elif status == Status.OPTIMAL and point.status.cut_short:
@@ -226,7 +258,7 @@ def certify_curve(
 
 def _why_not(point: CurvePoint) -> str:
     """Why a finished method's answer is not called optimal."""
-    if point.error_bound > tolerance.CERTIFY:
+    if point.error_bound > tolerance.slack(point.probability, rel=tolerance.CERTIFY):
         proven = (
             "has no proven error bound"
             if not math.isfinite(point.error_bound)
@@ -237,7 +269,7 @@ def _why_not(point: CurvePoint) -> str:
             "ill-conditioned for double precision, even refined"
         )
     if point.upper_bound is None:
-        return f"no proven bound within {tolerance.CERTIFY:g} of the exact value"
+        return f"no proven bound within {tolerance.CERTIFY:g} (relative) of the exact value"
     error = f" (its error is up to {point.error_bound:.2e})" if point.error_bound else ""
     return (
         f"proven bound {point.upper_bound:.12f} is "
@@ -265,14 +297,21 @@ def _carry_answers_up(
         best = _Known(identity, value, 0.0, "altering nothing", error)
     for point in sorted(curve, key=lambda p: p.budget):
         if best is not None:
-            worse = point.probability < best.probability - tolerance.TIE
-            costlier = point.cost > best.cost + tolerance.BUDGET_SLACK
-            if worse:
+            # costs are the floats of exact sums: compared as they are
+            # an alteration over the budget is no answer (check_claims warned of it)
+            worse = not point.fits or tolerance.better(best.probability, point.probability)
+            costlier = point.cost > best.cost
+            if not point.fits:
+                point.notes["replaced"] = (
+                    f"the solver's answer (cost {point.cost:g}) exceeds the budget; it takes "
+                    f"{best.name}'s alteration"
+                )
+            elif worse:
                 point.notes["replaced"] = (
                     f"the solver's answer ({point.probability:.9f}) was worse than "
                     f"{best.name}, whose alteration it takes"
                 )
-            elif costlier and point.probability <= best.probability + tolerance.TIE:
+            elif costlier and not tolerance.better(point.probability, best.probability):
                 point.notes["replaced"] = (
                     f"the solver's answer (cost {point.cost:g}) gains nothing over "
                     f"{best.name} (cost {best.cost:g}), whose alteration it takes"
@@ -286,12 +325,13 @@ def _carry_answers_up(
                     best.cost,
                     best.error_bound,
                 )
+                point.fits = True
                 if point.upper_bound is not None:
                     point.upper_bound = max(point.upper_bound, point.probability)
         if (
             best is None
-            or point.probability > best.probability + tolerance.TIE
-            or point.cost < best.cost - tolerance.BUDGET_SLACK
+            or tolerance.better(point.probability, best.probability)
+            or point.cost < best.cost
         ):
             best = _Known(
                 point.alteration,

@@ -13,7 +13,6 @@ from typing import ClassVar
 
 import numpy as np
 
-from misdirect.core import tolerance
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
@@ -82,9 +81,9 @@ class ExhaustiveSolver:
             relevant_observations=len(space.choices),
             candidates_per_observation=[c.size for c in space.choices],
         )
-        picks = best_per_budget(costs[:done], values[:done], budgets)
+        picks = best_per_budget(costs[:done], values[:done], budgets, problem.cost.scale)
         # a budget is proven when every alteration it affords was evaluated
-        complete = [finished or not tolerance.affordable(costs[done], b) for b in budgets]
+        complete = [finished or costs[done] > problem.cost.scale.cap(b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too
         bound = (
             None

@@ -12,7 +12,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import ClassVar
 
-from misdirect.core import tolerance
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
@@ -79,7 +78,7 @@ class IncrementalSolver:
         for budget, index, finished in zip(
             budgets, found.best_within(budgets), complete, strict=True
         ):
-            within = found.values[tolerance.affordable(found.costs, budget)]
+            within = found.values[found.costs <= problem.cost.scale.cap(budget)]
             bound = float(within.max())  # every alteration within the budget was enumerated
             if relaxed is not None and not finished:
                 bound = max(bound, relaxed)

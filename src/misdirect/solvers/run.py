@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
 from misdirect.core.tables import dataframe, short_float
-from misdirect.core.tolerance import BUDGET_SLACK
 from misdirect.errors import ProblemError
 from misdirect.solvers import get_solver
 from misdirect.solvers.base import ProgressCallback
@@ -262,8 +262,8 @@ class SolveResult:
 
 def default_budgets(budget: float) -> list[float]:
     """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
-    whole = [float(b) for b in range(math.floor(budget + BUDGET_SLACK) + 1)]
-    return whole if math.isclose(whole[-1], budget) else [*whole, float(budget)]
+    whole = [float(b) for b in range(math.floor(budget) + 1)]
+    return whole if whole[-1] == budget else [*whole, float(budget)]
 
 
 @checked_keywords
@@ -404,9 +404,13 @@ def solve(
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
     curve, warnings = [], list(problem.warnings)
-    for solution in solutions:
-        alpha = np.asarray(solution.alteration, dtype=np.int64)
+    identity = problem.identity()
+    alterations = [np.asarray(s.alteration, dtype=np.int64) for s in solutions]
+    for alpha in alterations:
         problem.check_alteration(alpha, source=f"{method_solver.name} solver")
+    # the problem's scale, which a claim is compared relative to: the largest exact value
+    scale = max([exact_value(identity), *map(exact_value, alterations)])
+    for solution, alpha in zip(solutions, alterations, strict=True):
         point = CurvePoint(
             budget=solution.budget,
             status=Status(solution.status),
@@ -414,16 +418,16 @@ def solve(
             error_bound=exact_value.error(alpha),
             alteration=alpha,
             cost=problem.alteration_cost(alpha),
+            fits=problem.cost.fits(alpha, solution.budget),
             upper_bound=solution.upper_bound,
             claimed=solution.solver_probability,
             stats=solution.stats,
             certified_by=solution.certified_by,
         )
-        warnings += check_claims(point, method_solver.name)
+        warnings += check_claims(point, method_solver.name, scale, _floor(problem))
         curve.append(point)
-    identity = problem.identity()
     unaltered = (identity, exact_value(identity), exact_value.error(identity))
-    certify_curve(curve, cancelled=interrupted, unaltered=unaltered)
+    certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))
     for point in curve:  # a single method that proved its own point names itself
         if point.status == Status.OPTIMAL and point.certified_by is None:
             point.certified_by = method_solver.name
@@ -451,8 +455,11 @@ def recertify(result: SolveResult, problem: Problem, evidence: Sequence[Evidence
     for item in evidence:
         point = by_budget.get(item.budget)
         if point is not None and point.status != Status.UNVERIFIED:
-            take_evidence(point, item)
-    certify_curve(curve, cancelled=result.interrupted)
+            fits = item.alteration is not None and problem.cost.fits(
+                np.asarray(item.alteration, dtype=np.int64), item.budget
+            )
+            take_evidence(point, item, fits)
+    certify_curve(curve, cancelled=result.interrupted, floor=_floor(problem))
     return replace(result, curve=[_result(point, problem) for point in curve])
 
 
@@ -491,6 +498,12 @@ def _budgets(
         if not math.isfinite(b) or b < 0:
             raise ProblemError(f"a budget must be a non-negative number, got {b}", field="budget")
     return ordered, cap, clamped_from
+
+
+def _floor(problem: Problem) -> float:
+    """Differences of values below this are rounding (:data:`~misdirect.core.tolerance.ROUNDING`
+    times the objective's largest value)."""
+    return tolerance.ROUNDING * float(problem.objective.max_value)
 
 
 def _clean(value: float) -> float:

@@ -4,7 +4,7 @@ Both searches (the per-state depth-first one of branch-and-bound and the best-fi
 search) keep the best complete assignment found, value assignments exactly (each once), prune
 subtrees whose bound cannot beat it by more than a tie, and report as their proven bound the
 largest bound of anything pruned or still open. Values within
-:data:`~misdirect.core.tolerance.PRUNE` count as tied: the cheaper assignment wins, so an
+:data:`~misdirect.core.tolerance.PRUNE` (relative) count as tied: the cheaper assignment wins, so an
 answer never spends more of the budget than it needs.
 """
 
@@ -61,10 +61,12 @@ class Incumbent:
         """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper."""
         cost = self.relax.cost(picks)
         with self._lock:
-            better = value > self.value + tolerance.PRUNE
-            tied = value >= self.value - tolerance.PRUNE
-            cheaper = cost < self.cost - tolerance.TIE
-            same_cost = abs(cost - self.cost) <= tolerance.TIE
+            room = tolerance.slack(value, self.value, rel=tolerance.PRUNE)
+            better = value > self.value + room
+            tied = value >= self.value - room
+            scale = self.relax.space.scale
+            cheaper = scale.cheaper(cost, self.cost)
+            same_cost = scale.same(cost, self.cost)
             ordered = self.order_ties and same_cost and picks < self.picks
             if better or (tied and (cheaper or ordered)):
                 self.picks, self.value, self.cost = picks, value, cost
@@ -76,7 +78,8 @@ class Incumbent:
     def prune(self, bound: float) -> bool:
         """Whether a subtree of ``bound`` cannot beat the incumbent (then counted as pruned)."""
         with self._lock:
-            if bound <= max(self.value, self.floor) + tolerance.PRUNE:
+            best = max(self.value, self.floor)
+            if bound <= best + tolerance.slack(bound, best, rel=tolerance.PRUNE):
                 self.pruned += 1
                 self.pruned_bound = max(self.pruned_bound, bound)
                 return True

@@ -91,12 +91,12 @@ class Enumerated:
     next_outer_cost: float  # cost of the first outer vector not reached (inf: all were)
     unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
     evaluations: int
+    scale: tolerance.CostScale  # how the costs fit a budget
 
     def complete_for(self, budget: float) -> bool:
         """Whether every alteration within ``budget`` was valued."""
-        return not tolerance.affordable(self.next_outer_cost, budget) and not (
-            tolerance.affordable(self.unevaluated, budget)
-        )
+        cap = self.scale.cap(budget)
+        return not self.next_outer_cost <= cap and not self.unevaluated <= cap
 
     def picks(self, index: int) -> np.ndarray:
         """The choice vector of alteration ``index``."""
@@ -109,7 +109,7 @@ class Enumerated:
 
     def best_within(self, budgets: Sequence[float]) -> list[int]:
         """Index of the best alteration within each budget (near-ties: the cheapest)."""
-        return best_per_budget(self.costs, self.values, budgets, tie=tolerance.NEAR_TIE)
+        return best_per_budget(self.costs, self.values, budgets, self.scale, tie=tolerance.NEAR_TIE)
 
 
 class _Cycles(NamedTuple):
@@ -359,7 +359,8 @@ class LowRankEnumeration:
         inner = [i for i in self.natural_inner if i not in fixed]  # fixed ones: outer
         outer = [i for i in range(len(self.observations)) if i not in inner]
         outer_table, outer_costs = self._outer_blocks(top, fixed, outer)
-        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner))
+        scale = self.instance.space.scale
+        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner), scale)
         compiled = bases is not None or (
             self.instance.space.count_within(top, COMPILED_FROM) > COMPILED_FROM
         )
@@ -372,14 +373,26 @@ class LowRankEnumeration:
         factor_s, per_alteration, last_count = 0.0, 0.0, 0
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
             if blocks and not self._block_fits(
-                deadline, factor_s, per_alteration, last_count, inner_space, top - outer_cost
+                deadline,
+                factor_s,
+                per_alteration,
+                last_count,
+                inner_space,
+                scale.remaining(top, outer_cost),
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
             base = self._block_base(outer, outer_pick, inner, fixed, bases)
             factored = time.perf_counter()
             block = self._block(
-                top - outer_cost, inner, base, deadline, evaluations, compiled, outer, outer_pick
+                scale.remaining(top, outer_cost),
+                inner,
+                base,
+                deadline,
+                evaluations,
+                compiled,
+                outer,
+                outer_pick,
             )
             inner_costs, found, altered, cut_at = block
             evaluations += int(np.isfinite(inner_costs).sum())
@@ -407,6 +420,7 @@ class LowRankEnumeration:
             next_outer_cost=float(outer_costs[done]) if done < len(outer_costs) else np.inf,
             unevaluated=unevaluated,
             evaluations=evaluations,
+            scale=scale,
         )
 
     def _outer_blocks(
@@ -420,7 +434,8 @@ class LowRankEnumeration:
                 if i in fixed
                 else c
                 for i, c in enumerate(self.instance.space.choices)
-            )
+            ),
+            self.instance.space.scale,
         )
         listed = outer_space.within(top, outer)
         assert listed is not None  # no limit given: never None

@@ -22,7 +22,6 @@ from typing import cast
 
 import numpy as np
 
-from misdirect.core import tolerance
 from misdirect.core.alterations import AlterationSpace
 from misdirect.core.attack import prepare
 from misdirect.core.choice_product import ChoiceProduct
@@ -68,7 +67,7 @@ class PerStateRelaxation:
 
     def allowed_options(self, picks: Sequence[int], remaining: float) -> np.ndarray:
         """Options a node permits: its fixed picks, and every affordable one of free ones."""
-        allowed = self.option_cost <= remaining + tolerance.BUDGET_SLACK
+        allowed = self.option_cost <= remaining  # a cap (CostScale.cap) less what was spent
         for i, k in zip(self.order, picks, strict=False):
             allowed[self.first_option[i] : self.first_option[i + 1]] = False
             allowed[self.first_option[i] + k] = True
@@ -103,7 +102,7 @@ class PerStateRelaxation:
         cheapest: the order to branch in, and the greedy completion's pick."""
         first = self.first_option[i]
         costs = self.option_cost[first : self.first_option[i + 1]]
-        fits = np.flatnonzero(costs <= remaining + tolerance.BUDGET_SLACK)
+        fits = np.flatnonzero(costs <= remaining)
         return fits[np.lexsort((costs[fits], -usage[first + fits]))]
 
     def usage(self, policy: np.ndarray) -> np.ndarray:
@@ -145,7 +144,7 @@ def relaxation_bound(problem: Problem, budget: float, deadline: Deadline | None 
     objective's largest value (the trivial bound) if ``deadline`` passes first."""
     instance = prepare(problem, budget)
     relax = PerStateRelaxation(problem, instance.space, instance.chain)
-    allowed = relax.allowed_groups(relax.allowed_options((), budget))
+    allowed = relax.allowed_groups(relax.allowed_options((), instance.space.scale.cap(budget)))
     start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
     try:
         return relax.optimise(allowed, start, deadline)[0]

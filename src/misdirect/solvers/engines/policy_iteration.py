@@ -113,7 +113,10 @@ class MaxReachability:
             values = self.evaluate(policy)
             score = self.transitions @ values + penalty
             best, best_score = self.best_choices(score)
-            switch = self.live & (best_score > score[policy] + tolerance.IMPROVE)
+            # a gain counts relative to the scores compared (their rounding error is relative
+            # to them: values are nonnegative), so a decoy of weight 1e-12 still improves
+            room = tolerance.IMPROVE * np.abs(np.where(np.isfinite(best_score), best_score, 0.0))
+            switch = self.live & (best_score > score[policy] + room)
             if not switch.any():
                 return values, policy
             policy = np.where(switch, best, policy)
@@ -254,7 +257,10 @@ class TransientPolicyIteration:
             order = np.lexsort((-score, self.row_state))
             best = order[self.state_start]
             gain = score[best] - score[policy]
-            switch = gain > tolerance.IMPROVE * np.maximum(1.0, np.abs(values))
+            # relative to the size of the terms each score adds up (rewards may be negative,
+            # so the scores themselves may cancel): that is their rounding error
+            size = self.matrix @ np.abs(values) + np.abs(reward)
+            switch = gain > tolerance.IMPROVE * np.maximum(size[best], size[policy])
             if not switch.any():
                 return values, policy, lu, True
             policy = np.where(switch, best, policy)

@@ -152,7 +152,9 @@ class SegmentLagrangian:
             if best[0] <= stop_below:
                 break
             lines.append((lam, h, slope))
-            if slope >= -tolerance.TIE:  # h grows from here: the minimum is at or left of λ
+            if slope >= -tolerance.slack(
+                remaining, k, rel=tolerance.TIE
+            ):  # h grows from here: the minimum is at or left of λ
                 hi_line = (lam, h, slope) if hi_line is None or lam < hi_line[0] else hi_line
             else:
                 lo_line = (lam, h, slope) if lo_line is None or lam > lo_line[0] else lo_line
@@ -164,13 +166,13 @@ class SegmentLagrangian:
                 break  # slope ≥ 0 at the smallest λ tried (λ = 0 first): minimum there
             # Kelley step: where the two supporting lines cross
             (l1, h1, s1), (l2, h2, s2) = lo_line, hi_line
-            if s2 - s1 <= 1e-15:
+            if s2 - s1 <= tolerance.slack(s1, s2, rel=tolerance.TIE):
                 break
             cross = (h1 - s1 * l1 - (h2 - s2 * l2)) / (s2 - s1)
             if not l1 < cross < l2:
                 break
             predicted = h1 + s1 * (cross - l1)
-            if best[0] - predicted <= tolerance.TIE:
+            if best[0] - predicted <= tolerance.slack(best[0], predicted, rel=tolerance.TIE):
                 break
             lam = cross
         self.evaluations += mdp.solver.evaluations
@@ -384,7 +386,7 @@ class SegmentRelaxation:
         """How many alterations of the free observations fit ``remaining`` (``limit + 1``
         once more than ``limit``)."""
         free = tuple(self.space.choices[i] for i in self.order if i not in picks)
-        return AlterationSpace(free).count_within(remaining, limit)
+        return AlterationSpace(free, self.space.scale).count_within(remaining, limit)
 
     @functools.cached_property
     def enumeration(self) -> LowRankEnumeration:
@@ -431,7 +433,7 @@ class SegmentRelaxation:
             states = self.bound.region[choice.observation]
             base = default[states, first]
             for k in range(1, choice.size):
-                if choice.costs[k] > remaining + tolerance.BUDGET_SLACK:
+                if choice.costs[k] > remaining:  # a cap (CostScale.cap) less what was spent
                     continue
                 groups = default[:, first + k]
                 if np.array_equal(groups[states], base):
@@ -488,7 +490,7 @@ class SegmentRelaxation:
         )
         result, policy, lu = self.bound.lagrangian_on(
             mdp,
-            remaining,
+            self.space.scale.snap(remaining),
             stop_below=stop_below,
             policy=mdp.policy_from(warm),
             known_bound=known_bound,
@@ -518,6 +520,7 @@ def segment_bound(problem: Problem, budget: float, *, lagrangian: bool = False) 
     seg = segment_relaxation(problem, budget)
     if seg is None:
         return None
+    cap = seg.space.scale.cap(budget)
     if lagrangian:
-        seg.compute_entries(budget)
-    return min(float(seg.node({}, budget, -np.inf)[0].bound), problem.objective.max_value)
+        seg.compute_entries(cap)
+    return min(float(seg.node({}, cap, -np.inf)[0].bound), problem.objective.max_value)

@@ -86,6 +86,8 @@ class SegmentSearch(IncumbentSearch):
         self.seg, self.budget = seg, budget
         self.shared = shared
         self._shared_at = -np.inf  # when it was last read
+        # a node's ``remaining`` is this cap less what it spent: ``cost <= remaining`` is exact
+        self.cap = seg.space.scale.cap(budget)
         # a node with at most this many completions is enumerated instead of bounded
         self.enumerate_at = enumerate_at if seg.space.choices else 0
         self.enumerated = 0  # nodes
@@ -101,7 +103,7 @@ class SegmentSearch(IncumbentSearch):
         self.searched: set[tuple[tuple[int, int], ...]] = set()
         self.incumbent.offer_exact(self.incumbent.picks)
         for picks in seeds:
-            if picks is not None and tolerance.affordable(seg.relax.cost(picks), budget):
+            if picks is not None and seg.relax.cost(picks) <= self.cap:
                 self.incumbent.offer_exact(picks)
         self.heap: list[_Open] = []
         self.counter = 0
@@ -113,15 +115,15 @@ class SegmentSearch(IncumbentSearch):
             self._push(dict(fixed), remaining, bound, bounded)
 
     def _push_roots(self) -> None:
-        seg, budget = self.seg, self.budget
+        seg, cap = self.seg, self.cap
         big = [i for i in seg.order if seg.region_size[i] >= BIG_REGION * seg.live_total]
         if big:  # branch on the largest region at once: the root with it free is costly, loose
             i = max(big, key=lambda i: seg.region_size[i])
             costs = seg.space.choices[i].costs
-            for k in np.flatnonzero(tolerance.affordable(costs, budget))[::-1].tolist():
-                self._push({i: int(k)}, budget - float(costs[k]), np.inf)
+            for k in np.flatnonzero(costs <= cap)[::-1].tolist():
+                self._push({i: int(k)}, cap - float(costs[k]), np.inf)
         else:
-            self._push({}, budget, np.inf)
+            self._push({}, cap, np.inf)
 
     def _push(
         self,
@@ -153,8 +155,8 @@ class SegmentSearch(IncumbentSearch):
             for drop in [None, *altered]:
                 fixed = {**outer, **{i: k for i, k in altered.items() if i != drop}}
                 key = tuple(sorted(fixed.items()))
-                remaining = self.budget - seg.relax.cost(seg.complete(fixed))
-                if key in self.searched or remaining < -tolerance.BUDGET_SLACK:
+                remaining = self.cap - seg.relax.cost(seg.complete(fixed))
+                if key in self.searched or remaining < 0:
                     continue
                 self.searched.add(key)
                 if seg.completions(fixed, remaining, NEIGHBOURHOOD) > NEIGHBOURHOOD:
@@ -162,7 +164,7 @@ class SegmentSearch(IncumbentSearch):
                 found = seg.enumerate(fixed, self.budget, deadline)
                 if found is None or self._status is not None:
                     return  # out of time, or the search is over
-                if found[0] > self.best_value + tolerance.PRUNE:
+                if tolerance.better(found[0], self.best_value, rel=tolerance.PRUNE):
                     self.incumbent.offer_exact(found[1])
 
     def open_nodes(self) -> list[Subtree]:
@@ -307,7 +309,7 @@ class SegmentSearch(IncumbentSearch):
     def _do_enumerate(self, entry: _Open, deadline: Deadline) -> None:
         found = self.seg.enumerate(entry.picks, self.budget, deadline)
         exact = None
-        if found is not None and found[0] > self.best_value + tolerance.PRUNE:
+        if found is not None and tolerance.better(found[0], self.best_value, rel=tolerance.PRUNE):
             exact = self.incumbent.value_of(found[1])  # re-evaluated exactly, outside the lock
         with self._lock:
             if found is None:  # cut by the deadline: the node stays open
@@ -326,7 +328,7 @@ class SegmentSearch(IncumbentSearch):
             result, usage, layers, entry_choices = seg.node(
                 entry.picks,
                 entry.remaining,
-                self.best_value + tolerance.PRUNE,
+                self.best_value + tolerance.slack(self.best_value, rel=tolerance.PRUNE),
                 entry.warm,
                 known_bound=entry.bound,
                 deadline=deadline,
@@ -363,7 +365,7 @@ class SegmentSearch(IncumbentSearch):
             if usage[j] <= 0:
                 break
             i, k, _ = layers[j]
-            if i in chosen or not tolerance.affordable(choices[i].costs[k], left):
+            if i in chosen or not choices[i].costs[k] <= left:
                 continue
             chosen[i] = k
             left -= float(choices[i].costs[k])
@@ -395,11 +397,7 @@ class SegmentSearch(IncumbentSearch):
             if i == branch:
                 entered[k] = entered.get(k, 0.0) + float(u)
         costs = choices[branch].costs
-        affordable = [
-            k
-            for k in range(choices[branch].size)
-            if tolerance.affordable(costs[k], entry.remaining)
-        ]
+        affordable = [k for k in range(choices[branch].size) if costs[k] <= entry.remaining]
         for k in sorted(affordable, key=lambda k: -entered.get(k, 0.0)):
             child = dict(entry.picks)
             child[branch] = int(k)

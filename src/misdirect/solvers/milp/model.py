@@ -40,6 +40,10 @@ class MilpModel:
     ]  # alteration -> (cols, vals)
     sound: bool = True  # does the optimum equal the true optimum (and the bound bound it)?
     row_scale: np.ndarray | None = None  # factor each row was multiplied by (None: all 1)
+    # what the objective and the budget row were divided by before a backend got them
+    # (misdirect.solvers.milp.solver scales both to about 1): multiply back to read them
+    value_unit: float = 1.0
+    cost_unit: float = 1.0
     build_time_s: float = 0.0
     notes: dict[str, Any] = field(default_factory=dict)
 

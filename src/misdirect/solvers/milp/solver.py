@@ -5,9 +5,17 @@ the budget row, so every optimum is a valid start for the next (larger) budget. 
 starts from "alter nothing", which is always feasible, so a run stopped by the time limit still
 has an incumbent to report.
 
-The solver's claim for an alteration is its objective, or, when its point is more than 1e-9
-from feasible (binaries off 0/1, rows violated, within its tolerances) or its objective more
-than 1e-9 below its bound, the LP optimum with the binaries rounded: the tolerance would
+The backend gets the model scaled (:func:`_scaled`): the objective divided by its largest
+coefficient (the largest decoy weight) and the budget row by the largest cost, so that its
+absolute tolerances (a feasibility of 1e-6, an absolute gap of 1e-9) do not swallow a problem
+whose weights or costs are 1e-12; its numbers are scaled back before anyone reads them. The
+budget row's bound is the largest exact sum of costs within the budget
+(:meth:`~misdirect.core.tolerance.CostScale.snap`), never the budget plus a slack.
+
+The solver's claim for an alteration is its objective, or, when its point is more than
+:data:`~misdirect.core.tolerance.FEASIBILITY` from feasible (binaries off 0/1, rows violated,
+within its tolerances) or its objective more than :data:`~misdirect.core.tolerance.GAP`
+(relative) below its bound, the LP optimum with the binaries rounded: the tolerance would
 otherwise leak into the claim (0.400001 for 0.4), and an incumbent whose probabilities are not
 the largest for its alteration would look like a gap.
 
@@ -23,6 +31,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
+
+import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.model import Problem
@@ -69,7 +79,8 @@ def _status(result: BackendResult, value: float | None) -> Status:
         result.status == "optimal"
         and result.bound is not None
         and value is not None
-        and result.bound - value > tolerance.GAP * max(1.0, abs(result.bound)) + tolerance.TIE
+        and result.bound - value
+        > tolerance.slack(result.bound, value, rel=tolerance.GAP + tolerance.TIE)
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
@@ -109,7 +120,11 @@ class MilpSolver:
         deadline: Deadline | None = None,
     ) -> list[Solution]:
         deadline = deadline or Deadline(self.options.time_limit)
-        model = build_formulation(problem, self.formulation, max(budgets))
+        built = build_formulation(problem, self.formulation, max(budgets))
+        # the values' scale: the relaxation's bound on the optimum, at the largest budget (a
+        # decoy behind a branch of 1e-6 has values of 1e-6, below HiGHS's tolerances)
+        relaxed = relaxation_bound(problem, max(budgets), schedule.closing_bound(deadline))
+        model = _scaled(problem, built, relaxed)
         backend = make_backend(self.backend_name, self.options)
         try:
             return self._solve_curve(problem, model, backend, budgets, progress, deadline)
@@ -129,7 +144,7 @@ class MilpSolver:
         curve = _Curve(problem, model, budgets, start=model.start_for(problem.identity()))
         solutions = []
         for done, budget in enumerate(budgets, start=1):
-            backend.set_row_upper(model.budget_row, budget)
+            backend.set_row_upper(model.budget_row, _budget_row(problem, model, budget))
             stage = f"milp ({backend.name}), budget {budget:g}"
             report(progress, done - 1, len(budgets), stage=stage)
             result = backend.solve(
@@ -147,11 +162,13 @@ class MilpSolver:
         """One budget's answer from the backend's result: its alteration, the claim for it,
         how the backend stopped, and a proven bound where there is one."""
         problem, model = curve.problem, curve.model
-        # a backend's zero may be -0.0 (a bound of an empty objective): the same number
+        # a backend's zero may be -0.0 (a bound of an empty objective): the same number;
+        # the scaled model's values are brought back to the problem's
+        unit = model.value_unit
         result = replace(
             result,
-            objective=None if result.objective is None else result.objective + 0.0,
-            bound=None if result.bound is None else result.bound + 0.0,
+            objective=None if result.objective is None else result.objective * unit + 0.0,
+            bound=None if result.bound is None else result.bound * unit + 0.0,
         )
         if result.status not in ("optimal", "time_limit", "infeasible"):
             raise SolverError(f"{backend} stopped with status {result.detail} at budget {budget:g}")
@@ -167,7 +184,7 @@ class MilpSolver:
         else:
             alteration = model.decode(result.values)
             violation = backends.violation(model, result.values)
-            claimed = _claim(model, result, violation, budget)
+            claimed = _claim(model, result, violation, _budget_row(problem, model, budget))
             curve.start = model.start_for(alteration)  # the next (larger) budget starts here
         # the solver's objective carries its tolerances as its bound does; the claim may be
         # the better value of the same binaries
@@ -221,14 +238,58 @@ class _Curve:
         return self.relaxed
 
 
-def _claim(model: MilpModel, result: BackendResult, violation: float, budget: float) -> float:
+def _claim(model: MilpModel, result: BackendResult, violation: float, row: float) -> float:
     """The solver's value for its alteration: its objective, or, for a point off by the
     solver's tolerances or one whose continuous part is short of the best for its binaries,
-    the formulation's own value of the decoded alteration (the LP with the binaries rounded)."""
+    the formulation's own value of the decoded alteration (the LP with the binaries rounded;
+    ``row``: the budget row's bound in the scaled model)."""
     claimed = result.objective
     assert claimed is not None and result.values is not None
-    gapped = result.bound is not None and result.bound - claimed > tolerance.GAP
+    gapped = result.bound is not None and result.bound - claimed > tolerance.slack(
+        result.bound, claimed, rel=tolerance.GAP
+    )
     if violation > tolerance.FEASIBILITY or gapped:
-        rounded = backends.value_with_rounded_binaries(model, result.values, budget)
-        claimed = claimed if rounded is None else rounded
+        rounded = backends.value_with_rounded_binaries(model, result.values, row)
+        claimed = claimed if rounded is None else rounded * model.value_unit
     return claimed
+
+
+def _scaled(problem: Problem, model: MilpModel, relaxed: float) -> MilpModel:
+    """``model`` as the backend gets it: objective (and offset) divided by the value's scale
+    (``relaxed``, a bound on the optimum, or else the largest objective coefficient), the
+    budget row by the largest cost, so that both are about 1 whatever the problem's scale;
+    the model keeps the two units (``value_unit``, ``cost_unit``)."""
+    objective = np.abs(model.objective)
+    largest = float(objective.max()) if objective.size else 0.0
+    value_unit = min(largest, relaxed) if 0 < relaxed < np.inf else largest
+    value_unit = value_unit if value_unit > 0 else 1.0
+    matrix = model.matrix.copy().tocsr()
+    begin, end = matrix.indptr[model.budget_row], matrix.indptr[model.budget_row + 1]
+    row = matrix.data[begin:end]
+    finite = np.abs(row[np.isfinite(row)])
+    cost_unit = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    matrix.data[begin:end] = row / cost_unit  # divided, not multiplied: 1 / 5e-324 is inf
+    lower, upper = model.row_lower.copy(), model.row_upper.copy()
+    lower[model.budget_row] = lower[model.budget_row] / cost_unit
+    upper[model.budget_row] = _row_bound(problem, upper[model.budget_row], cost_unit)
+    return replace(
+        model,
+        objective=model.objective / value_unit,
+        offset=model.offset / value_unit,
+        matrix=matrix,
+        row_lower=lower,
+        row_upper=upper,
+        value_unit=value_unit,
+        cost_unit=cost_unit,
+    )
+
+
+def _row_bound(problem: Problem, budget: float, cost_unit: float) -> float:
+    """The budget row's bound for ``budget``, divided by the cost unit: the largest exact sum
+    of costs within the budget (no slack: the backend's own tolerance is its only one)."""
+    scale = problem.cost.scale
+    return scale.snap(scale.cap(budget)) / cost_unit
+
+
+def _budget_row(problem: Problem, model: MilpModel, budget: float) -> float:
+    return _row_bound(problem, budget, model.cost_unit)
