@@ -11,7 +11,7 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import wraps
 from pathlib import Path
@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from misdirect.core.model import format_alteration
-from misdirect.errors import MisdirectError, OptionError, ProblemError
+from misdirect.errors import MisdirectError, OptionError, ProblemError, ProblemErrors
 from misdirect.io.files import one_line, write_output
 from misdirect.solvers.deadline import CancelToken
 
@@ -190,6 +190,17 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
         except OptionError as error:  # the library names the parameter, the CLI its flag
             field, reason = flag(error.parameter), as_flags(error.reason)
             fail(f"{field}: {reason}", INPUT_ERROR, as_json, field=field)
+        except ProblemErrors as error:  # one line each, so every problem shows at once
+            first, *more = error.lines
+            fail(
+                first,
+                INPUT_ERROR,
+                as_json,
+                more=more,
+                field=error.field,
+                source=error.source,
+                problems=[one_line(line) for line in error.lines],
+            )
         except ProblemError as error:
             fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
         except MisdirectError as error:
@@ -222,12 +233,16 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
     return wrapper
 
 
-def fail(message: str, code: int, as_json: bool, **context: Any) -> None:
-    """One error line on stderr (and the error object on stdout with --json), then exit."""
+def fail(
+    message: str, code: int, as_json: bool, *, more: Sequence[str] = (), **context: Any
+) -> None:
+    """One error line on stderr (and the error object on stdout with --json), then exit;
+    ``more``: further problems of the same input, one line each."""
     message = one_line(message)  # a name with a newline must not split the one line
     if as_json:
         print_json({"error": {"message": message, **{k: v for k, v in context.items() if v}}})
-    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    for line in (message, *map(one_line, more)):
+        err.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
