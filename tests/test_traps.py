@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from misdirect import evaluate, load_problem, solve
 from misdirect.cli import app
-from misdirect.errors import MAX_REPORTED, ProblemError, ProblemErrors
+from misdirect.errors import MAX_REPORTED, ProblemError, ProblemsError
 
 ROOT = Path(__file__).parents[1]
 TINY = ROOT / "examples" / "tiny.yaml"
@@ -36,7 +36,10 @@ def _chain(probabilities: list) -> dict:
             "actions": ["a"],
             "initial": "s0",
             "observe": {"s0": "o0", "s1": "o1", "s2": "o2"},
-            "transitions": [["s0", "a", "s1", probabilities[0]], ["s0", "a", "s2", probabilities[1]]],
+            "transitions": [
+                ["s0", "a", "s1", probabilities[0]],
+                ["s0", "a", "s2", probabilities[1]],
+            ],
             "absorbing": ["s1", "s2"],
         },
         "controller": {
@@ -141,10 +144,14 @@ def test_fractions_in_randomized_rules(tmp_path):
     # a with 1/4 reaches s1 with 1/2; b never: 1/8
     assert evaluate(problem).probability == pytest.approx(1 / 8, abs=1e-15)
     document["controller"]["rules"] = [
-        {"node": "*", "obs": "*", "moves": [
-            {"action": "a", "next": "n", "p": "1/4"},
-            {"action": "b", "next": "n", "p": "3/4"},
-        ]}
+        {
+            "node": "*",
+            "obs": "*",
+            "moves": [
+                {"action": "a", "next": "n", "p": "1/4"},
+                {"action": "b", "next": "n", "p": "3/4"},
+            ],
+        }
     ]
     assert evaluate(load_problem(_write(tmp_path, document))).probability == pytest.approx(1 / 8)
 
@@ -186,7 +193,7 @@ def test_every_schema_problem_is_reported(tmp_path):
     document = _chain(["1/0", 1.5])
     document["pomdp"]["bogus"] = 1
     path = _write(tmp_path, document)
-    with pytest.raises(ProblemErrors) as caught:
+    with pytest.raises(ProblemsError) as caught:
         load_problem(path)
     fields = {problem.field for problem in caught.value.problems}
     assert fields == {"pomdp.transitions[0][3]", "pomdp.transitions[1][3]", "pomdp.bogus"}
@@ -203,7 +210,7 @@ def test_problems_beyond_the_limit_are_counted(tmp_path):
     document = _chain([0.5, 0.5])
     extra = MAX_REPORTED + 5
     document["pomdp"]["transitions"] = [["s0", "a", "s1", "1/0"]] * extra
-    with pytest.raises(ProblemErrors) as caught:
+    with pytest.raises(ProblemsError) as caught:
         load_problem(_write(tmp_path, document))
     assert caught.value.total == extra and len(caught.value.problems) == MAX_REPORTED
     assert caught.value.lines[-1] == "… and 5 more problems"

@@ -37,7 +37,7 @@ class ProblemError(MisdirectError, ValueError):
 MAX_REPORTED = 20  # problems of one file reported at once; the rest are counted
 
 
-class ProblemErrors(ProblemError):
+class ProblemsError(ProblemError):
     """Several problems of one input, reported together so that one run shows them all.
 
     Behaves as its first problem (``reason``, ``field``); ``problems`` holds up to

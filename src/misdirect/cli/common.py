@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from misdirect.core.model import format_alteration
-from misdirect.errors import MisdirectError, OptionError, ProblemError, ProblemErrors
+from misdirect.errors import MisdirectError, OptionError, ProblemError, ProblemsError
 from misdirect.io.files import one_line, write_output
 from misdirect.solvers.deadline import CancelToken
 
@@ -190,7 +190,7 @@ def handle_errors(command: Callable[..., None]) -> Callable[..., None]:
         except OptionError as error:  # the library names the parameter, the CLI its flag
             field, reason = flag(error.parameter), as_flags(error.reason)
             fail(f"{field}: {reason}", INPUT_ERROR, as_json, field=field)
-        except ProblemErrors as error:  # one line each, so every problem shows at once
+        except ProblemsError as error:  # one line each, so every problem shows at once
             first, *more = error.lines
             fail(
                 first,

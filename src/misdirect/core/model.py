@@ -467,8 +467,8 @@ class Problem:
             f"the initial state {pomdp.states[pomdp.initial_state]!r} reads {name!r}, which is "
             f"never altered (the robot reads it before any attack), so the {count} other "
             f"state{'s' * (count > 1)} reading {name!r} ({count} of the {live} non-absorbing "
-            "states) cannot be altered either; give the initial state an observation of its own (grid maps: "
-            "a start cell with its own sensor, {start: true, sensor: ...})",
+            "states) cannot be altered either; give the initial state an observation of its "
+            "own (grid maps: a start cell with its own sensor, {start: true, sensor: ...})",
         )
 
     def with_budget(self, budget: float) -> Problem:

@@ -34,7 +34,8 @@ from misdirect.core import tolerance
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
-from misdirect.errors import ProblemError, ProblemErrors
+from misdirect.errors import ProblemError, ProblemsError
+from misdirect.io.export import with_exported_names
 from misdirect.io.files import (
     check_input_file,
     parse_json,
@@ -460,7 +461,7 @@ def parse_spec(document: Any) -> ProblemFileV1:
         found = [
             ProblemError(_reason(item), field=_location(item["loc"])) for item in error.errors()
         ]
-        raise ProblemErrors.of(found) from None
+        raise ProblemsError.of(found) from None
 
 
 def load_problem(path: str | Path) -> Problem:
@@ -641,6 +642,10 @@ def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Proble
                 base=base,
                 terminal=spec.pomdp.terminal,
                 terminal_from=spec.pomdp.terminal_from,
+            )
+            # the names a PRISM or DRN file misdirect wrote keeps in its header
+            world = dataclasses.replace(
+                world, pomdp=with_exported_names(world.pomdp, model_file, kind)
             )
             pomdp, labels, condition = world.pomdp, world.labels, world.condition
             aliases, paynt_view = world.storm_observation_names, world.paynt_view
