@@ -235,3 +235,91 @@ def _renamed(shown: tuple[str, ...], pattern: re.Pattern[str], names: list[str])
     if any(k >= len(names) for k in numbers):
         return shown
     return tuple(names[k] for k in numbers)
+
+
+# -- the attacked product chain -----------------------------------------------------------------
+
+
+def chain_labels(problem: Problem, world_state: np.ndarray, initial: int) -> dict[str, np.ndarray]:
+    """The product states each label holds: ``init`` (the start), ``decoy`` (a decoy world
+    state) and ``absorbing`` (an absorbing world state: the run has ended)."""
+    init = np.zeros(world_state.size, dtype=bool)
+    init[initial] = True
+    return {
+        "init": init,
+        "decoy": np.asarray(problem.decoy, dtype=bool)[world_state],
+        "absorbing": problem.pomdp.absorbing[world_state],
+    }
+
+
+def chain_state_names(problem: Problem, world_state: np.ndarray, node: np.ndarray) -> list[str]:
+    """``(world state, node)`` of each product state, by name."""
+    states = np.array(problem.pomdp.states, dtype=object)[world_state]
+    nodes = np.array(problem.controller.nodes, dtype=object)[node]
+    return [f"({s}, {n})" for s, n in zip(states.tolist(), nodes.tolist(), strict=True)]
+
+
+def chain_drn_text(
+    problem: Problem, matrix, world_state: np.ndarray, node: np.ndarray, initial: int
+) -> str:
+    """The product chain as a Storm DRN ``DTMC``: labels ``init``, ``decoy``, ``absorbing``;
+    the names of its states ``(world state, node)`` in the header comment."""
+    matrix = matrix.tocsr()
+    matrix.sort_indices()
+    labels = chain_labels(problem, world_state, initial)
+    names = {"states": chain_state_names(problem, world_state, node)}
+    n = int(world_state.size)
+    lines = [
+        "// Exported by misdirect: the product chain of the robot and its controller under "
+        "one alteration",
+        NAMES_COMMENT + json.dumps(names, ensure_ascii=True, separators=(",", ":")),
+        "@type: DTMC",
+        "@parameters",
+        "",
+        "@reward_models",
+        "",
+        "@nr_states",
+        str(n),
+        "@nr_choices",
+        str(n),
+        "@model",
+    ]
+    tags = np.full(n, "", dtype=object)
+    for label, mask in labels.items():
+        tags[mask] = tags[mask] + " " + label
+    indptr, indices, data = matrix.indptr, matrix.indices.tolist(), matrix.data.tolist()
+    for q in range(n):
+        lines.append(f"state {q}{tags[q]}")
+        lines.append("\taction 0")
+        lines += [
+            f"\t\t{t} : {p!r}"
+            for t, p in zip(
+                indices[indptr[q] : indptr[q + 1]], data[indptr[q] : indptr[q + 1]], strict=True
+            )
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def chain_prism_explicit(
+    problem: Problem, matrix, world_state: np.ndarray, initial: int
+) -> tuple[str, str]:
+    """The product chain in PRISM's explicit format: the ``.tra`` text (``states
+    transitions``, then ``i j p`` rows) and the ``.lab`` text (label ``init``, ``decoy``,
+    ``absorbing``)."""
+    coo = matrix.tocsr()
+    coo.sort_indices()
+    coo = coo.tocoo()
+    n = int(world_state.size)
+    tra = [f"{n} {coo.nnz}"] + [
+        f"{i} {j} {p!r}"
+        for i, j, p in zip(coo.row.tolist(), coo.col.tolist(), coo.data.tolist(), strict=True)
+    ]
+    labels = chain_labels(problem, world_state, initial)
+    names = list(labels)
+    header = " ".join(f'{k}="{name}"' for k, name in enumerate(names))
+    member = np.stack([labels[name] for name in names], axis=1)
+    lab = [header] + [
+        f"{q}: " + " ".join(str(k) for k in np.flatnonzero(member[q]))
+        for q in np.flatnonzero(member.any(axis=1)).tolist()
+    ]
+    return "\n".join(tra) + "\n", "\n".join(lab) + "\n"
