@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from pathlib import PurePath
 from typing import cast
 
 import numpy as np
@@ -436,6 +437,13 @@ class Problem:
         if not np.array_equal(objective.target, np.asarray(self.decoy, dtype=bool)):
             raise ProblemError("decoy must be the union of decoy_sets", field="decoy")
         return objective
+
+    @property
+    def title(self) -> str:
+        """What titles call the problem: its name, else its file's name, else "problem"."""
+        if self.name:
+            return self.name
+        return PurePath(self.source).name if self.source else "problem"
 
     @property
     def notes(self) -> tuple[str, ...]:
