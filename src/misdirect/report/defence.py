@@ -394,7 +394,9 @@ def tradeoff_figure(result: HardenResult):
     ax.set_ylim(0, 1.05 * max(1e-9, float(values.max(initial=0)), result.value_before))
     ax.tick_params(labelsize=9)
     ax.set_title(f"{result.problem}: protection against the attacker", fontsize=10)
-    ax.xaxis.get_major_locator().set_params(integer=True)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.legend(fontsize=9, loc="center right")
     return fig
 
