@@ -2,6 +2,7 @@
 
 * ```python blocks are executed (in a scratch folder holding a copy of examples/); a line
   ``print(...)  # text``, or a print followed by comment lines, states the printed lines.
+  ```py blocks are shown, not run (they need what a test machine lacks: a SLURM cluster).
 * ```console blocks: each ``$ misdirect ...`` line is run as a command (in the same scratch
   folder, so a later command reads what an earlier one wrote); the lines shown under it must
   appear in its output in that order, each within one line (table borders and runs of spaces

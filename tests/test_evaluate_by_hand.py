@@ -40,11 +40,13 @@ def test_trap_cycle_altered_out():
 
 
 def test_issue_example_by_hand(tmp_path):
-    """s0 -a-> s1|s2 (1/2 each); in s1 the robot sees o1, plays a, goes to goal; in s2 it sees
-    o2 with node n0, plays a, falls in trap: 1/2. Altering o1 -> o0 keeps a at s1: still 1/2."""
+    """s0 -a-> s1|s2 (1/2 each); at s1 the robot reads o1 and plays a (goal 0.8, trap 0.2); at
+    s2 it reads o2 in node n0 and steps back to s1 with b: 0.2. Altering o2 -> o1 makes it
+    play a at s2, into the trap: 0.5 * 0.2 + 0.5 * 1 = 0.6. Altering o1 -> o0 keeps a: 0.2."""
     problem = load_problem(EXAMPLES / "tiny.yaml")
-    assert evaluate(problem).probability == pytest.approx(0.5, abs=1e-15)
-    assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.5)
+    assert evaluate(problem).probability == pytest.approx(0.2, abs=1e-15)
+    assert evaluate(problem, problem.alteration({"o2": "o1"})).probability == pytest.approx(0.6)
+    assert evaluate(problem, problem.alteration({"o1": "o0"})).probability == pytest.approx(0.2)
 
 
 def test_first_step_of_grid_by_hand():

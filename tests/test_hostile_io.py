@@ -34,7 +34,9 @@ from misdirect.io.problem_file import parse_spec
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parent.parent
-TINY = ROOT / "examples" / "tiny.yaml"
+TINY = (
+    ROOT / "tests" / "data" / "tiny_hostile.yaml"
+)  # the first tiny example, whose values the tests derive
 COMMAND = str(Path(sys.executable).parent / "misdirect")
 
 
@@ -583,4 +585,4 @@ def test_a_model_highs_cuts_off_never_replaces_a_complete_one(tmp_path, monkeypa
     result = runner.invoke(app, ["export-milp", str(TINY), "-o", str(output)])
     one_line_error(result, 1, "incomplete")
     assert output.read_bytes() == before
-    assert [p.name for p in tmp_path.iterdir()] == ["m.mps"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.columns.json", "m.mps"]

@@ -163,8 +163,12 @@ def test_commands_that_write_a_file_name_it_in_a_list(tmp_path, args):
     document = run(*args)
     command = " ".join(args[:2]) if args[0] == "scenario" else args[0]
     assert document["command"] == command
-    assert document["written"] == [args[args.index("-o") + 1]]
-    assert Path(document["written"][0]).exists()
+    output = args[args.index("-o") + 1]
+    expected = [output]
+    if command == "export-milp":  # the model, then the column map beside it
+        expected.append(str(Path(output).with_suffix(".columns.json")))
+    assert sorted(document["written"]) == sorted(expected)
+    assert all(Path(path).exists() for path in document["written"])
 
 
 @pytest.mark.parametrize("command", ["convert", "export-fsc", "schema"])

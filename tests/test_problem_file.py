@@ -41,10 +41,10 @@ def test_issue_example_loads_as_written():
     o = {name: i for i, name in enumerate(pomdp.observations)}
     n = {name: i for i, name in enumerate(ctrl.nodes)}
     a = {name: i for i, name in enumerate(pomdp.actions)}
-    # first matching rule wins: o1 -> (a, n1) from any node; then n1 -> (b, n1); else (a, n0)
-    assert ctrl.action[n["n1"], o["o1"]] == a["a"] and ctrl.update[n["n1"], o["o1"]] == n["n1"]
-    assert ctrl.action[n["n1"], o["o2"]] == a["b"]
-    assert ctrl.action[n["n0"], o["o2"]] == a["a"] and ctrl.update[n["n0"], o["o2"]] == n["n0"]
+    # first matching rule wins: (n0, o2) -> (b, n1); everything else -> (a, n0)
+    assert ctrl.action[n["n0"], o["o2"]] == a["b"] and ctrl.update[n["n0"], o["o2"]] == n["n1"]
+    assert ctrl.action[n["n1"], o["o2"]] == a["a"] and ctrl.update[n["n1"], o["o2"]] == n["n0"]
+    assert ctrl.action[n["n1"], o["o1"]] == a["a"] and ctrl.update[n["n1"], o["o1"]] == n["n0"]
     cost = problem.cost.matrix()
     assert cost[o["o1"], o["o2"]] == 3
     assert cost[o["o1"], o["o0"]] == 1

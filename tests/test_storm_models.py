@@ -149,8 +149,8 @@ def test_convert_round_trip_through_storm(tmp_path, target):
     assert result.exit_code == 0, result.output
     original = load_problem(EXAMPLES / "trap.yaml")
     names = dict(enumerate(original.pomdp.observations))
-    # rules in terms of the observation names Storm will give back
-    obs_name = (lambda k: f"o={k}") if target == "prism" else (lambda k: f"obs{k}")
+    # the file's header keeps our names, which Storm alone would give back as o=k / obs<k>
+    obs_name = original.pomdp.observations.__getitem__
     rules = []
     for k, name in names.items():
         o = original.pomdp.observations.index(name)
@@ -480,7 +480,7 @@ def test_shipped_maze_round_trip_through_storm(tmp_path, target):
     out = tmp_path / f"maze.{target}"
     result = runner.invoke(app, ["convert", str(source), "--to", target, "-o", str(out)])
     assert result.exit_code == 0, result.output
-    obs_name = (lambda k: f"o={k}") if target == "prism" else (lambda k: f"obs{k}")
+    obs_name = original.pomdp.observations.__getitem__  # kept by the file's header
     back = load_problem(
         _problem_file(
             tmp_path,
@@ -553,8 +553,8 @@ def test_convert_without_output_writes_to_stdout(tmp_path, target):
         back = load_problem(out)
         alpha = back.alteration({"o1": "o0"})
     else:
-        obs = (lambda k: f"o={k}") if target == "prism" else (lambda k: f"obs{k}")
         original = load_problem(EXAMPLES / "trap.yaml")
+        obs = original.pomdp.observations.__getitem__  # kept by the file's header
         back = load_problem(
             _problem_file(tmp_path, {target: out.name}, _rules(original, obs), {"label": "decoy"})
         )

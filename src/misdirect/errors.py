@@ -34,6 +34,46 @@ class ProblemError(MisdirectError, ValueError):
         return self
 
 
+MAX_REPORTED = 20  # problems of one file reported at once; the rest are counted
+
+
+class ProblemsError(ProblemError):
+    """Several problems of one input, reported together so that one run shows them all.
+
+    Behaves as its first problem (``reason``, ``field``); ``problems`` holds up to
+    :data:`MAX_REPORTED` of them and ``total`` counts all. ``message`` has one line each.
+    """
+
+    def __init__(self, problems: list[ProblemError], total: int):
+        self.problems = problems
+        self.total = total
+        first = problems[0]
+        super().__init__(first.reason, source=first.source, field=first.field)
+
+    @classmethod
+    def of(cls, problems: list[ProblemError]) -> ProblemError:
+        """One error for ``problems`` (at least one): itself when there is just one."""
+        if len(problems) == 1:
+            return problems[0]
+        return cls(problems[:MAX_REPORTED], len(problems))
+
+    @property
+    def lines(self) -> list[str]:
+        """One line per problem, and one counting those left out."""
+        more = self.total - len(self.problems)
+        tail = [f"… and {more} more problem{'s' * (more > 1)}"] if more > 0 else []
+        return [problem.message for problem in self.problems] + tail
+
+    @property
+    def message(self) -> str:
+        return "\n".join(self.lines)
+
+    def located(self, source: str) -> ProblemError:
+        for problem in self.problems:
+            problem.located(source)
+        return super().located(source)
+
+
 class OptionError(ProblemError):
     """A solve option out of range or not taken by the method: names the library parameter
     (``time_limit``); the command line shows it as its flag (``--time-limit``)."""

@@ -4,7 +4,8 @@ Every command takes ``--json`` and then prints exactly one JSON object on stdout
 any kind exits with code 2 and one line naming the file (or option), the field and the reason.
 
 The commands live by topic (``solving``: evaluate, solve, simulate, show; ``models``: scenario *,
-controller synthesize, convert, export-fsc, export-milp, schema; ``defence``: audit, harden;
+controller synthesize, convert, export-fsc, export-milp, schema; ``exports``: decode,
+export-chain; ``defence``: audit, harden;
 ``reproduce``); ``common`` holds what they share (errors, JSON, signals, progress) and
 ``options`` the shared options, declared once (:func:`~misdirect.cli.options.problem_input`).
 This module builds the typer app from them and is the console entry point (:func:`main`).
@@ -20,7 +21,7 @@ import typer
 from rich.markup import escape
 
 from misdirect import __version__, _startup
-from misdirect.cli import cluster, defence, models, reproduce, solving
+from misdirect.cli import cluster, defence, exports, models, reproduce, solving
 from misdirect.cli.common import (
     INPUT_ERROR,
     INTERRUPTED,
@@ -96,6 +97,8 @@ _add(app, reproduce.reproduce)
 _add(app, models.convert)
 _add(app, models.export_fsc, "export-fsc")
 _add(app, models.export_milp, "export-milp")
+_add(app, exports.decode)
+_add(app, exports.export_chain, "export-chain")
 _add(app, models.schema)
 _add(app, defence.audit)
 _add(app, defence.harden)

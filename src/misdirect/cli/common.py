@@ -11,7 +11,7 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import wraps
 from pathlib import Path
@@ -23,7 +23,13 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from misdirect.core.model import format_alteration
-from misdirect.errors import MisdirectError, OptionError, ProblemError, WriteError
+from misdirect.errors import (
+    MisdirectError,
+    OptionError,
+    ProblemError,
+    ProblemsError,
+    WriteError,
+)
 from misdirect.io.files import one_line, write_output
 from misdirect.report import json_output
 from misdirect.solvers.deadline import CancelToken
@@ -208,6 +214,17 @@ def handle_errors(command: Callable[..., None], name: str | None = None) -> Call
         except OptionError as error:  # the library names the parameter, the CLI its flag
             field, reason = flag(error.parameter), as_flags(error.reason)
             fail(f"{field}: {reason}", INPUT_ERROR, as_json, field=field)
+        except ProblemsError as error:  # one line each, so every problem shows at once
+            first, *more = error.lines
+            fail(
+                first,
+                INPUT_ERROR,
+                as_json,
+                more=more,
+                field=error.field,
+                source=error.source,
+                problems=[one_line(line) for line in error.lines],
+            )
         except ProblemError as error:
             fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
         except MisdirectError as error:
@@ -240,15 +257,19 @@ def handle_errors(command: Callable[..., None], name: str | None = None) -> Call
     return wrapper
 
 
-def fail(message: str, code: int, as_json: bool | str, **context: Any) -> None:
+def fail(
+    message: str, code: int, as_json: bool | str, *, more: Sequence[str] = (), **context: Any
+) -> None:
     """One error line on stderr (and the error document on stdout with --json: ``as_json``
-    is then the command's name), then exit."""
+    is then the command's name), then exit; ``more``: further problems of the same input,
+    one line each."""
     message = one_line(message)  # a name with a newline must not split the one line
     if as_json:
         command = as_json if isinstance(as_json, str) else None
         with contextlib.suppress(WriteError):  # stdout is full: the line on stderr remains
             print_json(json_output.error_document(command, message, **context))
-    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    for line in (message, *map(one_line, more)):
+        err.print(f"[bold red]error:[/] {escape(line)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 

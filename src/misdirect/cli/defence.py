@@ -76,11 +76,11 @@ def audit(
 
 
 def _print_audit(result: AuditResult) -> None:
-    title = f"{result.problem or 'problem'}: sensors at budget {result.budget:g}"
+    title = f"{result.problem}: sensors at budget {result.budget:g}"
     table = Table(title=escape(title))
     columns = ("sensor", "criticality", "protected → optimum", "single-sensor value", "in attack")
     for column in columns:
-        table.add_column(column, justify="left" if column == "sensor" else "right")
+        table.add_column(column, justify="left" if column == "sensor" else "right", overflow="fold")
     for s in result.sensors:
         crit = (
             f"{s.criticality:.6f}" if s.exact else f"{s.criticality:.6f}..{s.criticality_upper:.6f}"
@@ -153,6 +153,15 @@ def harden(
     ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "--output",
+            "-o",
+            help="Folder for report.md and tradeoff.png (protection budget vs the attacker's "
+            "optimum).",
+        ),
+    ] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors to protect: the set within cost D that minimises the attacker's optimum
@@ -165,6 +174,8 @@ def harden(
     check_budget(budget, "--budget")
     check_seconds(time_limit)
     costs = parse_protect_costs(protect_cost)
+    if output is not None:
+        prepare_output_dir(output, field="-o")
     problem = source.load()
     try:
         with connect(cluster, workers) as pool:
@@ -180,22 +191,29 @@ def harden(
         if error.field == "protect_costs":
             error.field = "--protect-cost"
         raise
+    written: list[str] = []
+    if output is not None:
+        from misdirect.report.defence import write_harden_report
+
+        written = [str(p) for p in write_harden_report(result, output)]
     if as_json:
-        print_json(json_output.harden(result, objective=problem.objective.kind))
+        print_json(json_output.harden(result, objective=problem.objective.kind, written=written))
     else:
         _print_harden(result)
+        if output is not None:
+            note(f"wrote {len(written)} files to {output}/ (report.md, tradeoff.png)")
 
 
 def _print_harden(result: HardenResult) -> None:
     table = Table(
         title=escape(
-            f"{result.problem or 'problem'}: protection against an attacker with budget "
-            f"{result.budget:g}"
+            f"{result.problem}: protection against an attacker with budget {result.budget:g}"
         )
     )
     columns = ("D", "protect", "cost", "attacker's optimum", "lower bound", "best reply", "status")
     for column in columns:
-        table.add_column(column, justify="left" if column in ("protect", "best reply") else "right")
+        wide = column in ("protect", "best reply")
+        table.add_column(column, justify="left" if wide else "right", overflow="fold")
     for point in result.curve:
         table.add_row(
             f"{point.protect_budget:g}",

@@ -13,6 +13,7 @@ import typer
 from rich.markup import escape
 
 from misdirect.cli.common import check_range, note, out, print_json, write_text
+from misdirect.cli.exports import column_map_path, column_map_text
 from misdirect.cli.options import (
     MAX_GRID_SIZE,
     MAX_RANDOM,
@@ -30,6 +31,7 @@ from misdirect.io.problem_file import json_schema, write_problem
 from misdirect.report import json_output
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers.milp.backends import write_model
+from misdirect.solvers.milp.model import column_map
 from misdirect.solvers.milp.solver import build_formulation
 
 OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
@@ -295,7 +297,8 @@ def export_milp(
     ] = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Write the MILP as MPS or LP for any other solver (columns c0, c1, …; maximise)."""
+    """Write the MILP as MPS or LP for any other solver (columns c0, c1, …; maximise), and
+    beside it M.columns.json: which columns choose which alteration (misdirect decode)."""
     check_output_path(output)
     if output.suffix.lower() not in (".mps", ".lp"):
         raise ProblemError(
@@ -306,11 +309,16 @@ def export_milp(
     if budget is not None and (not math.isfinite(budget) or budget < 0):
         raise ProblemError("must be a non-negative number", field="--budget")
     model = build_formulation(problem, formulation, budget)
+    mapping = column_map(model, problem, problem.budget if budget is None else budget)
+    mapping["problem_file"] = str(source.file.resolve()) if source.file is not None else None
+    map_path = column_map_path(output)
+    check_output_path(map_path)
     write_model(model, output)
+    write_output(map_path, column_map_text(mapping))
     if as_json:
         print_json(
             json_output.written_files(
-                "export-milp", [output], problem=problem.name, **model.stats()
+                "export-milp", [output, map_path], problem=problem.name, **model.stats()
             )
         )
     else:
@@ -319,6 +327,7 @@ def export_milp(
             f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
             f"{model.matrix.nnz:,} non-zeros"
         )
+        note(f"wrote {map_path}: which column chooses which alteration (misdirect decode)")
 
 
 def schema(

@@ -97,7 +97,9 @@ def _print_notes(notes: Iterable[str]) -> None:
 
 
 def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> None:
-    table = Table(title=escape(problem.name) or None, show_header=False, box=None)
+    table = Table(title=escape(problem.title), show_header=False, box=None)
+    table.add_column(no_wrap=True)
+    table.add_column(overflow="fold")  # an alteration's names wrap, never cut
     table.add_row("alteration", fmt_alteration(result.alteration))
     budget_note = "" if result.within_budget else f"  [red](over budget {problem.budget:g})[/]"
     table.add_row("cost", f"{result.cost:g}{budget_note}")
@@ -286,14 +288,16 @@ def _finish_solve(result: SolveResult, received: list[int]) -> None:
 
 
 def _print_solve(result: SolveResult, problem: Problem) -> None:
-    title = f"{result.problem} — " if result.problem else ""
-    table = Table(title=escape(f"{title}optimal alterations ({result.method})"))
+    table = Table(title=escape(f"{problem.title} — optimal alterations ({result.method})"))
     bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column(f"max {problem.objective.label}", justify="right")
     if bounded:
         table.add_column("upper bound", justify="right")
-    table.add_column("optimal alteration" if not bounded else "best alteration found")
+    # names are never cut ("beac…"): a long alteration wraps within its column
+    table.add_column(
+        "optimal alteration" if not bounded else "best alteration found", overflow="fold"
+    )
     table.add_column("cost", justify="right")
     table.add_column("status")
     for point in result.curve:
@@ -482,7 +486,8 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
     runs = payload["runs"]
     table = Table(title=escape(f"{payload['problem']} — {runs:,} runs, seed {payload['seed']}"))
     for column in ("outcome", "states", "runs", "frequency", "95 % interval"):
-        table.add_column(column, justify="left" if column in ("outcome", "states") else "right")
+        left = column in ("outcome", "states")
+        table.add_column(column, justify="left" if left else "right", overflow="fold")
     labels = {
         "decoy": "decoy (attacker's target)",
         "goal": "goal (absorbing, not decoy)",

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from pathlib import PurePath
 from typing import Any, cast
 
 import numpy as np
@@ -593,16 +594,44 @@ class Problem:
         return objective
 
     @property
+    def title(self) -> str:
+        """What titles call the problem: its name, else its file's name, else "problem"."""
+        if self.name:
+            return self.name
+        return PurePath(self.source).name if self.source else "problem"
+
+    @property
     def notes(self) -> tuple[str, ...]:
         """What every result about this problem says beside its numbers, though nothing is
         wrong: a robot that starts in a decoy state scores at once, whatever it reads."""
         s0 = self.pomdp.initial_state
         if not self.decoy[s0]:
-            return ()
+            return self._shared_initial_observation()
         score = float(self.objective.value[s0])
         return (
             f"the initial state {self.pomdp.states[s0]!r} is a decoy: every run scores "
             f"{score:g} at once, whatever the robot reads, so no alteration changes the value",
+        )
+
+    def _shared_initial_observation(self) -> tuple[str, ...]:
+        """The initial observation is never altered, so neither is any other state that emits
+        it: say how many (a grid whose start cell has no sensor reads ``b`` there, which
+        silently makes every blank cell unalterable)."""
+        pomdp = self.pomdp
+        o_init = pomdp.initial_observation
+        shared = (pomdp.observation_of == o_init) & ~pomdp.absorbing
+        shared[pomdp.initial_state] = False
+        count = int(shared.sum())
+        if count == 0:
+            return ()
+        live = int((~pomdp.absorbing).sum())
+        name = pomdp.observations[o_init]
+        return (
+            f"the initial state {pomdp.states[pomdp.initial_state]!r} reads {name!r}, which is "
+            f"never altered (the robot reads it before any attack), so the {count} other "
+            f"state{'s' * (count > 1)} reading {name!r} ({count} of the {live} non-absorbing "
+            "states) cannot be altered either; give the initial state an observation of its "
+            "own (grid maps: a start cell with its own sensor, {start: true, sensor: ...})",
         )
 
     def with_budget(self, budget: float) -> Problem:

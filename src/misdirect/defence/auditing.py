@@ -124,7 +124,7 @@ def audit(
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
     return AuditResult(
-        problem=problem.name,
+        problem=problem.title,
         budget=budget,
         baseline_probability=curve_result.baseline_probability,
         curve=curve_result.curve,

@@ -220,7 +220,7 @@ def harden(
     names = problem.pomdp.observations
     listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
     return HardenResult(
-        problem=problem.name,
+        problem=problem.title,
         budget=budget,
         protect_budget=float(protect_budget),
         protect_costs=listed,

@@ -492,7 +492,7 @@ def _depth(document: Any) -> int:
 
 def parse_json(text: str, *, source: str) -> Any:
     """The document in ``text``; duplicate keys, deep nesting and syntax errors are one-line
-    ProblemErrors naming ``source`` and the line."""
+    ProblemsError naming ``source`` and the line."""
     try:
         document = json.loads(text, object_pairs_hook=_pairs)
     except _DuplicateKeyError as error:

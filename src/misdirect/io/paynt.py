@@ -382,7 +382,14 @@ def _columns_by_name(
     for k, name in enumerate(labels):
         label = str(name) if str(name) in observations else _label(name)
         if label not in observations:
-            if view is not None and len(view.labels) != len(labels):
+            if view is not None and view.kind == "drn":
+                hint = (
+                    f" (a DRN file numbers its observations, named {pomdp.observations[0]!r}, … "
+                    f"here, and PAYNT labels them {view.labels[0]!r}, …: this controller names "
+                    "another model's observations; a DRN written by `misdirect convert --to drn` "
+                    "keeps the names, or export the controller from this problem)"
+                )
+            elif view is not None and len(view.labels) != len(labels):
                 hint = (
                     f" (PAYNT's build of this model has {len(view.labels)} observations, the "
                     f"file {len(labels)}: was PAYNT run on this program with the same "

@@ -49,6 +49,7 @@ class PayntView:
     observation: np.ndarray
     actions: dict[str, str]  # PAYNT's action label -> our action name
     available: tuple[frozenset[str], ...]  # PAYNT's action labels enabled at its observation k
+    kind: str = "prism"  # the file PAYNT built it from: prism or drn (which has no constants)
 
 
 def paynt_prism_text(text: str) -> str:
@@ -124,7 +125,11 @@ def build_paynt_view(
         elif (label in renamed or label == PAYNT_NO_LABEL) and NO_LABEL in pomdp.actions:
             actions[label] = NO_LABEL
     return PayntView(
-        labels=labels, observation=observation, actions=actions, available=tuple(available)
+        labels=labels,
+        observation=observation,
+        actions=actions,
+        available=tuple(available),
+        kind=kind,
     )
 
 

@@ -11,7 +11,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from collections.abc import Mapping
+from fractions import Fraction
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -33,7 +35,8 @@ from misdirect.core import tolerance
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
-from misdirect.errors import ProblemError
+from misdirect.errors import ProblemError, ProblemsError
+from misdirect.io.export import with_exported_names
 from misdirect.io.files import (
     check_input_file,
     parse_json,
@@ -75,6 +78,36 @@ def _number(value: Any) -> Any:
     return value
 
 
+_RATIONAL = re.compile(r"\s*[+-]?\d+\s*/\s*[+-]?\d+\s*")
+
+
+def rational(value: Any) -> Any:
+    """A probability as PRISM writes it: ``"2/3"`` (exactly the fraction, then rounded once to
+    the nearest float) or a decimal text (``"0.25"``); numbers pass through. A zero
+    denominator, a non-finite value or a text that is no number is refused, naming the text."""
+    if not isinstance(value, str):
+        return _number(value)
+    text = value.strip()
+    try:
+        if "/" in text:
+            if not _RATIONAL.fullmatch(text):
+                raise ValueError
+            numerator, denominator = (int(part) for part in text.split("/"))
+            if denominator == 0:
+                raise ValueError(f"{value!r} has a zero denominator")
+            exact = Fraction(numerator, denominator)
+        else:
+            exact = Fraction(text)  # refuses inf and nan
+        return float(exact)
+    except OverflowError:
+        raise ValueError(f"{value!r} is out of range") from None
+    except ValueError as error:
+        reason = str(error) if "denominator" in str(error) else ""
+        raise ValueError(
+            reason or f'expected a number or a fraction like "2/3", got {value!r}'
+        ) from None
+
+
 def _cost(value: Any) -> Any:
     if isinstance(value, str) and value.strip().lower() in {"forbidden", "inf", "infinity"}:
         return math.inf
@@ -87,7 +120,20 @@ Name = Annotated[
     Field(min_length=1),
     WithJsonSchema({"anyOf": [{"type": "string", "minLength": 1}, {"type": "integer"}]}),
 ]
-Probability = Annotated[float, BeforeValidator(_number), Field(ge=0.0, le=1.0)]
+Probability = Annotated[
+    float,
+    BeforeValidator(rational),
+    Field(ge=0.0, le=1.0),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "number", "minimum": 0, "maximum": 1},
+                {"type": "string", "pattern": r"^\s*[+-]?\d+\s*/\s*[+-]?\d+\s*$"},
+            ],
+            "description": 'a number in [0, 1], or a fraction as PRISM writes it ("2/3")',
+        }
+    ),
+]
 Budget = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
 Weight = Annotated[float, BeforeValidator(_number), Field(ge=0.0, allow_inf_nan=False)]
 Cost = Annotated[
@@ -181,7 +227,12 @@ Choice = Annotated[
                 {
                     "type": "object",
                     "minProperties": 1,
-                    "additionalProperties": {"type": "number", "minimum": 0, "maximum": 1},
+                    "additionalProperties": {
+                        "anyOf": [
+                            {"type": "number", "minimum": 0, "maximum": 1},
+                            {"type": "string", "description": 'a fraction, e.g. "2/3"'},
+                        ]
+                    },
                     "description": "randomized: {name: probability}, summing to 1",
                 },
             ]
@@ -391,8 +442,16 @@ def _read_document(path: Path) -> Any:
     return parse_yaml(text, source=str(path))
 
 
+def _reason(item: Any) -> str:
+    if item["type"] == "extra_forbidden":
+        return "unknown field (check the spelling)"
+    message = str(item["msg"])
+    return message.removeprefix("Value error, ")  # our validators' own words
+
+
 def parse_spec(document: Any) -> ProblemFileV1:
-    """Validate the document's shape; the first schema error becomes a ProblemError."""
+    """Validate the document's shape; every schema error (up to
+    :data:`misdirect.errors.MAX_REPORTED`) is reported, each naming its field."""
     if not isinstance(document, dict):
         raise ProblemError("the file must contain a mapping with format, pomdp, controller, ...")
     if document.get("format") != FORMAT:
@@ -403,12 +462,10 @@ def parse_spec(document: Any) -> ProblemFileV1:
     try:
         return ProblemFileV1.model_validate(document)
     except ValidationError as error:
-        first = error.errors()[0]
-        more = error.error_count() - 1
-        reason = first["msg"] + (f" (and {more} more problem{'s' * (more > 1)})" if more else "")
-        if first["type"] == "extra_forbidden":
-            reason = "unknown field (check the spelling)"
-        raise ProblemError(reason, field=_location(first["loc"])) from None
+        found = [
+            ProblemError(_reason(item), field=_location(item["loc"])) for item in error.errors()
+        ]
+        raise ProblemsError.of(found) from None
 
 
 def _check_key_names(document: dict) -> None:
@@ -720,6 +777,10 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
                 terminal=spec.pomdp.terminal,
                 terminal_from=spec.pomdp.terminal_from,
             )
+            # the names a PRISM or DRN file misdirect wrote keeps in its header
+            world = dataclasses.replace(
+                world, pomdp=with_exported_names(world.pomdp, model_file, kind)
+            )
             pomdp, labels, condition = world.pomdp, world.labels, world.condition
             aliases, paynt_view = world.storm_observation_names, world.paynt_view
             if spec.pomdp.disabled_action == "forbid":
@@ -935,14 +996,19 @@ def _rule_distribution(
     if isinstance(value, str):
         return {_lookup(index, value, kind, field): 1.0}
     distribution: dict[int, float] = {}
-    for name, p in value.items():
+    for name, given in value.items():
+        try:
+            p = rational(given)
+        except ValueError as error:
+            raise ProblemError(f"the probability of {name!r}: {error}", field=field) from None
         if (
             isinstance(p, bool)
             or not isinstance(p, int | float)
             or not (math.isfinite(p) and 0 <= p <= 1)
         ):
             raise ProblemError(
-                f"the probability of {name!r} must be a number in [0, 1], got {p!r}", field=field
+                f"the probability of {name!r} must be a number in [0, 1], got {given!r}",
+                field=field,
             )
         i = _lookup(index, name, kind, field)
         distribution[i] = distribution.get(i, 0.0) + float(p)

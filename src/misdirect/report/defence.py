@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from misdirect.core.model import Problem, format_alteration
-from misdirect.defence import AuditResult
+from misdirect.defence import AuditResult, HardenResult
 from misdirect.io.files import write_output
 
 CURVE_FIELDS = ["budget", "probability", "upper_bound", "status", "cost", "alteration"]
@@ -116,8 +116,8 @@ def curve_figure(result: AuditResult):
     ax.set_xlabel("attacker's budget")
     ax.set_ylabel(result.objective_label)
     ax.set_ylim(0, 1.02)
-    ax.set_title(f"{result.problem or 'problem'}: the attacker's optimum", fontsize=9)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"{result.problem}: the attacker's optimum", fontsize=10)
+    ax.legend(fontsize=9, loc="lower right")
     return fig
 
 
@@ -128,8 +128,16 @@ def sensors_figure(result: AuditResult):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from misdirect.io.grid_map import BLANK_OBSERVATION
+
     rows = result.sensors
-    names = [s.observation for s in rows]
+    # a grid's blank reading is no sensor: say so rather than list it as one
+    names = [
+        f"{s.observation} (no sensor)"
+        if result.grid and s.observation == BLANK_OBSERVATION
+        else s.observation
+        for s in rows
+    ]
     y = np.arange(len(rows))
     height = max(2.6, 0.28 * len(rows) + 1.4)
     fig, (left, right) = plt.subplots(1, 2, figsize=(8, height), sharey=True, layout="constrained")
@@ -139,26 +147,30 @@ def sensors_figure(result: AuditResult):
     if np.any(high - low > 1e-9):
         left.barh(y, high - low, left=low, color="C3", alpha=0.3, label="up to (not certified)")
     left.set_xlabel("drop of the optimum at B when protected")
-    left.set_yticks(y, names, fontsize=7)
+    left.set_yticks(y, names, fontsize=9)
     left.invert_yaxis()
-    left.legend(fontsize=7)
+    left.legend(fontsize=9)
     right.barh(y, [s.single_probability for s in rows], color="C0")
     right.axvline(result.baseline_probability, color="0.5", linestyle=":", label="no attack")
     right.set_xlabel("attacker's best with only this sensor")
-    right.legend(fontsize=7)
-    fig.suptitle(f"{result.problem or 'problem'}: sensors at budget {result.budget:g}", fontsize=9)
+    right.legend(fontsize=9)
+    fig.suptitle(f"{result.problem}: sensors at budget {result.budget:g}", fontsize=10)
     return fig
 
 
 def map_figure(problem: Problem, result: AuditResult):
-    """The grid with every sensor's cells coloured by its criticality."""
+    """The grid with every sensor's cells coloured by its criticality, on a log scale (a
+    criticality of 0.001 is not drawn as 0). Cells that read the blank ``b`` (no sensor) are
+    drawn apart, not as a sensor; cells no alteration may touch are hatched."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
+    from matplotlib.colors import ListedColormap, LogNorm
+    from matplotlib.patches import Patch
 
     from misdirect.core.grid import grid_cells
+    from misdirect.io.grid_map import BLANK_OBSERVATION
     from misdirect.report.figures import grid_arrays, grid_frame, mark_cell
 
     cells = grid_cells(problem)
@@ -167,57 +179,94 @@ def map_figure(problem: Problem, result: AuditResult):
     by_name = {s.observation: s.criticality for s in result.sensors}
     names = np.array(pomdp.observations)[pomdp.observation_of]
     stop = pomdp.absorbing | problem.decoy
+    blank = (names == BLANK_OBSERVATION) & ~stop
     per_state = np.array([by_name.get(n, np.nan) for n in names], dtype=float)
-    per_state[stop] = np.nan
+    per_state[stop | blank] = np.nan
     values, walls = grid_arrays(problem, cells, per_state)
+    blank_cells, _ = grid_arrays(problem, cells, np.where(blank, 1.0, np.nan))
+    listed = np.array([by_name.get(n) is not None for n in names]) & ~stop & ~blank
+    listed_cells, _ = grid_arrays(problem, cells, np.where(listed, 1.0, np.nan))
     height, width = values.shape
     scale = 0.9 * max(3.0, min(10.0, 10.0 * max(width, height) / 12)) / max(width, height)
-    fig, ax = plt.subplots(figsize=(max(4.5, width * scale + 1.8), max(3.5, height * scale + 1.6)))
+    fig, ax = plt.subplots(figsize=(max(5.5, width * scale + 2.4), max(4.2, height * scale + 2.2)))
     extent = (-0.5, width - 0.5, -0.5, height - 0.5)
-    top = max(float(np.nanmax(values)) if np.isfinite(values).any() else 0.0, 1e-9)
+    positive = values[np.isfinite(values) & (values > 0)]
+    top = float(positive.max()) if positive.size else 1.0
+    low = float(positive.min()) if positive.size else top / 10
+    # log scale down to the smallest positive criticality (at most four decades below the top)
+    norm = LogNorm(vmin=max(min(low, top / 10), top * 1e-4), vmax=top)
     image = ax.imshow(
-        values,
+        np.ma.masked_less_equal(np.nan_to_num(values, nan=0.0), 0.0),
         origin="lower",
         cmap="Reds",
-        vmin=0,
-        vmax=top,
+        norm=norm,
         extent=extent,
         interpolation="nearest",
     )
-    ax.imshow(
-        np.ma.masked_array(np.ones(walls.shape), mask=~walls),
-        origin="lower",
-        cmap=ListedColormap(["#4d4d4d"]),
-        extent=extent,
-        interpolation="nearest",
-    )
+    zero = np.isfinite(values) & (values <= 0)  # a sensor the attack does not need
+    layers = [
+        (zero, "#e6e6e6"),
+        (np.isfinite(blank_cells), "#dfe8f2"),
+        (walls, "#4d4d4d"),
+    ]
+    for mask, colour in layers:
+        ax.imshow(
+            np.ma.masked_array(np.ones(walls.shape), mask=~mask),
+            origin="lower",
+            cmap=ListedColormap([colour]),
+            extent=extent,
+            interpolation="nearest",
+        )
+    # cells whose reading no alteration may change (the start's, protected ones): hatched
+    locked = ~np.isfinite(listed_cells) & ~np.isfinite(blank_cells) & ~walls
+    stops, _ = grid_arrays(problem, cells, np.where(stop, 1.0, np.nan))
+    for y, x in np.argwhere(locked & ~np.isfinite(stops)):
+        ax.add_patch(
+            plt.Rectangle((x - 0.5, y - 0.5), 1, 1, fill=False, hatch="//", color="0.6", lw=0)
+        )
     grid_frame(ax, width, height)
     if len(result.sensors) <= 40:
         for s in result.sensors:
+            if s.observation == BLANK_OBSERVATION:
+                continue
             o = pomdp.observations.index(s.observation)
             where = cells[(pomdp.observation_of == o) & ~stop]
             if where.size:
                 x, y = where[0].tolist()
-                ax.text(x, y + 0.3, s.observation, ha="center", va="center", fontsize=6)
+                ax.text(x, y + 0.3, s.observation, ha="center", va="center", fontsize=9)
     goals = np.flatnonzero(pomdp.absorbing & ~problem.decoy)
     marks: list[tuple[int | np.integer, str, str]] = [(pomdp.initial_state, "S", "black")]
     marks += [(g, "G", "darkgreen") for g in goals]
     marks += [(d, "X", "crimson") for d in np.flatnonzero(problem.decoy)]
     for state, text, colour in marks:
         mark_cell(ax, tuple(cells[state].tolist()), text, colour)
+    handles = [
+        Patch(facecolor="#e6e6e6", edgecolor="0.7", label="criticality 0"),
+        Patch(facecolor="#dfe8f2", edgecolor="0.7", label=f"no sensor (reads {BLANK_OBSERVATION})"),
+        Patch(facecolor="white", edgecolor="0.6", hatch="//", label="not alterable"),
+    ]
+    if blank.any() and BLANK_OBSERVATION in by_name:
+        handles[1].set_label(
+            f"no sensor (reads {BLANK_OBSERVATION}; criticality {by_name[BLANK_OBSERVATION]:.3g})"
+        )
+    fig.legend(handles=handles, loc="lower center", ncols=3, fontsize=9, frameon=False)
     ax.set_title(
-        f"{result.problem or 'problem'}: sensor criticality at budget {result.budget:g}\n"
-        "(drop of the attacker's optimum when the sensor is protected; blank: not alterable)",
-        fontsize=8,
+        f"{result.problem}: sensor criticality at budget {result.budget:g}\n"
+        "(drop of the attacker's optimum when the sensor is protected)",
+        fontsize=10,
     )
-    fig.colorbar(image, ax=ax, fraction=0.046 * height / width, pad=0.04, label="criticality")
+    ax.tick_params(labelsize=9)
+    bar = fig.colorbar(image, ax=ax, fraction=0.046 * height / width, pad=0.04)
+    bar.set_label("criticality (log scale)", fontsize=9)
+    bar.ax.tick_params(labelsize=9)
+    fig.subplots_adjust(bottom=0.14)
     return fig
 
 
 def report_text(result: AuditResult) -> str:
     """report.md: what the attacker can do, which sensors matter, what an online attacker adds."""
     lines = [
-        f"# Sensor audit: {result.problem or 'problem'}",
+        f"# Sensor audit: {result.problem}",
         "",
         f"Attacker's budget B = {result.budget:g}. Without attack {result.objective_label} = "
         f"{result.baseline_probability:.9f}.",
@@ -308,3 +357,90 @@ def write_audit_report(problem: Problem, result: AuditResult, out: Path) -> list
         written.append(_save(map_figure(problem, result), out / "map.png"))
     written.append(write_output(out / "report.md", report_text(result)))
     return written
+
+
+# -- harden -o DIR ------------------------------------------------------------------------------
+
+
+def tradeoff_figure(result: HardenResult):
+    """The trade-off: the attacker's optimum (at budget B) against the protection budget D,
+    with the proven lower bound where the min-max is not proven."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    budgets = np.array([p.protect_budget for p in result.curve])
+    values = np.array([p.probability for p in result.curve])
+    lower = np.array([p.lower_bound for p in result.curve])
+    fig, ax = plt.subplots(figsize=(5.6, 3.8), layout="constrained")
+    ax.step(budgets, values, where="post", color="C3", label="attacker's optimum, best protection")
+    ax.plot(budgets, values, "o", color="C3")
+    open_points = np.array([p.status != "optimal" for p in result.curve], dtype=bool)
+    if open_points.any():
+        ax.vlines(
+            budgets[open_points],
+            lower[open_points],
+            values[open_points],
+            color="0.4",
+            label="not proven: down to the lower bound",
+        )
+    ax.axhline(result.value_before, color="0.5", linestyle=":", label="nothing protected")
+    for d, v, point in zip(budgets, values, result.curve, strict=True):
+        text = ", ".join(point.protection) or "nothing"
+        ax.annotate(text, (d, v), textcoords="offset points", xytext=(4, 6), fontsize=9)
+    ax.set_xlabel("protection budget D", fontsize=10)
+    ax.set_ylabel(f"attacker's optimum at B = {result.budget:g}", fontsize=10)
+    ax.set_ylim(0, 1.05 * max(1e-9, float(values.max(initial=0)), result.value_before))
+    ax.tick_params(labelsize=9)
+    ax.set_title(f"{result.problem}: protection against the attacker", fontsize=10)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.legend(fontsize=9, loc="center right")
+    return fig
+
+
+def harden_report_text(result: HardenResult) -> str:
+    """report.md of ``harden -o DIR``: the protection, and the trade-off over D."""
+    lines = [
+        f"# Hardening: {result.problem}",
+        "",
+        f"Attacker's budget B = {result.budget:g}; protection budget D = "
+        f"{result.protect_budget:g}.",
+        "",
+        f"Protect **{', '.join(result.protection) or 'nothing'}** (cost "
+        f"{result.protection_cost:g}): the attacker's optimum drops from "
+        f"{result.value_before:.9f} to {result.value_after:.9f} ({result.status}); no "
+        f"protection within D holds it below {result.lower_bound:.9f}. The attacker's best "
+        f"reply: {format_alteration(result.best_reply)}.",
+        "",
+        "## The trade-off",
+        "",
+        "| D | protect | cost | attacker's optimum | lower bound | best reply | status |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for p in result.curve:
+        lines.append(
+            f"| {p.protect_budget:g} | {', '.join(p.protection) or 'nothing'} | "
+            f"{p.protection_cost:g} | {p.probability:.9f} | {p.lower_bound:.9f} | "
+            f"{format_alteration(p.attack)} | {p.status} |"
+        )
+    if result.notes:
+        lines += ["", "## Notes", ""] + [f"* {note}" for note in result.notes]
+    lines += [
+        "",
+        f"Files: tradeoff.png. {result.solves} attacker solves, {result.nodes} nodes, "
+        f"{result.time_s:.2f} s.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def write_harden_report(result: HardenResult, out: Path) -> list[Path]:
+    """Write report.md and tradeoff.png into the folder ``out`` (which must exist)."""
+    out = Path(out)
+    return [
+        _save(tradeoff_figure(result), out / "tradeoff.png"),
+        write_output(out / "report.md", harden_report_text(result)),
+    ]

@@ -577,7 +577,7 @@ def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray
     goal_probability = sum(report.outcomes.get(pomdp.states[g], 0.0) for g in goals)
     changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
     ax.set_title(
-        f"{problem.name or 'problem'}: {changes} (cost {report.cost:g})\n"
+        f"{problem.title}: {changes} (cost {report.cost:g})\n"
         f"Pr(decoy) = {report.probability:.3f}, Pr(goal) = {goal_probability:.3f}\n"
         "S start, G goal, X decoy, dark grey: wall, hatched: altered sensor",
         fontsize=8,

@@ -143,6 +143,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         budget_row=budget_row,
         decode=decode,
         start_for=start_for,
+        alteration_columns=(y0 + np.arange(options.size), options.observation, options.target),
         sound=True,
         build_time_s=time.perf_counter() - started,
         notes={

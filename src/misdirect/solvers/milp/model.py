@@ -15,7 +15,8 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from misdirect.core.model import AlterationArray
+from misdirect.core.model import AlterationArray, Problem
+from misdirect.errors import ProblemError
 
 
 @dataclass(eq=False)
@@ -46,6 +47,9 @@ class MilpModel:
     cost_unit: float = 1.0
     build_time_s: float = 0.0
     notes: dict[str, Any] = field(default_factory=dict)
+    # (column, observation, target) of every binary that says "observation reads target":
+    # what another solver's solution is decoded through (misdirect decode)
+    alteration_columns: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def n_columns(self) -> int:
@@ -67,6 +71,41 @@ class MilpModel:
             "rows_by_block": {k: s.stop - s.start for k, s in self.row_blocks.items()},
             **self.notes,
         }
+
+
+COLUMN_MAP_SCHEMA = "misdirect-milp-columns/1"
+
+
+def column_map(model: MilpModel, problem: Problem, budget: float) -> dict[str, Any]:
+    """The JSON map from the model's columns (named ``c<index>`` in MPS/LP files) to the
+    alteration they choose, for decoding another solver's solution: observation ``o`` reads
+    ``target`` when that column is 1; an observation with no column at 1 is unaltered."""
+    if model.alteration_columns is None:
+        raise ValueError(f"the {model.formulation} formulation has no alteration columns")
+    columns, observation, target = model.alteration_columns
+    names = problem.pomdp.observations
+    cost = problem.cost.matrix()
+    return {
+        "schema": COLUMN_MAP_SCHEMA,
+        "formulation": model.formulation,
+        "problem": problem.name,
+        "budget": budget,
+        "sense": "maximize",
+        "objective_offset": model.offset,
+        "columns": model.n_columns,
+        "rule": "observation reads target where the column's value is 1 (above 0.5); "
+        "observations without such a column are unaltered",
+        "alteration_columns": [
+            {
+                "column": f"c{c}",
+                "index": c,
+                "observation": names[o],
+                "target": names[t],
+                "cost": 0.0 if o == t else float(cost[o, t]),
+            }
+            for c, o, t in zip(columns.tolist(), observation.tolist(), target.tolist(), strict=True)
+        ],
+    }
 
 
 class ModelBuilder:
@@ -153,3 +192,34 @@ class ModelBuilder:
             row_blocks=dict(self.row_blocks),
             **fields,
         )
+
+
+def decode_columns(
+    problem: Problem, entries: list[dict[str, Any]], values: dict[str, float]
+) -> AlterationArray:
+    """The alteration a solution chooses, read through a column map's ``alteration_columns``
+    (``values``: column name -> value; a column not listed is 0). Two targets chosen for one
+    observation, or a name the problem does not know, is a ProblemError."""
+    index = {name: i for i, name in enumerate(problem.pomdp.observations)}
+    alteration = problem.identity()
+    chosen: dict[str, str] = {}
+    for k, entry in enumerate(entries):
+        if values.get(entry["column"], 0.0) <= 0.5:
+            continue
+        observation, target = entry["observation"], entry["target"]
+        for name in (observation, target):
+            if name not in index:
+                raise ProblemError(
+                    f"the map names observation {name!r}, which the problem does not have "
+                    "(a map of another problem?)",
+                    field=f"alteration_columns[{k}]",
+                )
+        if observation in chosen and chosen[observation] != target:
+            raise ProblemError(
+                f"the solution sends {observation!r} to both {chosen[observation]!r} and "
+                f"{target!r} (columns at 1); an alteration gives each observation one target",
+                field=entry["column"],
+            )
+        chosen[observation] = target
+        alteration[index[observation]] = index[target]
+    return alteration

@@ -173,6 +173,11 @@ def build_paper(
         budget_row=budget_row,
         decode=lambda values: _decode(problem, values[x0 : x0 + n_o * n_o]),
         start_for=lambda alpha: (x0 + np.arange(n_o) * n_o + alpha, np.ones(n_o)),
+        alteration_columns=(
+            x0 + np.arange(n_o * n_o),
+            np.repeat(np.arange(n_o), n_o),
+            np.tile(np.arange(n_o), n_o),
+        ),
         sound=False,
         notes={"successor_pairs": n_edges},
     )
