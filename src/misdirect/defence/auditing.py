@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 
 from misdirect.core import tolerance
-from misdirect.core.alterations import alteration_space
+from misdirect.core.alterations import alteration_space, max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.grid import grid_cells
 from misdirect.core.model import Problem
@@ -30,7 +30,7 @@ from misdirect.defence.results import AuditResult, OnlineAttack, SensorAudit
 from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline
-from misdirect.solvers.run import SolveResult, default_budgets, recertify, solve
+from misdirect.solvers.run import SolveResult, clamp_budget, default_budgets, recertify, solve
 
 SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
 
@@ -57,10 +57,12 @@ def audit(
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)
-    budget = attacker_budget(problem, budget)
+    asked = attacker_budget(problem, budget)
+    # past the most expensive complete alteration every budget affords the same: work at it
+    budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)
     with shared_preparation():
-        curve_result = _optimum_curve(problem, budget, clock, method)
+        curve_result = _optimum_curve(problem, budget, clock, method, asked)
         cheapest = _cheapest_alterations(problem, budget)
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
@@ -70,12 +72,12 @@ def audit(
         optimum = attack_of(curve_result.curve[-1], problem)
         rows = _sensor_rows(problem, budget, optimum, singles, clock, method)
     notes = _not_certified(optimum, curve_result, budget)
-    online, note = _online_value(problem, budget, optimum)
+    online, note = _online_value(problem, asked, optimum)  # pays per reading: never clamped
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
     return AuditResult(
         problem=problem.name,
-        budget=budget,
+        budget=asked,
         baseline_probability=curve_result.baseline_probability,
         curve=curve_result.curve,
         status=top.status,
@@ -90,15 +92,20 @@ def audit(
         time_s=time.perf_counter() - started,
         objective=problem.objective.kind,
         grid=grid_cells(problem) is not None,
+        budget_clamped_from=clamped_from,
+        budget_clamped_to=None if clamped_from is None else budget,
     )
 
 
-def _optimum_curve(problem: Problem, budget: float, clock: Deadline, method: str) -> SolveResult:
-    """The attacker's optimum at every budget up to ``budget``, within half the time left."""
+def _optimum_curve(
+    problem: Problem, budget: float, clock: Deadline, method: str, asked: float
+) -> SolveResult:
+    """The attacker's optimum at every budget up to ``budget``, and at ``asked`` (solve answers
+    a budget above the cap with the cap's answer), within half the time left."""
     return solve(
         problem,
         method=method,
-        budgets=default_budgets(budget),
+        budgets=sorted({*default_budgets(budget), asked}),
         deadline=clock.within(clock.share(2)),
     )
 
