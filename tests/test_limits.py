@@ -4,13 +4,23 @@ estimated before building, deadlines and signals honoured, concurrent solves and
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
+import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 import misdirect
 from misdirect.cli import app
-from misdirect.io.problem_file import load_problem
+from misdirect.core.alterations import alteration_space, options_bound
+from misdirect.core.memory import MEMORY_LIMIT_ENV
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+from misdirect.errors import ProblemError
+from misdirect.io.problem_file import load_problem, write_problem
+from misdirect.scenarios import random_problem, sensor_grid
+from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO
+from misdirect.solvers.milp.paper import build_paper, paper_size
 
 runner = CliRunner()
 TINY = Path(__file__).parent.parent / "examples" / "tiny.yaml"
@@ -59,3 +69,106 @@ def test_library_audit_and_harden_report_the_clamp():
     assert (audited.budget_clamped_from, audited.budget_clamped_to) == (1e12, TINY_CAP)
     hardened = misdirect.harden(problem, protect_budget=1e9)
     assert hardened.protect_budget_clamped_to == TINY_PROTECT_ALL
+
+
+# -- memory estimated before building -----------------------------------------------------------
+
+
+def classes_problem(k: int, nodes: int = 6, seed: int = 0) -> Problem:
+    """``k`` states in a line, each with its own observation, and a random controller on
+    ``nodes`` nodes: about one behaviour class per observation, so every observation has
+    about ``k`` candidate targets and the choice product about ``k² · nodes`` groups."""
+    rng = np.random.default_rng(seed)
+    line = np.arange(k)
+    nxt = np.where(line + 1 < k, line + 1, k)  # the last state moves on to the goal
+    pomdp = Pomdp.from_triplets(
+        states=(*(f"s{i}" for i in range(k)), "goal", "decoy"),
+        actions=("a0", "a1"),
+        observations=tuple(f"o{i}" for i in range(k + 1)),
+        initial_state=0,
+        observation_of=np.concatenate([line, [k, k]]),
+        action=np.repeat([0, 0, 1, 1], k),
+        source=np.tile(line, 4),
+        target=np.concatenate([nxt, np.full(k, k + 1), nxt, np.full(k, k)]),
+        probability=np.repeat([0.9, 0.1, 0.9, 0.1], k),
+        absorbing=np.arange(k + 2) >= k,
+    )
+    controller = Controller(
+        nodes=tuple(f"n{i}" for i in range(nodes)),
+        initial_node=0,
+        action=rng.integers(0, 2, size=(nodes, k + 1)),
+        update=rng.integers(0, nodes, size=(nodes, k + 1)),
+    )
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=CostModel(n_observations=k + 1),
+        decoy=np.arange(k + 2) == k + 1,
+        budget=1.0,
+        name="many classes",
+    )
+
+
+def test_paper_milp_estimate_counts_the_model_it_builds():
+    """The estimate is the paper's counting formula; the model built must agree with it."""
+    for problem in (load_problem(TINY), sensor_grid(6, 4, seed=1)):
+        variables, rows, nonzeros = paper_size(problem)
+        model = build_paper(problem)
+        assert (variables, rows) == (model.n_columns, model.n_rows)
+        assert model.matrix.nnz <= nonzeros <= 1.05 * model.matrix.nnz
+
+
+def test_paper_milp_too_large_is_refused_before_building(monkeypatch):
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "1M")
+    problem = sensor_grid(6, 4, seed=1)
+    _, _, nonzeros = paper_size(problem)
+    assert nonzeros * BUILD_BYTES_PER_NONZERO > 1024**2  # the limit is certainly exceeded
+    with pytest.raises(ProblemError, match=r"paper's MILP .* needs about .* than the limit of"):
+        misdirect.solve(problem, method="milp", formulation="paper", time_limit=5)
+
+
+def test_memory_limit_option_refuses_and_does_not_leak(tmp_path):
+    grid = tmp_path / "grid.yaml"
+    write_problem(sensor_grid(6, 4, seed=1), grid)
+    args = ["solve", str(grid), "--method", "milp", "--formulation", "paper"]
+    result = runner.invoke(app, ["--memory-limit", "1M", *args, "--json"])
+    assert result.exit_code == 2, result.output
+    message = json.loads(result.stdout)["error"]["message"]
+    assert "paper's MILP" in message and "limit of 0.00098 GiB" in message  # 1 MiB
+    assert MEMORY_LIMIT_ENV not in os.environ  # restored after the command
+    bad = runner.invoke(app, ["--memory-limit", "lots", "solve", str(TINY)])
+    assert bad.exit_code == 2 and "--memory-limit" in bad.output and "Traceback" not in bad.output
+
+
+def test_bad_memory_limit_variable_is_one_line(monkeypatch):
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "-3G")
+    result = runner.invoke(app, ["solve", str(TINY), "--method", "milp", "--json"])
+    assert result.exit_code == 2
+    assert MEMORY_LIMIT_ENV in json.loads(result.stdout)["error"]["message"]
+
+
+def test_many_behaviour_classes_are_refused_through_harden(monkeypatch):
+    k, nodes = 300, 6
+    problem = classes_problem(k, nodes)
+    # the behaviour classes counted independently: distinct (action, update) columns
+    columns = np.vstack([problem.controller.action, problem.controller.update]).T
+    classes = len({tuple(c) for c in columns})
+    assert classes > 250
+    # o1..o(k-1) are relevant (o0 is the initial observation), each with one candidate per
+    # class; every other product state keeps its own reading
+    groups = nodes * ((k - 1) * classes + 3)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "20M")
+    with pytest.raises(ProblemError, match=f"choice product .*{groups:,} groups"):
+        misdirect.harden(problem, protect_budget=2, time_limit=30)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_options_bound_covers_the_alteration_space(seed):
+    problem = random_problem(seed, states=7, observations=5, nodes=3, budget=2)
+    bound = options_bound(problem)
+    sizes = np.zeros_like(bound)
+    for choice in alteration_space(problem).choices:
+        sizes[choice.observation] = choice.size
+    assert np.all(bound >= sizes)
+    if problem.cost.default <= problem.budget and not problem.cost.pairs:
+        assert np.array_equal(bound[sizes > 0], sizes[sizes > 0])

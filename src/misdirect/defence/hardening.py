@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from misdirect.core import tolerance
-from misdirect.core.alterations import max_alteration_cost
+from misdirect.core.alterations import max_alteration_cost, options_bound
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
@@ -158,8 +158,8 @@ def harden(
     budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)
     costs = protection_costs(problem, protect_costs)
-    alterable = alterable_sensors(problem, budget)
-    everything = float(sum(costs[o] for o in alterable))
+    # the sensors that may be alterable, read off the costs (the space itself can be large)
+    everything = float(costs[options_bound(problem) > 1].sum())
     d_cap, d_clamped_from = clamp_budget(float(protect_budget), everything)
     search = _Search(problem, budget, costs, clock, method)
     curve: list[HardenPoint] = []
@@ -173,7 +173,7 @@ def harden(
     before = search.attack(frozenset())
     notes = search.notes()
     names = problem.pomdp.observations
-    listed = {names[o]: float(costs[o]) for o in alterable}
+    listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
     return HardenResult(
         problem=problem.name,
         budget=asked,
