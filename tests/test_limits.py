@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -172,3 +175,83 @@ def test_options_bound_covers_the_alteration_space(seed):
     assert np.all(bound >= sizes)
     if problem.cost.default <= problem.budget and not problem.cost.pairs:
         assert np.array_equal(bound[sizes > 0], sizes[sizes > 0])
+
+
+# -- signals: honoured within about a second at any moment ---------------------------------------
+
+# a solve that never looks at its cancel token (as a long call into numpy or a solver would
+# not): the command must still stop soon after SIGTERM or Ctrl-C, with the signal's exit code
+STUCK_SOLVE = """
+import sys, time
+import misdirect.cli.solving as solving
+def stuck(*args, **kwargs):
+    sys.stderr.write("solving\\n"); sys.stderr.flush()
+    end = time.monotonic() + 60
+    while time.monotonic() < end:
+        time.sleep(0.05)
+    raise SystemExit(3)
+solving.solve_problem = stuck
+sys.argv = ["misdirect", "solve", sys.argv[1], "--json"]
+from misdirect.cli import main
+main()
+"""
+
+
+def run_until_started(script: str, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(Path(misdirect.__file__).parent.parent)}
+    process = subprocess.Popen(
+        [sys.executable, "-c", script, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
+    assert process.stderr is not None
+    assert process.stderr.readline() == b"solving\n"  # under way
+    return process
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_solve_that_does_not_stop_is_stopped_hard_after_the_grace(sig, code):
+    process = run_until_started(STUCK_SOLVE, str(TINY))
+    try:
+        process.send_signal(sig)
+        stdout, stderr = process.communicate(timeout=20)  # far below the stuck 60 s
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == code, stderr
+    message = json.loads(stdout)["error"]["message"]
+    assert "stopped at once" in message
+    assert stderr.decode().count("\n") == 1 and b"Traceback" not in stderr
+
+
+def test_ctrl_c_under_scip_keeps_the_answers_without_an_lp_error():
+    """SCIP's own Ctrl-C handler stopped it inside an LP ("error in LP solver"); the command's
+    token stops it now, and the best answers so far are printed."""
+    pytest.importorskip("pyscipopt")
+    script = """
+import sys
+import misdirect.solvers.milp.backends as backends
+original = backends.ScipBackend.solve
+def announced(self, *args, **kwargs):
+    sys.stderr.write("solving\\n"); sys.stderr.flush()
+    return original(self, *args, **kwargs)
+backends.ScipBackend.solve = announced
+sys.argv = ["misdirect", "solve", "--scenario", "paper-grid", "--size", "25", "--method",
+            "milp", "--solver", "scip", "--budget", "0..7", "--json"]
+from misdirect.cli import main
+main()
+"""
+    process = run_until_started(script)
+    try:
+        process.stderr.readline()  # budget 0 is quick; Ctrl-C lands in a later budget's solve
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, stderr
+    assert b"LP" not in stderr and b"SCIP failed" not in stderr
+    payload = json.loads(stdout)
+    assert payload["interrupted"] is True and len(payload["curve"]) == 8
+    assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}

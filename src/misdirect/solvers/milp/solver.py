@@ -144,11 +144,14 @@ class MilpSolver:
             backend.set_row_upper(model.budget_row, budget)
             stage = f"milp ({backend.name}), budget {budget:g}"
             report(progress, done - 1, len(budgets), stage=stage)
-            result = backend.solve(
-                curve.start,
-                time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
-                cancel=deadline.cancel,
-            )
+            if deadline.cancelled:  # stopped: the budgets left are not handed to the backend
+                result = BackendResult("time_limit", None, None, None, None, 0.0)
+            else:
+                result = backend.solve(
+                    curve.start,
+                    time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
+                    cancel=deadline.cancel,
+                )
             solutions.append(self._solution(curve, backend.name, budget, result, deadline))
             report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
@@ -179,7 +182,7 @@ class MilpSolver:
         else:
             alteration = model.decode(result.values)
             violation = backends.violation(model, result.values)
-            claimed = _claim(model, result, violation, budget)
+            claimed = _claim(model, result, violation, budget, deadline)
             curve.start = model.start_for(alteration)  # the next (larger) budget starts here
         # the solver's objective carries its tolerances as its bound does; the claim may be
         # the better value of the same binaries
@@ -233,14 +236,17 @@ class _Curve:
         return self.relaxed
 
 
-def _claim(model: MilpModel, result: BackendResult, violation: float, budget: float) -> float:
+def _claim(
+    model: MilpModel, result: BackendResult, violation: float, budget: float, deadline: Deadline
+) -> float:
     """The solver's value for its alteration: its objective, or, for a point off by the
     solver's tolerances or one whose continuous part is short of the best for its binaries,
     the formulation's own value of the decoded alteration (the LP with the binaries rounded)."""
     claimed = result.objective
     assert claimed is not None and result.values is not None
     gapped = result.bound is not None and result.bound - claimed > tolerance.GAP
-    if violation > tolerance.FEASIBILITY or gapped:
+    # a stop request skips the LP (a second solve); the claim is only checked, never reported
+    if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled:
         rounded = backends.value_with_rounded_binaries(model, result.values, budget)
         claimed = claimed if rounded is None else rounded
     return claimed
