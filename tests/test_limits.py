@@ -255,3 +255,40 @@ main()
     payload = json.loads(stdout)
     assert payload["interrupted"] is True and len(payload["curve"]) == 8
     assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}
+
+
+# -- concurrency --------------------------------------------------------------------------------
+
+WRITER = """
+import sys
+from pathlib import Path
+from misdirect.io.files import write_output
+path, letter = Path(sys.argv[1]), sys.argv[2]
+content = letter * 500_000
+for _ in range(20):
+    write_output(path, content)
+"""
+
+
+def test_two_processes_writing_one_path_never_leave_a_torn_file(tmp_path):
+    """Two writers race on one path while it is read over and over: every read is one whole
+    file of one writer (500 kB of one letter), never a mix, a prefix or an empty file."""
+    path = tmp_path / "out.txt"
+    env = {**os.environ, "PYTHONPATH": str(Path(misdirect.__file__).parent.parent)}
+    writers = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(path), letter], env=env)
+        for letter in "ab"
+    ]
+    try:
+        while any(w.poll() is None for w in writers):
+            if path.exists():
+                data = path.read_bytes()
+                assert len(data) == 500_000 and data.count(data[:1]) == len(data)
+        assert [w.wait(timeout=120) for w in writers] == [0, 0]
+    finally:
+        for w in writers:
+            if w.poll() is None:
+                w.kill()
+    final = path.read_bytes()
+    assert final in (b"a" * 500_000, b"b" * 500_000)
+    assert not [p for p in tmp_path.iterdir() if p != path]  # no temporary file left behind

@@ -31,6 +31,7 @@ from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.run import SolveResult, clamp_budget, default_budgets, recertify, solve
+from misdirect.solvers.status import Status
 
 SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
 
@@ -66,13 +67,15 @@ def audit(
         cheapest = _cheapest_alterations(problem, budget)
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
-        singles = _single_values(problem, budget, list(cheapest), clock, likely)
+        baseline = curve_result.baseline_probability
+        singles = _single_values(problem, budget, list(cheapest), clock, likely, baseline)
         evidence = _single_sensor_evidence(curve_result, cheapest, singles)
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
-        rows = _sensor_rows(problem, budget, optimum, singles, clock, method)
+        rows = _sensor_rows(problem, budget, optimum, singles, clock, method, baseline)
     notes = _not_certified(optimum, curve_result, budget)
-    online, note = _online_value(problem, asked, optimum)  # pays per reading: never clamped
+    # the budgeted online MDP (one layer per budget unit) only within the time limit
+    online, note = _online_value(problem, None if clock.expired() else asked, optimum)
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
     return AuditResult(
@@ -130,7 +133,12 @@ def _cheapest_alterations(problem: Problem, budget: float) -> dict[int, float]:
 
 
 def _single_values(
-    problem: Problem, budget: float, sensors: list[int], clock: Deadline, later: int
+    problem: Problem,
+    budget: float,
+    sensors: list[int],
+    clock: Deadline,
+    later: int,
+    baseline: float,
 ) -> dict[int, Attack]:
     """The attacker's optimum at ``budget`` with only one sensor alterable, for each sensor:
     one observation's few candidates, cheap; ``later`` re-solves at B (as hard as the optimum
@@ -138,6 +146,9 @@ def _single_values(
     everything = frozenset(range(problem.pomdp.n_observations))
     singles = {}
     for k, o in enumerate(sensors):
+        if clock.expired():  # each solve takes its 50 ms and its evaluations: none past the end
+            singles[o] = _unsolved(problem, baseline, problem.objective.max_value)
+            continue
         singles[o] = solve_at(
             protect(problem, everything - {o}),
             budget,
@@ -146,6 +157,21 @@ def _single_values(
             method="exhaustive",
         )
     return singles
+
+
+def _unsolved(problem: Problem, baseline: float, upper: float) -> Attack:
+    """An attacker's optimum not solved for want of time: at least the unaltered value
+    ``baseline`` (every protection leaves it feasible), at most ``upper``."""
+    identity = problem.identity()
+    return Attack(
+        value=baseline,
+        upper=upper,
+        status=Status.TIME_LIMIT,
+        alteration={},
+        changed=frozenset(),
+        cost=0.0,
+        alteration_array=identity,
+    )
 
 
 def _single_sensor_evidence(
@@ -194,6 +220,7 @@ def _sensor_rows(
     singles: dict[int, Attack],
     clock: Deadline,
     method: str,
+    baseline: float,
 ) -> list[SensorAudit]:
     """One row per sensor alterable within ``budget``, the most critical first."""
     sensors = list(singles)
@@ -201,6 +228,9 @@ def _sensor_rows(
     needs = [o for o in sensors if o in optimum.changed]
     re_solved = {}
     for k, o in enumerate(needs):
+        if clock.expired():  # protecting a sensor only lowers the optimum: bounded by it
+            re_solved[o] = _unsolved(problem, baseline, optimum.upper)
+            continue
         re_solved[o] = solve_at(
             protect(problem, [o]), budget, clock, clock.share(len(needs) - k), method=method
         )
@@ -244,13 +274,15 @@ def _criticality(optimum: Attack, protected: Attack | None) -> tuple[float, floa
 
 
 def _online_value(
-    problem: Problem, budget: float, optimum: Attack
+    problem: Problem, budget: float | None, optimum: Attack
 ) -> tuple[OnlineAttack, str | None]:
     """The online attacker's value, budgeted within ``budget`` when it can be computed (else
     unlimited only, with the reason), checked against the offline optimum it must bound."""
     note = None
     try:
-        online = online_attack_value(problem, budget)
+        if budget is None:
+            raise ProblemError("not computed: the time limit was reached", field="budget")
+        online = online_attack_value(problem, budget)  # pays per reading: never clamped
     except ProblemError as error:
         note = error.reason
         online = online_attack_value(problem, None)
