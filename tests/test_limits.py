@@ -22,6 +22,7 @@ from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
 from misdirect.io.problem_file import load_problem, write_problem
 from misdirect.scenarios import random_problem, sensor_grid
+from misdirect.solvers.deadline import CancelToken
 from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO
 from misdirect.solvers.milp.paper import build_paper, paper_size
 
@@ -292,3 +293,50 @@ def test_two_processes_writing_one_path_never_leave_a_torn_file(tmp_path):
     final = path.read_bytes()
     assert final in (b"a" * 500_000, b"b" * 500_000)
     assert not [p for p in tmp_path.iterdir() if p != path]  # no temporary file left behind
+
+
+# -- time limits: no work started past the deadline ------------------------------------------------
+
+
+def test_audit_starts_no_solve_once_its_clock_has_expired(monkeypatch):
+    """A cancelled audit (its clock expired) used to run every single-sensor and protected
+    re-solve anyway, each at least 50 ms with its exact evaluations (5-10 s past the limit on a
+    64-sensor network). Now it starts none, and what it reports stays sound: each criticality
+    interval holds the value a full audit computes."""
+    from misdirect.defence import auditing
+
+    problem = sensor_grid(6, 4, seed=1)
+    full = misdirect.audit(problem, budget=2)
+    calls = []
+    original = auditing.solve_at
+    monkeypatch.setattr(auditing, "solve_at", lambda *a, **k: calls.append(1) or original(*a, **k))
+    token = CancelToken()
+    token.cancel()
+    cut = misdirect.audit(problem, budget=2, cancel=token)
+    assert calls == []
+    truth = {row.observation: row for row in full.sensors}
+    assert {row.observation for row in cut.sensors} == set(truth)
+    for row in cut.sensors:
+        exact = truth[row.observation]
+        assert row.criticality - 1e-9 <= exact.criticality <= row.criticality_upper + 1e-9
+        assert row.single_probability <= exact.single_probability + 1e-9
+    assert cut.online.budgeted_probability is None  # the budgeted online MDP is skipped too
+    assert cut.online.unlimited_probability == pytest.approx(full.online.unlimited_probability)
+
+
+def test_a_cancelled_milp_curve_stops_handing_budgets_to_the_backend(monkeypatch):
+    from misdirect.solvers.milp import backends
+
+    calls = []
+    original = backends.HighsBackend.solve
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(backends.HighsBackend, "solve", counted)
+    token = CancelToken()
+    token.cancel()
+    result = misdirect.solve(load_problem(TINY), method="milp", budgets=[0, 1, 2, 3], cancel=token)
+    assert calls == [] and result.interrupted
+    assert all(p.upper_bound is None or p.upper_bound >= p.probability for p in result.curve)
