@@ -13,6 +13,7 @@ import dataclasses
 import math
 import multiprocessing
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -357,6 +358,7 @@ def _highs_worker(conn: Any, options: SolverOptions) -> None:
         # SIGTERM handler, inherited through fork)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        _die_with_parent()
     arrays: dict[str, Any] = {}
     while True:
         try:
@@ -376,6 +378,17 @@ def _highs_worker(conn: Any, options: SolverOptions) -> None:
                 conn.send(("result", run_highs(arrays, timed, start, seed)))
         except SolverError as error:
             conn.send(("error", str(error)))
+
+
+def _die_with_parent() -> None:
+    """On Linux, have the kernel kill this worker when its parent dies, however it dies (a
+    hard exit after a signal, SIGKILL): HiGHS, busy in a solve, would not notice the pipe
+    close until its own time limit."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
 
 
 class GurobiBackend:
