@@ -13,6 +13,7 @@ This module builds the typer app from them and is the console entry point (:func
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable
 from typing import Annotated, Any
@@ -42,6 +43,8 @@ from misdirect.cli.options import (
     Scenario,
     parse_budgets,
 )
+from misdirect.core.memory import MEMORY_LIMIT_ENV, parse_memory_size
+from misdirect.errors import ProblemError
 from misdirect.io.files import one_line
 
 __all__ = [
@@ -119,11 +122,36 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
+    context: typer.Context,
     version: Annotated[
         bool, typer.Option("--version", callback=_version, is_eager=True, help="Show version.")
     ] = False,
+    memory_limit: Annotated[
+        str | None,
+        typer.Option(
+            "--memory-limit",
+            help="Refuse work estimated to need more memory than this (e.g. 8G, 512M; default: "
+            f"the memory available, or ${MEMORY_LIMIT_ENV}).",
+        ),
+    ] = None,
 ) -> None:
     """misdirect: optimal sensor deception for POMDP robots with finite-state controllers."""
+    if memory_limit is not None:
+        try:
+            parse_memory_size(memory_limit, field="--memory-limit")
+        except ProblemError as error:
+            raise typer.BadParameter(error.reason, param_hint="'--memory-limit'") from None
+        previous = os.environ.get(MEMORY_LIMIT_ENV)
+        os.environ[MEMORY_LIMIT_ENV] = memory_limit  # read by every memory check
+        context.call_on_close(lambda: _restore(MEMORY_LIMIT_ENV, previous))
+
+
+def _restore(name: str, value: str | None) -> None:
+    """An environment variable as it was (a command run in-process must not leak its option)."""
+    if value is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = value
 
 
 def main() -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import multiprocessing
 import os
 import re
 import signal
@@ -153,18 +154,95 @@ def _terminate(signum: int, frame: Any) -> None:
     raise Terminated
 
 
+STOP_GRACE_S = 1.0  # after a signal, the command's own stop gets this long, then exits hard
+
+
+class _Watchdog:
+    """Sees SIGINT and SIGTERM as they arrive, whatever the main thread is doing.
+
+    Python runs a signal handler only between bytecodes of the main thread, so one long call
+    into numpy, scipy or a solver would hold a signal back until it returns (SIGTERM waited
+    120 s on a 1000x1000 grid). The C handler also writes the signal's number to a wakeup
+    pipe at once; this thread reads it, cancels the command's solves (``cancel``) and gives
+    the command :data:`STOP_GRACE_S` to stop by itself. If it has not, it kills the solver
+    workers and exits hard with the signal's exit code. (A call that holds the GIL throughout
+    holds this thread back too; the engines keep such calls short.)"""
+
+    def __init__(self, as_json: bool | str) -> None:
+        self.as_json = as_json
+        self.cancel: CancelToken | None = None  # set while a solve runs (stop_gracefully)
+        self.finished = threading.Event()
+        self._read, self._write = os.pipe()
+        os.set_blocking(self._write, False)
+        self._previous = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        self._thread = threading.Thread(target=self._watch, name="misdirect-signals", daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        while True:
+            try:
+                data = os.read(self._read, 64)
+            except OSError:
+                return
+            if not data or self.finished.is_set():
+                return
+            signals = [n for n in data if n in (signal.SIGINT, signal.SIGTERM)]
+            if not signals:
+                continue
+            if self.cancel is not None:
+                self.cancel.cancel()  # the solves hand back their best at their next check
+            if self.finished.wait(STOP_GRACE_S):
+                return
+            _exit_hard(signals[0], self.as_json)
+
+    def close(self) -> None:
+        self.finished.set()
+        signal.set_wakeup_fd(self._previous)
+        with contextlib.suppress(OSError):
+            os.write(self._write, b"\0")  # wake the thread: it sees ``finished`` and returns
+        self._thread.join(timeout=1.0)
+        for fd in (self._read, self._write):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+_watchdog: _Watchdog | None = None  # the running command's (main thread only)
+
+
+def _exit_hard(signum: int, as_json: bool | str) -> None:
+    """The command did not stop within the grace period: stop its solver workers, say so in
+    one line (and the one JSON object), exit with the signal's code."""
+    for child in multiprocessing.active_children():  # a HiGHS worker
+        with contextlib.suppress(Exception):
+            child.kill()
+    name = "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted"
+    message = f"{name}: stopped at once (the work under way did not stop within {STOP_GRACE_S:g} s)"
+    with contextlib.suppress(OSError):
+        if as_json:
+            command = as_json if isinstance(as_json, str) else None
+            document = json_output.error_document(command, message)
+            os.write(1, (json.dumps(document) + "\n").encode())
+        os.write(2, f"error: {message}\n".encode())
+    os._exit(TERMINATED if signum == signal.SIGTERM else INTERRUPTED)
+
+
 @contextlib.contextmanager
-def _signals_as_exceptions() -> Iterator[None]:
+def _signals_as_exceptions(as_json: bool | str = False) -> Iterator[None]:
     """SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` while a command runs
-    (restored afterwards, so an embedding program keeps its own handlers)."""
+    (restored afterwards, so an embedding program keeps its own handlers); a command still
+    running :data:`STOP_GRACE_S` after the signal exits hard (:class:`_Watchdog`)."""
+    global _watchdog
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = signal.signal(signal.SIGTERM, _terminate)
     previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    outer, _watchdog = _watchdog, _Watchdog(as_json)
     try:
         yield
     finally:
+        _watchdog.close()
+        _watchdog = outer
         signal.signal(signal.SIGTERM, previous)
         signal.signal(signal.SIGINT, previous_int)
 
@@ -193,9 +271,14 @@ def stop_gracefully() -> Iterator[StopRequest]:
         request.token.cancel()
 
     previous = {sig: signal.signal(sig, ask) for sig in (signal.SIGINT, signal.SIGTERM)}
+    watchdog = _watchdog
+    if watchdog is not None:  # cancels at once even while a long call holds the main thread
+        watchdog.cancel = request.token
     try:
         yield request
     finally:
+        if watchdog is not None:
+            watchdog.cancel = None
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
@@ -209,7 +292,7 @@ def handle_errors(command: Callable[..., None], name: str | None = None) -> Call
     def wrapper(*args: Any, **kwargs: Any) -> None:
         as_json: bool | str = kwargs.get("as_json", False) and (name or command.__name__)
         try:
-            with _signals_as_exceptions():
+            with _signals_as_exceptions(as_json):
                 command(*args, **kwargs)
         except OptionError as error:  # the library names the parameter, the CLI its flag
             field, reason = flag(error.parameter), as_flags(error.reason)

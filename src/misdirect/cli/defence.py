@@ -105,6 +105,8 @@ def _print_audit(result: AuditResult) -> None:
     else:
         parts.append(f"budgeted online not computed: {escape(result.online_budgeted_note or '')}")
     parts.append(f"{result.time_s:.2f} s")
+    if result.budget_clamped_to is not None:
+        parts.insert(0, f"B solved as {result.budget_clamped_to:g} (no alteration costs more)")
     out.print(" · ".join(parts), highlight=False)
     print_notes(result.notes)
 
@@ -234,4 +236,11 @@ def _print_harden(result: HardenResult) -> None:
         ),
         highlight=False,
     )
+    if result.budget_clamped_to is not None:
+        out.print(f"B solved as {result.budget_clamped_to:g} (no alteration costs more)")
+    if result.protect_budget_clamped_to is not None:
+        out.print(
+            f"D solved as {result.protect_budget_clamped_to:g} (protecting every sensor the "
+            "attacker can alter costs no more)"
+        )
     print_notes(result.notes)

@@ -17,6 +17,7 @@ from typing import NamedTuple, cast
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
 
 GROW_CHUNK = 8_000_000  # candidate extensions listed at once by altered_within (64 MB each)
@@ -261,8 +262,44 @@ class AlterationSpace:
         return alpha
 
 
+def options_bound(problem: Problem) -> np.ndarray:
+    """Per observation, at most how many candidates (itself included) the alteration space
+    gives it, read off the cost model without building anything: one per behaviour class
+    among the targets its budget may afford (every target when the default cost fits, else
+    its affordable overrides), 0 for observations that cannot matter or are protected. Exact
+    when the default fits and no override forbids a class's last target."""
+    cost, n = problem.cost, problem.pomdp.n_observations
+    n_classes = int(problem.controller.behaviour_class.max(initial=-1)) + 1
+    bound = np.zeros(n, dtype=np.int64)
+    cap = cost.scale.cap(problem.budget)  # one cost fits the budget exactly when <= cap
+    default_fits = math.isfinite(cost.default) and cost.default <= cap
+    overrides = cost._pairs_by_source
+    for o in problem.relevant_observations.tolist():
+        if o in cost.protected:
+            continue
+        if default_fits:
+            targets = n
+        else:
+            _, values = overrides.get(o, (None, np.zeros(0)))
+            fits = np.isfinite(values) & (values <= cap)
+            targets = 1 + int(np.count_nonzero(fits))
+        bound[o] = min(targets, n_classes)
+    return bound
+
+
+# bytes per candidate of the alteration space (targets, costs, and the options' flat copy)
+BYTES_PER_OPTION = 40
+
+
 def alteration_space(problem: Problem) -> AlterationSpace:
     """Cheapest target per behaviour class for every observation that can matter."""
+    options = int(options_bound(problem).sum())
+    check_memory(
+        options * BYTES_PER_OPTION,
+        f"the alteration space (up to {options:,} candidate targets: "
+        f"{problem.relevant_observations.size:,} observations, one per behaviour class)",
+        field="alterations",
+    )
     classes = problem.controller.behaviour_class
     choices = []
     for o in problem.relevant_observations:

@@ -20,8 +20,13 @@ from typing import cast
 
 import numpy as np
 
-from misdirect.core.alterations import AlterationSpace, alteration_space
-from misdirect.core.choice_product import ChoiceProduct, build_choice_product, end_component_states
+from misdirect.core.alterations import AlterationSpace, alteration_space, options_bound
+from misdirect.core.choice_product import (
+    ChoiceProduct,
+    build_choice_product,
+    check_choice_product_fits,
+    end_component_states,
+)
 from misdirect.core.model import Problem
 from misdirect.core.tolerance import TIE
 
@@ -91,6 +96,9 @@ def prepare(problem: Problem, budget: float) -> AttackInstance:
     fitting = [b for b in prepared if b >= budget - TIE]
     if fitting:
         return prepared[min(fitting)]
-    instance = AttackInstance(problem, float(budget), alteration_space(problem.with_budget(budget)))
+    at_budget = problem.with_budget(budget)
+    # the choice product grows with the space: refuse what cannot fit before building either
+    check_choice_product_fits(at_budget, options_bound(at_budget))
+    instance = AttackInstance(problem, float(budget), alteration_space(at_budget))
     prepared[float(budget)] = instance
     return instance

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from misdirect.core.alterations import AlterationSpace
+from misdirect.core.memory import check_memory
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 
 
@@ -128,6 +129,31 @@ class ChoiceProduct:
         return picked[np.unique(self.group_state[picked], return_index=True)[1]]
 
 
+# Bytes the construction holds per (product state, candidate) pair it expands (a dozen index
+# arrays, the groups' keys) and per transition of a group's row (gathered world rows, their
+# columns, the CSR matrix, the reachable sub-matrix)
+BYTES_PER_CANDIDATE = 112
+BYTES_PER_GROUP_TRANSITION = 60
+
+
+def check_choice_product_fits(problem: Problem, candidates: np.ndarray) -> None:
+    """Refuse, before allocating it, a choice product that cannot fit in memory:
+    ``candidates[o]`` targets per observation (at least itself) make every product state of
+    ``o`` expand into that many groups, each with a world row."""
+    pomdp, controller = problem.pomdp, problem.controller
+    per_state = np.maximum(np.asarray(candidates, dtype=np.int64), 1)[pomdp.observation_of]
+    expanded = float(per_state.sum()) * controller.n_nodes
+    successors = pomdp.transitions.nnz / max(pomdp.transitions.shape[0], 1)
+    if not controller.is_deterministic:
+        successors *= float(controller.move_size[controller.move].mean())
+    check_memory(
+        expanded * (BYTES_PER_CANDIDATE + successors * BYTES_PER_GROUP_TRANSITION),
+        f"the attacker's choice product ({pomdp.n_states:,} states x {controller.n_nodes:,} "
+        f"nodes, each with one group per candidate target: {expanded:,.0f} groups)",
+        field="product",
+    )
+
+
 def build_choice_product(
     problem: Problem, space: AlterationSpace, *, reachable_only: bool = True
 ) -> ChoiceProduct:
@@ -146,6 +172,7 @@ def build_choice_product(
     order = np.argsort(cand_obs, kind="stable")
     cand_obs, cand_target, cand_option = cand_obs[order], cand_target[order], cand_option[order]
     cand_count = np.bincount(cand_obs, minlength=n_o)
+    check_choice_product_fits(problem, cand_count)
     cand_start = np.concatenate([[0], np.cumsum(cand_count)[:-1]])
 
     # expand every (s, n) into its candidates

@@ -10,7 +10,7 @@ the attacker's choices for the solvers.)
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -124,15 +124,21 @@ def solve_many(
     *,
     pool: TaskPool | None = None,
     later: int = 0,
+    unsolved: Callable[[], Attack] | None = None,
 ) -> list[Attack]:
     """:func:`solve_at` for each of ``problems``: one after another sharing ``clock`` (with
     ``later`` solves still to come after them), or all at once on ``pool``, each with the
     share of the time that a pool's width gives it. Each answer is the same either way when
-    every solve finishes: a solve depends on its problem alone."""
+    every solve finishes: a solve depends on its problem alone. ``unsolved``: the answer of a
+    solve that ``clock`` has expired before (None: each still gets its 50 ms)."""
     n = len(problems)
+    if unsolved is not None and clock.expired() and pool is not None:
+        return [unsolved() for _ in problems]
     if pool is None:
         return [
-            solve_at(p, budget, clock, clock.share(n - k + later), method=method)
+            unsolved()
+            if unsolved is not None and clock.expired()
+            else solve_at(p, budget, clock, clock.share(n - k + later), method=method)
             for k, p in enumerate(problems)
         ]
     rounds = max(1, math.ceil((n + later) / pool.size))

@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 
 from misdirect.core import tolerance
-from misdirect.core.alterations import alteration_space
+from misdirect.core.alterations import alteration_space, max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.grid import grid_cells
 from misdirect.core.keywords import checked_keywords
@@ -32,7 +32,8 @@ from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.pool import TaskPool
-from misdirect.solvers.run import SolveResult, default_budgets, recertify, solve
+from misdirect.solvers.run import SolveResult, clamp_budget, default_budgets, recertify, solve
+from misdirect.solvers.status import Status
 
 SINGLES = "single-sensor optima"  # what certifies a budget that affords one sensor at most
 
@@ -107,25 +108,29 @@ def audit(
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)
-    budget = attacker_budget(problem, budget)
+    asked = attacker_budget(problem, budget)
+    # past the most expensive complete alteration every budget affords the same: work at it
+    budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)
     with shared_preparation():
-        curve_result = _optimum_curve(problem, budget, clock, method)
+        curve_result = _optimum_curve(problem, budget, clock, method, asked)
         cheapest = _cheapest_alterations(problem, budget)
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
-        singles = _single_values(problem, budget, list(cheapest), clock, likely, pool)
+        baseline = curve_result.baseline_probability
+        singles = _single_values(problem, budget, list(cheapest), clock, likely, baseline, pool)
         evidence = _single_sensor_evidence(curve_result, cheapest, singles, problem.cost.scale)
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
-        rows = _sensor_rows(problem, budget, optimum, singles, clock, method, pool)
+        rows = _sensor_rows(problem, budget, optimum, singles, clock, method, baseline, pool)
     notes = _not_certified(optimum, curve_result, budget)
-    online, note = _online_value(problem, budget, optimum)
+    # the budgeted online MDP (one layer per budget unit) only within the time limit
+    online, note = _online_value(problem, None if clock.expired() else asked, optimum)
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
     return AuditResult(
         problem=problem.title,
-        budget=budget,
+        budget=asked,
         baseline_probability=curve_result.baseline_probability,
         curve=curve_result.curve,
         status=top.status,
@@ -140,15 +145,20 @@ def audit(
         time_s=time.perf_counter() - started,
         objective=problem.objective.kind,
         grid=grid_cells(problem) is not None,
+        budget_clamped_from=clamped_from,
+        budget_clamped_to=None if clamped_from is None else budget,
     )
 
 
-def _optimum_curve(problem: Problem, budget: float, clock: Deadline, method: str) -> SolveResult:
-    """The attacker's optimum at every budget up to ``budget``, within half the time left."""
+def _optimum_curve(
+    problem: Problem, budget: float, clock: Deadline, method: str, asked: float
+) -> SolveResult:
+    """The attacker's optimum at every budget up to ``budget``, and at ``asked`` (solve answers
+    a budget above the cap with the cap's answer), within half the time left."""
     return solve(
         problem,
         method=method,
-        budgets=default_budgets(budget),
+        budgets=sorted({*default_budgets(budget), asked}),
         deadline=clock.within(clock.share(2)),
     )
 
@@ -178,6 +188,7 @@ def _single_values(
     sensors: list[int],
     clock: Deadline,
     later: int,
+    baseline: float,
     pool: TaskPool | None = None,
 ) -> dict[int, Attack]:
     """The attacker's optimum at ``budget`` with only one sensor alterable, for each sensor:
@@ -185,8 +196,30 @@ def _single_values(
     itself) then share what is left of the time."""
     everything = frozenset(range(problem.pomdp.n_observations))
     problems = [protect(problem, everything - {o}) for o in sensors]
-    found = solve_many(problems, budget, clock, "exhaustive", pool=pool, later=later)
+    top = problem.objective.max_value
+
+    def unsolved() -> Attack:  # each solve takes its 50 ms and its evaluations: none past the end
+        return _unsolved(problem, baseline, top)
+
+    found = solve_many(
+        problems, budget, clock, "exhaustive", pool=pool, later=later, unsolved=unsolved
+    )
     return dict(zip(sensors, found, strict=True))
+
+
+def _unsolved(problem: Problem, baseline: float, upper: float) -> Attack:
+    """An attacker's optimum not solved for want of time: at least the unaltered value
+    ``baseline`` (every protection leaves it feasible), at most ``upper``."""
+    identity = problem.identity()
+    return Attack(
+        value=baseline,
+        upper=upper,
+        status=Status.TIME_LIMIT,
+        alteration={},
+        changed=frozenset(),
+        cost=0.0,
+        alteration_array=identity,
+    )
 
 
 def _single_sensor_evidence(
@@ -238,6 +271,7 @@ def _sensor_rows(
     singles: dict[int, Attack],
     clock: Deadline,
     method: str,
+    baseline: float,
     pool: TaskPool | None = None,
 ) -> list[SensorAudit]:
     """One row per sensor alterable within ``budget``, the most critical first."""
@@ -245,9 +279,12 @@ def _sensor_rows(
     names = problem.pomdp.observations
     needs = [o for o in sensors if o in optimum.changed]
     problems = [protect(problem, [o]) for o in needs]
-    re_solved = dict(
-        zip(needs, solve_many(problems, budget, clock, method, pool=pool), strict=True)
-    )
+
+    def unsolved() -> Attack:  # protecting a sensor only lowers the optimum: bounded by it
+        return _unsolved(problem, baseline, optimum.upper)
+
+    found = solve_many(problems, budget, clock, method, pool=pool, unsolved=unsolved)
+    re_solved = dict(zip(needs, found, strict=True))
     rows: list[SensorAudit] = []
     for o in sensors:
         single = singles[o]
@@ -288,13 +325,15 @@ def _criticality(optimum: Attack, protected: Attack | None) -> tuple[float, floa
 
 
 def _online_value(
-    problem: Problem, budget: float, optimum: Attack
+    problem: Problem, budget: float | None, optimum: Attack
 ) -> tuple[OnlineAttack, str | None]:
     """The online attacker's value, budgeted within ``budget`` when it can be computed (else
     unlimited only, with the reason), checked against the offline optimum it must bound."""
     note = None
     try:
-        online = online_attack_value(problem, budget)
+        if budget is None:
+            raise ProblemError("not computed: the time limit was reached", field="budget")
+        online = online_attack_value(problem, budget)  # pays per reading: never clamped
     except ProblemError as error:
         note = error.reason
         online = online_attack_value(problem, None)

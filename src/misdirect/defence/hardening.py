@@ -12,10 +12,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.alterations import max_alteration_cost, options_bound
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
@@ -31,7 +33,7 @@ from misdirect.defence.results import HardenPoint, HardenResult
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.pool import TaskPool
-from misdirect.solvers.run import default_budgets
+from misdirect.solvers.run import clamp_budget, default_budgets
 from misdirect.solvers.status import Status
 
 HITTING_NODE_LIMIT = 200_000  # the lower bound's hitting-set search gives up (soundly) beyond
@@ -205,15 +207,23 @@ def harden(
         raise ProblemError(
             f"must be a non-negative number, got {protect_budget}", field="protect_budget"
         )
-    budget = attacker_budget(problem, budget)
+    asked = attacker_budget(problem, budget)
+    # budgets past what buys everything change nothing: B is clamped to the most expensive
+    # complete alteration, D to protecting every sensor alterable within B
+    budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)
     costs = protection_costs(problem, protect_costs)
+    # the sensors that may be alterable, read off the costs (the space itself can be large)
+    everything = float(costs[options_bound(problem) > 1].sum())
+    d_cap, d_clamped_from = clamp_budget(float(protect_budget), everything)
     search = _Search(problem, budget, costs, clock, method, pool)
     curve: list[HardenPoint] = []
     best: frozenset[int] = frozenset()
-    for d in (float(d) for d in default_budgets(protect_budget)):
+    for d in (float(d) for d in default_budgets(d_cap)):
         best = search.best_within(d, best)
         curve.append(search.point(d, best))
+    if d_clamped_from is not None:  # the answer at the cap stands for the budget asked
+        curve.append(replace(curve[-1], protect_budget=d_clamped_from))
     final = curve[-1]
     before = search.attack(frozenset())
     notes = search.notes()
@@ -221,7 +231,7 @@ def harden(
     listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
     return HardenResult(
         problem=problem.title,
-        budget=budget,
+        budget=asked,
         protect_budget=float(protect_budget),
         protect_costs=listed,
         protection=final.protection,
@@ -238,6 +248,10 @@ def harden(
         pruned=search.pruned,
         time_s=time.perf_counter() - started,
         notes=notes,
+        budget_clamped_from=clamped_from,
+        budget_clamped_to=None if clamped_from is None else budget,
+        protect_budget_clamped_from=d_clamped_from,
+        protect_budget_clamped_to=None if d_clamped_from is None else d_cap,
     )
 
 

@@ -97,7 +97,7 @@ def _budgeted_value(chain: ChoiceProduct, budget: float) -> tuple[float, float, 
     levels = tolerance.whole_units(budget, unit) + 1
     if levels > MAX_BUDGET_LEVELS or levels * chain.n_states > MAX_BUDGETED_STATES:
         raise ProblemError(
-            f"budget {budget:g} is {levels - 1:,} cost units of {unit:g}: too many budget "
+            f"budget {budget:g} is {budget / unit:,.6g} cost units of {unit:g}: too many budget "
             f"levels for the budgeted online MDP ({chain.n_states:,} product states each)",
             field="budget",
         )

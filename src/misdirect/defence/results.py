@@ -141,6 +141,9 @@ class AuditResult:
     grid: bool = False  # the states are grid cells: the report draws a map
     extra: dict[str, Any] = field(default_factory=dict)  # free for callers; not in to_dict
     objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
+    # B above the most expensive complete alteration: B asked, and the cost worked at instead
+    budget_clamped_from: float | None = None
+    budget_clamped_to: float | None = None
 
     @property
     def objective_label(self) -> str:
@@ -214,7 +217,19 @@ class AuditResult:
             },
             "notes": self.notes,
             "time_s": self.time_s,
+            **_clamps(self),
         }
+
+
+def _clamps(result: AuditResult | HardenResult) -> dict[str, float]:
+    """The budgets clamped (asked, and worked at), as solve's JSON says them: only when so."""
+    fields = ("budget", "protect_budget")
+    return {
+        f"{name}_clamped_{end}": getattr(result, f"{name}_clamped_{end}")
+        for name in fields
+        if getattr(result, f"{name}_clamped_from", None) is not None
+        for end in ("from", "to")
+    }
 
 
 @dataclass(frozen=True)
@@ -306,6 +321,12 @@ class HardenResult:
     pruned: int  # of which cut off by the hitting-set lower bound
     time_s: float
     notes: list[str] = field(default_factory=list)  # what is not proven, and why
+    # a budget above what buys everything (B: every alteration; D: protecting every sensor
+    # alterable within B): the budget asked, and the one worked at instead
+    budget_clamped_from: float | None = None
+    budget_clamped_to: float | None = None
+    protect_budget_clamped_from: float | None = None
+    protect_budget_clamped_to: float | None = None
 
     def __repr__(self) -> str:
         return (
@@ -360,4 +381,5 @@ class HardenResult:
             "pruned": self.pruned,
             "time_s": self.time_s,
             "notes": self.notes,
+            **_clamps(self),
         }

@@ -489,7 +489,7 @@ def _budgets(
     alteration's cost) and the largest budget asked for when it exceeds the cap."""
     cap = max_alteration_cost(problem)
     asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
-    clamped_from = asked if math.isfinite(asked) and asked > cap else None
+    _, clamped_from = clamp_budget(asked, cap)
     if budgets is None:
         whole = default_budgets(min(problem.budget, cap)) if curve_is_free else []
         budgets = [*whole, problem.budget]
@@ -504,6 +504,18 @@ def _floor(problem: Problem) -> float:
     """Differences of values below this are rounding (:data:`~misdirect.core.tolerance.ROUNDING`
     times the objective's largest value)."""
     return tolerance.ROUNDING * float(problem.objective.max_value)
+
+
+def clamp_budget(asked: float, cap: float) -> tuple[float, float | None]:
+    """``asked``, or ``cap`` when it is more (a budget that already affords everything), and
+    the budget asked when it was clamped (else None).
+
+    ``cap`` is what buys everything (for an attacker, :func:`max_alteration_cost`; for a
+    defender, protecting every alterable sensor): work past it lists budgets that change
+    nothing, so solve, audit and harden run at the cap and report the budget asked."""
+    if math.isfinite(asked) and asked > cap:
+        return cap, asked
+    return asked, None
 
 
 def _clean(value: float) -> float:

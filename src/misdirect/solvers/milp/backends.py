@@ -14,6 +14,7 @@ import math
 import multiprocessing
 import os
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -365,6 +366,7 @@ def _highs_worker(conn: Any, options: SolverOptions) -> None:
         # SIGTERM handler, inherited through fork)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        _die_with_parent()
     arrays: dict[str, Any] = {}
     while True:
         try:
@@ -384,6 +386,17 @@ def _highs_worker(conn: Any, options: SolverOptions) -> None:
                 conn.send(("result", run_highs(arrays, timed, start, seed)))
         except SolverError as error:
             conn.send(("error", str(error)))
+
+
+def _die_with_parent() -> None:
+    """On Linux, have the kernel kill this worker when its parent dies, however it dies (a
+    hard exit after a signal, SIGKILL): HiGHS, busy in a solve, would not notice the pipe
+    close until its own time limit."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
 
 
 class GurobiBackend:
@@ -564,20 +577,29 @@ class ScipBackend:
                 scip.setSolVal(solution, variables[column], value)
             scip.addSol(solution)
         concurrent = int(threads) if threads is not None and threads > 1 else 0
+        # SCIP's own Ctrl-C handler stopped it inside an LP ("error in LP solver") and kept
+        # the signal from the command: the command's cancel token stops it instead, from a
+        # thread that interrupts SCIP at its next safe point, as a limit would
+        scip.setParam("misc/catchctrlc", False)
+        stopper = _ScipStopper(scip, cancel)
         began = time.perf_counter()
         try:
             if concurrent:
                 scip.solveConcurrent()
             else:
-                scip.optimize()
+                scip.optimizeNogil()  # lets the stopper (and the CLI's signal watch) run
         except Exception as error:  # pyscipopt raises plain Exception ("error in LP solver")
+            if cancel is not None and cancel.cancelled:
+                raise KeyboardInterrupt from None  # cut short by the stop request: no answer
             raise SolverError(
                 f"SCIP failed: {error}; try another backend: --solver highs"
             ) from None
+        finally:
+            stopper.close()
         elapsed = time.perf_counter() - began
         raw = scip.getStatus()
-        if raw == "userinterrupt":  # SCIP caught Ctrl-C itself: pass it on, do not answer
-            raise KeyboardInterrupt
+        if raw == "userinterrupt" and not (cancel is not None and cancel.cancelled):
+            raise KeyboardInterrupt  # not ours: pass it on, do not answer
         status = {
             "optimal": "optimal",
             "timelimit": "time_limit",
@@ -597,6 +619,29 @@ class ScipBackend:
             solve_time_s=elapsed,
             detail={"scip_status": raw, "scip_threads": concurrent or 1},
         )
+
+
+class _ScipStopper:
+    """Interrupts a SCIP solve once ``cancel`` is cancelled: a thread that looks every
+    ``STOP_POLL_S`` while SCIP runs without the GIL."""
+
+    def __init__(self, scip: Any, cancel: CancelToken | None) -> None:
+        self.done = threading.Event()
+        self.thread = None
+        if cancel is not None:
+            self.thread = threading.Thread(target=self._watch, args=(scip, cancel), daemon=True)
+            self.thread.start()
+
+    def _watch(self, scip: Any, cancel: CancelToken) -> None:
+        while not self.done.wait(STOP_POLL_S):
+            if cancel.cancelled:  # asked again until SCIP returns: it may be between stages
+                with contextlib.suppress(Exception):
+                    scip.interruptSolve()
+
+    def close(self) -> None:
+        self.done.set()
+        if self.thread is not None:
+            self.thread.join()
 
 
 BACKENDS: dict[str, Callable[[SolverOptions], Backend]] = {

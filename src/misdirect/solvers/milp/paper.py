@@ -30,9 +30,10 @@ import numpy.typing as npt
 
 from misdirect.core.alterations import alteration_space
 from misdirect.core.choice_product import build_choice_product
+from misdirect.core.memory import check_memory
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import SolverError
-from misdirect.solvers.milp.model import MilpModel, ModelBuilder
+from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO, MilpModel, ModelBuilder
 
 Index = TypeVar("Index", int, npt.NDArray[np.int64])  # one column index, or an array of them
 
@@ -46,6 +47,7 @@ def build_paper(
             "--formulation compact (the default)"
         )
     started = time.perf_counter()
+    check_paper_fits(problem)
     budget = problem.budget if budget is None else float(budget)
     pomdp, controller = problem.pomdp, problem.controller
     n_s, n_n, n_o = pomdp.n_states, controller.n_nodes, pomdp.n_observations
@@ -192,6 +194,34 @@ def build_paper(
         built.notes["states_pinned_to_zero"] = int(never.sum())
     built.build_time_s = time.perf_counter() - started
     return built
+
+
+def paper_size(problem: Problem) -> tuple[int, int, int]:
+    """``(variables, rows, non-zeros)`` of the paper's MILP, counted before building it (the
+    module docstring's counts; a Bellman row has one entry per successor and next reading)."""
+    pomdp, controller = problem.pomdp, problem.controller
+    n_s, n_n, n_o = pomdp.n_states, controller.n_nodes, pomdp.n_observations
+    n_edges = int(pomdp.successor_graph.nnz)
+    n_l = n_edges * n_o * n_n * n_o
+    successors = pomdp.transitions.nnz / max(pomdp.transitions.shape[0], 1)
+    if not controller.is_deterministic:
+        successors *= float(controller.move_size[controller.move].mean())
+    z_entries = n_s * n_n * n_o * (1 + successors * n_o)
+    variables = n_o * n_o + n_s * n_n * n_o + n_l
+    rows = 2 + n_o + n_s * n_n * n_o + 4 * n_l
+    return variables, rows, int(8 * n_l + z_entries + 3 * n_o * n_o)
+
+
+def check_paper_fits(problem: Problem) -> None:
+    """Refuse, before allocating anything, a paper MILP whose build cannot fit in memory: it
+    grows as |Ω|²·|N| per successor pair (a 40x40 sensor grid with 64 sensors: 670 million
+    non-zeros, some 50 GiB)."""
+    variables, rows, nonzeros = paper_size(problem)
+    check_memory(
+        nonzeros * BUILD_BYTES_PER_NONZERO,
+        f"the paper's MILP ({variables:,} variables, {rows:,} rows, {nonzeros:,} non-zeros)",
+        field="milp",
+    )
 
 
 def _pair(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
 from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
@@ -49,6 +50,11 @@ from misdirect.solvers.milp.paper import build_paper
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import MilpStats
 from misdirect.solvers.status import Status
+
+# Bytes a backend takes per non-zero on top of the model (its copy, presolve, the LP's
+# row-wise copy, factors): HiGHS took 254 on the paper's MILP of a 14x14 sensor grid; the lower
+# figure refuses only what certainly cannot fit
+SOLVER_BYTES_PER_NONZERO = 150
 
 FORMULATIONS = {
     "compact": build_compact,
@@ -140,6 +146,12 @@ class MilpSolver:
         progress: ProgressCallback | None,
         deadline: Deadline,
     ) -> list[Solution]:
+        check_memory(
+            model.matrix.nnz * SOLVER_BYTES_PER_NONZERO,
+            f"{backend.name} on the {model.formulation} MILP ({model.n_columns:,} variables, "
+            f"{model.n_rows:,} rows, {model.matrix.nnz:,} non-zeros)",
+            field="milp",
+        )
         backend.load(model)
         curve = _Curve(problem, model, budgets, start=model.start_for(problem.identity()))
         solutions = []
@@ -147,11 +159,14 @@ class MilpSolver:
             backend.set_row_upper(model.budget_row, _budget_row(problem, model, budget))
             stage = f"milp ({backend.name}), budget {budget:g}"
             report(progress, done - 1, len(budgets), stage=stage)
-            result = backend.solve(
-                curve.start,
-                time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
-                cancel=deadline.cancel,
-            )
+            if deadline.cancelled:  # stopped: the budgets left are not handed to the backend
+                result = BackendResult("time_limit", None, None, None, None, 0.0)
+            else:
+                result = backend.solve(
+                    curve.start,
+                    time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
+                    cancel=deadline.cancel,
+                )
             solutions.append(self._solution(curve, backend.name, budget, result, deadline))
             report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
@@ -184,7 +199,9 @@ class MilpSolver:
         else:
             alteration = model.decode(result.values)
             violation = backends.violation(model, result.values)
-            claimed = _claim(model, result, violation, _budget_row(problem, model, budget))
+            claimed = _claim(
+                model, result, violation, _budget_row(problem, model, budget), deadline
+            )
             curve.start = model.start_for(alteration)  # the next (larger) budget starts here
         # the solver's objective carries its tolerances as its bound does; the claim may be
         # the better value of the same binaries
@@ -238,7 +255,9 @@ class _Curve:
         return self.relaxed
 
 
-def _claim(model: MilpModel, result: BackendResult, violation: float, row: float) -> float:
+def _claim(
+    model: MilpModel, result: BackendResult, violation: float, row: float, deadline: Deadline
+) -> float:
     """The solver's value for its alteration: its objective, or, for a point off by the
     solver's tolerances or one whose continuous part is short of the best for its binaries,
     the formulation's own value of the decoded alteration (the LP with the binaries rounded;
@@ -248,7 +267,8 @@ def _claim(model: MilpModel, result: BackendResult, violation: float, row: float
     gapped = result.bound is not None and result.bound - claimed > tolerance.slack(
         result.bound, claimed, rel=tolerance.GAP
     )
-    if violation > tolerance.FEASIBILITY or gapped:
+    # a stop request skips the LP (a second solve); the claim is only checked, never reported
+    if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled:
         rounded = backends.value_with_rounded_binaries(model, result.values, row)
         claimed = claimed if rounded is None else rounded * model.value_unit
     return claimed

@@ -1,0 +1,342 @@
+"""Every command clamps and bounds (issue 29): budgets past what buys everything, memory
+estimated before building, deadlines and signals honoured, concurrent solves and writers."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import misdirect
+from misdirect.cli import app
+from misdirect.core.alterations import alteration_space, options_bound
+from misdirect.core.memory import MEMORY_LIMIT_ENV
+from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+from misdirect.errors import ProblemError
+from misdirect.io.problem_file import load_problem, write_problem
+from misdirect.scenarios import random_problem, sensor_grid
+from misdirect.solvers.deadline import CancelToken
+from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO
+from misdirect.solvers.milp.paper import build_paper, paper_size
+
+runner = CliRunner()
+TINY = Path(__file__).parent.parent / "examples" / "tiny.yaml"
+# tiny's costs by hand: o1 -> o2 costs 3, o1 -> o0 and o2 -> o1 cost 1, o2 -> o0 is forbidden,
+# g is protected, o0 is the initial observation: the most expensive complete alteration costs
+# 3 + 1 = 4; within budget 1 both o1 and o2 are alterable, so protecting both costs 2
+TINY_CAP = 4.0
+TINY_PROTECT_ALL = 2.0
+
+
+def invoke_json(*args: str) -> dict:
+    result = runner.invoke(app, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+# -- budgets past what buys everything --------------------------------------------------------
+
+
+def test_audit_clamps_a_huge_budget_like_solve():
+    payload = invoke_json("audit", str(TINY), "--budget", "1e308")
+    assert payload["budget"] == 1e308
+    assert payload["budget_clamped_from"] == 1e308 and payload["budget_clamped_to"] == TINY_CAP
+    assert [p["budget"] for p in payload["curve"]] == [0, 1, 2, 3, 4, 1e308]
+    at_cap = invoke_json("audit", str(TINY), "--budget", "4")
+    assert "budget_clamped_from" not in at_cap
+    assert payload["probability"] == at_cap["probability"]
+    assert payload["sensors"] == at_cap["sensors"]
+
+
+def test_harden_clamps_huge_protection_and_attacker_budgets():
+    payload = invoke_json("harden", str(TINY), "--protect-budget", "1e7")
+    assert payload["protect_budget"] == 1e7
+    assert payload["protect_budget_clamped_from"] == 1e7
+    assert payload["protect_budget_clamped_to"] == TINY_PROTECT_ALL
+    assert [p["protect_budget"] for p in payload["curve"]] == [0, 1, 2, 1e7]
+    assert payload["curve"][-1]["protection"] == payload["curve"][-2]["protection"]
+    assert "budget_clamped_from" not in payload
+    huge_b = invoke_json("harden", str(TINY), "--protect-budget", "1", "--budget", "1e300")
+    assert huge_b["budget"] == 1e300 and huge_b["budget_clamped_to"] == TINY_CAP
+
+
+def test_library_audit_and_harden_report_the_clamp():
+    problem = load_problem(TINY)
+    audited = misdirect.audit(problem, budget=1e12)
+    assert (audited.budget_clamped_from, audited.budget_clamped_to) == (1e12, TINY_CAP)
+    hardened = misdirect.harden(problem, protect_budget=1e9)
+    assert hardened.protect_budget_clamped_to == TINY_PROTECT_ALL
+
+
+# -- memory estimated before building -----------------------------------------------------------
+
+
+def classes_problem(k: int, nodes: int = 6, seed: int = 0) -> Problem:
+    """``k`` states in a line, each with its own observation, and a random controller on
+    ``nodes`` nodes: about one behaviour class per observation, so every observation has
+    about ``k`` candidate targets and the choice product about ``k² · nodes`` groups."""
+    rng = np.random.default_rng(seed)
+    line = np.arange(k)
+    nxt = np.where(line + 1 < k, line + 1, k)  # the last state moves on to the goal
+    pomdp = Pomdp.from_triplets(
+        states=(*(f"s{i}" for i in range(k)), "goal", "decoy"),
+        actions=("a0", "a1"),
+        observations=tuple(f"o{i}" for i in range(k + 1)),
+        initial_state=0,
+        observation_of=np.concatenate([line, [k, k]]),
+        action=np.repeat([0, 0, 1, 1], k),
+        source=np.tile(line, 4),
+        target=np.concatenate([nxt, np.full(k, k + 1), nxt, np.full(k, k)]),
+        probability=np.repeat([0.9, 0.1, 0.9, 0.1], k),
+        absorbing=np.arange(k + 2) >= k,
+    )
+    controller = Controller(
+        nodes=tuple(f"n{i}" for i in range(nodes)),
+        initial_node=0,
+        action=rng.integers(0, 2, size=(nodes, k + 1)),
+        update=rng.integers(0, nodes, size=(nodes, k + 1)),
+    )
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=CostModel(n_observations=k + 1),
+        decoy=np.arange(k + 2) == k + 1,
+        budget=1.0,
+        name="many classes",
+    )
+
+
+def test_paper_milp_estimate_counts_the_model_it_builds():
+    """The estimate is the paper's counting formula; the model built must agree with it."""
+    for problem in (load_problem(TINY), sensor_grid(6, 4, seed=1)):
+        variables, rows, nonzeros = paper_size(problem)
+        model = build_paper(problem)
+        assert (variables, rows) == (model.n_columns, model.n_rows)
+        assert model.matrix.nnz <= nonzeros <= 1.05 * model.matrix.nnz
+
+
+def test_paper_milp_too_large_is_refused_before_building(monkeypatch):
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "1M")
+    problem = sensor_grid(6, 4, seed=1)
+    _, _, nonzeros = paper_size(problem)
+    assert nonzeros * BUILD_BYTES_PER_NONZERO > 1024**2  # the limit is certainly exceeded
+    with pytest.raises(ProblemError, match=r"paper's MILP .* needs about .* than the limit of"):
+        misdirect.solve(problem, method="milp", formulation="paper", time_limit=5)
+
+
+def test_memory_limit_option_refuses_and_does_not_leak(tmp_path):
+    grid = tmp_path / "grid.yaml"
+    write_problem(sensor_grid(6, 4, seed=1), grid)
+    args = ["solve", str(grid), "--method", "milp", "--formulation", "paper"]
+    result = runner.invoke(app, ["--memory-limit", "1M", *args, "--json"])
+    assert result.exit_code == 2, result.output
+    message = json.loads(result.stdout)["error"]["message"]
+    assert "paper's MILP" in message and "limit of 0.00098 GiB" in message  # 1 MiB
+    assert MEMORY_LIMIT_ENV not in os.environ  # restored after the command
+    bad = runner.invoke(app, ["--memory-limit", "lots", "solve", str(TINY)])
+    assert bad.exit_code == 2 and "--memory-limit" in bad.output and "Traceback" not in bad.output
+
+
+def test_bad_memory_limit_variable_is_one_line(monkeypatch):
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "-3G")
+    result = runner.invoke(app, ["solve", str(TINY), "--method", "milp", "--json"])
+    assert result.exit_code == 2
+    assert MEMORY_LIMIT_ENV in json.loads(result.stdout)["error"]["message"]
+
+
+def test_many_behaviour_classes_are_refused_through_harden(monkeypatch):
+    k, nodes = 300, 6
+    problem = classes_problem(k, nodes)
+    # the behaviour classes counted independently: distinct (action, update) columns
+    columns = np.vstack([problem.controller.action, problem.controller.update]).T
+    classes = len({tuple(c) for c in columns})
+    assert classes > 250
+    # o1..o(k-1) are relevant (o0 is the initial observation), each with one candidate per
+    # class; every other product state keeps its own reading
+    groups = nodes * ((k - 1) * classes + 3)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "20M")
+    with pytest.raises(ProblemError, match=f"choice product .*{groups:,} groups"):
+        misdirect.harden(problem, protect_budget=2, time_limit=30)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_options_bound_covers_the_alteration_space(seed):
+    problem = random_problem(seed, states=7, observations=5, nodes=3, budget=2)
+    bound = options_bound(problem)
+    sizes = np.zeros_like(bound)
+    for choice in alteration_space(problem).choices:
+        sizes[choice.observation] = choice.size
+    assert np.all(bound >= sizes)
+    if problem.cost.default <= problem.budget and not problem.cost.pairs:
+        assert np.array_equal(bound[sizes > 0], sizes[sizes > 0])
+
+
+# -- signals: honoured within about a second at any moment ---------------------------------------
+
+# a solve that never looks at its cancel token (as a long call into numpy or a solver would
+# not): the command must still stop soon after SIGTERM or Ctrl-C, with the signal's exit code
+STUCK_SOLVE = """
+import sys, time
+import misdirect.cli.solving as solving
+def stuck(*args, **kwargs):
+    sys.stderr.write("solving\\n"); sys.stderr.flush()
+    end = time.monotonic() + 60
+    while time.monotonic() < end:
+        time.sleep(0.05)
+    raise SystemExit(3)
+solving.solve_problem = stuck
+sys.argv = ["misdirect", "solve", sys.argv[1], "--json"]
+from misdirect.cli import main
+main()
+"""
+
+
+def run_until_started(script: str, *args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(Path(misdirect.__file__).parent.parent)}
+    process = subprocess.Popen(
+        [sys.executable, "-c", script, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
+    assert process.stderr is not None
+    assert process.stderr.readline() == b"solving\n"  # under way
+    return process
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_solve_that_does_not_stop_is_stopped_hard_after_the_grace(sig, code):
+    process = run_until_started(STUCK_SOLVE, str(TINY))
+    try:
+        process.send_signal(sig)
+        stdout, stderr = process.communicate(timeout=20)  # far below the stuck 60 s
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == code, stderr
+    message = json.loads(stdout)["error"]["message"]
+    assert "stopped at once" in message
+    assert stderr.decode().count("\n") == 1 and b"Traceback" not in stderr
+
+
+def test_ctrl_c_under_scip_keeps_the_answers_without_an_lp_error():
+    """SCIP's own Ctrl-C handler stopped it inside an LP ("error in LP solver"); the command's
+    token stops it now, and the best answers so far are printed."""
+    pytest.importorskip("pyscipopt")
+    script = """
+import sys
+import misdirect.solvers.milp.backends as backends
+original = backends.ScipBackend.solve
+def announced(self, *args, **kwargs):
+    sys.stderr.write("solving\\n"); sys.stderr.flush()
+    return original(self, *args, **kwargs)
+backends.ScipBackend.solve = announced
+sys.argv = ["misdirect", "solve", "--scenario", "paper-grid", "--size", "25", "--method",
+            "milp", "--solver", "scip", "--budget", "0..7", "--json"]
+from misdirect.cli import main
+main()
+"""
+    process = run_until_started(script)
+    try:
+        process.stderr.readline()  # budget 0 is quick; Ctrl-C lands in a later budget's solve
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, stderr
+    assert b"LP" not in stderr and b"SCIP failed" not in stderr
+    payload = json.loads(stdout)
+    assert payload["interrupted"] is True and len(payload["curve"]) == 8
+    assert {p["status"] for p in payload["curve"]} <= {"optimal", "interrupted"}
+
+
+# -- concurrency --------------------------------------------------------------------------------
+
+WRITER = """
+import sys
+from pathlib import Path
+from misdirect.io.files import write_output
+path, letter = Path(sys.argv[1]), sys.argv[2]
+content = letter * 500_000
+for _ in range(20):
+    write_output(path, content)
+"""
+
+
+def test_two_processes_writing_one_path_never_leave_a_torn_file(tmp_path):
+    """Two writers race on one path while it is read over and over: every read is one whole
+    file of one writer (500 kB of one letter), never a mix, a prefix or an empty file."""
+    path = tmp_path / "out.txt"
+    env = {**os.environ, "PYTHONPATH": str(Path(misdirect.__file__).parent.parent)}
+    writers = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(path), letter], env=env)
+        for letter in "ab"
+    ]
+    try:
+        while any(w.poll() is None for w in writers):
+            if path.exists():
+                data = path.read_bytes()
+                assert len(data) == 500_000 and data.count(data[:1]) == len(data)
+        assert [w.wait(timeout=120) for w in writers] == [0, 0]
+    finally:
+        for w in writers:
+            if w.poll() is None:
+                w.kill()
+    final = path.read_bytes()
+    assert final in (b"a" * 500_000, b"b" * 500_000)
+    assert not [p for p in tmp_path.iterdir() if p != path]  # no temporary file left behind
+
+
+# -- time limits: no work started past the deadline ------------------------------------------------
+
+
+def test_audit_starts_no_solve_once_its_clock_has_expired(monkeypatch):
+    """A cancelled audit (its clock expired) used to run every single-sensor and protected
+    re-solve anyway, each at least 50 ms with its exact evaluations (5-10 s past the limit on a
+    64-sensor network). Now it starts none, and what it reports stays sound: each criticality
+    interval holds the value a full audit computes."""
+    from misdirect.defence import auditing
+
+    problem = sensor_grid(6, 4, seed=1)
+    full = misdirect.audit(problem, budget=2)
+    calls = []
+    original = auditing.solve_at
+    monkeypatch.setattr(auditing, "solve_at", lambda *a, **k: calls.append(1) or original(*a, **k))
+    token = CancelToken()
+    token.cancel()
+    cut = misdirect.audit(problem, budget=2, cancel=token)
+    assert calls == []
+    truth = {row.observation: row for row in full.sensors}
+    assert {row.observation for row in cut.sensors} == set(truth)
+    for row in cut.sensors:
+        exact = truth[row.observation]
+        assert row.criticality - 1e-9 <= exact.criticality <= row.criticality_upper + 1e-9
+        assert row.single_probability <= exact.single_probability + 1e-9
+    assert cut.online.budgeted_probability is None  # the budgeted online MDP is skipped too
+    assert cut.online.unlimited_probability == pytest.approx(full.online.unlimited_probability)
+
+
+def test_a_cancelled_milp_curve_stops_handing_budgets_to_the_backend(monkeypatch):
+    from misdirect.solvers.milp import backends
+
+    calls = []
+    original = backends.HighsBackend.solve
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(backends.HighsBackend, "solve", counted)
+    token = CancelToken()
+    token.cancel()
+    result = misdirect.solve(load_problem(TINY), method="milp", budgets=[0, 1, 2, 3], cancel=token)
+    assert calls == [] and result.interrupted
+    assert all(p.upper_bound is None or p.upper_bound >= p.probability for p in result.curve)
