@@ -75,7 +75,9 @@ def run(args: argparse.Namespace) -> list[dict]:
                 method="milp",
                 budgets=budgets,
                 formulation=formulation,
-                time_limit=args.time_limit,
+                # --time-limit is per budget, as in the paper's runs: the curve gets the sum
+                # (solve's time_limit bounds the whole call, shared out among its budgets)
+                time_limit=args.time_limit * len(budgets),
             )
             for point in result.curve:
                 rows.append(
