@@ -276,3 +276,16 @@ def test_milp_flags_refused_with_another_method(method):
         "solve", "--scenario", "paper-grid", "--method", method, "--mip-gap", "0", code=2
     )
     assert document["error"]["field"] == "--mip-gap"
+
+
+def test_every_problem_of_a_file_is_in_the_error_document(tmp_path):
+    """A file with two schema problems: the error document lists both, and validates."""
+    bad = tmp_path / "bad.yaml"
+    text = (EXAMPLES / "trap.yaml").read_text()
+    bad.write_text(
+        text.replace("format: misdirect/v1", "format: misdirect/v1\nnonsense: 1\nalso: 2")
+    )
+    document = run("evaluate", str(bad), code=2)
+    problems = document["error"]["problems"]
+    assert len(problems) == 2 and any("nonsense" in p for p in problems)
+    assert any("also" in p for p in problems)
