@@ -59,8 +59,8 @@ def nesting_depth(text: str) -> int:
     data = np.frombuffer(text.encode("utf-8", "surrogatepass"), dtype=np.uint8)
     if data.size == 0:
         return 0
-    steps = (data == ord("(")).astype(np.int64) - (data == ord(")"))
-    level = np.cumsum(steps)
+    parens = data[(data == ord("(")) | (data == ord(")"))]  # the rest does not matter
+    level = np.cumsum(np.where(parens == ord("("), 1, -1))
     # measured from the lowest level before: stray ")" first must not hide the "(" after them
     return int((level - np.minimum.accumulate(np.minimum(level, 0))).max(initial=0))
 
@@ -68,6 +68,8 @@ def nesting_depth(text: str) -> int:
 def check_nesting(text: str, *, field: str, what: str) -> None:
     """Refuse ``text`` (``what`` it is, for the message) nested deeper than
     :data:`MAX_NESTING`: Storm's parser would overflow its stack on it."""
+    if text.count("(") <= MAX_NESTING:  # the common case, at the speed of a C loop
+        return
     depth = nesting_depth(text)
     if depth > MAX_NESTING:
         raise ProblemError(
@@ -76,9 +78,11 @@ def check_nesting(text: str, *, field: str, what: str) -> None:
         )
 
 
-_STATE = re.compile(rb"^[ \t]*state[ \t]+(\S+)[^\n{]*\{[ \t]*([^}\n]*)\}", re.MULTILINE)
-_COUNT = re.compile(rb"^[ \t]*@(nr_states|nr_choices)[ \t]*\r?\n[ \t]*(\S+)", re.MULTILINE)
-_ACTION = re.compile(rb"^[ \t]*action\b", re.MULTILINE)
+# each starts with a literal "\n" (the text is searched with one prepended), which the regular
+# expression engine looks for at C speed; Storm's DRN lines start at the line's first character
+_STATE = re.compile(rb"\nstate[ \t]+(\S+)[^\n{]*\{[ \t]*([^}\s]*)[ \t]*\}")
+_OBSERVATION = re.compile(rb"\nstate[ \t]+\S+[^\n{]*\{[ \t]*([^}\s]*)[ \t]*\}")
+_COUNT = re.compile(rb"\n@(nr_states|nr_choices)[ \t]*\r?\n[ \t]*(\S+)")
 
 
 def check_drn_text(text: str, *, name: str, field: str) -> None:
@@ -86,9 +90,8 @@ def check_drn_text(text: str, *, name: str, field: str) -> None:
     ``@nr_states``/``@nr_choices`` beyond the states and actions the file lists, or an
     observation id outside 0..(a few times the number of states)."""
     check_nesting(text, field=field, what=name)
-    data = text.encode("utf-8", "surrogatepass")
-    listed = {b"nr_states": len(re.findall(rb"^[ \t]*state\b", data, re.MULTILINE))}
-    listed[b"nr_choices"] = len(_ACTION.findall(data))
+    data = b"\n" + text.encode("utf-8", "surrogatepass")
+    listed = {b"nr_states": data.count(b"\nstate"), b"nr_choices": data.count(b"action")}
     for match in _COUNT.finditer(data):
         key, value = match[1], match[2].decode("ascii", "replace")
         if value.isdigit() and (len(value) > 18 or int(value) > max(listed[key], 1)):
@@ -97,10 +100,10 @@ def check_drn_text(text: str, *, name: str, field: str) -> None:
                 f"{listed[key]:,} {'states' if key == b'nr_states' else 'choices'}",
                 field=field,
             )
-    found = _STATE.findall(data)
+    found = _OBSERVATION.findall(data)  # the observation of each state, in C
     if not found:
         return
-    ids = np.array([observation.strip() for _, observation in found])
+    ids = np.array(found)
     # Storm sizes its observation tables by the largest id: a few per state at most (a file
     # may leave gaps), and never negative (Storm would read -1 as 4294967295)
     limit = max(4 * len(found), 1024)
@@ -119,7 +122,8 @@ def check_drn_text(text: str, *, name: str, field: str) -> None:
     if not bad.size:
         return
     at = int(bad[0])
-    state = found[at][0].decode("utf-8", "replace")[:20]
+    match = next(m for k, m in enumerate(_STATE.finditer(data)) if k == at)
+    state = match[1].decode("utf-8", "replace")[:20]
     value = ids[at].decode("ascii", "replace")
     value = value if len(value) <= 20 else value[:17] + "..."
     raise ProblemError(

@@ -129,7 +129,14 @@ class MilpSolver:
         built = build_formulation(problem, self.formulation, max(budgets))
         # the values' scale: the relaxation's bound on the optimum, at the largest budget (a
         # decoy behind a branch of 1e-6 has values of 1e-6, below HiGHS's tolerances)
-        relaxed = relaxation_bound(problem, max(budgets), schedule.closing_bound(deadline))
+        # (a tenth of the time left at most: cut short, it is the trivial bound, scale 1)
+        share = deadline.share(10)
+        quick = (
+            schedule.closing_bound(deadline)
+            if share is None
+            else Deadline(share, cancel=deadline.cancel)
+        )
+        relaxed = relaxation_bound(problem, max(budgets), quick)
         model = _scaled(problem, built, relaxed)
         backend = make_backend(self.backend_name, self.options)
         try:
@@ -281,13 +288,12 @@ def _scaled(problem: Problem, model: MilpModel, relaxed: float) -> MilpModel:
     the model keeps the two units (``value_unit``, ``cost_unit``)."""
     objective = np.abs(model.objective)
     largest = float(objective.max()) if objective.size else 0.0
-    value_unit = min(largest, relaxed) if 0 < relaxed < np.inf else largest
-    value_unit = value_unit if value_unit > 0 else 1.0
+    value_unit = _unit(min(largest, relaxed) if 0 < relaxed < np.inf else largest)
     matrix = model.matrix.copy().tocsr()
     begin, end = matrix.indptr[model.budget_row], matrix.indptr[model.budget_row + 1]
     row = matrix.data[begin:end]
     finite = np.abs(row[np.isfinite(row)])
-    cost_unit = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    cost_unit = _unit(float(finite.max()) if finite.size else 0.0)
     matrix.data[begin:end] = row / cost_unit  # divided, not multiplied: 1 / 5e-324 is inf
     lower, upper = model.row_lower.copy(), model.row_upper.copy()
     lower[model.budget_row] = lower[model.budget_row] / cost_unit
@@ -302,6 +308,15 @@ def _scaled(problem: Problem, model: MilpModel, relaxed: float) -> MilpModel:
         value_unit=value_unit,
         cost_unit=cost_unit,
     )
+
+
+def _unit(size: float) -> float:
+    """The power of two nearest ``size`` where it is far from 1 (below 1/1024 or above 1024),
+    else 1: dividing by a power of two is exact, and a model of normal scale goes to the
+    backend as it was built."""
+    if not size > 0 or not np.isfinite(size) or 2.0**-10 <= size <= 2.0**10:
+        return 1.0
+    return float(2.0 ** round(np.log2(size)))
 
 
 def _row_bound(problem: Problem, budget: float, cost_unit: float) -> float:
