@@ -8,7 +8,8 @@ import pytest
 
 from misdirect import load_problem, solve
 from misdirect.core.attack import prepare
-from misdirect.scenarios import paper_grid, random_problem
+from misdirect.scenarios import paper_grid, random_problem, sensor_grid
+from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.incremental import IncrementalSolver
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
@@ -269,3 +270,26 @@ def test_every_value_on_chains_with_end_components_equals_its_chain():
             exact = decoy_probability(problem, alteration)
             assert found.values[index] == pytest.approx(exact, abs=1e-9), (seed, index)
     assert closing >= 10
+
+
+def test_a_cut_curve_keeps_its_small_budgets_proven(monkeypatch):
+    """With a time limit the curve is enumerated budget by budget: a run cut short at the top
+    budget leaves the smaller ones proven, with the optimum that enumerating each of them
+    alone gives (and the cut one is not called optimal)."""
+    from misdirect.solvers.engines import lowrank
+
+    problem = sensor_grid(8, 6, seed=0)
+    alone = {b: solve(problem, method="incremental", budgets=[b]).curve[-1] for b in (0, 1)}
+    original = lowrank.LowRankEnumeration.run
+
+    def cut_at_two(self, top, *args, **kwargs):  # the run at budget 2 runs out of time at once
+        if top >= 2:
+            kwargs["deadline"] = Deadline(0.0)
+        return original(self, top, *args, **kwargs)
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut_at_two)
+    curve = solve(problem, method="incremental", budgets=[0, 1, 2], time_limit=600).curve
+    for point in curve[:2]:
+        assert point.status == "optimal"
+        assert point.probability == pytest.approx(alone[point.budget].probability, abs=1e-12)
+    assert curve[2].status != "optimal"

@@ -5,6 +5,11 @@ Every alteration within the largest budget is valued
 solve per alteration), so one run gives the optimum at every budget. Cut short by its
 deadline, it has still valued every alteration of the budgets below the first outer block it
 did not reach (those stay proven); the others get the per-state relaxation's bound.
+
+With a time limit, a curve is enumerated budget by budget, smallest first, each run over
+every alteration within its budget: the small budgets are proven even when the large one
+cannot be (a single run cut inside its first block proves none). The runs before the last
+cost a fraction of it, since the count of alterations grows steeply with the budget.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from misdirect.solvers.base import ProgressCallback, Solution, thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
+    Enumerated,
     LowRankEnumeration,
     NotApplicableError,
 )
@@ -60,14 +66,16 @@ class IncrementalSolver:
         if not instance.space.choices:
             value = decoy_probability(problem, problem.identity())
             return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
-        found = enumeration.run(top, deadline=deadline, progress=progress)
+        runs = self._runs(enumeration, budgets, deadline, progress)
+        last = runs[-1][1]
         stats = IncrementalStats(
-            evaluations=found.evaluations,
-            factorisations=found.blocks_done,
-            inner_observations=len(found.inner),
-            outer_observations=len(found.outer),
+            evaluations=sum(found.evaluations for _, found in runs),
+            factorisations=sum(found.blocks_done for _, found in runs),
+            inner_observations=len(last.inner),
+            outer_observations=len(last.outer),
         )
-        complete = [found.complete_for(b) for b in budgets]
+        chosen = [_covering(runs, b) for b in budgets]
+        complete = [found.complete_for(b) for b, found in zip(budgets, chosen, strict=True)]
         # the relaxation at the largest budget bounds every smaller one too
         relaxed = (
             None
@@ -75,9 +83,8 @@ class IncrementalSolver:
             else relaxation_bound(problem, top, schedule.closing_bound(deadline))
         )
         solutions = []
-        for budget, index, finished in zip(
-            budgets, found.best_within(budgets), complete, strict=True
-        ):
+        for budget, found, finished in zip(budgets, chosen, complete, strict=True):
+            index = found.best_within([budget])[0]
             within = found.values[found.costs <= problem.cost.scale.cap(budget)]
             bound = float(within.max())  # every alteration within the budget was enumerated
             if relaxed is not None and not finished:
@@ -93,3 +100,32 @@ class IncrementalSolver:
                 )
             )
         return solutions
+
+    @staticmethod
+    def _runs(
+        enumeration: LowRankEnumeration,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+    ) -> list[tuple[float, Enumerated]]:
+        """(budget, run) of each enumeration: one at the largest budget without a time limit,
+        else one per budget, smallest first, until one is cut short."""
+        levels = sorted(set(budgets))
+        if deadline.remaining() is None:
+            levels = levels[-1:]
+        runs: list[tuple[float, Enumerated]] = []
+        for level in levels:
+            found = enumeration.run(level, deadline=deadline, progress=progress)
+            runs.append((level, found))
+            if not found.complete_for(level):
+                break
+        return runs
+
+
+def _covering(runs: list[tuple[float, Enumerated]], budget: float) -> Enumerated:
+    """The run that answers ``budget``: the first whose budget covers it and that valued every
+    alteration within it, else the last one (the largest, cut short)."""
+    for level, found in runs:
+        if level >= budget and found.complete_for(budget):
+            return found
+    return runs[-1][1]
