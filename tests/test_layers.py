@@ -189,3 +189,17 @@ def test_no_private_name_is_imported_from_another_module():
         if taken is not None and taken.startswith("_") and not taken.startswith("__")
     ]
     assert wrong == []
+
+
+def test_a_private_module_is_imported_by_its_own_package_only():
+    """``misdirect._x`` is the package's own business: only ``misdirect`` may import it (the
+    rule above sees names, and a module imported by ``from misdirect import _x`` is one)."""
+    wrong = [
+        f"{name}:{line} imports {target}"
+        for name in MODULES
+        for target, _, line in _imports(name)
+        if target.rpartition(".")[2].startswith("_")
+        and not target.rpartition(".")[2].startswith("__")
+        and name != target.rpartition(".")[0]
+    ]
+    assert wrong == []

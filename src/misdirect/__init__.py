@@ -10,7 +10,7 @@ The library in a few names (the package layout: docs/architecture.md)::
     result.probability, result.status, [point.probability for point in result.curve]
 """
 
-from misdirect import _startup  # noqa: F401, I001 - first: Ctrl-C while the command imports
+from misdirect import startup  # noqa: F401, I001 - first: Ctrl-C while the command imports
 from misdirect import scenarios
 from misdirect.core.attack import shared_preparation
 from misdirect.core.evaluate import Evaluation, decoy_probability, evaluate

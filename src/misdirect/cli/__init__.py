@@ -21,7 +21,7 @@ from typing import Annotated, Any
 import typer
 from rich.markup import escape
 
-from misdirect import __version__, _startup
+from misdirect import __version__, startup
 from misdirect.cli import cluster, defence, exports, models, reproduce, solving
 from misdirect.cli.common import (
     INPUT_ERROR,
@@ -160,7 +160,7 @@ def main() -> None:
     # typer may vendor click: take its classes from typer's own exceptions, by name
     # (found at run time, so its type is not known here)
     usage_error: Any = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
-    _startup.release()  # imported: Ctrl-C is a KeyboardInterrupt again, handled per command
+    startup.release()  # imported: Ctrl-C is a KeyboardInterrupt again, handled per command
     try:
         code = app(standalone_mode=False)
     except usage_error as error:
