@@ -113,9 +113,13 @@ class MaxReachability:
             values = self.evaluate(policy)
             score = self.transitions @ values + penalty
             best, best_score = self.best_choices(score)
-            # a gain counts relative to the scores compared (their rounding error is relative
-            # to them: values are nonnegative), so a decoy of weight 1e-12 still improves
-            room = tolerance.IMPROVE * np.abs(np.where(np.isfinite(best_score), best_score, 0.0))
+            # a gain counts relative to the values' scale (a linear solve's error is normwise:
+            # relative to the largest value, not to each), so a decoy of weight 1e-12 still
+            # improves, and a state of value 1e-9 beside values of 0.2 does not switch on noise
+            room = tolerance.IMPROVE * np.maximum(
+                np.abs(np.where(np.isfinite(best_score), best_score, 0.0)),
+                np.abs(values).max(initial=0.0),
+            )
             switch = self.live & (best_score > score[policy] + room)
             if not switch.any():
                 return values, policy
@@ -258,9 +262,14 @@ class TransientPolicyIteration:
             best = order[self.state_start]
             gain = score[best] - score[policy]
             # relative to the size of the terms each score adds up (rewards may be negative,
-            # so the scores themselves may cancel): that is their rounding error
+            # so the scores themselves may cancel), and at least to the values' scale (the
+            # solve's error is normwise): a gain below either is rounding, and switching on it
+            # costs rounds without gain (docs/benchmarks.md, the H1 regression)
             size = self.matrix @ np.abs(values) + np.abs(reward)
-            switch = gain > tolerance.IMPROVE * np.maximum(size[best], size[policy])
+            floor = np.abs(values).max(initial=0.0)
+            switch = gain > tolerance.IMPROVE * np.maximum(
+                np.maximum(size[best], size[policy]), floor
+            )
             if not switch.any():
                 return values, policy, lu, True
             policy = np.where(switch, best, policy)
