@@ -293,3 +293,28 @@ def test_a_cut_curve_keeps_its_small_budgets_proven(monkeypatch):
         assert point.status == "optimal"
         assert point.probability == pytest.approx(alone[point.budget].probability, abs=1e-12)
     assert curve[2].status != "optimal"
+
+
+def test_an_enumeration_that_hands_over_never_calls_a_budget_it_skipped_proven(monkeypatch):
+    """A staged enumeration with a search to hand over to stops before a budget that will
+    not fit; the budgets it skipped are not proven by the smaller runs (which never listed
+    their costlier alterations), and auto's search then certifies exhaustive search's optima."""
+    from misdirect.solvers import schedule
+
+    problem = sensor_grid(8, 6, seed=0)
+    oracle = solve(problem, method="exhaustive", budgets=[0, 1, 2]).curve
+    assert oracle[2].probability > oracle[0].probability + 1e-6  # budget 2 gains something
+
+    monkeypatch.setattr(schedule, "next_level_fits", lambda *args: False)
+    solver = IncrementalSolver(hand_over=True)
+    found = solver.solve(problem, [0, 1, 2], deadline=Deadline(600))
+    assert found[0].status == "optimal"
+    assert found[0].solver_probability == pytest.approx(oracle[0].probability, abs=1e-12)
+    for point, truth in zip(found[1:], oracle[1:], strict=True):
+        assert point.status != "optimal"
+        assert point.upper_bound >= truth.probability - 1e-12
+
+    curve = solve(problem, budgets=[0, 1, 2], time_limit=600).curve
+    for point, truth in zip(curve, oracle, strict=True):
+        assert point.status == "optimal"
+        assert point.probability == pytest.approx(truth.probability, abs=1e-12)

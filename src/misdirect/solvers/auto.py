@@ -184,6 +184,11 @@ class _Enumeration(_Stage):
     def estimate_s(self, facts: _Facts) -> float:
         return schedule.enumeration_seconds(facts.count)
 
+    def handovers(self, facts: _Facts, deadline: Deadline) -> list[_Handover]:
+        # a budget the enumeration stops before (its measured rate says it will not fit)
+        why = "the enumeration of it would not fit the time left, so branch-and-bound"
+        return [_Handover(_Search(self.auto, UNLIMITED_NODES), why)]  # the deadline is the limit
+
     def run(
         self,
         problem: Problem,
@@ -192,7 +197,7 @@ class _Enumeration(_Stage):
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        solver = IncrementalSolver(SolveOptions(threads=self.auto.options.threads))
+        solver = IncrementalSolver(SolveOptions(threads=self.auto.options.threads), hand_over=True)
         return solver.solve(problem, budgets, progress=progress, deadline=deadline)
 
 
@@ -429,7 +434,10 @@ class AutoSolver:
         note = f"auto: budgets up to {small[-1]:g} enumerated, the rest searched"
         reason = f"{facts.reason}; budgets up to {small[-1]:g}: {why}" if why else facts.reason
         report(progress, 0, 0, note=note)
-        rest = [b for b in ordered if b not in small]
+        # what the enumeration did not prove (it stops before a budget that will not fit
+        # once it has measured its own rate) is searched with the larger budgets
+        proven = {b for b, s in zip(small, first, strict=True) if _certified(s)}
+        rest = [b for b in ordered if b not in proven]
         later = self.solve(
             facts.problem,
             rest,
@@ -438,7 +446,9 @@ class AutoSolver:
             seeds=[first[-1].alteration] * len(rest),
         )
         found = dict(zip(small, _label(first, enumeration.method, reason), strict=True))
-        found.update(zip(rest, later, strict=True))
+        exact = exact_values(facts.problem)
+        for b, second in zip(rest, later, strict=True):
+            found[b] = _better(exact, found[b], second, reason) if b in found else second
         return [found[b] for b in budgets]
 
     def _hand_over(

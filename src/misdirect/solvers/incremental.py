@@ -9,11 +9,16 @@ did not reach (those stay proven); the others get the per-state relaxation's bou
 With a time limit, a curve is enumerated budget by budget, smallest first, each run over
 every alteration within its budget: the small budgets are proven even when the large one
 cannot be (a single run cut inside its first block proves none). The runs before the last
-cost a fraction of it, since the count of alterations grows steeply with the budget.
+cost a fraction of it, since the count of alterations grows steeply with the budget. A
+caller with a search to hand budgets to (auto) asks it to stop before a budget whose
+enumeration, at the rate measured on the budget before, would not fit its fair share of the
+time left (:func:`~misdirect.solvers.schedule.next_level_fits`): those budgets come back
+uncertified, with the time to search them still left.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -43,10 +48,16 @@ class IncrementalSolver:
     accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads")
 
     def __init__(
-        self, options: SolveOptions | None = None, *, max_evaluations: int = MAX_ALTERATIONS
+        self,
+        options: SolveOptions | None = None,
+        *,
+        max_evaluations: int = MAX_ALTERATIONS,
+        hand_over: bool = False,
     ):
         self.options = options or SolveOptions()
         self.max_evaluations = max_evaluations
+        # stop before a budget that will not fit (someone else searches it): see the module
+        self.hand_over = hand_over
         self.threads = thread_count(self.options.threads)
 
     def solve(
@@ -66,7 +77,7 @@ class IncrementalSolver:
         if not instance.space.choices:
             value = decoy_probability(problem, problem.identity())
             return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
-        runs = self._runs(enumeration, budgets, deadline, progress)
+        runs = self._runs(enumeration, budgets, deadline, progress, self.hand_over)
         last = runs[-1][1]
         stats = IncrementalStats(
             evaluations=sum(found.evaluations for _, found in runs),
@@ -107,15 +118,25 @@ class IncrementalSolver:
         budgets: Sequence[float],
         deadline: Deadline,
         progress: ProgressCallback | None,
+        hand_over: bool = False,
     ) -> list[tuple[float, Enumerated]]:
         """(budget, run) of each enumeration: one at the largest budget without a time limit,
-        else one per budget, smallest first, until one is cut short."""
+        else one per budget, smallest first, until one is cut short (``hand_over``: or until
+        the next will not fit its share of the time left)."""
         levels = sorted(set(budgets))
         if deadline.remaining() is None:
             levels = levels[-1:]
         runs: list[tuple[float, Enumerated]] = []
+        measured: tuple[float, int] | None = None
+        space = enumeration.instance.space
         for level in levels:
+            if hand_over and runs:
+                count = space.count_within(level, enumeration.max_evaluations)
+                if not schedule.next_level_fits(count, measured, deadline):
+                    break
+            began = time.perf_counter()
             found = enumeration.run(level, deadline=deadline, progress=progress)
+            measured = (time.perf_counter() - began, found.evaluations)
             runs.append((level, found))
             if not found.complete_for(level):
                 break

@@ -36,6 +36,23 @@ def enumeration_seconds(count: int, per_alteration: float | None = None) -> floa
     return count * (UPDATE_SECONDS if per_alteration is None else per_alteration)
 
 
+RATE_SAMPLE = 10_000  # alterations an enumeration must have valued to measure its own rate
+
+
+def next_level_fits(count: int, measured: tuple[float, int] | None, deadline: Deadline) -> bool:
+    """Whether a staged enumeration takes on its next budget, of ``count`` alterations, when
+    it has a search to hand that budget to instead: when it fits in the fair share of the
+    time left, at the rate the last budget was enumerated at (``measured``: its seconds and
+    alterations; trusted from ``RATE_SAMPLE`` alterations on, since a small run is mostly
+    the building of its bases), and never faster than ``UPDATE_SECONDS`` each."""
+    per_alteration = UPDATE_SECONDS
+    if measured is not None and measured[1] >= RATE_SAMPLE:
+        per_alteration = max(per_alteration, measured[0] / measured[1])
+    return count <= INCREMENTAL_SURE or enumeration_seconds(count, per_alteration) <= _fair_share(
+        deadline
+    )
+
+
 def _fair_share(deadline: Deadline) -> float:
     """What an enumeration may take before anything else runs: ``ENUMERATION_FIRST`` of the
     time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""

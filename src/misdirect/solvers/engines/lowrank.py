@@ -92,10 +92,13 @@ class Enumerated:
     unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
     evaluations: int
     scale: tolerance.CostScale  # how the costs fit a budget
+    top: float  # the budget enumerated within: nothing costlier was listed
 
     def complete_for(self, budget: float) -> bool:
         """Whether every alteration within ``budget`` was valued."""
         cap = self.scale.cap(budget)
+        if cap > self.scale.cap(self.top):
+            return False  # alterations above the run's own budget were never listed
         return not self.next_outer_cost <= cap and not self.unevaluated <= cap
 
     def picks(self, index: int) -> np.ndarray:
@@ -421,6 +424,7 @@ class LowRankEnumeration:
             unevaluated=unevaluated,
             evaluations=evaluations,
             scale=scale,
+            top=top,
         )
 
     def _outer_blocks(
