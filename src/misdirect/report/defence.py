@@ -106,12 +106,13 @@ def curve_figure(result: AuditResult):
             color="C3",
             label="not certified: up to the proven bound",
         )
-    ax.axhline(
-        result.online.unlimited_probability,
-        color="C2",
-        linestyle="--",
-        label="online attacker, unlimited (upper bound)",
-    )
+    if result.online is not None:
+        ax.axhline(
+            result.online.unlimited_probability,
+            color="C2",
+            linestyle="--",
+            label="online attacker, unlimited (upper bound)",
+        )
     ax.axhline(result.baseline_probability, color="0.5", linestyle=":", label="no attack")
     ax.set_xlabel("attacker's budget")
     ax.set_ylabel(result.objective_label)
@@ -320,18 +321,23 @@ def report_text(result: AuditResult) -> str:
         "An attacker who sees the true state and the controller's memory and may alter every "
         "reading differently at every step (docs/defence.md).",
         "",
-        f"* unlimited (every allowed target, any cost): **{online.unlimited_probability:.9f}** "
-        f"— an upper bound of the offline optimum at every budget (offline at B: "
-        f"{result.probability:.9f});",
     ]
-    if online.budgeted_probability is not None:
-        lines.append(
-            f"* paying for every altered reading against B = {result.budget:g} "
-            f"(cost unit {online.cost_unit:g}): **{online.budgeted_probability:.9f}** — a "
-            "different threat, not a bound of the offline optimum either way."
-        )
+    if online is None:
+        lines.append(f"* not computed ({result.online_budgeted_note}).")
     else:
-        lines.append(f"* budgeted variant not computed: {result.online_budgeted_note}")
+        lines.append(
+            "* unlimited (every allowed target, any cost): "
+            f"**{online.unlimited_probability:.9f}** — an upper bound of the offline optimum "
+            f"at every budget (offline at B: {result.probability:.9f});"
+        )
+        if online.budgeted_probability is not None:
+            lines.append(
+                f"* paying for every altered reading against B = {result.budget:g} "
+                f"(cost unit {online.cost_unit:g}): **{online.budgeted_probability:.9f}** — "
+                "a different threat, not a bound of the offline optimum either way."
+            )
+        else:
+            lines.append(f"* budgeted variant not computed: {result.online_budgeted_note}")
     if result.notes:
         lines += ["", "## Notes", ""] + [f"* {note}" for note in result.notes]
     lines += [
