@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable
-from fractions import Fraction
 
 import numpy as np
 
@@ -28,22 +27,15 @@ from misdirect.solvers.deadline import Deadline
 
 MAX_BUDGET_LEVELS = 100_000  # budgeted online MDP: at most this many remaining-budget levels
 MAX_BUDGETED_STATES = 20_000_000
-UNIT_DENOMINATOR = 1_000_000  # a cost unit is a fraction with at most this denominator
 
 
 def cost_unit(costs: Iterable[float]) -> float | None:
-    """The largest unit every cost is a whole multiple of (exactly, as fractions), or None."""
-    fractions = []
-    for cost in {float(c) for c in costs if np.isfinite(c) and c > 0}:
-        fraction = Fraction(cost).limit_denominator(UNIT_DENOMINATOR)
-        if float(fraction) != cost:
-            return None
-        fractions.append(fraction)
-    if not fractions:
-        return 1.0
-    denominator = math.lcm(*(f.denominator for f in fractions))
-    numerator = math.gcd(*(f.numerator * (denominator // f.denominator) for f in fractions))
-    return float(Fraction(numerator, denominator))
+    """The largest unit every cost is a whole multiple of, or None: the step of the costs as
+    written (0.1 and 0.25: 0.05; 1e-10: 1e-10, at any scale), else of their float values (a
+    power of two); None where neither adds exactly (:class:`misdirect.core.tolerance.CostScale`).
+    """
+    scale = tolerance.CostScale.of(costs, terms=1)
+    return None if scale.kind == "rounded" else float(scale.step)
 
 
 def online_attack_value(

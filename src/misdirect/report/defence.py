@@ -145,7 +145,7 @@ def sensors_figure(result: AuditResult):
     low = np.array([s.criticality for s in rows])
     high = np.array([s.criticality_upper for s in rows])
     left.barh(y, low, color="C3", label="criticality")
-    if np.any(high - low > 1e-9):
+    if not all(s.exact for s in rows):  # proven, relative to the values (core.tolerance)
         left.barh(y, high - low, left=low, color="C3", alpha=0.3, label="up to (not certified)")
     left.set_xlabel("drop of the optimum at B when protected")
     left.set_yticks(y, names, fontsize=9)
@@ -397,7 +397,8 @@ def tradeoff_figure(result: HardenResult):
         ax.annotate(text, (d, v), textcoords="offset points", xytext=(4, 6), fontsize=9)
     ax.set_xlabel("protection budget D", fontsize=10)
     ax.set_ylabel(f"attacker's optimum at B = {result.budget:g}", fontsize=10)
-    ax.set_ylim(0, 1.05 * max(1e-9, float(values.max(initial=0)), result.value_before))
+    top = max(float(values.max(initial=0)), result.value_before)
+    ax.set_ylim(0, 1.05 * top if top > 0 else 1.0)  # values of any scale, 1e-12 included
     ax.tick_params(labelsize=9)
     ax.set_title(f"{result.problem}: protection against the attacker", fontsize=10)
     from matplotlib.ticker import MaxNLocator
