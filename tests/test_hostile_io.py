@@ -517,16 +517,23 @@ def test_a_read_only_install_and_home_still_run(tmp_path):
 @pytest.mark.parametrize(
     "sig, code, words", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "SIGTERM")]
 )
-def test_a_signal_while_importing_is_one_line(sig, code, words):
-    """0.3 s after start the command is importing its modules (numpy, scipy, numba, ...)."""
+@pytest.mark.parametrize("launcher", ["script", "python -m"])
+@pytest.mark.parametrize("moment", [0.15, 0.3])
+def test_a_signal_while_importing_is_one_line(sig, code, words, launcher, moment):
+    """0.15 to 0.3 s after start the command is importing its modules (numpy, scipy, numba,
+    ...). ``python -m misdirect`` printed a traceback at any such moment: its ``__main__`` is
+    not yet the package's while the package imports."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    command = [COMMAND] if launcher == "script" else [sys.executable, "-m", "misdirect"]
     process = subprocess.Popen(
-        [COMMAND, "solve", "--scenario", "paper-grid", "--size", "25", "--budget", "0..7", "-q"],
+        [*command, "solve", "--scenario", "paper-grid", "--size", "25", "--budget", "0..7", "-q"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env=env,
     )
     try:
-        time.sleep(0.3)
+        time.sleep(moment)
         process.send_signal(sig)
         _, stderr = process.communicate(timeout=120)
     finally:
@@ -534,6 +541,33 @@ def test_a_signal_while_importing_is_one_line(sig, code, words):
             process.kill()
     assert process.returncode == code, stderr
     assert "Traceback" not in stderr and stderr.count("\n") == 1 and words in stderr, stderr
+
+
+@pytest.mark.parametrize(
+    "argv, main_file, ours",
+    [
+        (["python", "-m", "misdirect", "solve"], None, True),
+        (["python", "-X", "dev", "-m", "misdirect.cli", "solve"], None, True),
+        (["python", "-mmisdirect", "solve"], None, True),
+        (["python", "-m", "pytest", "-q"], None, False),
+        (["python", "script.py", "-m", "misdirect"], "/x/script.py", False),
+        (["python", "-c", "import misdirect"], None, False),
+        (["/venv/bin/python", "/venv/bin/misdirect", "solve"], "/venv/bin/misdirect", True),
+    ],
+)
+def test_the_command_line_is_told_from_a_library_user(monkeypatch, argv, main_file, ours):
+    """Only the command itself (its script, or ``python -m misdirect``) takes over Ctrl-C
+    while importing; a program that imports misdirect keeps its own signals."""
+    import types
+
+    from misdirect import startup
+
+    main = types.ModuleType("__main__")
+    if main_file is not None:
+        main.__file__ = main_file
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    monkeypatch.setattr(sys, "orig_argv", argv, raising=False)
+    assert startup._is_command_line() is ours
 
 
 # -- 6. writes stay atomic ------------------------------------------------------------------------

@@ -21,8 +21,8 @@ from misdirect.core.memory import MEMORY_LIMIT_ENV
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import ProblemError
 from misdirect.io.problem_file import load_problem, write_problem
-from misdirect.scenarios import random_problem, sensor_grid
-from misdirect.solvers.deadline import CancelToken
+from misdirect.scenarios import paper_grid, random_problem, sensor_grid
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
 from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO
 from misdirect.solvers.milp.paper import build_paper, paper_size
 
@@ -320,8 +320,9 @@ def test_audit_starts_no_solve_once_its_clock_has_expired(monkeypatch):
         exact = truth[row.observation]
         assert row.criticality - 1e-9 <= exact.criticality <= row.criticality_upper + 1e-9
         assert row.single_probability <= exact.single_probability + 1e-9
-    assert cut.online.budgeted_probability is None  # the budgeted online MDP is skipped too
-    assert cut.online.unlimited_probability == pytest.approx(full.online.unlimited_probability)
+    # the online value is cut too: unknown, not a number (it took 14 s on a 300x300 grid)
+    assert cut.online is None and full.online is not None
+    assert any("online attacker's value is not computed" in note for note in cut.notes)
 
 
 def test_a_cancelled_milp_curve_stops_handing_budgets_to_the_backend(monkeypatch):
@@ -340,3 +341,92 @@ def test_a_cancelled_milp_curve_stops_handing_budgets_to_the_backend(monkeypatch
     result = misdirect.solve(load_problem(TINY), method="milp", budgets=[0, 1, 2, 3], cancel=token)
     assert calls == [] and result.interrupted
     assert all(p.upper_bound is None or p.upper_bound >= p.probability for p in result.curve)
+
+
+class ExpiresAtLook(Deadline):
+    """A deadline without a clock that expires at its ``n``-th look (and stays expired): a cut
+    at a chosen point of the work, with no timing."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.left = n
+
+    def expired(self) -> bool:
+        self.left -= 1
+        return self.left < 0 or super().expired()
+
+
+def test_the_choice_product_build_stops_at_the_callers_check():
+    """core knows no deadline: a caller's plain check, called between the build's stages, stops
+    it (a 1000x1000 grid spent 10 s here past a 5 s limit)."""
+    from misdirect.core.checkpoint import interruptible
+    from misdirect.core.choice_product import build_choice_product
+
+    problem = paper_grid(5)
+    space = alteration_space(problem)
+    looks: list[int] = []
+    with interruptible(lambda: looks.append(1)):
+        build_choice_product(problem, space)
+    assert len(looks) >= 5  # stages between which it can stop
+    deadline = ExpiresAtLook(2)
+    with pytest.raises(DeadlineExpiredError), interruptible(deadline.check):
+        build_choice_product(problem, space)
+    assert deadline.left == -1  # stopped at the third look, not after the last
+
+
+def test_a_solve_cut_while_building_the_choice_product_reports_the_unaltered_chain(monkeypatch):
+    from misdirect.core import choice_product
+
+    built = []
+    original = choice_product.ChoiceProduct
+    monkeypatch.setattr(
+        choice_product, "ChoiceProduct", lambda *a, **k: built.append(1) or original(*a, **k)
+    )
+    problem = paper_grid(5)
+    result = misdirect.solve(problem, budgets=[4], deadline=ExpiresAtLook(0))
+    assert built == []  # the build stopped at its first stage
+    (point,) = result.curve
+    assert point.alteration == {} and point.status == "time_limit"
+    # the unaltered chain's value, by the evaluation of one alteration
+    assert point.probability == pytest.approx(
+        misdirect.evaluate(problem, problem.identity()).probability
+    )
+
+
+def test_the_online_value_honours_its_deadline():
+    """The online attacker's value (an MDP over the whole choice product) ran without a deadline:
+    14 s of a 10 s audit on a 300x300 grid."""
+    problem = paper_grid(5)
+    for looks in (0, 3):  # before the build, and inside it
+        with pytest.raises(DeadlineExpiredError):
+            misdirect.online_attack_value(problem, None, deadline=ExpiresAtLook(looks))
+    # the value computed in full is the one without a deadline
+    assert misdirect.online_attack_value(
+        problem, None, deadline=ExpiresAtLook(10**6)
+    ).probability == pytest.approx(misdirect.online_attack_value(problem).probability)
+
+
+def test_an_audit_whose_online_stage_is_cut_reports_it_as_unknown(tmp_path, monkeypatch):
+    """Everything else done, the online value cut: null in --json (valid), "not computed" in the
+    report, not a number that was never computed."""
+    from misdirect.defence import auditing
+    from misdirect.report.defence import write_audit_report
+    from misdirect.report.json_output import audit as audit_json
+    from result_schema import VALIDATOR
+
+    original = auditing.online_attack_value
+
+    def cut(problem, budget=None, *, deadline=None):  # the clock runs out inside this stage
+        return original(problem, budget, deadline=ExpiresAtLook(0))
+
+    monkeypatch.setattr(auditing, "online_attack_value", cut)
+    problem = paper_grid(5)
+    result = misdirect.audit(problem, budget=2)
+    assert result.online is None
+    assert result.status == "optimal"  # the other stages are untouched
+    document = audit_json(result)
+    assert document["online"] is None
+    VALIDATOR.validate(json.loads(json.dumps(document)))
+    write_audit_report(problem, result, tmp_path)
+    report = (tmp_path / "report.md").read_text()
+    assert "* not computed (not computed: the time limit was reached)." in report

@@ -229,3 +229,22 @@ def test_cost_scale_never_admits_over_budget():
             budget = float(exact) if rng.random() < 0.5 else float(exact) * (1 - 1e-15)
             fits = exact <= Fraction(repr(budget))
             assert bool(scale.fits(float(np.sum(picked)), budget)) == fits, (k, picked, budget)
+
+
+def test_online_cost_unit_is_the_costs_step_at_any_scale(tmp_path):
+    """The budgeted online attacker counts costs in their common step as written; costs of
+    1e-10 had none (a fraction with a denominator of at most 10^6) and were refused. By hand:
+    one altered reading (o1 -> o0 at s1) is worth 0.5 x 0.8 = 0.4, none 0.5 x 0.2 = 0.1."""
+    from misdirect import online_attack_value
+    from misdirect.defence import cost_unit
+
+    assert cost_unit([0.1, 0.25]) == 0.05
+    assert cost_unit([1e-10, 3e-10]) == 1e-10
+    for scale in (1.0, 1e-10):
+        problem = _model(tmp_path, cost=scale, budget=scale)
+        assert online_attack_value(problem, scale).budgeted_probability == pytest.approx(
+            0.4, rel=1e-12
+        )
+        assert online_attack_value(problem, 0.0).budgeted_probability == pytest.approx(
+            0.1, rel=1e-12
+        )

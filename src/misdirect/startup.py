@@ -11,29 +11,44 @@ user's program or an interactive session) it makes those signals end the process
 from __future__ import annotations
 
 import os
-import signal
 import sys
-import threading
-from typing import Any
+
+# the C module itself: ``signal`` imports enum, ``threading`` and ``typing`` take milliseconds
+# more, and every millisecond before the handlers are in place is one where Ctrl-C would
+# print a traceback from the middle of an import
+_signal = __import__("_signal")
 
 _CODES: dict[int, tuple[int, bytes]] = {
-    signal.SIGINT: (130, b"error: interrupted\n"),
-    signal.SIGTERM: (143, b"error: terminated (SIGTERM)\n"),
+    _signal.SIGINT: (130, b"error: interrupted\n"),
+    _signal.SIGTERM: (143, b"error: terminated (SIGTERM)\n"),
 }
-_installed: dict[int, Any] = {}
+_installed: dict[int, object] = {}
+_COMMANDS = ("misdirect", "misdirect-script")
 
 
 def _is_command_line() -> bool:
+    """Whether this process is the ``misdirect`` command: its script, or ``python -m
+    misdirect`` (whose ``__main__`` is not yet ours while the package imports: the
+    interpreter's own arguments say it)."""
+    if sys.flags.interactive:
+        return False
     main = sys.modules.get("__main__")
     name = os.path.basename(getattr(main, "__file__", None) or "")
-    return (
-        name.split(".")[0] in ("misdirect", "misdirect-script")
-        and not sys.flags.interactive
-        and threading.current_thread() is threading.main_thread()
-    )
+    if name.split(".")[0] in _COMMANDS:
+        return True
+    arguments = iter(getattr(sys, "orig_argv", [])[1:])
+    for argument in arguments:  # the interpreter's options, up to the module or script
+        if argument.startswith("-m"):
+            module = argument[2:] or next(arguments, "")
+            return module in ("misdirect", "misdirect.cli")
+        if argument in ("-X", "-W"):
+            next(arguments, None)  # its value
+        elif argument.startswith("-c") or not argument.startswith("-"):
+            return False
+    return False
 
 
-def _quit(signum: int, frame: Any) -> None:
+def _quit(signum: int, frame: object) -> None:
     code, line = _CODES.get(signum, (128 + signum, b"error: interrupted\n"))
     try:
         os.write(2, line)
@@ -44,11 +59,14 @@ def _quit(signum: int, frame: Any) -> None:
 def release() -> None:
     """Give SIGINT and SIGTERM back (Python's defaults) once the command line is imported."""
     for signum, previous in _installed.items():
-        if signal.getsignal(signum) is _quit:
-            signal.signal(signum, previous)
+        if _signal.getsignal(signum) is _quit:
+            _signal.signal(signum, previous)
     _installed.clear()
 
 
 if _is_command_line():
-    for _signum in _CODES:
-        _installed[_signum] = signal.signal(_signum, _quit)
+    try:
+        for _signum in _CODES:
+            _installed[_signum] = _signal.signal(_signum, _quit)
+    except ValueError:  # not the main thread (an embedding program): its signals, not ours
+        pass

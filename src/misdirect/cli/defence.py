@@ -98,12 +98,16 @@ def _print_audit(result: AuditResult) -> None:
         f"optimum at B {result.probability:.6f} ({result.status}: "
         f"{fmt_alteration(result.alteration)})",
         f"without attack {result.baseline_probability:.6f}",
-        f"online attacker: unlimited {online.unlimited_probability:.6f} (upper bound)",
     ]
-    if online.budgeted_probability is not None:
-        parts.append(f"paying per reading within B {online.budgeted_probability:.6f}")
+    note = escape(result.online_budgeted_note or "")
+    if online is None:
+        parts.append(f"online attacker not computed: {note}")
     else:
-        parts.append(f"budgeted online not computed: {escape(result.online_budgeted_note or '')}")
+        parts.append(f"online attacker: unlimited {online.unlimited_probability:.6f} (upper bound)")
+        if online.budgeted_probability is not None:
+            parts.append(f"paying per reading within B {online.budgeted_probability:.6f}")
+        else:
+            parts.append(f"budgeted online not computed: {note}")
     parts.append(f"{result.time_s:.2f} s")
     if result.budget_clamped_to is not None:
         parts.insert(0, f"B solved as {result.budget_clamped_to:g} (no alteration costs more)")

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from misdirect.core.alterations import AlterationSpace
+from misdirect.core.checkpoint import checkpoint
 from misdirect.core.memory import check_memory
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 
@@ -173,6 +174,7 @@ def build_choice_product(
     cand_obs, cand_target, cand_option = cand_obs[order], cand_target[order], cand_option[order]
     cand_count = np.bincount(cand_obs, minlength=n_o)
     check_choice_product_fits(problem, cand_count)
+    checkpoint()  # each stage below takes seconds on a million-state product
     cand_start = np.concatenate([[0], np.cumsum(cand_count)[:-1]])
 
     # expand every (s, n) into its candidates
@@ -183,6 +185,7 @@ def build_choice_product(
     cand = cand_start[pair_obs[pair]] + within
     node = pair % n_n
     move = controller.move[node, cand_target[cand]]
+    checkpoint()
 
     # one group per distinct (pair, move); its row is the mixture over the move's entries
     n_m = controller.n_moves
@@ -190,12 +193,14 @@ def build_choice_product(
     unique_keys, group_of = np.unique(keys, return_inverse=True)
     group_of = group_of.reshape(-1)
     g_pair, g_move = np.divmod(unique_keys, n_m)
+    checkpoint()
     n_groups = g_pair.size
     with_option = cand_option[cand] >= 0
     group_options = sp.csr_matrix(
         (np.ones(int(with_option.sum())), (group_of[with_option], cand_option[cand][with_option])),
         shape=(n_groups, options.size),
     )
+    checkpoint()
     owner, g_action, g_next, g_probability = controller.move_entries(g_move)
     rows = pomdp.transitions[g_action * n_s + g_pair[owner] // n_n]
     entry = np.repeat(np.arange(owner.size), np.diff(rows.indptr))
@@ -207,15 +212,18 @@ def build_choice_product(
     if not controller.is_deterministic:
         transitions.sum_duplicates()  # two entries of a move can lead to the same (s', n')
 
+    checkpoint()
     start = pomdp.initial_state * n_n + controller.initial_node
     if reachable_only:
         graph = _union_graph(g_pair, transitions, n_s * n_n)
+        checkpoint()
         keep = np.flatnonzero(reachable_from(graph, np.array([start])))
     else:
         keep = np.arange(n_s * n_n)
     renumber = np.full(n_s * n_n, -1)
     renumber[keep] = np.arange(keep.size)
     kept_groups = np.flatnonzero(renumber[g_pair] >= 0)
+    checkpoint()
     return ChoiceProduct(
         world_state=keep // n_n,
         node=keep % n_n,
@@ -262,6 +270,7 @@ def states_that_can_stay(
     stay = candidates & (staying_groups > 0)
     frontier = np.flatnonzero(candidates & ~stay)
     while frontier.size:
+        checkpoint()
         groups = _distinct(_row_entries(into, frontier))
         groups = groups[group_stays[groups]]
         group_stays[groups] = False
@@ -307,6 +316,7 @@ def end_component_states(
         return states
     alive = states[group_state].copy()
     while True:
+        checkpoint()
         before = int(alive.sum())
         alive &= states[group_state]
         alive &= np.asarray(structure @ (~states).astype(np.int32)).ravel() == 0

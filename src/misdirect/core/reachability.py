@@ -7,7 +7,8 @@ linear system non-singular.
 
 The solve is direct (sparse LU, split by components, bands and separators) except on wide
 chains, where LU fill explodes: there Krylov iterations run and the answer carries a proven
-error bound (:func:`solve_certified`), checked against :data:`CERTIFIED_TOL` before it is used.
+error bound (:func:`solve_certified`), accepted only when that bound is small relative to the
+answer (:data:`misdirect.core.tolerance.EXACT`); else the direct solve runs after all.
 
 The values a person reads (:func:`reach_probability_bounded`, :func:`occupation`) carry a
 proven error bound on every route, on the chain as given (its doubles taken as exact): a
@@ -59,16 +60,18 @@ BAND_MAX = 8  # ... if no transition reaches further than this in its state orde
 SEPARATOR_MAX = 512  # cutting a separator only pays when it is small
 ITERATIVE_MIN_STATES = 20_000  # below this even a wide component's LU is quick
 WIDE_LEVEL = 1_000  # a breadth-first level this wide: LU fronts of about that size, cubed
-CERTIFIED_TOL = 1e-10  # largest proven error accepted from the iterative route
-VISITS_TOL = 1e-9  # ... and on expected visits, relative to max(1, visits)
-REFINE_TARGET = 1e-13  # refinement stops once the proven error is this small ...
+# the iterative route's answer is accepted with a proven error of at most tolerance.EXACT
+# relative to it, and, on expected visits, tolerance.CERTIFY relative to max(1, visits) (a
+# count of steps: one visit is its natural unit, so fewer than one visit counts as one)
+# Refinement stops once the proven error is this small (absolute: an absorption probability,
+# of scale 1; the values a person reads are refined further relative to themselves, EXACT) ...
+REFINE_TARGET = 1e-13
 REFINE_ROUNDS = 5  # ... after this many rounds, or when the residual stops falling
 KRYLOV_RTOL = 1e-13  # the first round's inner solve shrinks the residual this much
 KRYLOV_MAX_ITER = 2_000
 UNIT_ROUNDOFF = residual.UNIT_ROUNDOFF
-# A value's proven error must be this small (a tenth of what certification allows, so a
-# method's own gap keeps its room) ...
-EXACT_TOL = tolerance.CERTIFY / 10
+# A value's proven error must be this small relative to it (core.tolerance) ...
+EXACT_TOL = tolerance.EXACT
 EXACT_ROUNDS = 8  # ... after at most this many rounds of refinement in extended precision
 
 
@@ -275,7 +278,9 @@ def solve_chain(a: sp.spmatrix, b: np.ndarray, labels: np.ndarray | None = None)
             return solved
         if np.ndim(b) == 1 and lu_would_fill(a):
             certified = solve_certified(a, b)
-            if certified is not None and certified.state_error().max() <= CERTIFIED_TOL:
+            if certified is not None and certified.state_error().max() <= tolerance.slack(
+                np.abs(certified.x).max(initial=0.0), rel=tolerance.EXACT
+            ):
                 return certified.x
     return _solve(a, b)
 
@@ -405,6 +410,7 @@ def _time_bound(system: sp.csr_matrix) -> np.ndarray | None:
     n = system.shape[0]
     magnitude = abs(system)
     gamma = _rounding(system)
+    # Krylov's relative residuals, then a relative margin on the scaling: both scale-free
     for rtol in (1e-2, 1e-5, 1e-9):
         t = _bicgstab(system, np.ones(n), rtol, KRYLOV_MAX_ITER)
         if t is None:
@@ -646,7 +652,7 @@ def _unknown_value(
                 # rounding of the dot product and of each b_s (a row's sum), both at most 1
                 longest = int(np.diff(rows.indptr).max(initial=0))
                 error = certified.functional_error() + (m + longest) * UNIT_ROUNDOFF
-                if error <= CERTIFIED_TOL:
+                if tolerance.exact_enough(error, value):  # relative: a 1e-10 value too
                     return Bounded(value, error)
     if solved is None or solve is None:
         lu = factorise(a)
@@ -760,7 +766,7 @@ def _time_bound_at(
     low = float((t - qt - gamma * (t + qt)).min(initial=np.inf))
     if not low > 0 or not np.isfinite(low):
         return np.inf
-    return float(t[k] / low * (1 + 1e-9))
+    return float(t[k] / low * (1 + 1e-9))  # a relative margin: scale-free
 
 
 def reach_probabilities(
@@ -920,7 +926,10 @@ def _occupation_measure(
                 rounding = a.shape[0] * UNIT_ROUNDOFF  # of summing x_s P(s, t), at most 1
                 error = certified.functional_error() + rounding
                 scale = np.maximum(1.0, np.abs(certified.x))
-                if error <= CERTIFIED_TOL and (certified.state_error() <= VISITS_TOL * scale).all():
+                # absorption probabilities out of a start of mass 1: their scale is that mass
+                mass = float(np.abs(start).sum())
+                visits_ok = (certified.state_error() <= tolerance.CERTIFY * scale).all()
+                if tolerance.exact_enough(error, mass) and visits_ok:
                     return certified.x, error, True
     if solved is None or solve is None:
         lu = factorise(a)

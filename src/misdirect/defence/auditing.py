@@ -30,7 +30,7 @@ from misdirect.defence.online import online_attack_value
 from misdirect.defence.results import AuditResult, OnlineAttack, SensorAudit
 from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
-from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.run import SolveResult, clamp_budget, default_budgets, recertify, solve
 from misdirect.solvers.status import Status
@@ -124,8 +124,9 @@ def audit(
         optimum = attack_of(curve_result.curve[-1], problem)
         rows = _sensor_rows(problem, budget, optimum, singles, clock, method, baseline, pool)
     notes = _not_certified(optimum, curve_result, budget)
-    # the budgeted online MDP (one layer per budget unit) only within the time limit
-    online, note = _online_value(problem, None if clock.expired() else asked, optimum)
+    online, note = _online_value(problem, asked, optimum, clock)
+    if online is None:
+        notes.append("the online attacker's value is not computed: the time limit was reached")
     certified = optimum.certified and all(r.exact for r in rows)
     top = curve_result.curve[-1]
     return AuditResult(
@@ -325,18 +326,26 @@ def _criticality(optimum: Attack, protected: Attack | None) -> tuple[float, floa
 
 
 def _online_value(
-    problem: Problem, budget: float | None, optimum: Attack
-) -> tuple[OnlineAttack, str | None]:
-    """The online attacker's value, budgeted within ``budget`` when it can be computed (else
-    unlimited only, with the reason), checked against the offline optimum it must bound."""
+    problem: Problem, budget: float, optimum: Attack, clock: Deadline
+) -> tuple[OnlineAttack | None, str | None]:
+    """The online attacker's value within the audit's time, budgeted within ``budget`` when
+    it can be computed (else unlimited only, with the reason), checked against the offline
+    optimum it must bound; None (with the reason) when even the unlimited value was cut."""
+    expired = "not computed: the time limit was reached"
+    if clock.expired():
+        return None, expired
     note = None
     try:
-        if budget is None:
-            raise ProblemError("not computed: the time limit was reached", field="budget")
-        online = online_attack_value(problem, budget)  # pays per reading: never clamped
-    except ProblemError as error:
-        note = error.reason
-        online = online_attack_value(problem, None)
+        try:  # the budgeted MDP (one layer per budget unit) is the first to go
+            online = online_attack_value(problem, budget, deadline=clock)  # never clamped
+        except ProblemError as error:
+            note = error.reason
+            online = online_attack_value(problem, None, deadline=clock)
+        except DeadlineExpiredError:
+            note = expired
+            online = online_attack_value(problem, None, deadline=clock)
+    except DeadlineExpiredError:
+        return None, expired
     # the online attacker sees more than the offline one: below it would contradict a theorem
     if tolerance.better(optimum.value, online.unlimited_probability, rel=tolerance.CERTIFY):
         raise SolverError(

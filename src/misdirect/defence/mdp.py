@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from misdirect.core.choice_product import ChoiceProduct
+from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.policy_iteration import MaxReachability
 
 MAX_POLICY_ROUNDS = 100_000
@@ -24,6 +25,7 @@ def max_reach(
     *,
     blocks: np.ndarray | None = None,
     value: np.ndarray | None = None,
+    deadline: Deadline | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Maximal reachability of ``target`` in an MDP given by its choices (with ``value``, a
     score per target state: the maximal expected score of the first target state entered).
@@ -32,10 +34,13 @@ def max_reach(
     Policy iteration from the least fixed point, the same as the relaxations'
     (:class:`misdirect.solvers.engines.policy_iteration.MaxReachability`, whose docstring
     gives the correctness argument; docs/defence.md). Returns ``(values, policy,
-    evaluations)``.
+    evaluations)``; raises :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once
+    ``deadline`` has passed (checked before every round).
     """
     mdp = MaxReachability(owner, transitions, target, blocks=blocks, value=value)
-    values, policy = mdp.optimise(mdp.first_choices(), max_rounds=MAX_POLICY_ROUNDS)
+    values, policy = mdp.optimise(
+        mdp.first_choices(), max_rounds=MAX_POLICY_ROUNDS, deadline=deadline
+    )
     return values, policy, mdp.evaluations
 
 

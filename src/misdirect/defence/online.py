@@ -12,41 +12,40 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterable
-from fractions import Fraction
 
 import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.attack import prepare
+from misdirect.core.checkpoint import interruptible
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import Problem
 from misdirect.defence.mdp import budgeted_mdp, max_reach
 from misdirect.defence.results import OnlineAttack
 from misdirect.errors import ProblemError
+from misdirect.solvers.deadline import Deadline
 
 MAX_BUDGET_LEVELS = 100_000  # budgeted online MDP: at most this many remaining-budget levels
 MAX_BUDGETED_STATES = 20_000_000
-UNIT_DENOMINATOR = 1_000_000  # a cost unit is a fraction with at most this denominator
 
 
 def cost_unit(costs: Iterable[float]) -> float | None:
-    """The largest unit every cost is a whole multiple of (exactly, as fractions), or None."""
-    fractions = []
-    for cost in {float(c) for c in costs if np.isfinite(c) and c > 0}:
-        fraction = Fraction(cost).limit_denominator(UNIT_DENOMINATOR)
-        if float(fraction) != cost:
-            return None
-        fractions.append(fraction)
-    if not fractions:
-        return 1.0
-    denominator = math.lcm(*(f.denominator for f in fractions))
-    numerator = math.gcd(*(f.numerator * (denominator // f.denominator) for f in fractions))
-    return float(Fraction(numerator, denominator))
+    """The largest unit every cost is a whole multiple of, or None: the step of the costs as
+    written (0.1 and 0.25: 0.05; 1e-10: 1e-10, at any scale), else of their float values (a
+    power of two); None where neither adds exactly (:class:`misdirect.core.tolerance.CostScale`).
+    """
+    scale = tolerance.CostScale.of(costs, terms=1)
+    return None if scale.kind == "rounded" else float(scale.step)
 
 
-def online_attack_value(problem: Problem, budget: float | None = None) -> OnlineAttack:
+def online_attack_value(
+    problem: Problem, budget: float | None = None, *, deadline: Deadline | None = None
+) -> OnlineAttack:
     """Value of the online attacker (docs/defence.md); ``budget``: costs paid per altered
     reading along the run, against ``budget``; None: every allowed target at any cost.
+    ``deadline``: checked between the choice product's stages and before every policy
+    round; once it has passed, :class:`~misdirect.solvers.deadline.DeadlineExpiredError`
+    (a value cut short proves nothing, so there is no partial one).
 
     The unlimited value bounds the offline optimum at every budget from above (an
     alteration is one of the online attacker's strategies). The budgeted value is a different
@@ -56,19 +55,22 @@ def online_attack_value(problem: Problem, budget: float | None = None) -> Online
     started = time.perf_counter()
     if budget is not None and not (math.isfinite(budget) and budget >= 0):
         raise ProblemError(f"must be a non-negative number, got {budget}", field="budget")
-    chain = prepare(problem, math.inf).chain
+    check = None if deadline is None else deadline.check
+    with interruptible(check):
+        chain = prepare(problem, math.inf).chain
     values, _, evaluations = max_reach(
         chain.group_state,
         chain.transitions,
         chain.target,
         blocks=chain.node,
         value=chain.target_value,
+        deadline=deadline,
     )
     unlimited = float(values[chain.initial])
     budgeted = unit = None
     mdp_states = chain.n_states
     if budget is not None:
-        budgeted, unit, b_evaluations, mdp_states = _budgeted_value(chain, budget)
+        budgeted, unit, b_evaluations, mdp_states = _budgeted_value(chain, budget, deadline)
         evaluations += b_evaluations
     return OnlineAttack(
         probability=unlimited if budgeted is None else budgeted,
@@ -83,7 +85,9 @@ def online_attack_value(problem: Problem, budget: float | None = None) -> Online
     )
 
 
-def _budgeted_value(chain: ChoiceProduct, budget: float) -> tuple[float, float, int, int]:
+def _budgeted_value(
+    chain: ChoiceProduct, budget: float, deadline: Deadline | None = None
+) -> tuple[float, float, int, int]:
     """The online attacker paying per altered reading within ``budget``: the optimum of the
     MDP whose states carry the remaining budget in whole cost units. Returns ``(value, unit,
     policy evaluations, MDP states)``."""
@@ -103,7 +107,7 @@ def _budgeted_value(chain: ChoiceProduct, budget: float) -> tuple[float, float, 
         )
     owner, matrix, target, initial = budgeted_mdp(chain, _group_units(chain, unit), levels)
     values, _, evaluations = max_reach(
-        owner, matrix, target, value=np.tile(chain.target_value, levels)
+        owner, matrix, target, value=np.tile(chain.target_value, levels), deadline=deadline
     )
     return float(values[initial]), unit, evaluations, target.size
 

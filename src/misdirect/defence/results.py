@@ -111,11 +111,11 @@ class AuditResult:
         Per alterable sensor: its criticality (how much protecting it lowers the optimum at
         ``B``; exactly 0 for a sensor the optimal attack leaves alone), the optimum with it
         protected, and its single-sensor value. :meth:`to_dataframe` tabulates them.
-    online : OnlineAttack
+    online : OnlineAttack or None
         The online attacker's value (sees the state and the controller's memory): an upper
-        bound of the offline optimum.
+        bound of the offline optimum; None when the time limit cut it (not computed).
     online_budgeted_note : str or None
-        Why the budgeted online value is missing, if it is.
+        Why the budgeted online value (or the whole online value) is missing, if it is.
     certified : bool
         The optimum at ``B`` and every criticality are proven.
     notes : list of str
@@ -133,8 +133,8 @@ class AuditResult:
     upper_bound: float | None  # proven bound on the optimum at ``budget``, if any
     alteration: dict[str, str]  # the attacker's best alteration found at ``budget``
     sensors: list[SensorAudit]
-    online: OnlineAttack  # budgeted within ``budget`` if possible, else unlimited only
-    online_budgeted_note: str | None  # why the budgeted online value is missing, if it is
+    online: OnlineAttack | None  # budgeted within ``budget`` if possible; None: cut by time
+    online_budgeted_note: str | None  # why the budgeted (or any) online value is missing
     certified: bool  # the optimum at B and every criticality are exact
     notes: list[str]  # what is not proven, and the solver's warnings
     time_s: float
@@ -208,7 +208,9 @@ class AuditResult:
             "certified": self.certified,
             "curve": [point.to_dict() for point in self.curve],
             "sensors": [sensor.to_dict() for sensor in self.sensors],
-            "online": {
+            "online": None
+            if self.online is None
+            else {
                 **self.online.to_dict(),
                 "budgeted_note": self.online_budgeted_note,
                 "upper_bounds_offline": not tolerance.better(

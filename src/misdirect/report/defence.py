@@ -106,12 +106,13 @@ def curve_figure(result: AuditResult):
             color="C3",
             label="not certified: up to the proven bound",
         )
-    ax.axhline(
-        result.online.unlimited_probability,
-        color="C2",
-        linestyle="--",
-        label="online attacker, unlimited (upper bound)",
-    )
+    if result.online is not None:
+        ax.axhline(
+            result.online.unlimited_probability,
+            color="C2",
+            linestyle="--",
+            label="online attacker, unlimited (upper bound)",
+        )
     ax.axhline(result.baseline_probability, color="0.5", linestyle=":", label="no attack")
     ax.set_xlabel("attacker's budget")
     ax.set_ylabel(result.objective_label)
@@ -144,7 +145,7 @@ def sensors_figure(result: AuditResult):
     low = np.array([s.criticality for s in rows])
     high = np.array([s.criticality_upper for s in rows])
     left.barh(y, low, color="C3", label="criticality")
-    if np.any(high - low > 1e-9):
+    if not all(s.exact for s in rows):  # proven, relative to the values (core.tolerance)
         left.barh(y, high - low, left=low, color="C3", alpha=0.3, label="up to (not certified)")
     left.set_xlabel("drop of the optimum at B when protected")
     left.set_yticks(y, names, fontsize=9)
@@ -320,18 +321,23 @@ def report_text(result: AuditResult) -> str:
         "An attacker who sees the true state and the controller's memory and may alter every "
         "reading differently at every step (docs/defence.md).",
         "",
-        f"* unlimited (every allowed target, any cost): **{online.unlimited_probability:.9f}** "
-        f"— an upper bound of the offline optimum at every budget (offline at B: "
-        f"{result.probability:.9f});",
     ]
-    if online.budgeted_probability is not None:
-        lines.append(
-            f"* paying for every altered reading against B = {result.budget:g} "
-            f"(cost unit {online.cost_unit:g}): **{online.budgeted_probability:.9f}** — a "
-            "different threat, not a bound of the offline optimum either way."
-        )
+    if online is None:
+        lines.append(f"* not computed ({result.online_budgeted_note}).")
     else:
-        lines.append(f"* budgeted variant not computed: {result.online_budgeted_note}")
+        lines.append(
+            "* unlimited (every allowed target, any cost): "
+            f"**{online.unlimited_probability:.9f}** — an upper bound of the offline optimum "
+            f"at every budget (offline at B: {result.probability:.9f});"
+        )
+        if online.budgeted_probability is not None:
+            lines.append(
+                f"* paying for every altered reading against B = {result.budget:g} "
+                f"(cost unit {online.cost_unit:g}): **{online.budgeted_probability:.9f}** — "
+                "a different threat, not a bound of the offline optimum either way."
+            )
+        else:
+            lines.append(f"* budgeted variant not computed: {result.online_budgeted_note}")
     if result.notes:
         lines += ["", "## Notes", ""] + [f"* {note}" for note in result.notes]
     lines += [
@@ -391,7 +397,8 @@ def tradeoff_figure(result: HardenResult):
         ax.annotate(text, (d, v), textcoords="offset points", xytext=(4, 6), fontsize=9)
     ax.set_xlabel("protection budget D", fontsize=10)
     ax.set_ylabel(f"attacker's optimum at B = {result.budget:g}", fontsize=10)
-    ax.set_ylim(0, 1.05 * max(1e-9, float(values.max(initial=0)), result.value_before))
+    top = max(float(values.max(initial=0)), result.value_before)
+    ax.set_ylim(0, 1.05 * top if top > 0 else 1.0)  # values of any scale, 1e-12 included
     ax.tick_params(labelsize=9)
     ax.set_title(f"{result.problem}: protection against the attacker", fontsize=10)
     from matplotlib.ticker import MaxNLocator

@@ -57,6 +57,11 @@ from misdirect.scenarios.grid import ACTIONS, MOVES, grid_transitions
 MAX_COVERED = 0.6  # share of the cells that sensors may cover
 MAX_SIZE = 1_000  # the grid side the generator accepts
 MAX_MEMORY = 64
+# A generated decoy is one the robot reaches at least this often without attack. Absolute on
+# purpose: the generator's own probabilities (slips of 0.1 on a grid) have scale 1, this only
+# excludes cells the robot practically never reaches, and a new number would change the
+# problem every seed generates.
+MIN_DECOY_PROBABILITY = 1e-12
 
 
 def sensor_grid(
@@ -140,7 +145,7 @@ def sensor_grid(
     for cell in rng.permutation(candidates)[:200]:
         problem = problem_with_decoy(int(cell))
         value = decoy_probability(problem, problem.identity())
-        if 1e-12 < value < 0.5:
+        if MIN_DECOY_PROBABILITY < value < 0.5:
             if goal == "inside" and not _always_absorbed(problem):
                 raise OptionError(  # the edge sensors should rule this out (module docstring)
                     f"without attack the robot can wander forever for seed {seed}; "

@@ -18,12 +18,13 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
+from misdirect.core.checkpoint import interruptible
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
 from misdirect.core.tables import dataframe, short_float
 from misdirect.errors import ProblemError
 from misdirect.solvers import get_solver
-from misdirect.solvers.base import ProgressCallback
+from misdirect.solvers.base import ProgressCallback, Solution
 from misdirect.solvers.certification import (
     CurvePoint,
     Evidence,
@@ -33,7 +34,7 @@ from misdirect.solvers.certification import (
     exact_scope,
     take_evidence,
 )
-from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import MethodStats, NoStats
@@ -393,9 +394,21 @@ def solve(
         deadline = Deadline(options.time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
     started = time.perf_counter()
     exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
-    # the stages of this call share each prepared instance, and the exact values
-    with shared_preparation(), exact_scope(exact_value):
-        solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
+    # the stages of this call share each prepared instance, and the exact values; building
+    # the choice product stops at the deadline too (core.checkpoint)
+    try:
+        with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
+            solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
+    except DeadlineExpiredError:  # cut before the method had anything: the unaltered chain
+        solutions = [
+            Solution(
+                budget=b,
+                alteration=problem.identity(),
+                solver_probability=None,
+                status=Status.TIME_LIMIT,
+            )
+            for b in clamped
+        ]
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started
     if clamped_from is not None:
