@@ -776,6 +776,15 @@ class Problem:
         emitting = np.unique(pomdp.observation_of[reached & ~stop])
         return cast(np.ndarray, emitting[emitting != pomdp.initial_observation])
 
+    def cheapest_alteration_cost(self) -> float:
+        """The least any alteration costs (``inf``: none is allowed): below it, "alter
+        nothing" is the only answer, which needs no search (nor the choice product)."""
+        costs = [
+            float(np.delete(self.cost.row(int(o)), int(o)).min(initial=np.inf))
+            for o in self.relevant_observations.tolist()
+        ]
+        return min(costs, default=float("inf"))
+
 
 def format_alteration(changes: Mapping[str, str]) -> str:
     """``{"o1": "o3"}`` as ``o1 → o3`` (``none`` when nothing changes), for tables and logs."""

@@ -399,13 +399,25 @@ def solve(
     try:
         with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
             solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
-    except DeadlineExpiredError:  # cut before the method had anything: the unaltered chain
+    except DeadlineExpiredError:  # cut before the method had anything: the unaltered chain,
+        # proven where no alteration fits the budget (then it is all there is)
+        cheapest = problem.cheapest_alteration_cost()
+        unaltered_value = exact_value(problem.identity())
         solutions = [
             Solution(
                 budget=b,
                 alteration=problem.identity(),
+                solver_probability=unaltered_value,
+                status=Status.OPTIMAL,
+                upper_bound=unaltered_value,
+            )
+            if not problem.cost.scale.fits(cheapest, b)
+            else Solution(
+                budget=b,
+                alteration=problem.identity(),
                 solver_probability=None,
                 status=Status.TIME_LIMIT,
+                upper_bound=problem.objective.max_value,  # nothing proven: the trivial bound
             )
             for b in clamped
         ]
