@@ -153,6 +153,7 @@ def test_evaluate_random_models_against_dense(monkeypatch):
         assert set(every) == {
             pomdp.states[s] for s in np.flatnonzero(problem.decoy | pomdp.absorbing)
         }
+
         def listed(document: dict) -> dict:
             return {o["state"]: o["probability"] for o in document["outcomes"] if o["state"]}
 

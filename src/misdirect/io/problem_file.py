@@ -636,14 +636,6 @@ class _Names:
     actions: tuple[str, ...]
     observations: tuple[str, ...]
 
-    @property
-    def n_states(self) -> int:
-        return len(self.states)
-
-    @property
-    def n_observations(self) -> int:
-        return len(self.observations)
-
 
 def _index(names: list[str], field: str) -> dict[str, int]:
     index: dict[str, int] = {}
@@ -704,7 +696,7 @@ def _weighted_decoy(
         if not given:
             states = _named_set(name, pomdp, labels, state_index, field)
         elif entry.states is not None:
-            states = np.zeros(pomdp.n_states, dtype=bool)
+            states = np.zeros(len(pomdp.states), dtype=bool)
             for i, state in enumerate(entry.states):
                 states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
         else:  # one set by label or expression, checked as the unweighted forms are
@@ -737,7 +729,7 @@ def _named_set(
             raise ProblemError(f"no state carries label {name!r}", field=field)
         return states
     if name in state_index:
-        states = np.zeros(pomdp.n_states, dtype=bool)
+        states = np.zeros(len(pomdp.states), dtype=bool)
         states[state_index[name]] = True
         return states
     known = ", ".join(sorted(labels)) or "none (explicit models have no labels)"
@@ -774,7 +766,7 @@ def _compile_decoy(
             raise ProblemError(f"no state carries label {spec.label!r}", field="deception.decoy")
         return decoy
     state_index = {name: i for i, name in enumerate(pomdp.states)}
-    decoy = np.zeros(pomdp.n_states, dtype=bool)
+    decoy = np.zeros(len(pomdp.states), dtype=bool)
     found = _Found()
     for i, name in enumerate(spec):
         with found.check():
@@ -1035,7 +1027,8 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp | _Names) -> Controll
         initial = _lookup(nodes, spec.initial, "node", "controller.initial")
     actions = {name: i for i, name in enumerate(pomdp.actions)}
     observations = {name: i for i, name in enumerate(pomdp.observations)}
-    shape = (len(nodes), pomdp.n_observations)
+    n_observations = len(pomdp.observations)
+    shape = (len(nodes), n_observations)
     check_memory(  # two dense tables, and the product chain needs |S|·|N| states on top
         16.0 * shape[0] * shape[1],
         f"a controller table of {shape[0]:,} nodes x {shape[1]:,} observations",
@@ -1079,9 +1072,9 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp | _Names) -> Controll
     return Controller.from_entries(
         nodes=tuple(spec.nodes),
         initial_node=initial,
-        n_observations=pomdp.n_observations,
-        node=cell_index // pomdp.n_observations,
-        observation=cell_index % pomdp.n_observations,
+        n_observations=n_observations,
+        node=cell_index // n_observations,
+        observation=cell_index % n_observations,
         action=flat[at, 0].astype(np.int64),
         next_node=flat[at, 1].astype(np.int64),
         probability=flat[at, 2],
