@@ -866,22 +866,21 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
                 )
             else:
                 decoy = _compile_decoy(spec.deception.decoy, known, labels, condition)
-    obs_index = {name: i for i, name in enumerate(known.observations)}
-    with found.check():
-        cost = _compile_cost(spec.deception.cost, obs_index)
     if isinstance(spec.controller, ControllerSpec):
         with found.check():
             controller = _compile_controller(spec.controller, known)
+    elif pomdp is not None:  # PAYNT's controller is matched to the model itself
+        paynt_file = _resolve(spec.controller.paynt, base)
+        with found.check():
+            if paynt_file.exists():
+                check_input_file(paynt_file, field="controller.paynt")
+            paynt = read_paynt_controller(paynt_file, pomdp, aliases=aliases, view=paynt_view)
+            controller, never = paynt.controller, paynt.never_read
+    obs_index = {name: i for i, name in enumerate(known.observations)}
+    with found.check():
+        cost = _compile_cost(spec.deception.cost, obs_index)
     found.raise_any()
     assert pomdp is not None  # no problem found: the model compiled
-    if isinstance(spec.controller, PayntControllerSpec):
-        paynt_file = _resolve(spec.controller.paynt, base)
-        if paynt_file.exists():
-            check_input_file(paynt_file, field="controller.paynt")
-        paynt = read_paynt_controller(
-            _resolve(spec.controller.paynt, base), pomdp, aliases=aliases, view=paynt_view
-        )
-        controller, never = paynt.controller, paynt.never_read
     if never.size:  # no state may be made to read an observation the controller never meets
         cost = forbid_targets(cost, never)
     if enabled is not None:
