@@ -517,7 +517,7 @@ def test_audit_proves_budget_one_by_the_single_sensor_optima(no_proof):
     assert one.probability == pytest.approx(expected, abs=1e-12)
     assert one.upper_bound - one.probability <= 1e-9
     assert one.certified_by == "single-sensor optima"
-    assert "one sensor at most" in one.to_dict()["stats"]["bound_from"]
+    assert "one sensor at most" in one.to_dict()["certification"]["bound_from"]
     assert all(row.single_status == "optimal" for row in result.sensors)
     assert max(row.single_probability for row in result.sensors) == pytest.approx(expected)
     assert zero.status == "optimal" and zero.alteration == {}

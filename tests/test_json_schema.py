@@ -6,6 +6,7 @@ paper's 5x5 grid optima (SPEC §3, also checked in test_paper_values)."""
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import json
 import re
@@ -16,8 +17,10 @@ import pytest
 from jsonschema import Draft202012Validator
 from typer.testing import CliRunner
 
+import misdirect
 from misdirect.cli import app
 from misdirect.report.json_output import SCHEMA, SCHEMA_FILE, result_schema
+from misdirect.scenarios import paper_grid
 from result_schema import VALIDATOR, checked
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -204,6 +207,52 @@ def test_audit_and_harden_use_solve_names(tmp_path):
     protected = run("harden", *grid, "--protect-budget", "1")
     assert protected["value"] < harden["value"]
     assert not set(protected["alteration"]) & set(protected["protection"])
+
+
+# -- the library writes the same names -----------------------------------------------------------
+
+
+def _without_runtime(document: dict) -> dict:
+    """A document's fields that do not depend on the run's timing or files written."""
+    timing = {"time_s", "written", "schema", "command"}
+    return {k: v for k, v in document.items() if k not in timing}
+
+
+def test_library_to_dict_follows_the_result_schema():
+    """Each result type's to_dict() is its command's JSON, field for field: it validates
+    against that part of the schema, and the values are the CLI's for the same question
+    (the grid's optimum at B = 1 from SPEC §3)."""
+    problem = paper_grid(5)
+    solved = misdirect.solve(problem, budgets=[0, 1])
+    baseline = misdirect.evaluate(problem).probability
+    evaluated = misdirect.evaluate(problem, problem.alteration({"o1": "o2"}))
+    audited = misdirect.audit(problem, budget=1)
+    hardened = misdirect.harden(problem, protect_budget=1, budget=1)
+    library = {
+        "solve": solved.to_dict(),
+        "evaluate": dataclasses.replace(evaluated, baseline_value=baseline).to_dict(),
+        "audit": audited.to_dict(),
+        "harden": hardened.to_dict(),
+    }
+    for command, fields in library.items():
+        checked(json.dumps({"schema": SCHEMA, "command": command, "written": [], **fields}))
+    for command in ("solve", "evaluate", "audit"):  # harden's value is under protection
+        assert library[command]["value"] == pytest.approx(GRID[1], abs=5e-7)
+    point = Draft202012Validator({"$ref": "#/$defs/point", "$defs": result_schema()["$defs"]})
+    for budget_point in solved.curve:
+        assert not list(point.iter_errors(budget_point.to_dict()))
+    assert [p["value"] for p in library["solve"]["curve"]] == pytest.approx(GRID[:2], abs=5e-7)
+    # the CLI prints the library's fields: the same keys, and the same values but for timing
+    grid = ("--scenario", "paper-grid")
+    cli = {
+        "solve": run("solve", *grid, "--budget", "1"),
+        "audit": run("audit", *grid, "--budget", "1"),
+        "harden": run("harden", *grid, "--budget", "1", "--protect-budget", "1"),
+    }
+    for command, document in cli.items():
+        ours = _without_runtime(library[command])
+        assert set(_without_runtime(document)) == set(ours), command
+        assert document["value"] == ours["value"] and document["alteration"] == ours["alteration"]
 
 
 def test_errors_name_their_command(tmp_path):

@@ -187,7 +187,8 @@ def test_certified_by_names_a_single_method_that_proved_its_point(method: str):
     result = misdirect.solve(paper_grid(5), budgets=range(3), method=method)
     assert [p.status for p in result.curve] == ["optimal"] * 3
     assert [p.certified_by for p in result.curve] == [method] * 3
-    assert result.to_dict()["stats"]["certified_by"] == method
+    assert result.to_dict()["certified_by"] == method
+    assert [p["certified_by"] for p in result.to_dict()["curve"]] == [method] * 3
 
 
 def test_certified_by_stays_empty_when_not_proven():
@@ -206,7 +207,7 @@ def test_to_dataframe_tabulates_the_curve():
     frame = result.to_dataframe()
     assert list(frame["budget"]) == [0.0, 1.0, 2.0]
     assert list(frame["status"]) == ["optimal"] * 3
-    assert frame["probability"].round(3).tolist() == [0.085, 0.72, 0.86]
+    assert frame["value"].round(3).tolist() == [0.085, 0.72, 0.86]
     assert frame["alteration"].iloc[0] == "none"
 
 

@@ -206,6 +206,49 @@ def test_every_schema_problem_is_reported(tmp_path):
     assert len(json.loads(result.stdout)["error"]["problems"]) == 3
 
 
+def test_every_semantic_problem_is_reported(tmp_path):
+    """Three independent mistakes found after the schema stage (a row summing to 0.9, a rule
+    on an observation no state emits, a protected observation that does not exist): each is
+    reported with file and field, in the terminal and in the --json error document."""
+    document = _chain([0.5, 0.4])
+    document["controller"]["rules"].insert(
+        0, {"node": "n", "obs": "o9", "action": "a", "next": "n"}
+    )
+    document["deception"]["cost"] = {"protected": ["o1", "oX"]}
+    path = _write(tmp_path, document)
+    expected = {
+        "pomdp.transitions": "probabilities of ('s0', 'a') sum to 0.9, not 1",
+        "controller.rules[0]": "unknown observation 'o9'",
+        "deception.cost.protected[1]": "unknown observation 'oX'",
+    }
+    with pytest.raises(ProblemsError) as caught:
+        load_problem(path)
+    found = {problem.field: problem.reason for problem in caught.value.problems}
+    assert set(found) == set(expected) and caught.value.total == 3
+    assert all(found[field].startswith(reason) for field, reason in expected.items())
+    assert all(problem.source == str(path) for problem in caught.value.problems)
+    result = runner.invoke(app, ["solve", str(path)])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 3
+    for field, reason in expected.items():
+        assert any(f"{path}: {field}: {reason}" in line for line in lines), (field, lines)
+    result = runner.invoke(app, ["solve", str(path), "--json"])
+    assert result.exit_code == 2
+    problems = json.loads(result.stdout)["error"]["problems"]
+    assert sorted(p.split(": ")[1] for p in problems) == sorted(expected)
+
+
+def test_semantic_problems_beyond_the_limit_are_counted(tmp_path):
+    document = _chain([0.5, 0.5])
+    extra = MAX_REPORTED + 3
+    document["deception"]["cost"] = {"protected": [f"x{i}" for i in range(extra)]}
+    with pytest.raises(ProblemsError) as caught:
+        load_problem(_write(tmp_path, document))
+    assert caught.value.total == extra and len(caught.value.problems) == MAX_REPORTED
+    assert caught.value.lines[-1] == "… and 3 more problems"
+
+
 def test_problems_beyond_the_limit_are_counted(tmp_path):
     document = _chain([0.5, 0.5])
     extra = MAX_REPORTED + 5

@@ -51,11 +51,13 @@ class ProblemsError(ProblemError):
         super().__init__(first.reason, source=first.source, field=first.field)
 
     @classmethod
-    def of(cls, problems: list[ProblemError]) -> ProblemError:
-        """One error for ``problems`` (at least one): itself when there is just one."""
-        if len(problems) == 1:
+    def of(cls, problems: list[ProblemError], total: int | None = None) -> ProblemError:
+        """One error for ``problems`` (at least one): itself when there is just one.
+        ``total``: how many were found, when only some of them were kept."""
+        total = len(problems) if total is None else total
+        if total == 1:
             return problems[0]
-        return cls(problems[:MAX_REPORTED], len(problems))
+        return cls(problems[:MAX_REPORTED], total)
 
     @property
     def lines(self) -> list[str]:

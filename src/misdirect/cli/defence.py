@@ -203,7 +203,7 @@ def harden(
 
         written = [str(p) for p in write_harden_report(result, output)]
     if as_json:
-        print_json(json_output.harden(result, objective=problem.objective.kind, written=written))
+        print_json(json_output.harden(result, written=written))
     else:
         _print_harden(result)
         if output is not None:

@@ -76,7 +76,7 @@ def evaluate(source: ProblemSource, alter: AlterOption = None, as_json: JsonOpti
         else decoy_probability(problem, problem.identity())
     )
     if as_json:
-        print_json(json_output.evaluation(problem, result, baseline))
+        print_json(json_output.evaluation(result, baseline))
     else:
         _print_evaluation(result, baseline, problem)
         _print_notes(result.notes)

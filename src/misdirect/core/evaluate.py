@@ -115,6 +115,11 @@ class Evaluation:
     objective: str = "probability"  # or "expected_decoy_weight"
     warnings: tuple[str, ...] = ()  # the problem's (see Problem.warnings)
     notes: tuple[str, ...] = ()  # the problem's (see Problem.notes)
+    problem: str = ""  # the problem's name
+    budget: float = 0.0  # the problem's budget (``within_budget`` is about it)
+    decoy_states: frozenset[str] = frozenset()  # the decoy states: outcomes of kind decoy
+    # the value with no alteration, when it was computed (``evaluate --json`` does)
+    baseline_value: float | None = None
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -123,21 +128,40 @@ class Evaluation:
         names = [self.state_names[s] for s in self.terminal_states]
         return dict(zip(names, values, strict=True))
 
+    def outcome_list(self, *, all_outcomes: bool = False) -> list[dict[str, Any]]:
+        """:attr:`outcomes` (or :attr:`all_outcomes`) as the JSON lists them: ``kind``
+        (decoy, or goal for another absorbing state), ``state`` and ``probability``; the
+        runs never absorbed, if any, as kind ``trapped`` with no state."""
+        ends = self.all_outcomes if all_outcomes else self.outcomes
+        listed: list[dict[str, Any]] = [
+            {"kind": "decoy" if s in self.decoy_states else "goal", "state": s, "probability": p}
+            for s, p in ends.items()
+        ]
+        if self.never_absorbed > 0:
+            listed.append({"kind": "trapped", "state": None, "probability": self.never_absorbed})
+        return listed
+
     def to_dict(self, *, all_outcomes: bool = False) -> dict[str, Any]:
-        """JSON-ready report; ``all_outcomes`` lists zero-probability terminal states too."""
+        """The evaluation as ``evaluate --json`` writes it (``misdirect-result/1``, the
+        fields of ``$defs/evaluate``, ``warnings`` and ``notes``): the exact value is
+        ``value``, ``outcomes`` a list (:meth:`outcome_list`); ``all_outcomes`` lists
+        zero-probability terminal states too. ``baseline_value`` is null unless it was
+        computed."""
         return {
+            "problem": self.problem,
             "objective": self.objective,
-            "probability": self.probability,
+            "value": self.probability,
             "alteration": self.alteration,
             "cost": self.cost,
+            "budget": self.budget,
             "within_budget": self.within_budget,
-            "outcomes": self.all_outcomes if all_outcomes else self.outcomes,
-            "never_absorbed": self.never_absorbed,
+            "baseline_value": self.baseline_value,
             "error_bound": self.error_bound,
+            "outcomes": self.outcome_list(all_outcomes=all_outcomes),
+            **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
             "product_states": self.product_states,
             "product_transitions": self.product_transitions,
             "time_s": self.time_s,
-            **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
             "warnings": list(self.warnings),
             "notes": list(self.notes),
         }
@@ -230,4 +254,7 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
         objective=objective.kind,
         warnings=problem.warnings,
         notes=problem.notes,
+        problem=problem.name,
+        budget=problem.budget,
+        decoy_states=frozenset(names[s] for s in np.flatnonzero(objective.target)),
     )

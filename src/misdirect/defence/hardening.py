@@ -252,6 +252,7 @@ def harden(
         budget_clamped_to=None if clamped_from is None else budget,
         protect_budget_clamped_from=d_clamped_from,
         protect_budget_clamped_to=None if d_clamped_from is None else d_cap,
+        objective=problem.objective.kind,
     )
 
 

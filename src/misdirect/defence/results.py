@@ -14,7 +14,7 @@ from misdirect.core import tolerance
 from misdirect.core.model import format_alteration
 from misdirect.core.objective import LABELS
 from misdirect.core.tables import dataframe, short_float
-from misdirect.solvers.run import BudgetResult
+from misdirect.solvers.run import BudgetResult, curve_fields
 from misdirect.solvers.status import Status
 
 
@@ -33,11 +33,13 @@ class OnlineAttack:
     time_s: float
 
     def to_dict(self) -> dict[str, Any]:
+        """As the audit's JSON ``online`` object writes it (values named ``value``); the
+        audit adds ``budgeted_note`` and ``upper_bounds_offline``."""
         return {
-            "probability": self.probability,
-            "unlimited_probability": self.unlimited_probability,
+            "value": self.probability,
+            "unlimited_value": self.unlimited_probability,
             "budget": self.budget,
-            "budgeted_probability": self.budgeted_probability,
+            "budgeted_value": self.budgeted_probability,
             "cost_unit": self.cost_unit,
             "product_states": self.product_states,
             "mdp_states": self.mdp_states,
@@ -66,16 +68,17 @@ class SensorAudit:
         return tolerance.proven(self.criticality, self.criticality_upper)
 
     def to_dict(self) -> dict[str, Any]:
+        """As a row of the audit's JSON ``sensors`` (values named ``value``)."""
         return {
             "observation": self.observation,
-            "single_probability": self.single_probability,
+            "single_value": self.single_probability,
             "single_status": self.single_status,
             "single_alteration": self.single_alteration,
             "in_optimal_attack": self.in_optimal_attack,
             "criticality": self.criticality,
             "criticality_upper": self.criticality_upper,
             "criticality_exact": self.exact,
-            "protected_probability": self.protected_probability,
+            "protected_value": self.protected_probability,
             "protected_status": self.protected_status,
             "protected_alteration": self.protected_alteration,
         }
@@ -166,72 +169,51 @@ class AuditResult:
         ImportError
             pandas is not installed (it is optional: ``pip install pandas``).
         """
-        columns = [
-            "observation",
-            "criticality",
-            "criticality_upper",
-            "protected_probability",
-            "protected_status",
-            "single_probability",
-            "single_status",
-            "in_optimal_attack",
-            "protected_alteration",
-            "single_alteration",
-        ]
-        rows = [
-            {
-                "observation": row.observation,
-                "criticality": row.criticality,
-                "criticality_upper": row.criticality_upper,
-                "protected_probability": row.protected_probability,
-                "protected_status": row.protected_status,
-                "single_probability": row.single_probability,
-                "single_status": row.single_status,
-                "in_optimal_attack": row.in_optimal_attack,
-                "protected_alteration": format_alteration(row.protected_alteration),
-                "single_alteration": format_alteration(row.single_alteration),
-            }
-            for row in self.sensors
-        ]
-        return dataframe(rows, columns)
+        rows = [sensor.to_dict() for sensor in self.sensors]
+        for row in rows:
+            for name in ("single_alteration", "protected_alteration"):
+                row[name] = format_alteration(row[name])
+        return dataframe(rows, list(rows[0]) if rows else [])
 
     def to_dict(self) -> dict[str, Any]:
+        """The audit as ``audit --json`` writes it (``misdirect-result/1``, the fields of
+        ``$defs/audit``, ``warnings`` and ``notes``): values are named ``value``."""
+        points, stats = curve_fields(self.curve)
         return {
             "problem": self.problem,
             "objective": self.objective,
             "budget": self.budget,
-            "baseline_probability": self.baseline_probability,
+            **_clamps(self, "budget"),
             "status": self.status,
-            "probability": self.probability,
-            "upper_bound": self.upper_bound,
+            "value": self.probability,
             "alteration": self.alteration,
+            "upper_bound": self.upper_bound,
+            "baseline_value": self.baseline_probability,
             "certified": self.certified,
-            "curve": [point.to_dict() for point in self.curve],
+            "time_s": self.time_s,
+            "curve": points,
+            "stats": stats,
             "sensors": [sensor.to_dict() for sensor in self.sensors],
             "online": None
             if self.online is None
             else {
                 **self.online.to_dict(),
                 "budgeted_note": self.online_budgeted_note,
-                "upper_bounds_offline": not tolerance.better(
-                    self.probability, self.online.unlimited_probability, rel=tolerance.CERTIFY
-                ),
+                "upper_bounds_offline": self.online.unlimited_probability
+                >= self.probability - tolerance.CERTIFY,
             },
-            "notes": self.notes,
-            "time_s": self.time_s,
-            **_clamps(self),
+            "warnings": [],
+            "notes": list(self.notes),
         }
 
 
-def _clamps(result: AuditResult | HardenResult) -> dict[str, float]:
-    """The budgets clamped (asked, and worked at), as solve's JSON says them: only when so."""
-    fields = ("budget", "protect_budget")
-    return {
-        f"{name}_clamped_{end}": getattr(result, f"{name}_clamped_{end}")
-        for name in fields
-        if getattr(result, f"{name}_clamped_from", None) is not None
-        for end in ("from", "to")
-    }
+def _clamps(result: AuditResult | HardenResult, name: str) -> dict[str, float | None]:
+    """A budget clamped: the one asked (``_from``) and the one worked at (``_to``), both
+    null when it was not."""
+    return {f"{name}_clamped_{end}": getattr(result, f"{name}_clamped_{end}") for end in EDGES}
+
+
+EDGES = ("from", "to")
 
 
 @dataclass(frozen=True)
@@ -248,15 +230,17 @@ class HardenPoint:
     status: Status  # optimal when the min–max is proven, else time_limit / feasible
 
     def to_dict(self) -> dict[str, Any]:
+        """As a point of the harden JSON's ``curve``: the attacker's best reply is
+        ``value`` and ``alteration``, as in solve."""
         return {
             "protect_budget": self.protect_budget,
             "protection": self.protection,
             "protection_cost": self.protection_cost,
-            "probability": self.probability,
+            "status": str(self.status),
+            "value": self.probability,
+            "alteration": self.attack,
             "upper_bound": self.upper_bound,
             "lower_bound": self.lower_bound,
-            "attack": self.attack,
-            "status": self.status,
         }
 
 
@@ -329,6 +313,7 @@ class HardenResult:
     budget_clamped_to: float | None = None
     protect_budget_clamped_from: float | None = None
     protect_budget_clamped_to: float | None = None
+    objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
 
     def __repr__(self) -> str:
         return (
@@ -339,49 +324,45 @@ class HardenResult:
         )
 
     def to_dataframe(self) -> Any:
-        """The trade-off curve as a ``pandas.DataFrame``: one row per protection budget.
+        """The trade-off curve as a ``pandas.DataFrame``: one row per protection budget
+        (the columns of :meth:`HardenPoint.to_dict`, protections as ``o1, o2`` and
+        alterations as ``o1 → o2``).
 
         Raises
         ------
         ImportError
             pandas is not installed (it is optional: ``pip install pandas``).
         """
-        columns = ["protect_budget", "protection", "protection_cost", "probability"]
-        columns += ["upper_bound", "lower_bound", "attack", "status"]
-        rows = [
-            {
-                "protect_budget": point.protect_budget,
-                "protection": ", ".join(point.protection),
-                "protection_cost": point.protection_cost,
-                "probability": point.probability,
-                "upper_bound": point.upper_bound,
-                "lower_bound": point.lower_bound,
-                "attack": format_alteration(point.attack),
-                "status": str(point.status),
-            }
-            for point in self.curve
-        ]
-        return dataframe(rows, columns)
+        rows = [point.to_dict() for point in self.curve]
+        for row in rows:
+            row["protection"] = ", ".join(row["protection"])
+            row["alteration"] = format_alteration(row["alteration"])
+        return dataframe(rows, list(rows[0]) if rows else [])
 
     def to_dict(self) -> dict[str, Any]:
+        """The hardening as ``harden --json`` writes it (``misdirect-result/1``, the fields
+        of ``$defs/harden``, ``warnings`` and ``notes``): the attacker's best reply under the
+        protection is ``value`` and ``alteration``, the optimum with nothing protected
+        ``value_unprotected``."""
         return {
             "problem": self.problem,
+            "objective": self.objective,
             "budget": self.budget,
+            **_clamps(self, "budget"),
             "protect_budget": self.protect_budget,
+            **_clamps(self, "protect_budget"),
+            "protect_costs": self.protect_costs,
             "protection": self.protection,
             "protection_cost": self.protection_cost,
-            "value_before": self.value_before,
-            "value_after": self.value_after,
-            "value_after_upper": self.value_after_upper,
-            "lower_bound": self.lower_bound,
-            "best_reply": self.best_reply,
             "status": self.status,
-            "curve": [point.to_dict() for point in self.curve],
-            "protect_costs": self.protect_costs,
-            "solves": self.solves,
-            "nodes": self.nodes,
-            "pruned": self.pruned,
+            "value": self.value_after,
+            "alteration": self.best_reply,
+            "upper_bound": self.value_after_upper,
+            "lower_bound": self.lower_bound,
+            "value_unprotected": self.value_before,
             "time_s": self.time_s,
-            "notes": self.notes,
-            **_clamps(self),
+            "curve": [point.to_dict() for point in self.curve],
+            "stats": {"solves": self.solves, "nodes": self.nodes, "pruned": self.pruned},
+            "warnings": [],
+            "notes": list(self.notes),
         }

@@ -8,11 +8,12 @@ and produces the array model. Every failure is a :class:`ProblemError` naming fi
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from fractions import Fraction
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -35,7 +36,7 @@ from misdirect.core import tolerance
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
-from misdirect.errors import ProblemError, ProblemsError
+from misdirect.errors import MAX_REPORTED, ProblemError, ProblemsError
 from misdirect.io.export import with_exported_names
 from misdirect.io.files import (
     check_input_file,
@@ -593,6 +594,49 @@ def problem_from_dict(
         raise error.located(source) from None
 
 
+class _Found:
+    """The problems found while compiling, reported together: each independent part (a
+    transition, a rule, a cost entry, ...) is checked in its own :meth:`check` block, so one
+    mistake does not hide the others; :meth:`raise_any` then raises them all at once."""
+
+    def __init__(self) -> None:
+        self.problems: list[ProblemError] = []
+        self.total = 0
+
+    @contextlib.contextmanager
+    def check(self) -> Iterator[None]:
+        try:
+            yield
+        except ProblemsError as error:
+            self.problems.extend(error.problems)
+            self.total += error.total
+        except ProblemError as error:
+            self.add(error)
+
+    def add(self, error: ProblemError) -> None:
+        if len(self.problems) < MAX_REPORTED:
+            self.problems.append(error)
+        self.total += 1
+
+    def uncounted(self, more: int) -> None:
+        """``more`` further problems of a kind already shown, counted but not listed."""
+        self.total += max(more, 0)
+
+    def raise_any(self) -> None:
+        if self.total:
+            raise ProblemsError.of(self.problems, self.total)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Names:
+    """A world's names alone: enough to check the controller, the costs and the decoys of an
+    explicit model whose transitions have problems of their own."""
+
+    states: tuple[str, ...]
+    actions: tuple[str, ...]
+    observations: tuple[str, ...]
+
+
 def _index(names: list[str], field: str) -> dict[str, int]:
     index: dict[str, int] = {}
     for i, name in enumerate(names):
@@ -616,39 +660,16 @@ def _resolve(name: str, base: Path | None) -> Path:
 
 
 def _compile_weighted_decoys(
-    spec: dict[str, Any], pomdp: Pomdp, labels: dict[str, np.ndarray], condition=None
+    spec: dict[str, Any], pomdp: Pomdp | _Names, labels: dict[str, np.ndarray], condition=None
 ) -> tuple[np.ndarray, tuple[DecoySet, ...]]:
     """Named decoy sets with their weights; a bare name is a label, else a state."""
     state_index = {name: i for i, name in enumerate(pomdp.states)}
     sets = []
+    found = _Found()
     for name, entry in spec.items():
-        field = f"deception.decoy.{name}"
-        if isinstance(entry, WeightedDecoySpec):
-            given = [k for k in ("states", "label", "expression") if getattr(entry, k) is not None]
-            if len(given) > 1:
-                raise ProblemError(f"give one of {', '.join(given)}, not several", field=field)
-            weight = entry.weight
-            if not given:
-                states = _named_set(name, pomdp, labels, state_index, field)
-            elif entry.states is not None:
-                states = np.zeros(pomdp.n_states, dtype=bool)
-                for i, state in enumerate(entry.states):
-                    states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
-            else:  # one set by label or expression, checked as the unweighted forms are
-                kind = "label" if entry.label is not None else "expression"
-                form: DecoyLabelSpec | DecoyExpressionSpec
-                if entry.label is not None:
-                    form = DecoyLabelSpec(label=entry.label)
-                else:
-                    assert entry.expression is not None  # one of the three is given
-                    form = DecoyExpressionSpec(expression=entry.expression)
-                try:
-                    states = _compile_decoy(form, pomdp, labels, condition)
-                except ProblemError as error:  # named in this set, not in deception.decoy
-                    raise ProblemError(error.reason, field=f"{field}.{kind}") from None
-        else:
-            weight, states = float(entry), _named_set(name, pomdp, labels, state_index, field)
-        sets.append(DecoySet(name=name, weight=float(weight), states=states))
+        with found.check():
+            sets.append(_weighted_decoy(name, entry, pomdp, labels, condition, state_index))
+    found.raise_any()
     if all(decoy_set.weight == 0 for decoy_set in sets):
         raise ProblemError(
             "every decoy weight is 0: there is nothing to gain", field="deception.decoy"
@@ -657,9 +678,47 @@ def _compile_weighted_decoys(
     return decoy, tuple(sets)
 
 
+def _weighted_decoy(
+    name: str,
+    entry: Any,
+    pomdp: Pomdp | _Names,
+    labels: dict[str, np.ndarray],
+    condition: Any,
+    state_index: dict[str, int],
+) -> DecoySet:
+    """One named decoy set: a weight (the name is a label or a state), or its states given."""
+    field = f"deception.decoy.{name}"
+    if isinstance(entry, WeightedDecoySpec):
+        given = [k for k in ("states", "label", "expression") if getattr(entry, k) is not None]
+        if len(given) > 1:
+            raise ProblemError(f"give one of {', '.join(given)}, not several", field=field)
+        weight = entry.weight
+        if not given:
+            states = _named_set(name, pomdp, labels, state_index, field)
+        elif entry.states is not None:
+            states = np.zeros(len(pomdp.states), dtype=bool)
+            for i, state in enumerate(entry.states):
+                states[_lookup(state_index, state, "state", f"{field}.states[{i}]")] = True
+        else:  # one set by label or expression, checked as the unweighted forms are
+            kind = "label" if entry.label is not None else "expression"
+            form: DecoyLabelSpec | DecoyExpressionSpec
+            if entry.label is not None:
+                form = DecoyLabelSpec(label=entry.label)
+            else:
+                assert entry.expression is not None  # one of the three is given
+                form = DecoyExpressionSpec(expression=entry.expression)
+            try:
+                states = _compile_decoy(form, pomdp, labels, condition)
+            except ProblemError as error:  # named in this set, not in deception.decoy
+                raise ProblemError(error.reason, field=f"{field}.{kind}") from None
+    else:
+        weight, states = float(entry), _named_set(name, pomdp, labels, state_index, field)
+    return DecoySet(name=name, weight=float(weight), states=states)
+
+
 def _named_set(
     name: str,
-    pomdp: Pomdp,
+    pomdp: Pomdp | _Names,
     labels: dict[str, np.ndarray],
     state_index: dict[str, int],
     field: str,
@@ -670,7 +729,7 @@ def _named_set(
             raise ProblemError(f"no state carries label {name!r}", field=field)
         return states
     if name in state_index:
-        states = np.zeros(pomdp.n_states, dtype=bool)
+        states = np.zeros(len(pomdp.states), dtype=bool)
         states[state_index[name]] = True
         return states
     known = ", ".join(sorted(labels)) or "none (explicit models have no labels)"
@@ -682,7 +741,7 @@ def _named_set(
 
 
 def _compile_decoy(
-    spec: Any, pomdp: Pomdp, labels: dict[str, np.ndarray], condition=None
+    spec: Any, pomdp: Pomdp | _Names, labels: dict[str, np.ndarray], condition=None
 ) -> np.ndarray:
     if spec is None:
         raise ProblemError("list the decoy states, or give {label: ...}", field="deception.decoy")
@@ -707,9 +766,12 @@ def _compile_decoy(
             raise ProblemError(f"no state carries label {spec.label!r}", field="deception.decoy")
         return decoy
     state_index = {name: i for i, name in enumerate(pomdp.states)}
-    decoy = np.zeros(pomdp.n_states, dtype=bool)
+    decoy = np.zeros(len(pomdp.states), dtype=bool)
+    found = _Found()
     for i, name in enumerate(spec):
-        decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
+        with found.check():
+            decoy[_lookup(state_index, name, "state", f"deception.decoy[{i}]")] = True
+    found.raise_any()
     return decoy
 
 
@@ -737,6 +799,9 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     paynt = None
     labels: dict[str, np.ndarray] = {}  # Storm's state labels (PAYNT's terminal candidates)
     decoy_sets: tuple[DecoySet, ...] = ()  # weighted decoys, if the file gives weights
+    found = _Found()  # the decoys, costs and controller are checked independently
+    pomdp: Pomdp | None = None
+    known: Pomdp | _Names  # the model, or only an explicit model's names when it has problems
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
     world: GridWorld | StormPomdp
@@ -755,7 +820,8 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
             slip=spec.grid.slip,
             actions=spec.grid.actions,
         )
-        pomdp, decoy = world.pomdp, world.decoy
+        pomdp = known = world.pomdp
+        decoy = world.decoy
         if not decoy.any():
             raise ProblemError("the map has no decoy cell (legend kind: decoy)", field="grid.map")
     else:
@@ -782,30 +848,39 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
                 world, pomdp=with_exported_names(world.pomdp, model_file, kind)
             )
             pomdp, labels, condition = world.pomdp, world.labels, world.condition
+            known = pomdp
             aliases, paynt_view = world.storm_observation_names, world.paynt_view
             if spec.pomdp.disabled_action == "forbid":
                 enabled = world.enabled
         else:
             assert spec.pomdp is not None  # exactly one of pomdp and grid
-            pomdp, labels, condition = _compile_pomdp(spec.pomdp), {}, None
-        if isinstance(spec.deception.decoy, dict):
-            decoy, decoy_sets = _compile_weighted_decoys(
-                spec.deception.decoy, pomdp, labels, condition
-            )
-        else:
-            decoy = _compile_decoy(spec.deception.decoy, pomdp, labels, condition)
-    if isinstance(spec.controller, PayntControllerSpec):
+            names, observation_of = _pomdp_names(spec.pomdp)
+            labels, condition = {}, None
+            with found.check():  # the rest is checked against the names all the same
+                pomdp = _compile_pomdp(spec.pomdp, names, observation_of)
+            known = names if pomdp is None else pomdp
+        with found.check():
+            if isinstance(spec.deception.decoy, dict):
+                decoy, decoy_sets = _compile_weighted_decoys(
+                    spec.deception.decoy, known, labels, condition
+                )
+            else:
+                decoy = _compile_decoy(spec.deception.decoy, known, labels, condition)
+    if isinstance(spec.controller, ControllerSpec):
+        with found.check():
+            controller = _compile_controller(spec.controller, known)
+    elif pomdp is not None:  # PAYNT's controller is matched to the model itself
         paynt_file = _resolve(spec.controller.paynt, base)
-        if paynt_file.exists():
-            check_input_file(paynt_file, field="controller.paynt")
-        paynt = read_paynt_controller(
-            _resolve(spec.controller.paynt, base), pomdp, aliases=aliases, view=paynt_view
-        )
-        controller, never = paynt.controller, paynt.never_read
-    else:
-        controller = _compile_controller(spec.controller, pomdp)
-    obs_index = {name: i for i, name in enumerate(pomdp.observations)}
-    cost = _compile_cost(spec.deception.cost, obs_index)
+        with found.check():
+            if paynt_file.exists():
+                check_input_file(paynt_file, field="controller.paynt")
+            paynt = read_paynt_controller(paynt_file, pomdp, aliases=aliases, view=paynt_view)
+            controller, never = paynt.controller, paynt.never_read
+    obs_index = {name: i for i, name in enumerate(known.observations)}
+    with found.check():
+        cost = _compile_cost(spec.deception.cost, obs_index)
+    found.raise_any()
+    assert pomdp is not None  # no problem found: the model compiled
     if never.size:  # no state may be made to read an observation the controller never meets
         cost = forbid_targets(cost, never)
     if enabled is not None:
@@ -832,34 +907,52 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     return problem
 
 
-def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
-    states = _index(spec.states, "pomdp.states")
-    actions = _index(spec.actions, "pomdp.actions")
-    initial = _lookup(states, spec.initial, "state", "pomdp.initial")
+def _pomdp_names(spec: PomdpSpec) -> tuple[_Names, np.ndarray]:
+    """The explicit model's names, checked, and the observation of each state."""
+    found = _Found()
+    with found.check():
+        _index(spec.states, "pomdp.states")
+    with found.check():
+        _index(spec.actions, "pomdp.actions")
+    states = {name: i for i, name in enumerate(spec.states)}
+    with found.check():
+        _lookup(states, spec.initial, "state", "pomdp.initial")
     for name in spec.observe:
-        _lookup(states, name, "state", f"pomdp.observe.{name}")
+        with found.check():
+            _lookup(states, name, "state", f"pomdp.observe.{name}")
     missing = [s for s in spec.states if s not in spec.observe]
     if missing:
-        raise ProblemError(f"state {missing[0]!r} has no observation", field="pomdp.observe")
-
-    emitted = list(dict.fromkeys(spec.observe[s] for s in spec.states))
-    if spec.observations is None:
-        observations = emitted
-    else:
-        observations = spec.observations
-        declared = _index(observations, "pomdp.observations")
+        found.add(ProblemError(f"state {missing[0]!r} has no observation", field="pomdp.observe"))
+    emitted = list(dict.fromkeys(spec.observe[s] for s in spec.states if s in spec.observe))
+    observations = emitted if spec.observations is None else spec.observations
+    if spec.observations is not None:
+        with found.check():
+            _index(observations, "pomdp.observations")
         for name in emitted:
-            if name not in declared:
-                raise ProblemError(
-                    f"observation {name!r} is emitted by a state but not declared",
-                    field="pomdp.observations",
+            if name not in spec.observations:
+                found.add(
+                    ProblemError(
+                        f"observation {name!r} is emitted by a state but not declared",
+                        field="pomdp.observations",
+                    )
                 )
+    found.raise_any()
     obs_index = {name: i for i, name in enumerate(observations)}
     observation_of = np.array([obs_index[spec.observe[s]] for s in spec.states], dtype=np.int64)
+    names = _Names(tuple(spec.states), tuple(spec.actions), tuple(observations))
+    return names, observation_of
 
+
+def _compile_pomdp(spec: PomdpSpec, names: _Names, observation_of: np.ndarray) -> Pomdp:
+    """The explicit model's transitions; every wrong one, duplicate or row not summing to 1
+    is reported."""
+    found = _Found()
+    states = {name: i for i, name in enumerate(names.states)}
+    actions = {name: i for i, name in enumerate(names.actions)}
     absorbing = np.zeros(len(states), dtype=bool)
     for i, name in enumerate(spec.absorbing):
-        absorbing[_lookup(states, name, "state", f"pomdp.absorbing[{i}]")] = True
+        with found.check():
+            absorbing[_lookup(states, name, "state", f"pomdp.absorbing[{i}]")] = True
 
     n_t = len(spec.transitions)
     source = np.empty(n_t, dtype=np.int64)
@@ -868,41 +961,55 @@ def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
     probability = np.empty(n_t)
     for i, (s, a, t, p) in enumerate(spec.transitions):
         field = f"pomdp.transitions[{i}]"
-        source[i] = _lookup(states, s, "state", field)
-        action[i] = _lookup(actions, a, "action", field)
-        target[i] = _lookup(states, t, "state", field)
+        with found.check():
+            source[i] = _lookup(states, s, "state", field)
+        with found.check():
+            action[i] = _lookup(actions, a, "action", field)
+        with found.check():
+            target[i] = _lookup(states, t, "state", field)
         probability[i] = p
-        if absorbing[source[i]]:
-            raise ProblemError(
-                f"state {s!r} is absorbing (self-loop under every action); "
-                "remove its transitions or take it out of pomdp.absorbing",
-                field=field,
+        if s in states and absorbing[states[s]]:
+            found.add(
+                ProblemError(
+                    f"state {s!r} is absorbing (self-loop under every action); "
+                    "remove its transitions or take it out of pomdp.absorbing",
+                    field=field,
+                )
             )
+    found.raise_any()  # the checks below need every name resolved
     n_s, n_a = len(states), len(actions)
     keys = (source * n_a + action) * n_s + target
-    unique, counts = np.unique(keys, return_counts=True)
+    _, first, counts = np.unique(keys, return_index=True, return_counts=True)
     if (counts > 1).any():
-        dup = int(np.flatnonzero(keys == unique[counts > 1][0])[1])
-        raise ProblemError(
-            "the same (state, action, next_state) is listed twice",
-            field=f"pomdp.transitions[{dup}]",
-        )
+        repeated = np.isin(keys, keys[first[counts > 1]])
+        repeated[first] = False  # the first listing of each is not the repeat
+        listed = np.flatnonzero(repeated)
+        for dup in listed[:MAX_REPORTED]:
+            found.add(
+                ProblemError(
+                    "the same (state, action, next_state) is listed twice",
+                    field=f"pomdp.transitions[{dup}]",
+                )
+            )
+        found.uncounted(listed.size - MAX_REPORTED)
     sums = np.bincount(source * n_a + action, weights=probability, minlength=n_s * n_a)
     bad = np.flatnonzero((np.abs(sums - 1.0) > SUM_TOLERANCE) & ~np.repeat(absorbing, n_a))
-    if bad.size:
-        bad_s, bad_a = divmod(int(bad[0]), n_a)
-        pair = f"({spec.states[bad_s]!r}, {spec.actions[bad_a]!r})"
+    found.uncounted(bad.size - MAX_REPORTED)
+    for row in bad[:MAX_REPORTED]:
+        bad_s, bad_a = divmod(int(row), n_a)
+        pair = f"({names.states[bad_s]!r}, {names.actions[bad_a]!r})"
         reason = (
-            f"no transitions for {pair}: list them, or mark {spec.states[bad_s]!r} absorbing"
-            if sums[bad[0]] == 0
-            else f"probabilities of {pair} sum to {sums[bad[0]]:.12g}, not 1"
+            f"no transitions for {pair}: list them, or mark {names.states[bad_s]!r} absorbing"
+            if sums[row] == 0
+            else f"probabilities of {pair} sum to {sums[row]:.12g}, not 1"
         )
-        raise ProblemError(reason, field="pomdp.transitions")
+        found.add(ProblemError(reason, field="pomdp.transitions"))
+    found.raise_any()
     return Pomdp.from_triplets(
-        states=tuple(spec.states),
-        actions=tuple(spec.actions),
-        observations=tuple(observations),
-        initial_state=initial,
+        states=names.states,
+        actions=names.actions,
+        observations=names.observations,
+        initial_state=states[spec.initial],
         observation_of=observation_of,
         action=action,
         source=source,
@@ -912,12 +1019,15 @@ def _compile_pomdp(spec: PomdpSpec) -> Pomdp:
     )
 
 
-def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
+def _compile_controller(spec: ControllerSpec, pomdp: Pomdp | _Names) -> Controller:
+    found = _Found()
     nodes = _index(spec.nodes, "controller.nodes")
-    initial = _lookup(nodes, spec.initial, "node", "controller.initial")
+    with found.check():
+        initial = _lookup(nodes, spec.initial, "node", "controller.initial")
     actions = {name: i for i, name in enumerate(pomdp.actions)}
     observations = {name: i for i, name in enumerate(pomdp.observations)}
-    shape = (len(nodes), pomdp.n_observations)
+    n_observations = len(pomdp.observations)
+    shape = (len(nodes), n_observations)
     check_memory(  # two dense tables, and the product chain needs |S|·|N| states on top
         16.0 * shape[0] * shape[1],
         f"a controller table of {shape[0]:,} nodes x {shape[1]:,} observations",
@@ -928,14 +1038,18 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
     where = []
     for i, rule in enumerate(spec.rules):
         field = f"controller.rules[{i}]"
-        node = slice(None) if rule.node == WILDCARD else _lookup(nodes, rule.node, "node", field)
-        obs = (
-            slice(None)
-            if rule.obs == WILDCARD
-            else _lookup(observations, rule.obs, "observation", field)
-        )
+        node: int | slice = slice(None)
+        obs: int | slice = slice(None)
+        if rule.node != WILDCARD:
+            with found.check():
+                node = _lookup(nodes, rule.node, "node", field)
+        if rule.obs != WILDCARD:
+            with found.check():
+                obs = _lookup(observations, rule.obs, "observation", field)
         where.append((node, obs))
-        moves.append(_rule_moves(rule, actions, nodes, field))
+        with found.check():
+            moves.append(_rule_moves(rule, actions, nodes, field))
+    found.raise_any()  # coverage is only meaningful once every rule resolved
     for i in reversed(range(len(where))):  # earlier rules overwrite later ones
         rule_of[where[i]] = i
     uncovered = np.argwhere(rule_of < 0)
@@ -957,9 +1071,9 @@ def _compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
     return Controller.from_entries(
         nodes=tuple(spec.nodes),
         initial_node=initial,
-        n_observations=pomdp.n_observations,
-        node=cell_index // pomdp.n_observations,
-        observation=cell_index % pomdp.n_observations,
+        n_observations=n_observations,
+        node=cell_index // n_observations,
+        observation=cell_index % n_observations,
         action=flat[at, 0].astype(np.int64),
         next_node=flat[at, 1].astype(np.int64),
         probability=flat[at, 2],
@@ -983,10 +1097,13 @@ def _rule_moves(
         _check_sum(sum(p for _, _, p in entries), f"{field}.moves")
         return entries
     assert rule.action is not None and rule.next is not None  # RuleSpec: moves, or both
-    return factored_entries(
-        _rule_distribution(rule.action, actions, "action", f"{field}.action"),
-        _rule_distribution(rule.next, nodes, "node", f"{field}.next"),
-    )
+    found = _Found()
+    with found.check():
+        by_action = _rule_distribution(rule.action, actions, "action", f"{field}.action")
+    with found.check():
+        by_next = _rule_distribution(rule.next, nodes, "node", f"{field}.next")
+    found.raise_any()
+    return factored_entries(by_action, by_next)
 
 
 def _rule_distribution(
@@ -1022,35 +1139,46 @@ def _check_sum(total: float, field: str) -> None:
 
 
 def _compile_cost(spec: CostSpec, observations: dict[str, int]) -> CostModel:
+    found = _Found()
     pairs: dict[tuple[int, int], float] = {}
     for source_name, costs in spec.pairs.items():
-        o = _lookup(observations, source_name, "observation", f"deception.cost.pairs.{source_name}")
+        try:
+            o = _lookup(
+                observations, source_name, "observation", f"deception.cost.pairs.{source_name}"
+            )
+        except ProblemError as error:
+            found.add(error)
+            continue
         for target_name, cost in costs.items():
             field = f"deception.cost.pairs.{source_name}.{target_name}"
-            pairs[o, _lookup(observations, target_name, "observation", field)] = cost
+            with found.check():
+                pairs[o, _lookup(observations, target_name, "observation", field)] = cost
     everything = list(observations.values())
-    for i, (source_name, target_name) in enumerate(spec.forbidden):
+    for i, forbidden in enumerate(spec.forbidden):
         field = f"deception.cost.forbidden[{i}]"
-        sources = (
-            everything
-            if source_name == WILDCARD
-            else [_lookup(observations, source_name, "observation", field)]
-        )
-        targets = (
-            everything
-            if target_name == WILDCARD
-            else [_lookup(observations, target_name, "observation", field)]
-        )
-        for o in sources:
-            for t in targets:
-                if o != t:
-                    pairs[o, t] = math.inf  # forbidding wins over any listed cost
-    protected = frozenset(
-        _lookup(observations, name, "observation", f"deception.cost.protected[{i}]")
-        for i, name in enumerate(spec.protected)
-    )
+        with found.check():
+            sources, targets = (
+                everything
+                if name == WILDCARD
+                else [_lookup(observations, name, "observation", field)]
+                for name in forbidden
+            )
+            for o in sources:
+                for t in targets:
+                    if o != t:
+                        pairs[o, t] = math.inf  # forbidding wins over any listed cost
+    protected = set()
+    for i, name in enumerate(spec.protected):
+        with found.check():
+            protected.add(
+                _lookup(observations, name, "observation", f"deception.cost.protected[{i}]")
+            )
+    found.raise_any()
     return CostModel(
-        n_observations=len(observations), default=spec.default, pairs=pairs, protected=protected
+        n_observations=len(observations),
+        default=spec.default,
+        pairs=pairs,
+        protected=frozenset(protected),
     )
 
 

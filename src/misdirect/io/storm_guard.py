@@ -38,7 +38,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from misdirect.core.memory import available_memory
-from misdirect.errors import MisdirectError, ProblemError
+from misdirect.errors import MisdirectError, ProblemError, ProblemsError
 
 T = TypeVar("T")
 
@@ -203,8 +203,12 @@ def _child(conn: Connection, function: Callable[..., Any], args: tuple, memory: 
     answer: tuple[str, Any]
     try:
         answer = ("ok", function(*args))
-    except ProblemError as error:
-        answer = ("problem", (error.reason, error.source, error.field))
+    except ProblemError as error:  # every problem found (ProblemsError), or the one
+        found = getattr(error, "problems", [error])
+        answer = (
+            "problem",
+            ([(e.reason, e.source, e.field) for e in found], getattr(error, "total", 1)),
+        )
     except MisdirectError as error:
         answer = ("error", str(error))
     except MemoryError:
@@ -277,8 +281,11 @@ def run_isolated(function: Callable[..., T], *args: Any, name: str, field: str) 
     if kind == "ok":
         return payload
     if kind == "problem":
-        reason, source, where = payload
-        raise ProblemError(reason, source=source, field=where)
+        found, total = payload
+        raise ProblemsError.of(
+            [ProblemError(reason, source=source, field=where) for reason, source, where in found],
+            total,
+        )
     if kind == "error":
         raise MisdirectError(payload)
     if kind == "memory":

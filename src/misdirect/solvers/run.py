@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,7 @@ from misdirect.solvers.certification import (
 from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.pool import TaskPool
-from misdirect.solvers.stats import MethodStats, NoStats
+from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
 from misdirect.solvers.status import Status
 
 
@@ -106,15 +106,38 @@ class BudgetResult:
             f"upper_bound={short_float(self.upper_bound)})"
         )
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON fields: the dataclass's own (arrays and the solver's claim left out), the gap,
-        and the certification's notes and ``certified_by`` inside ``stats``, where the JSON has
-        always had them."""
-        skip = {"alteration_array", "solver_probability", "certified_by", "stats", "notes"}
-        shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
-        extra = {} if self.certified_by is None else {"certified_by": self.certified_by}
-        stats = {**self.stats.to_dict(), **self.notes, **extra}
-        return {**shown, "gap": self.gap, "stats": stats}
+    def to_dict(self, *, stats: bool = True) -> dict[str, Any]:
+        """The point as the JSON writes it (``misdirect-result/1``, ``$defs/point``): the
+        exact value is ``value``, certification's notes are ``certification``. ``stats``:
+        include the method's counters for this budget (auto's reason, common to the run, is
+        left to the run's record)."""
+        shown: dict[str, Any] = {
+            "budget": self.budget,
+            "status": str(self.status),
+            "value": self.probability,
+            "alteration": self.alteration,
+            "cost": self.cost,
+            "upper_bound": self.upper_bound,
+            "error_bound": self.error_bound,
+            "gap": self.gap,
+            "certified_by": self.certified_by,
+            "certification": dict(self.notes),
+        }
+        if stats:
+            shown["stats"] = {k: v for k, v in self.stats.to_dict().items() if k != "auto_reason"}
+        return shown
+
+
+def curve_fields(points: Sequence[BudgetResult]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """A curve's points and the run's ``stats``, kept apart as the JSON writes them: a method
+    that answers every budget from one run (enumeration) has one record, given once for the
+    run; one that solves each budget on its own (the MILP) has a record per point."""
+    records = [point.stats for point in points]
+    if all(record == records[-1] for record in records):
+        return [p.to_dict(stats=False) for p in points], records[-1].to_dict()
+    reasons = {r.reason for r in records if isinstance(r, AutoStats)}
+    run = {"auto_reason": reasons.pop()} if len(reasons) == 1 else {}
+    return [p.to_dict() for p in points], run
 
 
 @dataclass(frozen=True, repr=False)
@@ -207,58 +230,54 @@ class SolveResult:
     def to_dataframe(self) -> Any:
         """The curve as a ``pandas.DataFrame``, one row per budget.
 
-        Columns: ``budget``, ``status``, ``probability``, ``upper_bound``, ``gap``, ``cost``,
-        ``alteration`` (as ``o1 → o2, ...``), ``certified_by``, ``error_bound``.
+        Columns: those of :meth:`BudgetResult.to_dict` (``budget``, ``status``, ``value``,
+        ``alteration`` as ``o1 → o2, ...``, ``cost``, ``upper_bound``, ``error_bound``,
+        ``gap``, ``certified_by``), without the nested ``certification`` and ``stats``.
 
         Raises
         ------
         ImportError
             pandas is not installed (it is optional: ``pip install pandas``).
         """
-        columns = ["budget", "status", "probability", "upper_bound", "gap", "cost"]
-        columns += ["alteration", "certified_by", "error_bound"]
-        rows = [
-            {
-                "budget": point.budget,
-                "status": point.status.value,
-                "probability": point.probability,
-                "upper_bound": point.upper_bound,
-                "gap": point.gap,
-                "cost": point.cost,
-                "alteration": format_alteration(point.alteration),
-                "certified_by": point.certified_by,
-                "error_bound": point.error_bound,
-            }
-            for point in self.curve
-        ]
-        return dataframe(rows, columns)
+        return dataframe(
+            [
+                {**row, "alteration": format_alteration(row["alteration"])}
+                for row in map(_table_row, self.curve)
+            ],
+            list(_table_row(self.final)),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """The answer's fields (the last point's) at the top level, then the run's; clamping
-        and interruption appear only when they happened."""
-        final = self.final.to_dict()
-        document = {
+        """The result as ``solve --json`` writes it (``misdirect-result/1``, the fields of
+        ``$defs/solve``, ``warnings`` and ``notes``): the answer at the largest budget (its
+        exact value is ``value``), then the curve and the run's ``stats``."""
+        final = self.final.to_dict(stats=False)
+        points, stats = curve_fields(self.curve)
+        return {
             "problem": self.problem,
-            "status": final["status"],
             "objective": self.objective,
-            **{k: final[k] for k in ("probability", "alteration", "cost", "budget")},
-            "baseline_probability": self.baseline_probability,
-            "upper_bound": final["upper_bound"],
-            "gap": final["gap"],
-            "error_bound": final["error_bound"],
+            "status": final["status"],
+            **{k: final[k] for k in ("value", "alteration", "cost", "budget")},
+            "baseline_value": self.baseline_probability,
+            **{k: final[k] for k in ("upper_bound", "gap", "error_bound")},
             "method": self.method,
+            "certified_by": final["certified_by"],
+            "budget_clamped_from": self.budget_clamped_from,
+            "budget_clamped_to": self.budget_clamped_to,
+            "interrupted": self.interrupted,
             "time_s": self.time_s,
-            "curve": [point.to_dict() for point in self.curve],
-            "stats": final["stats"],
-            "warnings": self.warnings,
-            "notes": self.notes,
+            "curve": points,
+            "stats": stats,
+            "warnings": list(self.warnings),
+            "notes": list(self.notes),
         }
-        if self.budget_clamped_from is not None:
-            document["budget_clamped_from"] = self.budget_clamped_from
-            document["budget_clamped_to"] = self.budget_clamped_to
-        if self.interrupted:
-            document["interrupted"] = True
-        return document
+
+
+def _table_row(point: BudgetResult) -> dict[str, Any]:
+    """A point's flat fields: a row of :meth:`SolveResult.to_dataframe`."""
+    row = point.to_dict(stats=False)
+    del row["certification"]
+    return row
 
 
 def default_budgets(budget: float) -> list[float]:
