@@ -41,6 +41,7 @@ from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.reachability import reach_probabilities
 from misdirect.solvers.milp.model import MilpModel, ModelBuilder
+from misdirect.solvers.milp.scaling import value_scales
 
 # Bellman rows are scaled up so that a solver's feasibility tolerance (1e-6 in HiGHS) allows
 # only 1e-9 of slack in probability: unscaled, random_problem(19) at budget 2 came back with a
@@ -48,8 +49,12 @@ from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 BELLMAN_SCALE = 1e3
 
 
-def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
-    """The compact formulation for ``problem`` (budget row set to ``budget``)."""
+def build_compact(
+    problem: Problem, budget: float | None = None, state_values: np.ndarray | None = None
+) -> MilpModel:
+    """The compact formulation for ``problem`` (budget row set to ``budget``); ``state_values``,
+    the states' values under the per-state relaxation, scale the probability columns
+    (:mod:`misdirect.solvers.milp.scaling`; None: unscaled)."""
     started = time.perf_counter()
     budget = problem.budget if budget is None else float(budget)
     instance = prepare(problem, budget)
@@ -82,11 +87,17 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     owner = chain.group_state[groups]
     switched = chain.groups_per_state[owner] > 1  # rows that need an on/off term
     transitions = chain.transitions[groups].tocoo()
-    # z is the value divided by the largest decoy weight (1 for a plain probability), so that
-    # it lies in [0, 1] and 1 is the big-M of a switched-off row
+    # z is the value divided by the largest decoy weight (1 for a plain probability) and by
+    # the state's scale u (a power of two bounding it; 1 but for values far below 1), so that
+    # it lies in [0, 1] and 1 is the big-M of a switched-off row; the row of q is divided by
+    # u_q, its successor q' enters with P(q, q') u_q' / u_q (all exact: powers of two)
     top = problem.objective.max_value or 1.0
-    to_target = chain.one_step(groups) / top
+    scale = value_scales(chain, live, state_values, top)
+    to_target = chain.one_step(groups) / top / scale[owner]
     inside = live[transitions.col]
+    successor = transitions.data[inside] * (
+        scale[transitions.col[inside]] / scale[owner[transitions.row[inside]]]
+    )
     selectors = chain.group_options[groups].tocoo()
     on = switched[selectors.row]
     model.rows(
@@ -98,7 +109,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
                 [z0 + z_of[owner], z0 + z_of[transitions.col[inside]], y0 + selectors.col[on]]
             ),
             np.concatenate(
-                [np.ones(groups.size), -transitions.data[inside], np.ones(int(on.sum()))]
+                [np.ones(groups.size), -successor, np.ones(int(on.sum()))]
             ),
         ),
         -np.inf,
@@ -113,7 +124,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     objective = np.zeros(model.n_columns)
     offset = 0.0
     if live[chain.initial]:
-        objective[z0 + z_of[chain.initial]] = top
+        objective[z0 + z_of[chain.initial]] = top * scale[chain.initial]
     elif chain.target[chain.initial]:
         offset = float(chain.target_value[chain.initial])
 
@@ -133,7 +144,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         )
         return (
             np.concatenate([binaries[0], z0 + np.arange(int(live.sum()))]),
-            np.concatenate([binaries[1], values[live]]),
+            np.concatenate([binaries[1], values[live] / scale[live]]),
         )
 
     return model.build(
@@ -151,6 +162,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
             "product_groups": chain.n_groups,
             "states_fixed_to_zero": int((~live & ~chain.target).sum()),
             "end_component_states": int(cycling.sum()),
+            "states_scaled": int((live & (scale < 1.0)).sum()),
         },
     )
 
