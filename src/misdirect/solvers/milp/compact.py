@@ -3,7 +3,9 @@
 Columns
     ``alteration``  y[k]   binary, option k of the alteration space is taken
     ``probability`` z[q]   Pr(reach decoy) from product state q, for states that can reach the
-                           decoy under some alteration and are not decoys themselves
+                           decoy under some alteration and are not decoys themselves (divided
+                           by a power of two u_q bounding it where it is far below 1, so that
+                           a backend sees it near 1: :mod:`misdirect.solvers.milp.scaling`)
     (only where the chain can cycle without reaching the decoy under some alteration:)
     ``witness``     w[q]   continuous in [0, 1], positive only if q has a path to an exit
     ``witness_edge`` t[e]  binary, edge e = (q, q') is q's next step on that path
@@ -108,9 +110,7 @@ def build_compact(
             np.concatenate(
                 [z0 + z_of[owner], z0 + z_of[transitions.col[inside]], y0 + selectors.col[on]]
             ),
-            np.concatenate(
-                [np.ones(groups.size), -successor, np.ones(int(on.sum()))]
-            ),
+            np.concatenate([np.ones(groups.size), -successor, np.ones(int(on.sum()))]),
         ),
         -np.inf,
         to_target + switched,

@@ -23,6 +23,8 @@ not settle.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from misdirect.core.choice_product import ChoiceProduct
@@ -72,4 +74,4 @@ def value_scales(
 def _power_at_or_above(x: np.ndarray) -> np.ndarray:
     """The least power of two at or above each of ``x``, within ``[FLOOR, 1]``."""
     mantissa, exponent = np.frexp(np.clip(x, FLOOR, 1.0))  # x = mantissa 2^exponent
-    return np.ldexp(1.0, exponent - (mantissa == 0.5))
+    return cast(np.ndarray, np.ldexp(1.0, exponent - (mantissa == 0.5)))

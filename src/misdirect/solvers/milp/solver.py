@@ -8,8 +8,11 @@ has an incumbent to report.
 The backend gets the model scaled (:func:`_scaled`): the objective divided by its largest
 coefficient (the largest decoy weight) and the budget row by the largest cost, so that its
 absolute tolerances (a feasibility of 1e-6, an absolute gap of 1e-9) do not swallow a problem
-whose weights or costs are 1e-12; its numbers are scaled back before anyone reads them. The
-budget row's bound is the largest exact sum of costs within the budget
+whose weights or costs are 1e-12; its numbers are scaled back before anyone reads them. Its
+value columns are scaled too, each by a proven power-of-two bound on its state's value
+(:mod:`misdirect.solvers.milp.scaling`, from the per-state relaxation's values): a decoy
+behind a branch of 1e-10 otherwise leaves values of 1e-10 that HiGHS reads as 0. The budget
+row's bound is the largest exact sum of costs within the budget
 (:meth:`~misdirect.core.tolerance.CostScale.snap`), never the budget plus a slack.
 
 The solver's claim for an alteration is its objective, or, when its point is more than
