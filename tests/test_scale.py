@@ -109,11 +109,6 @@ def test_probabilities_of_1e_10(tmp_path, method):
     2e-11 with nothing, the MILP 0.0)."""
     problem = _model(tmp_path, p=1e-10)
     point = solve(problem, method=method, budgets=[1.0]).curve[-1]
-    if method == "milp":
-        # HiGHS's absolute feasibility tolerance (1e-6) on probabilities of 1e-10: its claim
-        # is not to be trusted, and the front door must not call it optimal
-        assert point.status != "optimal" or point.alteration == {"o1": "o0"}
-        return
     assert point.alteration == {"o1": "o0"}
     assert point.probability == pytest.approx(8e-11, rel=1e-12)
     assert point.status == "optimal"
@@ -128,6 +123,103 @@ def test_weight_of_1e_12(tmp_path, method):
     assert point.alteration == {"o1": "o0"}
     assert point.probability == pytest.approx(4e-13, rel=1e-12)
     assert point.status == "optimal"
+
+
+# p = 1e-10 x weight 1e-12: o1 -> o0 is worth 1e-12 x 1e-10 x 0.8 = 8e-23, nothing 2e-23
+MILP_CASES = {
+    "p=1e-10": ({"p": 1e-10}, 8e-11),
+    "p=1e-12": ({"p": 1e-12}, 8e-13),
+    "weight=1e-12": ({"weight": 1e-12}, 4e-13),
+    "weight=1e+12": ({"weight": 1e12}, 4e11),
+    "p=1e-10,weight=1e-12": ({"p": 1e-10, "weight": 1e-12}, 8e-23),
+}
+
+
+@pytest.mark.parametrize("case", list(MILP_CASES))
+@pytest.mark.parametrize("backend", ["highs", "scip"])
+def test_milp_certifies_the_optimum_at_any_scale(tmp_path, backend, case):
+    """The MILP on both backends: o1 -> o0 with its value (by hand, above), its claim and
+    bound that value, and ``optimal`` (before: HiGHS claimed 0 with a bound of 0 on the 1e-10
+    branch, ``unverified``; SCIP said ``optimal`` for the unaltered 2e-11)."""
+    options, value = MILP_CASES[case]
+    problem = _model(tmp_path, **options)
+    point = solve(problem, method="milp", budgets=[1.0], solver=backend).curve[-1]
+    assert point.alteration == {"o1": "o0"}
+    assert point.probability == pytest.approx(value, rel=1e-12)
+    assert point.solver_probability == pytest.approx(value, rel=1e-9)
+    assert point.upper_bound == pytest.approx(value, rel=1e-9)
+    assert point.status == "optimal"
+
+
+@pytest.mark.parametrize("p", [1e-10, 1e-12])
+@pytest.mark.parametrize("backend", ["highs", "scip"])
+def test_pinned_paper_milp_at_small_probabilities(tmp_path, backend, p):
+    """The paper's formulation (pinned; unsound, so never ``optimal``) on the 1e-10 and 1e-12
+    branches: o1 -> o0, claimed 0.8 p as the chain gives it (before: nothing, claimed 0)."""
+    problem = _model(tmp_path, p=p)
+    point = solve(
+        problem, method="milp", budgets=[1.0], solver=backend, formulation="paper-pinned"
+    ).curve[-1]
+    assert point.alteration == {"o1": "o0"}
+    assert point.solver_probability == pytest.approx(0.8 * p, rel=1e-9)
+    assert point.probability == pytest.approx(0.8 * p, rel=1e-12)
+
+
+def test_value_scales_bound_every_alteration(tmp_path):
+    """The scales the MILP divides its value columns by are powers of two at least the value
+    of every state under every alteration (brute force over the model's alterations within
+    the budget, each chain built on its own), within a factor 4 of the largest (so the
+    backend's numbers are about 1); a state of value about 1 keeps 1."""
+    from itertools import product
+
+    from misdirect.core.attack import prepare
+    from misdirect.core.product import full_product_matrix
+    from misdirect.core.reachability import reach_probabilities
+    from misdirect.solvers.engines.per_state import relaxation_values
+    from misdirect.solvers.milp.scaling import value_scales
+
+    problem = _model(tmp_path, p=1e-10, weight=1e-12)
+    instance = prepare(problem, 1.0)
+    chain, live = instance.chain, instance.live
+    top = problem.objective.max_value
+    scales = value_scales(chain, live, relaxation_values(problem, 1.0)[1], top)
+    n, nodes = problem.pomdp.n_observations, problem.controller.n_nodes
+    weights = problem.objective.value
+    best = np.zeros(chain.n_states)
+    for targets in product(range(n), repeat=n - 1):  # o0, the initial reading, is never altered
+        alteration = np.array([0, *targets])
+        if not problem.cost.fits(alteration, problem.budget):
+            continue
+        full = full_product_matrix(problem, alteration)  # every (s, n): s |N| + n
+        values = reach_probabilities(
+            full, np.repeat(problem.objective.target, nodes), value=np.repeat(weights, nodes)
+        )
+        best = np.maximum(best, values[chain.world_state * nodes + chain.node] / top)
+    assert live.sum() == 2  # s0 (value 0.8e-10 at most) and s1 (0.8)
+    assert np.all(np.log2(scales) == np.round(np.log2(scales)))
+    assert np.all(scales[live] >= best[live])
+    assert np.all(scales[live] < 4 * np.maximum(best[live], 2.0**-10))
+    s0, s1 = chain.initial, np.flatnonzero(live & (np.arange(chain.n_states) != chain.initial))
+    assert scales[s0] < 2.0**-30 and np.all(scales[s1] == 1.0)
+
+
+@pytest.mark.parametrize("formulation", ["compact", "paper-pinned"])
+def test_value_scales_leave_a_normal_model_as_built(formulation):
+    """The paper's grid (values about 1): the MILP handed to the backend is the one built
+    without the relaxation's values, entry for entry."""
+    from misdirect.scenarios import paper_grid
+    from misdirect.solvers.engines.per_state import relaxation_values
+    from misdirect.solvers.milp import build_formulation
+
+    problem = paper_grid(5)
+    values = relaxation_values(problem, 4.0)[1]
+    assert values is not None
+    scaled = build_formulation(problem, formulation, 4.0, values)
+    plain = build_formulation(problem, formulation, 4.0)
+    assert scaled.notes["states_scaled"] == 0
+    assert (scaled.matrix != plain.matrix).nnz == 0
+    for name in ("objective", "row_lower", "row_upper", "col_lower", "col_upper"):
+        assert np.array_equal(getattr(scaled, name), getattr(plain, name)), name
 
 
 def test_evaluate_at_1e_10(tmp_path):
@@ -169,12 +261,10 @@ def test_scaled_model_has_the_same_answer(tmp_path, scale, what):
 @pytest.mark.parametrize("p", [1e-6, 1e-12])
 def test_decoy_behind_a_small_branch(tmp_path, p):
     """Probabilities scaled by making the decoy reachable only through a branch of
-    probability ``p``: the same alteration and status as at p = 1/2 (the MILP excepted where
-    its backend's tolerance is coarser than the values: it must then not say optimal)."""
+    probability ``p``: the same alteration and status as at p = 1/2, the MILP's included (its
+    value columns are scaled to the states' values, below its backend's tolerances)."""
     problem = _model(tmp_path, p=p)
     for method, (status, alteration, value) in _answers(problem, 1.0).items():
-        if method == "milp" and status != "optimal":
-            continue
         assert (status, alteration) == ("optimal", {"o1": "o0"}), method
         assert value == pytest.approx(0.8 * p, rel=1e-9)
 
@@ -248,3 +338,21 @@ def test_online_cost_unit_is_the_costs_step_at_any_scale(tmp_path):
         assert online_attack_value(problem, 0.0).budgeted_probability == pytest.approx(
             0.1, rel=1e-12
         )
+
+
+def test_evaluate_takes_a_mapping_and_empty_means_unaltered(tmp_path):
+    """``evaluate(problem, {})`` is the unaltered chain (before: "got shape ()"), by hand
+    w p 0.2: 0.1 at p = 1/2, 2e-11 at p = 1e-10; a mapping of names is read as
+    ``problem.alteration`` reads it (o1 -> o0: w p 0.8), and an unknown name is refused."""
+    from misdirect.errors import ProblemError
+
+    for p, unaltered in ((0.5, 0.1), (1e-10, 2e-11)):
+        problem = _model(tmp_path, p=p)
+        empty = evaluate(problem, {})
+        assert empty.probability == pytest.approx(unaltered, rel=1e-12)
+        assert empty.alteration == {} and empty.cost == 0.0
+        altered = evaluate(problem, {"o1": "o0"})
+        assert altered.probability == pytest.approx(4 * unaltered, rel=1e-12)
+        assert altered.alteration == {"o1": "o0"}
+    with pytest.raises(ProblemError, match="unknown observation 'o9'"):
+        evaluate(problem, {"o9": "o0"})

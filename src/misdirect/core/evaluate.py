@@ -175,9 +175,10 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
     ----------
     problem : Problem
         The POMDP, controller, costs, decoy and budget.
-    alteration : Alteration or array of int, optional
+    alteration : Alteration, array of int or mapping of str to str, optional
         What the robot receives for each observation (:meth:`Problem.alteration` builds one
-        from names). Default: no alteration.
+        from names, and reads a mapping given here: ``{"o1": "o3"}``; ``{}`` alters
+        nothing). Default: no alteration.
 
     Returns
     -------

@@ -703,7 +703,11 @@ class Problem:
         """An alteration given as an array (``alpha[o]`` = the observation received instead
         of ``o``), checked where the library takes one: integers (``0.9`` is no observation,
         and is not truncated to 0), one per observation, each an observation's index (``-4``
-        does not wrap around), and the initial observation left as it is."""
+        does not wrap around), and the initial observation left as it is. A mapping of names
+        is read by :meth:`alteration` (``{}``: no alteration; ``np.asarray({})`` is a 0-d
+        object array, which no check above would read as the unaltered chain)."""
+        if isinstance(alteration, Mapping):
+            return self.alteration(alteration, source=source)
         array = np.asarray(alteration)
         n = self.pomdp.n_observations
         if array.shape != (n,):

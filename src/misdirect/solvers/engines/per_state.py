@@ -142,11 +142,21 @@ class PerStateRelaxation:
 def relaxation_bound(problem: Problem, budget: float, deadline: Deadline | None = None) -> float:
     """Root bound of the search: the relaxation's optimum with every observation free; the
     objective's largest value (the trivial bound) if ``deadline`` passes first."""
+    return relaxation_values(problem, budget, deadline)[0]
+
+
+def relaxation_values(
+    problem: Problem, budget: float, deadline: Deadline | None = None
+) -> tuple[float, np.ndarray | None]:
+    """:func:`relaxation_bound` and the relaxation's value of every state of the choice
+    product of ``prepare(problem, budget)`` (None if ``deadline`` passes first): the MILP
+    scales each state's value column by it."""
     instance = prepare(problem, budget)
     relax = PerStateRelaxation(problem, instance.space, instance.chain)
     allowed = relax.allowed_groups(relax.allowed_options((), instance.space.scale.cap(budget)))
     start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
     try:
-        return relax.optimise(allowed, start, deadline)[0]
+        bound, values, _ = relax.optimise(allowed, start, deadline)
     except DeadlineExpiredError:
-        return float(problem.objective.max_value)
+        return float(problem.objective.max_value), None
+    return bound, values

@@ -3,7 +3,9 @@
 Columns
     ``alteration``  y[k]   binary, option k of the alteration space is taken
     ``probability`` z[q]   Pr(reach decoy) from product state q, for states that can reach the
-                           decoy under some alteration and are not decoys themselves
+                           decoy under some alteration and are not decoys themselves (divided
+                           by a power of two u_q bounding it where it is far below 1, so that
+                           a backend sees it near 1: :mod:`misdirect.solvers.milp.scaling`)
     (only where the chain can cycle without reaching the decoy under some alteration:)
     ``witness``     w[q]   continuous in [0, 1], positive only if q has a path to an exit
     ``witness_edge`` t[e]  binary, edge e = (q, q') is q's next step on that path
@@ -41,6 +43,7 @@ from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.reachability import reach_probabilities
 from misdirect.solvers.milp.model import MilpModel, ModelBuilder
+from misdirect.solvers.milp.scaling import value_scales
 
 # Bellman rows are scaled up so that a solver's feasibility tolerance (1e-6 in HiGHS) allows
 # only 1e-9 of slack in probability: unscaled, random_problem(19) at budget 2 came back with a
@@ -48,8 +51,12 @@ from misdirect.solvers.milp.model import MilpModel, ModelBuilder
 BELLMAN_SCALE = 1e3
 
 
-def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
-    """The compact formulation for ``problem`` (budget row set to ``budget``)."""
+def build_compact(
+    problem: Problem, budget: float | None = None, state_values: np.ndarray | None = None
+) -> MilpModel:
+    """The compact formulation for ``problem`` (budget row set to ``budget``); ``state_values``,
+    the states' values under the per-state relaxation, scale the probability columns
+    (:mod:`misdirect.solvers.milp.scaling`; None: unscaled)."""
     started = time.perf_counter()
     budget = problem.budget if budget is None else float(budget)
     instance = prepare(problem, budget)
@@ -82,11 +89,17 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     owner = chain.group_state[groups]
     switched = chain.groups_per_state[owner] > 1  # rows that need an on/off term
     transitions = chain.transitions[groups].tocoo()
-    # z is the value divided by the largest decoy weight (1 for a plain probability), so that
-    # it lies in [0, 1] and 1 is the big-M of a switched-off row
+    # z is the value divided by the largest decoy weight (1 for a plain probability) and by
+    # the state's scale u (a power of two bounding it; 1 but for values far below 1), so that
+    # it lies in [0, 1] and 1 is the big-M of a switched-off row; the row of q is divided by
+    # u_q, its successor q' enters with P(q, q') u_q' / u_q (all exact: powers of two)
     top = problem.objective.max_value or 1.0
-    to_target = chain.one_step(groups) / top
+    scale = value_scales(chain, live, state_values, top)
+    to_target = chain.one_step(groups) / top / scale[owner]
     inside = live[transitions.col]
+    successor = transitions.data[inside] * (
+        scale[transitions.col[inside]] / scale[owner[transitions.row[inside]]]
+    )
     selectors = chain.group_options[groups].tocoo()
     on = switched[selectors.row]
     model.rows(
@@ -97,9 +110,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
             np.concatenate(
                 [z0 + z_of[owner], z0 + z_of[transitions.col[inside]], y0 + selectors.col[on]]
             ),
-            np.concatenate(
-                [np.ones(groups.size), -transitions.data[inside], np.ones(int(on.sum()))]
-            ),
+            np.concatenate([np.ones(groups.size), -successor, np.ones(int(on.sum()))]),
         ),
         -np.inf,
         to_target + switched,
@@ -113,7 +124,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
     objective = np.zeros(model.n_columns)
     offset = 0.0
     if live[chain.initial]:
-        objective[z0 + z_of[chain.initial]] = top
+        objective[z0 + z_of[chain.initial]] = top * scale[chain.initial]
     elif chain.target[chain.initial]:
         offset = float(chain.target_value[chain.initial])
 
@@ -133,7 +144,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
         )
         return (
             np.concatenate([binaries[0], z0 + np.arange(int(live.sum()))]),
-            np.concatenate([binaries[1], values[live]]),
+            np.concatenate([binaries[1], values[live] / scale[live]]),
         )
 
     return model.build(
@@ -151,6 +162,7 @@ def build_compact(problem: Problem, budget: float | None = None) -> MilpModel:
             "product_groups": chain.n_groups,
             "states_fixed_to_zero": int((~live & ~chain.target).sum()),
             "end_component_states": int(cycling.sum()),
+            "states_scaled": int((live & (scale < 1.0)).sum()),
         },
     )
 

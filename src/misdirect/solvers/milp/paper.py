@@ -29,18 +29,28 @@ import numpy as np
 import numpy.typing as npt
 
 from misdirect.core.alterations import alteration_space
-from misdirect.core.choice_product import build_choice_product
+from misdirect.core.attack import prepare
+from misdirect.core.choice_product import ChoiceProduct, build_choice_product
 from misdirect.core.memory import check_memory
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import SolverError
 from misdirect.solvers.milp.model import BUILD_BYTES_PER_NONZERO, MilpModel, ModelBuilder
+from misdirect.solvers.milp.scaling import value_scales
 
 Index = TypeVar("Index", int, npt.NDArray[np.int64])  # one column index, or an array of them
 
 
 def build_paper(
-    problem: Problem, budget: float | None = None, *, pin_unreachable: bool = False
+    problem: Problem,
+    budget: float | None = None,
+    *,
+    pin_unreachable: bool = False,
+    state_values: np.ndarray | None = None,
 ) -> MilpModel:
+    """The paper's MILP for ``problem`` (budget row set to ``budget``). Pinned, its value
+    columns are scaled by ``state_values`` (the per-state relaxation's values of the states
+    of ``prepare(problem, budget).chain``; :mod:`misdirect.solvers.milp.scaling`); the plain
+    formulation stays as the paper wrote it, its flaw included (a bound would mend it)."""
     if not problem.objective.is_probability:
         raise SolverError(
             "the paper's formulation maximises a probability; weighted decoy sets need "
@@ -57,6 +67,15 @@ def build_paper(
     edge_from, edge_to = edge_from[order], edge_to[order]
     n_edges = edge_from.size
     costs = problem.cost.matrix()
+    never: np.ndarray | None = None
+    scale = np.ones(n_s * n_n)  # per (s, n), index s |N| + n: z[s, n, ·] is divided by it
+    if pin_unreachable:
+        chain = build_choice_product(
+            problem, alteration_space(problem.with_budget(budget)), reachable_only=False
+        )
+        never = ~chain.can_reach_target()  # states of all (s, n), index s * |N| + n
+        if state_values is not None:
+            scale = _scales(problem, budget, chain, ~never & ~chain.target, state_values)
 
     model = ModelBuilder()
     x0 = model.columns("x", n_o * n_o, 0.0, 1.0, integer=True)
@@ -102,6 +121,10 @@ def build_paper(
     b_row = bellman[owner[probs.row]]
     b_s, b_o, b_next = s[b_row], o[b_row], next_node[probs.row]
     probs.data *= weight[probs.row]
+    # z[s, n, o] = u z'[s, n, o], and l = x z'' u'' with u'' the scale of the successor's z:
+    # the row divided by u(s, n); the linearisation rows then read as written (big-Ms u)
+    row_scale = scale[b_s * n_n + n[b_row]]
+    probs.data *= scale[probs.col * n_n + b_next] / np.where(row_scale > 0, row_scale, 1.0)
     edge = _edge_index(edge_from, edge_to, b_s, probs.col.astype(np.int64))
     l_base = ((edge * n_o + b_o) * n_n + b_next) * n_o
     repeat = np.repeat(np.arange(b_row.size), n_o)
@@ -167,7 +190,9 @@ def build_paper(
     )
 
     objective = np.zeros(model.n_columns)
-    objective[z(pomdp.initial_state, controller.initial_node, o_init)] = 1.0
+    objective[z(pomdp.initial_state, controller.initial_node, o_init)] = scale[
+        pomdp.initial_state * n_n + controller.initial_node
+    ]
     built = model.build(
         formulation="paper-pinned" if pin_unreachable else "paper",
         objective=objective,
@@ -184,16 +209,35 @@ def build_paper(
         notes={"successor_pairs": n_edges},
     )
     built.col_upper[x0 : x0 + n_o * n_o][~allowed] = 0.0
-    if pin_unreachable:
-        chain = build_choice_product(
-            problem, alteration_space(problem.with_budget(budget)), reachable_only=False
-        )
-        never = ~chain.can_reach_target()  # states of all (s, n), index s * |N| + n
+    if never is not None:
         pinned = z0 + (np.flatnonzero(never)[:, None] * n_o + np.arange(n_o)).ravel()
         built.col_upper[pinned] = 0.0
         built.notes["states_pinned_to_zero"] = int(never.sum())
+        built.notes["states_scaled"] = int(((scale > 0.0) & (scale < 1.0)).sum())
     built.build_time_s = time.perf_counter() - started
     return built
+
+
+def _scales(
+    problem: Problem,
+    budget: float,
+    chain: ChoiceProduct,
+    live: np.ndarray,
+    state_values: np.ndarray,
+) -> np.ndarray:
+    """The scale of every (s, n) of ``chain`` (all of them), proven on it, from the values of
+    the reachable chain's states (1 on the others: a bound of any value); 0 where the decoy is
+    out of reach (pinned to 0: a successor there would enter a row scaled up by 1 / u with its
+    probability, a coefficient of 4e9 for a branch of 1e-10), unless nothing is scaled."""
+    reachable = prepare(problem, budget).chain
+    if state_values.shape != (reachable.n_states,):
+        return np.ones(chain.n_states)
+    start = np.ones(chain.n_states)
+    start[reachable.world_state * problem.controller.n_nodes + reachable.node] = state_values
+    scale = value_scales(chain, live, start, 1.0)
+    if np.all(scale == 1.0):
+        return scale
+    return np.where(live | chain.target, scale, 0.0)
 
 
 def paper_size(problem: Problem) -> tuple[int, int, int]:

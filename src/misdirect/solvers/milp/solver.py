@@ -8,8 +8,11 @@ has an incumbent to report.
 The backend gets the model scaled (:func:`_scaled`): the objective divided by its largest
 coefficient (the largest decoy weight) and the budget row by the largest cost, so that its
 absolute tolerances (a feasibility of 1e-6, an absolute gap of 1e-9) do not swallow a problem
-whose weights or costs are 1e-12; its numbers are scaled back before anyone reads them. The
-budget row's bound is the largest exact sum of costs within the budget
+whose weights or costs are 1e-12; its numbers are scaled back before anyone reads them. Its
+value columns are scaled too, each by a proven power-of-two bound on its state's value
+(:mod:`misdirect.solvers.milp.scaling`, from the per-state relaxation's values): a decoy
+behind a branch of 1e-10 otherwise leaves values of 1e-10 that HiGHS reads as 0. The budget
+row's bound is the largest exact sum of costs within the budget
 (:meth:`~misdirect.core.tolerance.CostScale.snap`), never the budget plus a slack.
 
 The solver's claim for an alteration is its objective, or, when its point is more than
@@ -28,7 +31,7 @@ of the decoded alteration.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
@@ -41,7 +44,7 @@ from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.per_state import relaxation_bound
+from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.backends import BackendResult, SolverOptions, make_backend
 from misdirect.solvers.milp.compact import build_compact
@@ -56,10 +59,15 @@ from misdirect.solvers.status import Status
 # figure refuses only what certainly cannot fit
 SOLVER_BYTES_PER_NONZERO = 150
 
-FORMULATIONS = {
+# the largest objective coefficient a backend gets, relative to the objective's largest one
+MAX_OBJECTIVE_UNITS = 2.0**52
+
+FORMULATIONS: dict[str, Callable[..., MilpModel]] = {
     "compact": build_compact,
-    "paper": build_paper,
-    "paper-pinned": lambda problem, budget: build_paper(problem, budget, pin_unreachable=True),
+    "paper": lambda problem, budget, state_values=None: build_paper(problem, budget),
+    "paper-pinned": lambda problem, budget, state_values=None: build_paper(
+        problem, budget, pin_unreachable=True, state_values=state_values
+    ),
 }
 
 
@@ -71,10 +79,17 @@ def _check_formulation(formulation: str) -> None:
         )
 
 
-def build_formulation(problem: Problem, formulation: str, budget: float | None = None) -> MilpModel:
-    """The MILP of ``problem`` in the named formulation, budget row set to ``budget``."""
+def build_formulation(
+    problem: Problem,
+    formulation: str,
+    budget: float | None = None,
+    state_values: np.ndarray | None = None,
+) -> MilpModel:
+    """The MILP of ``problem`` in the named formulation, budget row set to ``budget``; with
+    ``state_values`` (the per-state relaxation's, :func:`relaxation_values`), its value columns
+    scaled to about 1 (:mod:`misdirect.solvers.milp.scaling`)."""
     _check_formulation(formulation)
-    return FORMULATIONS[formulation](problem, budget)
+    return FORMULATIONS[formulation](problem, budget, state_values=state_values)
 
 
 def _status(result: BackendResult, value: float | None) -> Status:
@@ -126,17 +141,18 @@ class MilpSolver:
         deadline: Deadline | None = None,
     ) -> list[Solution]:
         deadline = deadline or Deadline(self.options.time_limit)
-        built = build_formulation(problem, self.formulation, max(budgets))
-        # the values' scale: the relaxation's bound on the optimum, at the largest budget (a
-        # decoy behind a branch of 1e-6 has values of 1e-6, below HiGHS's tolerances)
-        # (a tenth of the time left at most: cut short, it is the trivial bound, scale 1)
+        # the values' scale: the relaxation's bound on the optimum, and on every state's value,
+        # at the largest budget (a decoy behind a branch of 1e-10 has values of 1e-10, below
+        # HiGHS's tolerances) (a tenth of the time left at most: cut short, it is the trivial
+        # bound, scale 1)
         share = deadline.share(10)
         quick = (
             schedule.closing_bound(deadline)
             if share is None
             else Deadline(share, cancel=deadline.cancel)
         )
-        relaxed = relaxation_bound(problem, max(budgets), quick)
+        relaxed, values = relaxation_values(problem, max(budgets), quick)
+        built = build_formulation(problem, self.formulation, max(budgets), values)
         model = _scaled(problem, built, relaxed)
         backend = make_backend(self.backend_name, self.options)
         try:
@@ -289,6 +305,10 @@ def _scaled(problem: Problem, model: MilpModel, relaxed: float) -> MilpModel:
     objective = np.abs(model.objective)
     largest = float(objective.max()) if objective.size else 0.0
     value_unit = _unit(min(largest, relaxed) if 0 < relaxed < np.inf else largest)
+    # the value columns are scaled to their states' values (compact, paper-pinned), so the
+    # objective's coefficients are about the optimum already; the paper's are 1 however small
+    # the optimum: at most 2^52 (1 / 1e-300 would be infinite)
+    value_unit = max(value_unit, _unit(largest) * MAX_OBJECTIVE_UNITS**-1)
     matrix = model.matrix.copy().tocsr()
     begin, end = matrix.indptr[model.budget_row], matrix.indptr[model.budget_row + 1]
     row = matrix.data[begin:end]
