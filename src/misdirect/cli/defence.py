@@ -43,7 +43,10 @@ def audit(
     ] = None,
     time_limit: Annotated[
         float | None,
-        typer.Option(help="Seconds for the whole audit; what is not proven is labelled."),
+        typer.Option(
+            help="Seconds for the audit's searches; what is not proven is labelled. Reading the "
+            "model and the exact evaluation of each answer come on top."
+        ),
     ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
@@ -155,7 +158,10 @@ def harden(
     ] = None,
     time_limit: Annotated[
         float | None,
-        typer.Option(help="Seconds; then the best protection found and a proven lower bound."),
+        typer.Option(
+            help="Seconds for the search; then the best protection found and a proven lower "
+            "bound. Reading the model and the exact evaluation of each answer come on top."
+        ),
     ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,

@@ -157,8 +157,9 @@ def solve(
     time_limit: Annotated[
         float | None,
         typer.Option(
-            help="Seconds for the whole command, every method and budget; then each budget "
-            "reports its best alteration, a proven upper bound and the gap (status time_limit)."
+            help="Seconds for the search, every method and budget; then each budget reports "
+            "its best alteration, a proven upper bound and the gap (status time_limit). Reading "
+            "the model and the exact evaluation of each answer come on top."
         ),
     ] = None,
     threads: Annotated[
