@@ -147,7 +147,6 @@ class _Trap(NamedTuple):
 class _KeptBasis(NamedTuple):
     basis: Basis
     cycles: _Cycles | None
-    inner_rows: np.ndarray  # the live state of each column of the basis's W
 
 
 def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
@@ -562,7 +561,7 @@ class LowRankEnumeration:
         )
         inner_rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
         cycles = self._cycles(closing, root_groups, basis.options, inner_rows)
-        return _KeptBasis(basis, cycles, inner_rows)
+        return _KeptBasis(basis, cycles)
 
     def _rows_within(self, choices: list[int]) -> np.ndarray:
         """The live product states of ``choices``' observations, choice by choice."""
@@ -755,7 +754,7 @@ class LowRankEnumeration:
             indices.size,
             deadline,
         )
-        found[indices] = values
+        found[indices[reached]] = values[reached]  # NaN: singular, solved exactly after
         self.trap_updates += int((reached & trap.closes[chosen] & ~np.isnan(values)).sum())
         cut = indices[~reached]
         cut_at = float(inner_costs[cut].min(initial=np.inf))
