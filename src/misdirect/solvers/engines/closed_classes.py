@@ -22,14 +22,19 @@ closed classes:
 
 So an alteration whose changed rows all have a safe successor (or leak) and avoid the base's
 closed classes has exactly the base's closed classes: its low-rank value is the least fixed
-point. Options that miss this test are *unsafe*; the enumeration values the alterations using
-them exactly, one chain each (:func:`unsafe_options`).
+point. Options that miss this test are *unsafe* (:func:`unsafe_options`); the alterations
+using them are searched for a trap (:func:`closing_alterations`). One that closes a class has
+a changed row in each new class; emptying the changed rows the search found trapped (value
+0, which they have) leaves the base's closed classes only, so its low-rank update of the
+base is again the least fixed point. One that changes a row of a base closed class may open
+it, and is valued exactly, one chain each.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,6 +42,7 @@ from scipy.sparse.csgraph import connected_components
 
 from misdirect.core.jit import njit
 from misdirect.core.model import reachable_from
+from misdirect.solvers.deadline import Deadline
 
 
 @dataclass(frozen=True)
@@ -59,11 +65,13 @@ def closed_classes(
     leaks: np.ndarray,
     base_groups: np.ndarray,
     inner_groups: tuple[np.ndarray, np.ndarray],
+    deadline: Deadline | None = None,
 ) -> ClosedClasses:
     """The closed classes and safe states of the base chain whose live state ``q`` takes group
     ``base_groups[q]`` (``inside``: each group's transitions into the live states; ``leaks``:
     per group, whether it leaves them); ``inner_groups``: (live state, group) of every row an
-    inner option may give a state."""
+    inner option may give a state. Past ``deadline``, no state is called safe (sound: every
+    option then goes through the trap search, which stops at the deadline too)."""
     moves = inside[base_groups].tocsr()
     n = moves.shape[0]
     leaving = leaks[base_groups]
@@ -77,7 +85,7 @@ def closed_classes(
         not_bottom = np.zeros(labels.max(initial=-1) + 1, dtype=bool)
         not_bottom[labels[sub.row[exits]]] = True
         closed[inner] = ~not_bottom[labels]
-    return ClosedClasses(closed, _safe(inside, leaks, base_groups, inner_groups))
+    return ClosedClasses(closed, _safe(inside, leaks, base_groups, inner_groups, deadline))
 
 
 def _safe(
@@ -85,11 +93,14 @@ def _safe(
     leaks: np.ndarray,
     base_groups: np.ndarray,
     inner_groups: tuple[np.ndarray, np.ndarray],
+    deadline: Deadline | None = None,
 ) -> np.ndarray:
     """Live states that leave the live states with positive probability under *every*
     alteration of the block (even one that picks an inner option per state): the complement
     of the largest set in which every state has a row (its base row; any option's, for inner
-    states) that neither leaks nor leaves the set."""
+    states) that neither leaks nor leaves the set. A pass may remove a single state, so on a
+    long chain the loop runs long: past ``deadline`` it stops and calls no state safe (an
+    under-approximation, as every answer of this function must be)."""
     n = base_groups.size
     inner_state, inner_group = inner_groups
     row_state = np.concatenate([np.arange(n), inner_state]).astype(np.int64)
@@ -98,6 +109,8 @@ def _safe(
     leaking = leaks[row_group]
     trapped = np.ones(n, dtype=bool)
     while True:
+        if deadline is not None and deadline.expired():
+            return np.zeros(n, dtype=bool)
         outside = (~trapped).astype(np.float64)
         stays = ~leaking & (np.asarray(rows @ outside).ravel() == 0)
         kept = np.zeros(n, dtype=bool)
@@ -119,7 +132,7 @@ def unsafe_options(
     """Per inner choice ``j`` and option ``k`` (``option_groups[j]``: its region's live states
     ``regions[j]`` (local indices) by options), whether the option changes a row of a closed
     class, or a row with neither a safe successor nor a leak: alterations taking it may close
-    a class, and are valued exactly instead."""
+    a class, and are searched for a trap."""
     n_options = max((g.shape[1] for g in option_groups), default=1)
     unsafe = np.zeros((len(option_groups), n_options), dtype=bool)
     safe = classes.safe.astype(np.float64)
@@ -145,29 +158,38 @@ def _closes_a_class(
     alteration_start: np.ndarray,
     changed_state: np.ndarray,
     changed_group: np.ndarray,
-) -> np.ndarray:  # pragma: no cover (compiled; its caller is tested)
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover (compiled; its caller is tested)
     """Per alteration (its changed rows ``changed_state``/``changed_group`` from
     ``alteration_start``): whether a depth-first search from one of its changed states, over
     its rows, exhausts without meeting a leaking row or a ``stop`` state (one that leaves under
     every alteration, or a base closed class, absorbing in the system): then that state lies
-    in, or only leads to, a closed class."""
+    in, or only leads to, a closed class. For such an alteration, every changed state is
+    searched, and ``emptied`` marks the changed rows the exhausted searches saw: none of them
+    can reach the decoy, and every new closed class holds one (it holds a changed state, whose
+    own search stays in it)."""
     n = base_group.size
     n_alterations = alteration_start.size - 1
     closes = np.zeros(n_alterations, dtype=np.bool_)
+    emptied = np.zeros(changed_state.size, dtype=np.bool_)
     seen = np.zeros(n, dtype=np.int64)
+    mine = np.full(n, -1, dtype=np.int64)  # the alteration whose trap a state joined last
     stamp = 0
     stack = np.empty(n, dtype=np.int64)
+    visited = np.empty(n, dtype=np.int64)
     for a in range(n_alterations):
         lo, hi = alteration_start[a], alteration_start[a + 1]
         for e in range(lo, hi):
             override[changed_state[e]] = changed_group[e]
         for e in range(lo, hi):
+            origin = changed_state[e]
+            if mine[origin] == a:  # in a trap this alteration already found
+                continue
             stamp += 1
-            top = 0
-            stack[0] = changed_state[e]
-            seen[changed_state[e]] = stamp
-            top = 1
-            found = stop[changed_state[e]]
+            stack[0] = origin
+            seen[origin] = stamp
+            visited[0] = origin
+            top, count = 1, 1
+            found = stop[origin]
             while top > 0 and not found:
                 top -= 1
                 s = stack[top]
@@ -184,12 +206,25 @@ def _closes_a_class(
                         seen[t] = stamp
                         stack[top] = t
                         top += 1
+                        visited[count] = t
+                        count += 1
             if not found:
                 closes[a] = True
-                break
+                for i in range(count):
+                    mine[visited[i]] = a
         for e in range(lo, hi):
             override[changed_state[e]] = -1
-    return closes
+            emptied[e] = mine[changed_state[e]] == a
+    return closes, emptied
+
+
+class Traps(NamedTuple):
+    """Per alteration, whether its chain has a closed class through a changed state
+    (``closes``); per changed row, whether it is then one that can no longer reach the decoy
+    (``emptied``): every new closed class holds such a row."""
+
+    closes: np.ndarray
+    emptied: np.ndarray
 
 
 def closing_alterations(
@@ -201,17 +236,20 @@ def closing_alterations(
     changed_state: np.ndarray,
     changed_group: np.ndarray,
     fixed: tuple[np.ndarray, np.ndarray] | None = None,
-) -> np.ndarray:
+) -> Traps:
     """Per alteration (given by its changed rows: live state and new group, listed from
-    ``alteration_start``): whether its chain has a closed class through a changed state. An
-    alteration without one keeps exactly the base's closed classes (unless it changes one of
-    their rows, which the caller checks), so its low-rank value is the least fixed point.
+    ``alteration_start``): whether its chain has a closed class through a changed state, and
+    its changed rows that can no longer reach the decoy (:class:`Traps`). An alteration without
+    one keeps exactly the base's closed classes (unless it changes one of their rows, which
+    the caller checks), so its low-rank value is the least fixed point. With one, emptying
+    those rows (value 0, which they have) leaves no new closed class, as each holds one of
+    them: the system is non-singular again and its solution the least fixed point.
     ``fixed``: rows (live state, group) every alteration of the block takes."""
     inside = inside.tocsr()
     override = np.full(base_groups.size, -1, dtype=np.int64)
     if fixed is not None:
         override[fixed[0]] = fixed[1]
-    closes: np.ndarray = _closes_a_class(
+    closes, emptied = _closes_a_class(
         inside.indptr.astype(np.int64),
         inside.indices.astype(np.int64),
         leaks,
@@ -222,4 +260,4 @@ def closing_alterations(
         changed_state.astype(np.int64),
         changed_group.astype(np.int64),
     )
-    return closes
+    return Traps(closes, emptied)

@@ -8,9 +8,11 @@ every inner alteration is valued by a low-rank update of that solve
 
 Where the choice product has no end component among the states that can reach the decoy,
 ``I − P`` is invertible on them for *every* alteration, and its solution is the least fixed
-point. Where it has some, each base chain's closed classes are fixed to 0 and the alterations
-that could close a class are valued exactly, one chain each
-(:mod:`misdirect.solvers.engines.closed_classes`). Values within
+point. Where it has some, each base chain's closed classes are fixed to 0, and the alterations
+that could close a class are searched for a trap: one that closes a class is still valued by
+its own low-rank update, with its changed rows that can no longer reach the decoy emptied
+(value 0); one that changes a row of a base closed class (which it may open) is valued
+exactly, one chain each (:mod:`misdirect.solvers.engines.closed_classes`). Values within
 :data:`~misdirect.core.tolerance.NEAR_TIE` of the best count as tied (the cheapest wins);
 every value reported is re-computed exactly by the front door.
 
@@ -50,10 +52,12 @@ from misdirect.solvers.engines.closed_classes import (
     unsafe_options,
 )
 from misdirect.solvers.engines.lowrank_updates import (
+    BaseRows,
     Basis,
     RowDeltas,
     add_corrections,
     base_solve,
+    flagged_values,
     row_deltas,
     selected_groups,
 )
@@ -130,13 +134,17 @@ class _Cycles(NamedTuple):
 class _Trap(NamedTuple):
     """The alterations of a block that take an unsafe option (``flagged``), their row slots
     (``slots``, each owned by ``owner``, ``counts`` per alteration), and which of them may
-    close a class (``closes``; None when the deadline cut the search short)."""
+    close a class (``closes``; None when the deadline cut the search short): those that change
+    a row of a base closed class (``touched``), and the others, whose changed rows that can no
+    longer reach the decoy ``emptied`` marks (per row slot)."""
 
     flagged: np.ndarray
     slots: np.ndarray
     owner: np.ndarray
     counts: np.ndarray
     closes: np.ndarray | None
+    touched: np.ndarray | None = None
+    emptied: np.ndarray | None = None
 
 
 class _KeptBasis(NamedTuple):
@@ -173,14 +181,17 @@ def _restricted(altered: AlteredEntries, keep: np.ndarray) -> AlteredEntries:
 
 class _BlockBase(NamedTuple):
     """A block's base chain: the value at the start, its row of ``W``, the row differences
-    of the inner options, and (with end components) its :class:`_Cycles` and the rows its
-    fixed inner picks change (live states, groups)."""
+    of the inner options, and (with end components) its :class:`_Cycles`, the rows its
+    fixed inner picks change (live states, groups), and its rows of ``x0`` and ``W`` on
+    demand, which value the alterations that close a class
+    (:func:`~misdirect.solvers.engines.lowrank_updates.flagged_values`)."""
 
     x_start: float
     w_start: np.ndarray | None
     deltas: RowDeltas
     cycles: _Cycles | None = None
     fixed_rows: tuple[np.ndarray, np.ndarray] | None = None
+    rows: BaseRows | None = None
 
 
 class BasisCache:
@@ -264,6 +275,7 @@ class LowRankEnumeration:
         self.cycling = bool(instance.cycling.any())
         self.closed_group = chain.transitions.shape[0]
         self.exact_evaluations = 0  # alterations that could close a class, valued one by one
+        self.trap_updates = 0  # alterations that close a class, valued by low rank
 
     @cached_property
     def _inside(self) -> sp.csr_matrix:
@@ -283,7 +295,11 @@ class LowRankEnumeration:
         return np.append(leaks, False)
 
     def _closing(
-        self, base_groups: np.ndarray, option_groups: list[np.ndarray], regions: list[np.ndarray]
+        self,
+        base_groups: np.ndarray,
+        option_groups: list[np.ndarray],
+        regions: list[np.ndarray],
+        deadline: Deadline | None = None,
     ) -> tuple[np.ndarray, list[np.ndarray], tuple[ClosedClasses, np.ndarray] | None]:
         """Without end components, the arguments. With them: the base's closed classes take
         the empty group (their values are 0), and so does every option that leaves such a row
@@ -296,7 +312,7 @@ class LowRankEnumeration:
             np.concatenate([np.zeros(0, dtype=np.int64), *repeated]),
             np.concatenate([np.zeros(0, dtype=np.int64), *(g.ravel() for g in option_groups)]),
         )
-        classes = closed_classes(self._inside, self._leaks, base_groups, inner_rows)
+        classes = closed_classes(self._inside, self._leaks, base_groups, inner_rows, deadline)
         unsafe = unsafe_options(
             classes, self._inside, self._leaks, option_groups, base_groups, regions
         )
@@ -385,7 +401,7 @@ class LowRankEnumeration:
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
-            base = self._block_base(outer, outer_pick, inner, fixed, bases)
+            base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
             factored = time.perf_counter()
             block = self._block(
                 scale.remaining(top, outer_cost),
@@ -457,6 +473,7 @@ class LowRankEnumeration:
         inner: list[int],
         fixed: dict[int, int],
         bases: BasisCache | None,
+        deadline: Deadline | None = None,
     ) -> _BlockBase:
         """The block's base chain: solved here, or (with ``bases``) a kept basis updated in
         low rank for the fixed inner choices (solved here if one of those may close a class)."""
@@ -466,18 +483,18 @@ class LowRankEnumeration:
         for i in inner:
             chosen[self.first_option[i]] = True  # inner observations unaltered in the base
         if bases is None:
-            return self._solved_base(chosen, inner)
+            return self._solved_base(chosen, inner, deadline)
         natural = self.natural_inner
         picks = dict(zip(outer, outer_pick.tolist(), strict=True))
         key = self.basis_key(picks)
         assert key is not None, "every outer choice is fixed in a block"
-        kept = bases.get_or_build(key, lambda: self._basis(chosen))
+        kept = bases.get_or_build(key, lambda: self._basis(chosen, deadline))
         position = {i: j for j, i in enumerate(natural)}
         fixed_inner = [(position[i], fixed[i]) for i in natural if i in fixed]
         cycles = kept.cycles
         if cycles is not None and any(cycles.unsafe[j, k] for j, k in fixed_inner):
-            return self._solved_base(chosen, inner)  # its closed classes may differ
-        x_start, w_start, deltas = kept.basis.with_fixed(
+            return self._solved_base(chosen, inner, deadline)  # its closed classes may differ
+        x_start, w_start, deltas, rows = kept.basis.with_fixed(
             fixed_inner, [position[i] for i in inner], self.start
         )
         if cycles is None:
@@ -489,9 +506,11 @@ class LowRankEnumeration:
         ).astype(np.int64)
         inner_cycles = cycles._replace(unsafe=cycles.unsafe[[position[i] for i in inner]])
         fixed_rows = (cycles.slot_state[fixed_slots], cycles.slot_group[fixed_slots])
-        return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows)
+        return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows, rows)
 
-    def _solved_base(self, chosen: np.ndarray, inner: list[int]) -> _BlockBase:
+    def _solved_base(
+        self, chosen: np.ndarray, inner: list[int], deadline: Deadline | None = None
+    ) -> _BlockBase:
         chain, live, start = self.instance.chain, self.instance.live, self.start
         group_of_option, first = chain.group_of_option, self.first_option
         base_groups = selected_groups(chain, live, group_of_option, chosen)
@@ -500,7 +519,9 @@ class LowRankEnumeration:
             group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
             for i in inner
         ]
-        base_groups, option_groups, closing = self._closing(base_groups, option_groups, regions)
+        base_groups, option_groups, closing = self._closing(
+            base_groups, option_groups, regions, deadline
+        )
         rows = self._rows_within(inner)
         x0, W = base_solve(
             self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
@@ -516,9 +537,13 @@ class LowRankEnumeration:
         cycles = self._cycles(closing, base_groups, deltas, self.live_index[rows])
         if start < 0:
             return _BlockBase(0.0, None, deltas, cycles)
-        return _BlockBase(float(x0[start]), W[start], deltas, cycles)
+        if cycles is None:
+            return _BlockBase(float(x0[start]), W[start], deltas)
+        none = np.zeros(0, dtype=np.int64)
+        solved = BaseRows(x0, W, none, np.zeros((0, 0)))  # kept: emptied rows read from it
+        return _BlockBase(float(x0[start]), W[start], deltas, cycles, None, solved)
 
-    def _basis(self, chosen: np.ndarray) -> _KeptBasis:
+    def _basis(self, chosen: np.ndarray, deadline: Deadline | None = None) -> _KeptBasis:
         """The basis of the outer picks in ``chosen`` with every natural inner one unaltered."""
         chain, live, first = self.instance.chain, self.instance.live, self.first_option
         unaltered = chosen.copy()  # the fixed inner ones too
@@ -532,7 +557,9 @@ class LowRankEnumeration:
             for i, region in zip(self.natural_inner, states, strict=True)
         ]
         regions = [self.live_index[region] for region in states]
-        root_groups, option_groups, closing = self._closing(root_groups, option_groups, regions)
+        root_groups, option_groups, closing = self._closing(
+            root_groups, option_groups, regions, deadline
+        )
         basis = Basis.of(
             self._inside, self._to_target, root_groups, regions, option_groups, self._live_node
         )
@@ -630,12 +657,13 @@ class LowRankEnumeration:
         counts = np.bincount(owner, minlength=flagged.size)
         start = np.concatenate([[0], np.cumsum(counts)])
         closes = np.zeros(flagged.size, dtype=bool)
+        emptied = np.zeros(slots.size, dtype=bool)
         for lo in range(0, flagged.size, TRAP_BATCH):
             if deadline.expired():
                 return _Trap(flagged, slots, owner, counts, None)
             hi = min(lo + TRAP_BATCH, flagged.size)
             part = slots[start[lo] : start[hi]]
-            closes[lo:hi] = closing_alterations(
+            traps = closing_alterations(
                 self._inside,
                 self._leaks,
                 cycles.classes,
@@ -645,10 +673,13 @@ class LowRankEnumeration:
                 cycles.slot_group[part],
                 base.fixed_rows,
             )
+            closes[lo:hi] = traps.closes
+            emptied[start[lo] : start[hi]] = traps.emptied
         # one that changes a row of a closed class may open it: valued exactly too
         touched = cycles.classes.closed[cycles.slot_state[slots]]
-        closes |= np.bincount(owner, weights=touched, minlength=flagged.size) > 0
-        return _Trap(flagged, slots, owner, counts, closes)
+        touched = np.bincount(owner, weights=touched, minlength=flagged.size) > 0
+        closes |= touched
+        return _Trap(flagged, slots, owner, counts, closes, touched, emptied)
 
     def _value_flagged(
         self,
@@ -661,34 +692,77 @@ class LowRankEnumeration:
         deadline: Deadline,
     ) -> float:
         """Value (in place) the flagged alterations the batch left out (``block``: its outer
-        choices, their picks, and its inner choices): by their own low-rank
-        update where the trap search found no class closing, else exactly, one chain each.
-        One cut short by ``deadline`` (or by a trap search cut short) gets cost ``inf`` (not
-        valued), as in :func:`add_corrections`; returns the cheapest of those (``inf``: none)."""
+        choices, their picks, and its inner choices), each by its own low-rank update: where
+        the trap search found a class closing, with the changed rows that can no longer reach
+        the decoy emptied (:func:`~misdirect.solvers.engines.lowrank_updates.flagged_values`).
+        Those that change a row of a base closed class (it may open), and any whose system
+        rounding made singular, are valued exactly, one chain each. One cut short by
+        ``deadline`` (or by a trap search cut short) gets cost ``inf`` (not valued), as in
+        :func:`add_corrections`; returns the cheapest of those (``inf``: none)."""
         flagged = trap.flagged
         if trap.closes is None:  # the trap search was cut: none of them is valued
             cut = flagged[np.isfinite(inner_costs[flagged])]
             inner_costs[cut] = np.inf
             return float(altered.costs[cut].min(initial=np.inf))
+        assert trap.touched is not None and trap.emptied is not None
         # the batch left out those that close a class and their extensions
         left_out = _with_extensions(altered.parent, flagged[trap.closes])[flagged]
-        keep = left_out & ~trap.closes
+        exact = trap.touched.copy()
         cut_at = np.inf
-        if base.w_start is not None:
-            cut_at = self._update_in_batches(
-                found, inner_costs, flagged, trap, keep, base, deadline
-            )
+        if base.w_start is not None and base.rows is not None:
+            low_rank = left_out & ~trap.touched
+            cut_at = self._update_flagged(found, inner_costs, trap, low_rank, base, deadline)
+            exact |= low_rank & np.isnan(found[flagged])  # singular by rounding
+        else:  # no start row (the start is not live) or no rows kept: one chain each
+            exact = trap.closes.copy()
         outer, outer_pick, inner = block
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        for index in flagged[trap.closes].tolist():  # the chain, solved exactly
-            if deadline.expired():
+        for index in flagged[exact & np.isfinite(inner_costs[flagged])].tolist():
+            if deadline.expired():  # the chain, solved exactly
                 cut_at = min(cut_at, float(inner_costs[index]))
                 inner_costs[index] = np.inf
                 continue
             picked[inner] = altered.picks(index, len(inner))
             found[index] = self._exact_value(picked)
             self.exact_evaluations += 1
+        return cut_at
+
+    def _update_flagged(
+        self,
+        found: np.ndarray,
+        inner_costs: np.ndarray,
+        trap: _Trap,
+        chosen: np.ndarray,
+        base: _BlockBase,
+        deadline: Deadline,
+    ) -> float:
+        """The low-rank values of the flagged alterations ``chosen`` selects (NaN where a
+        system was singular). Those the deadline leaves get cost ``inf``; returns the cheapest
+        of them (``inf``: none)."""
+        assert trap.emptied is not None and trap.closes is not None
+        assert base.cycles is not None and base.rows is not None and base.w_start is not None
+        indices = trap.flagged[chosen]
+        if not indices.size:
+            return np.inf
+        number = np.cumsum(chosen) - 1  # each chosen alteration's place among them
+        on = chosen[trap.owner]
+        slots = trap.slots[on]
+        values, reached = flagged_values(
+            base.deltas,
+            base.rows,
+            base.w_start,
+            self.start,
+            (number[trap.owner[on]], slots, base.cycles.slot_state[slots]),
+            trap.emptied[on],
+            indices.size,
+            deadline,
+        )
+        found[indices[reached]] = values[reached]  # NaN: singular, solved exactly after
+        self.trap_updates += int((reached & trap.closes[chosen] & ~np.isnan(values)).sum())
+        cut = indices[~reached]
+        cut_at = float(inner_costs[cut].min(initial=np.inf))
+        inner_costs[cut] = np.inf
         return cut_at
 
     def _exact_value(self, picked: np.ndarray) -> float:
@@ -715,47 +789,6 @@ class LowRankEnumeration:
         chosen[self.first_option[:-1]] = True
         policy[live] = selected_groups(chain, live, chain.group_of_option, chosen)
         return policy
-
-    @staticmethod
-    def _update_in_batches(
-        found: np.ndarray,
-        inner_costs: np.ndarray,
-        flagged: np.ndarray,
-        trap: _Trap,
-        keep: np.ndarray,
-        base: _BlockBase,
-        deadline: Deadline,
-        batch: int = 4_096,
-    ) -> float:
-        """The low-rank values of the flagged alterations ``keep`` selects: their Woodbury
-        systems padded to one width with the table's pad slot (an identity row), solved in
-        batches. Those the deadline leaves get cost ``inf``; returns the cheapest of them."""
-        table, w_start = base.deltas, base.w_start
-        slots, owner, counts = trap.slots, trap.owner, trap.counts
-        indices = flagged[keep]
-        assert w_start is not None
-        if not indices.size:
-            return np.inf
-        pad = table.d_w.shape[0] - 1  # zero row, zero right-hand side, the zero column
-        kept = keep[owner]
-        position = rank_in_group(counts)[kept]
-        row = np.cumsum(keep) - 1  # each kept alteration's row in the padded table
-        width = int(counts[keep].max(initial=1))
-        padded = np.full((indices.size, width), pad, dtype=np.int64)
-        padded[row[owner[kept]], position] = slots[kept]
-        weight = np.append(w_start, 0.0)  # W(q0, ·) with the pad's column
-        for lo in range(0, indices.size, batch):
-            if deadline.expired():
-                cut = indices[lo:]
-                cut_at = float(inner_costs[cut].min())
-                inner_costs[cut] = np.inf
-                return cut_at
-            part = padded[lo : lo + batch]
-            z = np.linalg.solve(table.system(part), table.rhs[part][..., None])[..., 0]
-            found[indices[lo : lo + batch]] = base.x_start + np.einsum(
-                "ni,ni->n", weight[table.column[part]], z
-            )
-        return np.inf
 
     def _block_fits(
         self,

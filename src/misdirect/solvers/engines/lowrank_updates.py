@@ -80,12 +80,12 @@ class Basis(NamedTuple):
 
     def with_fixed(
         self, fixed: Sequence[tuple[int, int]], inner: Sequence[int] | np.ndarray, start: int
-    ) -> tuple[float, np.ndarray | None, RowDeltas]:
-        """(value at the start, its row of ``W``, options' table of the ``inner`` choices) of
-        the chain whose choices ``fixed`` (position, option) take those options: with ``F``
-        their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``, every row
-        difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its right-hand
-        side likewise) and the start's row ``W' = W + W_F Z``."""
+    ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows]:
+        """(value at the start, its row of ``W``, options' table of the ``inner`` choices, its
+        rows on demand) of the chain whose choices ``fixed`` (position, option) take those
+        options: with ``F`` their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``,
+        every row difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its
+        right-hand side likewise) and the start's row ``W' = W + W_F Z``."""
         table = self.options
         if fixed:
             changed = np.concatenate(
@@ -95,11 +95,14 @@ class Basis(NamedTuple):
             changed = np.zeros(0, dtype=np.int64)
         inner = np.asarray(inner, dtype=np.int64)
         flat_start, flat_length = table.flat_start[inner], table.flat_length[inner]
+        unchanged = BaseRows(self.x0, self.W, np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
         if start < 0:
-            return 0.0, None, table._replace(flat_start=flat_start, flat_length=flat_length)
+            trimmed = table._replace(flat_start=flat_start, flat_length=flat_length)
+            return 0.0, None, trimmed, unchanged
         x_start, w_start = float(self.x0[start]), self.W[start]
         if not changed.size:
-            return x_start, w_start, table._replace(flat_start=flat_start, flat_length=flat_length)
+            trimmed = table._replace(flat_start=flat_start, flat_length=flat_length)
+            return x_start, w_start, trimmed, unchanged
         own = table.column[changed]
         d_w = table.d_w[:, :-1]  # without the pad's column
         system = np.eye(changed.size) - d_w[np.ix_(changed, own)]
@@ -118,7 +121,39 @@ class Basis(NamedTuple):
                 updated_d_w,
                 table.group,
             ),
+            BaseRows(self.x0, self.W, own, z),
         )
+
+
+class BaseRows(NamedTuple):
+    """A block base's ``x0`` and rows of ``W`` on demand: the kept basis's, updated by the
+    Woodbury factor ``z`` of the fixed rows (columns ``own``) as :meth:`Basis.with_fixed`
+    updates the start's row (``own`` empty: the basis itself, or a base solved for the block).
+    Only the rows a trap empties are ever needed, so ``W'`` is never formed whole."""
+
+    x0: np.ndarray
+    W: np.ndarray
+    own: np.ndarray
+    z: np.ndarray
+
+    def x(self, states: np.ndarray) -> np.ndarray:
+        """``x0'`` at the live ``states`` (any shape)."""
+        x = self.x0[states]
+        if self.own.size:
+            x = x + self.W[states[..., None], self.own] @ self.z[:, 0]
+        return cast(np.ndarray, x)
+
+    def w(self, states: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """``W'(s, c)`` for each state ``s`` of ``states`` (n, k) and column ``c`` of its
+        alteration's ``columns`` (n, k): (n, k, k); a column past ``W``'s (the pad's) reads 0."""
+        width = self.W.shape[1]
+        inside = columns < width
+        clipped = np.where(inside, columns, 0)
+        w = self.W[states[:, :, None], clipped[:, None, :]]
+        if self.own.size:
+            lift = self.W[states[..., None], self.own]  # (n, k, own)
+            w = w + np.matmul(lift, self.z[:, 1:][:, clipped].transpose(1, 0, 2))
+        return np.where(inside[:, None, :], w, 0.0)
 
 
 class RowDeltas(NamedTuple):
@@ -485,3 +520,72 @@ def selected_groups(
     if (picked < 0).any():
         raise AssertionError("a live state has no selected group")
     return cast(np.ndarray, picked)
+
+
+TRAP_BATCH_ENTRIES = 1_000_000  # numbers of the Woodbury systems solved in one batch
+
+
+def flagged_values(
+    table: RowDeltas,
+    rows: BaseRows,
+    w_start: np.ndarray,
+    start: int,
+    changed: tuple[np.ndarray, np.ndarray, np.ndarray],
+    emptied: np.ndarray,
+    count: int,
+    deadline: Deadline | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Values at the live ``start`` of ``count`` alterations, each by its own Woodbury system
+    (not bordered on a parent's, which may be singular): ``changed`` lists their rows (owner
+    alteration, row slot of ``table``, live state), and the rows ``emptied`` marks can no
+    longer reach the decoy (a trap search found them; each new closed class holds one).
+
+    Emptied, a row reads ``x(t) = 0``: against the base its difference is ``D = −P(t)``, and as
+    ``(I − P) W = E`` and ``(I − P) x0 = b`` on the base, ``D W = e_t − W(t)`` and
+    ``D x0 + Δb = −x0(t)``. Its row of ``I − D W`` is then ``W(t)`` on the system's columns
+    (no cancellation), read from :class:`BaseRows`. With a row of every new closed class
+    emptied, the system is non-singular, and its solution the least fixed point.
+
+    Returns (values, reached): alterations not reached were cut by ``deadline``; a reached one
+    whose value is NaN had a singular system (rounding) and needs an exact solve."""
+    values = np.full(count, np.nan)
+    reached = np.zeros(count, dtype=bool)
+    owner, slots, states = changed
+    by_owner = np.argsort(owner, kind="stable")
+    slots, states, emptied = slots[by_owner], states[by_owner], emptied[by_owner]
+    width = np.bincount(owner, minlength=count)
+    first = np.concatenate([[0], np.cumsum(width)])[:-1]
+    pad = table.rhs.size - 1  # the pad slot: zero row, zero right-hand side, the pad column
+    weight = np.append(w_start, 0.0)  # W(q0, ·) with the pad's column
+    x_start = float(rows.x(np.array([start]))[0])
+    order = np.argsort(width, kind="stable")
+    position = 0
+    while position < order.size:
+        if deadline is not None and deadline.expired():
+            break
+        widest = max(int(width[order[position]]), 1)
+        batch = order[position : position + max(1, TRAP_BATCH_ENTRIES // widest**2)]
+        batch = batch[width[batch] * 2 <= widest * 3 + 1]  # a prefix (by width): small padding
+        position += batch.size
+        reached[batch] = True
+        wide = int(width[batch].max(initial=1))
+        place = (np.repeat(np.arange(batch.size), width[batch]), rank_in_group(width[batch]))
+        entries = np.repeat(first[batch], width[batch]) + rank_in_group(width[batch])
+        slot = np.full((batch.size, wide), pad, dtype=np.int64)
+        slot[place] = slots[entries]
+        state = np.zeros((batch.size, wide), dtype=np.int64)
+        state[place] = states[entries]
+        empty = np.zeros((batch.size, wide), dtype=bool)
+        empty[place] = emptied[entries]
+        column = table.column[slot]
+        system = np.eye(wide) - table.d_w[slot[:, :, None], column[:, None, :]]
+        rhs = table.rhs[slot]
+        if empty.any():
+            system = np.where(empty[:, :, None], rows.w(state, column), system)
+            rhs = np.where(empty, -rows.x(state), rhs)
+        try:
+            z = np.linalg.solve(system, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            continue  # left NaN: solved exactly by the caller
+        values[batch] = x_start + np.einsum("ni,ni->n", weight[column], z)
+    return values, reached
