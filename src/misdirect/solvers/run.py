@@ -467,6 +467,7 @@ def solve(
             claimed=solution.solver_probability,
             stats=solution.stats,
             certified_by=solution.certified_by,
+            notes=dict(solution.notes),
         )
         warnings += check_claims(point, method_solver.name, scale, _floor(problem))
         curve.append(point)

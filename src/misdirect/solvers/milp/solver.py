@@ -46,7 +46,12 @@ from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
-from misdirect.solvers.milp.backends import BackendResult, SolverOptions, make_backend
+from misdirect.solvers.milp.backends import (
+    BackendResult,
+    SolverOptions,
+    Tolerances,
+    make_backend,
+)
 from misdirect.solvers.milp.compact import build_compact
 from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
@@ -101,7 +106,7 @@ def _status(result: BackendResult, value: float | None) -> Status:
         and result.bound is not None
         and value is not None
         and result.bound - value
-        > tolerance.slack(result.bound, value, rel=tolerance.GAP + tolerance.TIE)
+        > tolerance.slack(result.bound, value, rel=tolerance.CERTIFY + tolerance.TIE)
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
@@ -176,7 +181,15 @@ class MilpSolver:
             field="milp",
         )
         backend.load(model)
-        curve = _Curve(problem, model, budgets, start=model.start_for(problem.identity()))
+        tolerances = backend.tolerances()
+        curve = _Curve(
+            problem,
+            model,
+            budgets,
+            start=model.start_for(problem.identity()),
+            tolerances=tolerances,
+            distrust=_distrust(backend.name, backend.handed(model), tolerances),
+        )
         solutions = []
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, _budget_row(problem, model, budget))
@@ -230,11 +243,17 @@ class MilpSolver:
         # the better value of the same binaries
         incumbent = None if claimed is None else max(claimed, result.objective or claimed)
         status = _status(result, incumbent)
-        upper_bound = (
-            min(result.bound, problem.objective.max_value)
-            if model.sound and result.bound is not None
-            else None
-        )
+        notes: dict[str, str] = {}
+        upper_bound = None
+        if model.sound and result.bound is not None:
+            if curve.distrust is None:
+                # raised by the gap the backend prunes with (in the scaled model's units)
+                margin = curve.tolerances.margin(result.bound / unit) * unit
+                upper_bound = min(result.bound + margin, problem.objective.max_value)
+            else:
+                # its bound is no proof: the per-state relaxation's at this budget is
+                notes["bound_untrusted"] = curve.distrust
+                upper_bound = curve.relaxed_bound_at(budget, schedule.closing_bound(deadline))
         if upper_bound is None and model.sound and status != Status.OPTIMAL:
             # stopped before the solver had a bound: the per-state relaxation's is proven
             upper_bound = curve.relaxed_bound(schedule.closing_bound(deadline))
@@ -257,6 +276,7 @@ class MilpSolver:
             status=status,
             upper_bound=upper_bound,
             stats=stats,
+            notes=notes,
         )
 
 
@@ -268,6 +288,8 @@ class _Curve:
     model: MilpModel
     budgets: Sequence[float]
     start: tuple[Any, Any]
+    tolerances: Tolerances
+    distrust: str | None = None  # why the backend's bound proves nothing here (None: it does)
     relaxed: float | None = None
 
     def relaxed_bound(self, deadline: Deadline) -> float:
@@ -276,6 +298,29 @@ class _Curve:
         if self.relaxed is None:
             self.relaxed = relaxation_bound(self.problem, max(self.budgets), deadline)
         return self.relaxed
+
+    def relaxed_bound_at(self, budget: float, deadline: Deadline) -> float:
+        """The per-state relaxation at ``budget`` (tighter than at the largest budget), no
+        more than the largest budget's when that is known."""
+        bound = relaxation_bound(self.problem, budget, deadline)
+        return bound if self.relaxed is None else min(bound, self.relaxed)
+
+
+def _distrust(name: str, model: MilpModel, tolerances: Tolerances) -> str | None:
+    """Why ``name``'s bound on ``model`` (as it receives it) is no proof, or None: it drops
+    coefficients, or some are too small to move a row beyond its feasibility tolerance, so the
+    model it solves is not the one built (a 1e-12 branch, a value 1e-9 from 1)."""
+    dropped, blind = backends.blind_spots(model, tolerances)
+    if not dropped and not blind:
+        return None
+    parts = []
+    if dropped:
+        parts.append(f"drops {dropped} coefficient(s) of at most {tolerances.drop:g}")
+    if blind:
+        parts.append(
+            f"cannot see {blind} more within its feasibility tolerance {tolerances.feasibility:g}"
+        )
+    return f"{name} {' and '.join(parts)}, so its bound is not a proof"
 
 
 def _claim(
@@ -288,7 +333,7 @@ def _claim(
     claimed = result.objective
     assert claimed is not None and result.values is not None
     gapped = result.bound is not None and result.bound - claimed > tolerance.slack(
-        result.bound, claimed, rel=tolerance.GAP
+        result.bound, claimed, rel=tolerance.CERTIFY
     )
     # a stop request skips the LP (a second solve); the claim is only checked, never reported
     if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled:
