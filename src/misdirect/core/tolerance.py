@@ -53,12 +53,9 @@ GAP = CERTIFY / 4
 scaled so that its values are about 1 (:mod:`misdirect.solvers.milp`). A backend prunes with
 its gap, so its bound may lie that far below the optimum: the bound counts only raised by it
 (:meth:`~misdirect.solvers.milp.backends.Tolerances.margin`), which leaves three quarters of
-:data:`CERTIFY` for the distance between the bound and the exact value."""
+:data:`CERTIFY` for the distance between the bound and the exact value. No absolute gap: it
+would be margin that no relative tolerance covers on a problem whose optimum is 0."""
 
-GAP_ABSOLUTE = GAP * 2.0**-11
-"""The absolute gap a MILP backend is asked to close, in the scaled model's units: values
-there are at least about 2^-11 (scaled by a power of two only below 2^-10), so it is at
-most :data:`GAP` relative to them."""
 
 FEASIBILITY = 1e-9
 """A MILP point further than this from feasible (in the scaled model, values about 1) gets its

@@ -333,7 +333,7 @@ def _new_highs(options: SolverOptions, seed: int) -> Any:
     if options.threads is not None:
         highs.setOptionValue("threads", int(options.threads))
     highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
-    highs.setOptionValue("mip_abs_gap", min(tolerance.GAP_ABSOLUTE, float(options.mip_gap)))
+    highs.setOptionValue("mip_abs_gap", 0.0)  # relative only: see tolerance.GAP
     highs.setOptionValue("random_seed", int(seed))
     highs.setOptionValue("presolve_rule_off", HIGHS_PRESOLVE_RULES_OFF)
     # HiGHS' default feasibility tolerances: at 1e-9 its dual simplex crashed sooner, and at an

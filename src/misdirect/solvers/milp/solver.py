@@ -15,15 +15,24 @@ behind a branch of 1e-10 otherwise leaves values of 1e-10 that HiGHS reads as 0.
 row's bound is the largest exact sum of costs within the budget
 (:meth:`~misdirect.core.tolerance.CostScale.snap`), never the budget plus a slack.
 
+The backend's bound proves the optimum only where the backend sees the whole model: where it
+drops a coefficient (HiGHS' ``small_matrix_value``, 1e-9; SCIP gets the file HiGHS writes) or
+cannot tell one from 0 within its feasibility tolerance, its bound moves with what it did not
+see (0.9999999947 "proven" where 0.9999999988 was there), and the point gets the per-state
+relaxation's proven bound instead, with the reason in its notes. Elsewhere the bound counts
+raised by the gap the backend prunes with (:class:`~misdirect.solvers.milp.backends.Tolerances`,
+read from the backend's options as set).
+
 The solver's claim for an alteration is its objective, or, when its point is more than
 :data:`~misdirect.core.tolerance.FEASIBILITY` from feasible (binaries off 0/1, rows violated,
-within its tolerances) or its objective more than :data:`~misdirect.core.tolerance.GAP`
+within its tolerances) or its objective more than :data:`~misdirect.core.tolerance.CERTIFY`
 (relative) below its bound, the LP optimum with the binaries rounded: the tolerance would
 otherwise leak into the claim (0.400001 for 0.4), and an incumbent whose probabilities are not
 the largest for its alteration would look like a gap.
 
 How it stopped, normalised from the backend's own codes: ``optimal`` (the backend's bound meets
-its incumbent within :data:`~misdirect.core.tolerance.GAP`), ``gap_limit`` (it stopped because
+its incumbent within :data:`~misdirect.core.tolerance.CERTIFY`; it is asked for
+:data:`~misdirect.core.tolerance.GAP`), ``gap_limit`` (it stopped because
 the relative gap fell under ``mip_gap``, with the bound further than that from the incumbent),
 ``time_limit``. Whether the answer is optimal is decided by the front door, on the exact value
 of the decoded alteration.
@@ -97,6 +106,21 @@ def build_formulation(
     return FORMULATIONS[formulation](problem, budget, state_values=state_values)
 
 
+def scaled_formulation(
+    problem: Problem,
+    formulation: str,
+    budget: float | None = None,
+    deadline: Deadline | None = None,
+) -> MilpModel:
+    """The MILP of ``problem`` exactly as a backend gets it (budget row set to ``budget``,
+    default the problem's): value columns scaled by the per-state relaxation's values, the
+    objective and the budget row by their units (:func:`_scaled`). What ``export-milp``
+    writes, so that another solver sees the numbers HiGHS sees, not a 1e-12 branch."""
+    budget = problem.budget if budget is None else float(budget)
+    relaxed, values = relaxation_values(problem, budget, deadline)
+    return _scaled(problem, build_formulation(problem, formulation, budget, values), relaxed)
+
+
 def _status(result: BackendResult, value: float | None) -> Status:
     """The backend's status, except that a solve it calls optimal while its bound lies more
     than the gap tolerance above ``value`` (its incumbent's: the better of its objective and
@@ -156,9 +180,7 @@ class MilpSolver:
             if share is None
             else Deadline(share, cancel=deadline.cancel)
         )
-        relaxed, values = relaxation_values(problem, max(budgets), quick)
-        built = build_formulation(problem, self.formulation, max(budgets), values)
-        model = _scaled(problem, built, relaxed)
+        model = scaled_formulation(problem, self.formulation, max(budgets), quick)
         backend = make_backend(self.backend_name, self.options)
         try:
             return self._solve_curve(problem, model, backend, budgets, progress, deadline)
