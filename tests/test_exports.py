@@ -224,3 +224,67 @@ def test_prism_explicit_chain_solved_independently(tmp_path):
 def test_export_chain_refuses_other_suffixes(tmp_path):
     result = _run("export-chain", TINY, "-o", tmp_path / "c.txt")
     assert result.exit_code == 2 and "-o" in result.stderr
+
+
+TINY_SCALE = """\
+format: misdirect/v1
+name: tiny-scale
+pomdp:
+  states: [s0, s1, s2, trap, goal]
+  actions: [a, b]
+  initial: s0
+  observe: {s0: o0, s1: o1, s2: o2, trap: g, goal: g}
+  transitions:
+    - [s0, a, s1, 1.0e-12]
+    - [s0, a, s2, 0.999999999999]
+    - [s0, b, s1, 1.0e-12]
+    - [s0, b, s2, 0.999999999999]
+    - [s1, a, trap, 0.8]
+    - [s1, a, goal, 0.2]
+    - [s1, b, trap, 0.2]
+    - [s1, b, goal, 0.8]
+    - [s2, a, goal, 1.0]
+    - [s2, b, goal, 1.0]
+  absorbing: [trap, goal]
+controller:
+  nodes: [n]
+  initial: n
+  rules:
+    - {node: "*", obs: o0, action: a, next: n}
+    - {node: "*", obs: "*", action: b, next: n}
+deception:
+  decoy: [trap]
+  budget: 1
+  cost: {default: 1}
+"""
+
+
+def test_exported_model_of_tiny_values_is_scaled_and_decodes(tmp_path):
+    """A decoy behind a branch of 1e-12: o1 -> o0 makes s1 play a, worth 1e-12 x 0.8 = 8e-13
+    (by hand) against 2e-13. The model is written scaled as the solve scales it (unscaled,
+    its Bellman coefficients of 1e-12 x 1000 were at HiGHS' drop threshold and HiGHS solved
+    another model): HiGHS' solution of the file decodes to o1 -> o0, and the map's
+    value_unit turns the file's objective back into the value."""
+    highspy = pytest.importorskip("highspy")
+    problem = tmp_path / "p.yaml"
+    problem.write_text(TINY_SCALE)
+    model = tmp_path / "p.mps"
+    result = _run("export-milp", problem, "-o", model)
+    assert result.exit_code == 0, result.output
+    mapping = json.loads((tmp_path / "p.columns.json").read_text())
+    unit = mapping["value_unit"]
+    assert 2.0**-45 <= unit <= 2.0**-35  # a power of two about the 8e-13 optimum
+    assert np.log2(unit) == int(np.log2(unit))
+    solver = highspy.Highs()
+    solver.setOptionValue("output_flag", False)
+    solver.readModel(str(model))
+    solver.run()
+    objective = solver.getInfo().objective_function_value
+    assert (objective + mapping["objective_offset"]) * unit == pytest.approx(8e-13, rel=1e-6)
+    solution = tmp_path / "p.sol"
+    solver.writeSolution(str(solution), 0)
+    result = _run("decode", model, solution, "--json")
+    assert result.exit_code == 0, result.output
+    payload = checked(result.stdout)
+    assert payload["alteration"] == {"o1": "o0"}
+    assert payload["value"] == pytest.approx(8e-13, rel=1e-12)

@@ -140,7 +140,7 @@ def _problem_and_map(
 ) -> tuple[Problem, dict[str, Any]]:
     """The problem and the column map ``decode`` reads the solution through."""
     from misdirect.solvers.milp.model import column_map
-    from misdirect.solvers.milp.solver import build_formulation
+    from misdirect.solvers.milp.solver import scaled_formulation
 
     suffix = model.suffix.lower()
     if suffix in (".mps", ".lp") or model.name.endswith(MAP_SUFFIX):
@@ -163,7 +163,7 @@ def _problem_and_map(
         problem = load_problem(problem_file if problem_file is not None else Path(str(named)))
         return problem, mapping
     problem = load_problem(problem_file or model)
-    built = build_formulation(problem, formulation, budget)
+    built = scaled_formulation(problem, formulation, budget)
     limit = problem.budget if budget is None else budget
     return problem, column_map(built, problem, limit)
 

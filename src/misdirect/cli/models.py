@@ -32,7 +32,7 @@ from misdirect.report import json_output
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers.milp.backends import write_model
 from misdirect.solvers.milp.model import column_map
-from misdirect.solvers.milp.solver import build_formulation
+from misdirect.solvers.milp.solver import scaled_formulation
 
 OutputOption = Annotated[Path, typer.Option("--output", "-o", help="File to write (.yaml/.json).")]
 ScenarioBudgetOption = Annotated[float, typer.Option(help="Budget written into the file.")]
@@ -308,7 +308,7 @@ def export_milp(
     problem = source.load()
     if budget is not None and (not math.isfinite(budget) or budget < 0):
         raise ProblemError("must be a non-negative number", field="--budget")
-    model = build_formulation(problem, formulation, budget)
+    model = scaled_formulation(problem, formulation, budget)  # as the solve scales it
     mapping = column_map(model, problem, problem.budget if budget is None else budget)
     mapping["problem_file"] = str(source.file.resolve()) if source.file is not None else None
     map_path = column_map_path(output)

@@ -172,7 +172,7 @@ def solve(
     mip_gap: Annotated[
         float | None,
         typer.Option(
-            help="MILP: relative gap to stop at (default 1e-9); a point whose bound is still "
+            help="MILP: relative gap to stop at (default 2.5e-10); a point whose bound is still "
             "above its value is reported as gap_limit, not optimal."
         ),
     ] = None,

@@ -48,9 +48,14 @@ MISMATCH = 1e-6
 """A solver's claim this far (relative) from the exact value of its alteration contradicts the
 chain."""
 
-GAP = CERTIFY
-"""A MILP backend's bound this close (relative) to its incumbent proves it. The MILP hands the
-backend a model scaled so that its values are about 1 (:mod:`misdirect.solvers.milp`)."""
+GAP = CERTIFY / 4
+"""The gap (relative) a MILP backend is asked to close. The MILP hands the backend a model
+scaled so that its values are about 1 (:mod:`misdirect.solvers.milp`). A backend prunes with
+its gap, so its bound may lie that far below the optimum: the bound counts only raised by it
+(:meth:`~misdirect.solvers.milp.backends.Tolerances.margin`), which leaves three quarters of
+:data:`CERTIFY` for the distance between the bound and the exact value. No absolute gap: it
+would be margin that no relative tolerance covers on a problem whose optimum is 0."""
+
 
 FEASIBILITY = 1e-9
 """A MILP point further than this from feasible (in the scaled model, values about 1) gets its

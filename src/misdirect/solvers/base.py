@@ -51,6 +51,8 @@ class Solution:
     # the method's own counters (misdirect.solvers.stats), or auto's record around them
     stats: MethodStats = field(default_factory=NoStats)
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
+    # what the method says of its answer for the point's notes (why its bound is no proof)
+    notes: dict[str, str] = field(default_factory=dict)
 
 
 class Solver(Protocol):

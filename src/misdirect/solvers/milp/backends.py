@@ -63,6 +63,46 @@ class SolverOptions:
     verbose: bool = False
 
 
+@dataclass(frozen=True)
+class Tolerances:
+    """What a backend cannot see, read from the options it is actually given (never assumed):
+    its bound proves the optimum only where none of these hides part of the model."""
+
+    drop: float  # a coefficient this small or smaller is dropped: the backend reads it as 0
+    feasibility: float  # rows hold only to within this (absolute, in the rows as handed)
+    rel_gap: float  # it stops, and prunes nodes, once a bound is this close (relative) ...
+    abs_gap: float  # ... or this close (absolute) to the incumbent
+
+    def margin(self, bound: float) -> float:
+        """How far below the optimum a bound of ``bound`` may lie because of the gap the
+        backend prunes with (HiGHS reports the incumbent as its bound once every node left is
+        within the gap of it): what the bound is raised by before it counts."""
+        return max(self.abs_gap, self.rel_gap * abs(bound))
+
+
+def blind_spots(model: MilpModel, tolerances: Tolerances) -> tuple[int, int]:
+    """How many non-zero coefficients of ``model`` (as the backend gets it) the backend drops
+    (at most ``drop``), and how many more it cannot tell from 0 within its feasibility
+    tolerance (the coefficient times its column's range at most ``feasibility``: such a term
+    moves its row by less than the row is allowed to be off). A model with either has a
+    different optimum as far as the backend can see, so its bound is no proof."""
+    matrix = model.matrix.tocsr()
+    size = np.abs(matrix.data)
+    width = (model.col_upper - model.col_lower)[matrix.indices]
+    present = size > 0
+    dropped = present & (size <= tolerances.drop)
+    with np.errstate(invalid="ignore"):  # 0 x inf: an empty column range (fixed column)
+        reach = np.where(np.isfinite(width), size * width, np.inf)
+    blind = present & ~dropped & (reach <= tolerances.feasibility) & (width > 0)
+    return int(dropped.sum()), int(blind.sum())
+
+
+def _highs_option(highs: Any, name: str) -> float:
+    """An option of a Highs instance (highspy returns ``(status, value)`` before 1.8)."""
+    value = highs.getOptionValue(name)
+    return float(value[1] if isinstance(value, tuple) else value)
+
+
 @dataclass
 class BackendResult:
     status: str  # "optimal" | "time_limit" | "infeasible" | "error" (gap stops: "optimal")
@@ -80,6 +120,14 @@ class Backend(Protocol):
     def load(self, model: MilpModel) -> None: ...
 
     def set_row_upper(self, row: int, value: float) -> None: ...
+
+    def tolerances(self) -> Tolerances:
+        """What this backend, with its options, cannot see."""
+        ...
+
+    def handed(self, model: MilpModel) -> MilpModel:
+        """``model`` as this backend receives it (the rows SCIP gets are unscaled)."""
+        ...
 
     def solve(
         self,
@@ -124,6 +172,12 @@ class HighsBackend:
     def set_row_upper(self, row: int, value: float) -> None:
         assert self.model is not None, "load() a model first"
         self.model.row_upper[row] = value
+
+    def tolerances(self) -> Tolerances:
+        return highs_tolerances(self.options)
+
+    def handed(self, model: MilpModel) -> MilpModel:
+        return model
 
     def write(self, path: Path) -> None:
         assert self.model is not None, "load() a model first"
@@ -279,13 +333,29 @@ def _new_highs(options: SolverOptions, seed: int) -> Any:
     if options.threads is not None:
         highs.setOptionValue("threads", int(options.threads))
     highs.setOptionValue("mip_rel_gap", float(options.mip_gap))
-    highs.setOptionValue("mip_abs_gap", min(tolerance.GAP, float(options.mip_gap)))
+    highs.setOptionValue("mip_abs_gap", 0.0)  # relative only: see tolerance.GAP
     highs.setOptionValue("random_seed", int(seed))
     highs.setOptionValue("presolve_rule_off", HIGHS_PRESOLVE_RULES_OFF)
     # HiGHS' default feasibility tolerances: at 1e-9 its dual simplex crashed sooner, and at an
     # integrality tolerance of 1e-9 it stalled (see INTEGRALITY_TOLERANCE). Values are
     # re-evaluated exactly afterwards, so the tolerance never reaches a reported number.
     return highs
+
+
+def highs_tolerances(options: SolverOptions) -> Tolerances:
+    """HiGHS' tolerances as set for a solve: ``small_matrix_value`` (passModel drops smaller
+    entries, also from the files it writes), the larger of its LP and MIP feasibility
+    tolerances (the MIP checks rows against the latter), its gaps."""
+    highs = _new_highs(options, seed=0)
+    return Tolerances(
+        drop=_highs_option(highs, "small_matrix_value"),
+        feasibility=max(
+            _highs_option(highs, "primal_feasibility_tolerance"),
+            _highs_option(highs, "mip_feasibility_tolerance"),
+        ),
+        rel_gap=_highs_option(highs, "mip_rel_gap"),
+        abs_gap=_highs_option(highs, "mip_abs_gap"),
+    )
 
 
 def _pass_model(highs: Any, arrays: dict[str, Any]) -> None:
@@ -399,6 +469,10 @@ def _die_with_parent() -> None:
             ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
 
 
+# Gurobi reads a matrix coefficient below this as 0 (its documentation's "tiny" coefficients)
+GUROBI_TINY = 1e-13
+
+
 class GurobiBackend:
     name = "gurobi"
 
@@ -456,6 +530,22 @@ class GurobiBackend:
 
     def set_row_upper(self, row: int, value: float) -> None:
         self._rows[row].RHS = value
+
+    def tolerances(self) -> Tolerances:
+        probe = self.gp.Model(env=self.env)
+        try:
+            probe.Params.MIPGap = self.options.mip_gap
+            return Tolerances(
+                drop=GUROBI_TINY,
+                feasibility=float(probe.Params.FeasibilityTol),
+                rel_gap=float(probe.Params.MIPGap),
+                abs_gap=float(probe.Params.MIPGapAbs),
+            )
+        finally:
+            probe.dispose()
+
+    def handed(self, model: MilpModel) -> MilpModel:
+        return model
 
     def close(self) -> None:
         if getattr(self, "model", None) is not None:
@@ -534,6 +624,24 @@ class ScipBackend:
 
     def set_row_upper(self, row: int, value: float) -> None:
         self.source.row_upper[row] = value
+
+    def tolerances(self) -> Tolerances:
+        """SCIP's, as :meth:`solve` sets them; its model comes through the MPS file HiGHS
+        writes, so HiGHS' ``small_matrix_value`` drops entries before SCIP's own epsilon."""
+        scip = self.pyscipopt.Model()
+        scip.hideOutput(True)
+        _set_scip(scip, "limits/gap", float(self.options.mip_gap), "mip_gap")
+        scip.setParam("numerics/feastol", INTEGRALITY_TOLERANCE)
+        written = highs_tolerances(SolverOptions())
+        return Tolerances(
+            drop=max(written.drop, float(scip.getParam("numerics/epsilon"))),
+            feasibility=float(scip.getParam("numerics/feastol")),
+            rel_gap=float(scip.getParam("limits/gap")),
+            abs_gap=float(scip.getParam("limits/absgap")),
+        )
+
+    def handed(self, model: MilpModel) -> MilpModel:
+        return unscaled(model)
 
     def close(self) -> None:
         pass

@@ -98,9 +98,14 @@ def column_map(model: MilpModel, problem: Problem, budget: float) -> dict[str, A
         "budget": budget,
         "sense": "maximize",
         "objective_offset": model.offset,
+        # the model is scaled as the solve scales it: the value is the objective (with its
+        # offset) times value_unit, a cost in the budget row times cost_unit
+        "value_unit": model.value_unit,
+        "cost_unit": model.cost_unit,
         "columns": model.n_columns,
         "rule": "observation reads target where the column's value is 1 (above 0.5); "
-        "observations without such a column are unaltered",
+        "observations without such a column are unaltered; the problem's value is "
+        "(objective + objective_offset) x value_unit",
         "alteration_columns": [
             {
                 "column": f"c{c}",

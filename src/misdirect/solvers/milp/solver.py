@@ -15,15 +15,24 @@ behind a branch of 1e-10 otherwise leaves values of 1e-10 that HiGHS reads as 0.
 row's bound is the largest exact sum of costs within the budget
 (:meth:`~misdirect.core.tolerance.CostScale.snap`), never the budget plus a slack.
 
+The backend's bound proves the optimum only where the backend sees the whole model: where it
+drops a coefficient (HiGHS' ``small_matrix_value``, 1e-9; SCIP gets the file HiGHS writes) or
+cannot tell one from 0 within its feasibility tolerance, its bound moves with what it did not
+see (0.9999999947 "proven" where 0.9999999988 was there), and the point gets the per-state
+relaxation's proven bound instead, with the reason in its notes. Elsewhere the bound counts
+raised by the gap the backend prunes with (:class:`~misdirect.solvers.milp.backends.Tolerances`,
+read from the backend's options as set).
+
 The solver's claim for an alteration is its objective, or, when its point is more than
 :data:`~misdirect.core.tolerance.FEASIBILITY` from feasible (binaries off 0/1, rows violated,
-within its tolerances) or its objective more than :data:`~misdirect.core.tolerance.GAP`
+within its tolerances) or its objective more than :data:`~misdirect.core.tolerance.CERTIFY`
 (relative) below its bound, the LP optimum with the binaries rounded: the tolerance would
 otherwise leak into the claim (0.400001 for 0.4), and an incumbent whose probabilities are not
 the largest for its alteration would look like a gap.
 
 How it stopped, normalised from the backend's own codes: ``optimal`` (the backend's bound meets
-its incumbent within :data:`~misdirect.core.tolerance.GAP`), ``gap_limit`` (it stopped because
+its incumbent within :data:`~misdirect.core.tolerance.CERTIFY`; it is asked for
+:data:`~misdirect.core.tolerance.GAP`), ``gap_limit`` (it stopped because
 the relative gap fell under ``mip_gap``, with the bound further than that from the incumbent),
 ``time_limit``. Whether the answer is optimal is decided by the front door, on the exact value
 of the decoded alteration.
@@ -46,7 +55,12 @@ from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
-from misdirect.solvers.milp.backends import BackendResult, SolverOptions, make_backend
+from misdirect.solvers.milp.backends import (
+    BackendResult,
+    SolverOptions,
+    Tolerances,
+    make_backend,
+)
 from misdirect.solvers.milp.compact import build_compact
 from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
@@ -92,6 +106,21 @@ def build_formulation(
     return FORMULATIONS[formulation](problem, budget, state_values=state_values)
 
 
+def scaled_formulation(
+    problem: Problem,
+    formulation: str,
+    budget: float | None = None,
+    deadline: Deadline | None = None,
+) -> MilpModel:
+    """The MILP of ``problem`` exactly as a backend gets it (budget row set to ``budget``,
+    default the problem's): value columns scaled by the per-state relaxation's values, the
+    objective and the budget row by their units (:func:`_scaled`). What ``export-milp``
+    writes, so that another solver sees the numbers HiGHS sees, not a 1e-12 branch."""
+    budget = problem.budget if budget is None else float(budget)
+    relaxed, values = relaxation_values(problem, budget, deadline)
+    return _scaled(problem, build_formulation(problem, formulation, budget, values), relaxed)
+
+
 def _status(result: BackendResult, value: float | None) -> Status:
     """The backend's status, except that a solve it calls optimal while its bound lies more
     than the gap tolerance above ``value`` (its incumbent's: the better of its objective and
@@ -101,7 +130,7 @@ def _status(result: BackendResult, value: float | None) -> Status:
         and result.bound is not None
         and value is not None
         and result.bound - value
-        > tolerance.slack(result.bound, value, rel=tolerance.GAP + tolerance.TIE)
+        > tolerance.slack(result.bound, value, rel=tolerance.CERTIFY + tolerance.TIE)
     ):
         return Status.GAP_LIMIT
     return Status(result.status)  # optimal or time_limit: checked by the caller
@@ -151,9 +180,7 @@ class MilpSolver:
             if share is None
             else Deadline(share, cancel=deadline.cancel)
         )
-        relaxed, values = relaxation_values(problem, max(budgets), quick)
-        built = build_formulation(problem, self.formulation, max(budgets), values)
-        model = _scaled(problem, built, relaxed)
+        model = scaled_formulation(problem, self.formulation, max(budgets), quick)
         backend = make_backend(self.backend_name, self.options)
         try:
             return self._solve_curve(problem, model, backend, budgets, progress, deadline)
@@ -176,7 +203,15 @@ class MilpSolver:
             field="milp",
         )
         backend.load(model)
-        curve = _Curve(problem, model, budgets, start=model.start_for(problem.identity()))
+        tolerances = backend.tolerances()
+        curve = _Curve(
+            problem,
+            model,
+            budgets,
+            start=model.start_for(problem.identity()),
+            tolerances=tolerances,
+            distrust=_distrust(backend.name, backend.handed(model), tolerances),
+        )
         solutions = []
         for done, budget in enumerate(budgets, start=1):
             backend.set_row_upper(model.budget_row, _budget_row(problem, model, budget))
@@ -230,11 +265,17 @@ class MilpSolver:
         # the better value of the same binaries
         incumbent = None if claimed is None else max(claimed, result.objective or claimed)
         status = _status(result, incumbent)
-        upper_bound = (
-            min(result.bound, problem.objective.max_value)
-            if model.sound and result.bound is not None
-            else None
-        )
+        notes: dict[str, str] = {}
+        upper_bound = None
+        if model.sound and result.bound is not None:
+            if curve.distrust is None:
+                # raised by the gap the backend prunes with (in the scaled model's units)
+                margin = curve.tolerances.margin(result.bound / unit) * unit
+                upper_bound = min(result.bound + margin, problem.objective.max_value)
+            else:
+                # its bound is no proof: the per-state relaxation's at this budget is
+                notes["bound_untrusted"] = curve.distrust
+                upper_bound = curve.relaxed_bound_at(budget, schedule.closing_bound(deadline))
         if upper_bound is None and model.sound and status != Status.OPTIMAL:
             # stopped before the solver had a bound: the per-state relaxation's is proven
             upper_bound = curve.relaxed_bound(schedule.closing_bound(deadline))
@@ -257,6 +298,7 @@ class MilpSolver:
             status=status,
             upper_bound=upper_bound,
             stats=stats,
+            notes=notes,
         )
 
 
@@ -268,6 +310,8 @@ class _Curve:
     model: MilpModel
     budgets: Sequence[float]
     start: tuple[Any, Any]
+    tolerances: Tolerances
+    distrust: str | None = None  # why the backend's bound proves nothing here (None: it does)
     relaxed: float | None = None
 
     def relaxed_bound(self, deadline: Deadline) -> float:
@@ -276,6 +320,29 @@ class _Curve:
         if self.relaxed is None:
             self.relaxed = relaxation_bound(self.problem, max(self.budgets), deadline)
         return self.relaxed
+
+    def relaxed_bound_at(self, budget: float, deadline: Deadline) -> float:
+        """The per-state relaxation at ``budget`` (tighter than at the largest budget), no
+        more than the largest budget's when that is known."""
+        bound = relaxation_bound(self.problem, budget, deadline)
+        return bound if self.relaxed is None else min(bound, self.relaxed)
+
+
+def _distrust(name: str, model: MilpModel, tolerances: Tolerances) -> str | None:
+    """Why ``name``'s bound on ``model`` (as it receives it) is no proof, or None: it drops
+    coefficients, or some are too small to move a row beyond its feasibility tolerance, so the
+    model it solves is not the one built (a 1e-12 branch, a value 1e-9 from 1)."""
+    dropped, blind = backends.blind_spots(model, tolerances)
+    if not dropped and not blind:
+        return None
+    parts = []
+    if dropped:
+        parts.append(f"drops {dropped} coefficient(s) of at most {tolerances.drop:g}")
+    if blind:
+        parts.append(
+            f"cannot see {blind} more within its feasibility tolerance {tolerances.feasibility:g}"
+        )
+    return f"{name} {' and '.join(parts)}, so its bound is not a proof"
 
 
 def _claim(
@@ -288,7 +355,7 @@ def _claim(
     claimed = result.objective
     assert claimed is not None and result.values is not None
     gapped = result.bound is not None and result.bound - claimed > tolerance.slack(
-        result.bound, claimed, rel=tolerance.GAP
+        result.bound, claimed, rel=tolerance.CERTIFY
     )
     # a stop request skips the LP (a second solve); the claim is only checked, never reported
     if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled:
