@@ -279,6 +279,7 @@ def test_a_cut_curve_keeps_its_small_budgets_proven(monkeypatch):
     """With a time limit the curve is enumerated budget by budget: a run cut short at the top
     budget leaves the smaller ones proven, with the optimum that exhaustive search (every
     alteration evaluated exactly) gives (and the cut one is not called optimal)."""
+    from misdirect.solvers import schedule
     from misdirect.solvers.engines import lowrank
 
     problem = sensor_grid(8, 6, seed=0)
@@ -291,6 +292,7 @@ def test_a_cut_curve_keeps_its_small_budgets_proven(monkeypatch):
         return original(self, top, *args, **kwargs)
 
     monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut_at_two)
+    monkeypatch.setattr(schedule, "STAGE_FROM", 0)  # each budget its own run, however small
     curve = solve(problem, method="incremental", budgets=[0, 1, 2], time_limit=600).curve
     for point in curve[:2]:
         assert point.status == "optimal"
@@ -309,6 +311,7 @@ def test_an_enumeration_that_hands_over_never_calls_a_budget_it_skipped_proven(m
     assert oracle[2].probability > oracle[0].probability + 1e-6  # budget 2 gains something
 
     monkeypatch.setattr(schedule, "next_level_fits", lambda *args: False)
+    monkeypatch.setattr(schedule, "STAGE_FROM", 0)  # each budget its own run, however small
     solver = IncrementalSolver(hand_over=True)
     found = solver.solve(problem, [0, 1, 2], deadline=Deadline(600))
     assert found[0].status == "optimal"
@@ -321,3 +324,25 @@ def test_an_enumeration_that_hands_over_never_calls_a_budget_it_skipped_proven(m
     for point, truth in zip(curve, oracle, strict=True):
         assert point.status == "optimal"
         assert point.probability == pytest.approx(truth.probability, abs=1e-12)
+
+
+def test_a_small_budget_is_proven_by_the_next_run_when_that_one_is_cheap(monkeypatch):
+    """Budgets whose next budget has few alterations are not enumerated on their own: the one
+    run at the larger budget proves them too, with the optima exhaustive search gives."""
+    from misdirect.solvers.engines import lowrank
+
+    problem = sensor_grid(8, 6, seed=0)
+    oracle = solve(problem, method="exhaustive", budgets=[0, 1, 2]).curve
+    tops = []
+    original = lowrank.LowRankEnumeration.run
+
+    def counted(self, top, *args, **kwargs):
+        tops.append(top)
+        return original(self, top, *args, **kwargs)
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", counted)
+    found = IncrementalSolver().solve(problem, [0, 1, 2], deadline=Deadline(600))
+    assert tops == [2]  # a few hundred alterations: one run
+    for point, truth in zip(found, oracle, strict=True):
+        assert point.status == "optimal"
+        assert point.solver_probability == pytest.approx(truth.probability, abs=1e-12)

@@ -124,16 +124,19 @@ class IncrementalSolver:
         else one per budget, smallest first, until one is cut short (``hand_over``: or until
         the next will not fit its share of the time left)."""
         levels = sorted(set(budgets))
+        space = enumeration.instance.space
+        counts = [space.count_within(level, enumeration.max_evaluations) for level in levels]
         if deadline.remaining() is None:
-            levels = levels[-1:]
+            levels, counts = levels[-1:], counts[-1:]
+        else:  # a budget whose next one is cheap to enumerate too is proven by that run
+            kept = [j for j in range(len(levels) - 1) if counts[j + 1] > schedule.STAGE_FROM]
+            kept.append(len(levels) - 1)
+            levels, counts = [levels[j] for j in kept], [counts[j] for j in kept]
         runs: list[tuple[float, Enumerated]] = []
         measured: tuple[float, int] | None = None
-        space = enumeration.instance.space
-        for level in levels:
-            if hand_over and runs:
-                count = space.count_within(level, enumeration.max_evaluations)
-                if not schedule.next_level_fits(count, measured, deadline):
-                    break
+        for level, count in zip(levels, counts, strict=True):
+            if hand_over and runs and not schedule.next_level_fits(count, measured, deadline):
+                break
             began = time.perf_counter()
             found = enumeration.run(level, deadline=deadline, progress=progress)
             measured = (time.perf_counter() - began, found.evaluations)

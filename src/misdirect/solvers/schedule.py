@@ -36,6 +36,9 @@ def enumeration_seconds(count: int, per_alteration: float | None = None) -> floa
     return count * (UPDATE_SECONDS if per_alteration is None else per_alteration)
 
 
+STAGE_FROM = INCREMENTAL_SURE  # a budget of a curve is enumerated on its own (before the
+# next) only when the next one's alterations are more than this: else one run of the next
+# proves both, for little more than the smaller run alone would cost
 RATE_SAMPLE = 10_000  # alterations an enumeration must have valued to measure its own rate
 
 
