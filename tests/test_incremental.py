@@ -346,3 +346,43 @@ def test_a_small_budget_is_proven_by_the_next_run_when_that_one_is_cheap(monkeyp
     for point, truth in zip(found, oracle, strict=True):
         assert point.status == "optimal"
         assert point.solver_probability == pytest.approx(truth.probability, abs=1e-12)
+
+
+def test_auto_searches_what_its_enumeration_left_unproven_without_enumerating_it_again(
+    monkeypatch,
+):
+    """A curve split into small budgets (enumerated) and large ones (searched): a small budget
+    the enumeration leaves unproven goes to the search, not to another enumeration (which
+    would leave it unproven again, and again), and the search certifies exhaustive's optima."""
+    from misdirect.solvers import incremental, schedule
+    from misdirect.solvers.engines import lowrank
+
+    problem = sensor_grid(8, 6, seed=0)
+    budgets = [0, 1, 2, 3]
+    oracle = solve(problem, method="exhaustive", budgets=budgets).curve
+    space = prepare(problem, 3).space
+    small = space.count_within(1, 10**9)
+    monkeypatch.setattr(
+        schedule, "enumeration_fits", lambda count, needed, deadline, *, limit: count <= small
+    )
+    original = lowrank.LowRankEnumeration.run
+
+    def cut(self, top, *args, **kwargs):  # every run above budget 0 runs out of time at once
+        if top >= 1:
+            kwargs["deadline"] = Deadline(0.0)
+        return original(self, top, *args, **kwargs)
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut)
+    calls = []
+    solve_enumeration = incremental.IncrementalSolver.solve
+
+    def counted(self, *args, **kwargs):
+        calls.append(1)
+        return solve_enumeration(self, *args, **kwargs)
+
+    monkeypatch.setattr(incremental.IncrementalSolver, "solve", counted)
+    curve = solve(problem, budgets=budgets, time_limit=600).curve
+    assert len(calls) == 1
+    for point, truth in zip(curve, oracle, strict=True):
+        assert point.status == "optimal"
+        assert point.probability == pytest.approx(truth.probability, abs=1e-12)

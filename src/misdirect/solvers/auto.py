@@ -381,9 +381,24 @@ class AutoSolver:
         seeds: Sequence[AlterationArray | None] | None = None,
     ) -> list[Solution]:
         """``seeds`` (one alteration per budget, optional) start the searches."""
+        return self._solve(problem, budgets, progress, deadline, seeds, may_split=True)
+
+    def _solve(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+        deadline: Deadline | None,
+        seeds: Sequence[AlterationArray | None] | None,
+        *,
+        may_split: bool,
+    ) -> list[Solution]:
+        """:meth:`solve`; ``may_split``: whether a curve's small budgets may be enumerated
+        first (not for budgets an enumeration has just left unproven: it would only start
+        over on them)."""
         deadline = deadline or Deadline(self.options.time_limit)
         facts = _Facts.measure(problem, budgets)
-        split = self._split_curve(facts, budgets, deadline, progress)
+        split = self._split_curve(facts, budgets, deadline, progress) if may_split else None
         if split is not None:
             return split
         first = next(
@@ -438,12 +453,13 @@ class AutoSolver:
         # once it has measured its own rate) is searched with the larger budgets
         proven = {b for b, s in zip(small, first, strict=True) if _certified(s)}
         rest = [b for b in ordered if b not in proven]
-        later = self.solve(
+        later = self._solve(
             facts.problem,
             rest,
-            progress=progress,
-            deadline=deadline,
-            seeds=[first[-1].alteration] * len(rest),
+            progress,
+            deadline,
+            [first[-1].alteration] * len(rest),
+            may_split=proven.issuperset(b for b in rest if b in small),
         )
         found = dict(zip(small, _label(first, enumeration.method, reason), strict=True))
         exact = exact_values(facts.problem)
