@@ -19,6 +19,7 @@ from misdirect.cli import app
 from misdirect.io.solution import read_solution
 from misdirect.scenarios import paper_grid
 from result_schema import checked
+from scale_model import scale_model_text
 
 EXAMPLES = Path(__file__).parents[1] / "examples"
 TINY = EXAMPLES / "tiny.yaml"
@@ -226,39 +227,6 @@ def test_export_chain_refuses_other_suffixes(tmp_path):
     assert result.exit_code == 2 and "-o" in result.stderr
 
 
-TINY_SCALE = """\
-format: misdirect/v1
-name: tiny-scale
-pomdp:
-  states: [s0, s1, s2, trap, goal]
-  actions: [a, b]
-  initial: s0
-  observe: {s0: o0, s1: o1, s2: o2, trap: g, goal: g}
-  transitions:
-    - [s0, a, s1, 1.0e-12]
-    - [s0, a, s2, 0.999999999999]
-    - [s0, b, s1, 1.0e-12]
-    - [s0, b, s2, 0.999999999999]
-    - [s1, a, trap, 0.8]
-    - [s1, a, goal, 0.2]
-    - [s1, b, trap, 0.2]
-    - [s1, b, goal, 0.8]
-    - [s2, a, goal, 1.0]
-    - [s2, b, goal, 1.0]
-  absorbing: [trap, goal]
-controller:
-  nodes: [n]
-  initial: n
-  rules:
-    - {node: "*", obs: o0, action: a, next: n}
-    - {node: "*", obs: "*", action: b, next: n}
-deception:
-  decoy: [trap]
-  budget: 1
-  cost: {default: 1}
-"""
-
-
 def test_exported_model_of_tiny_values_is_scaled_and_decodes(tmp_path):
     """A decoy behind a branch of 1e-12: o1 -> o0 makes s1 play a, worth 1e-12 x 0.8 = 8e-13
     (by hand) against 2e-13. The model is written scaled as the solve scales it (unscaled,
@@ -267,7 +235,7 @@ def test_exported_model_of_tiny_values_is_scaled_and_decodes(tmp_path):
     value_unit turns the file's objective back into the value."""
     highspy = pytest.importorskip("highspy")
     problem = tmp_path / "p.yaml"
-    problem.write_text(TINY_SCALE)
+    problem.write_text(scale_model_text(p=1e-12))
     model = tmp_path / "p.mps"
     result = _run("export-milp", problem, "-o", model)
     assert result.exit_code == 0, result.output

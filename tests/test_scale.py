@@ -19,7 +19,6 @@ returns the same, and it is ``optimal``.
 
 from __future__ import annotations
 
-import textwrap
 from fractions import Fraction
 
 import numpy as np
@@ -28,57 +27,14 @@ import pytest
 from misdirect import evaluate, load_problem, solve
 from misdirect.core import tolerance
 from misdirect.scenarios import knapsack
+from scale_model import scale_model_text
 
 METHODS = ["exhaustive", "incremental", "branch-and-bound", "milp", "auto"]
 
 
-def _yaml(x: float) -> str:
-    """``x`` as YAML reads a float back (``1e-10`` is a string to it; ``1.0e-10`` is not)."""
-    text = repr(float(x))
-    mantissa, _, exponent = text.partition("e")
-    if exponent and "." not in mantissa:
-        mantissa += ".0"
-    return mantissa + ("e" + ("+" if exponent[0].isdigit() else "") + exponent if exponent else "")
-
-
 def _model(tmp_path, *, p=0.5, weight=None, cost=1.0, budget=1.0):
-    decoy = "decoy: [trap]" if weight is None else f"decoy: {{trap: {_yaml(weight)}}}"
-    p, q = _yaml(p), _yaml(1 - p)
-    text = textwrap.dedent(
-        f"""\
-        format: misdirect/v1
-        name: scale
-        pomdp:
-          states: [s0, s1, s2, trap, goal]
-          actions: [a, b]
-          initial: s0
-          observe: {{s0: o0, s1: o1, s2: o2, trap: g, goal: g}}
-          transitions:
-            - [s0, a, s1, {p}]
-            - [s0, a, s2, {q}]
-            - [s0, b, s1, {p}]
-            - [s0, b, s2, {q}]
-            - [s1, a, trap, 0.8]
-            - [s1, a, goal, 0.2]
-            - [s1, b, trap, 0.2]
-            - [s1, b, goal, 0.8]
-            - [s2, a, goal, 1.0]
-            - [s2, b, goal, 1.0]
-          absorbing: [trap, goal]
-        controller:
-          nodes: [n]
-          initial: n
-          rules:
-            - {{node: "*", obs: o0, action: a, next: n}}
-            - {{node: "*", obs: "*", action: b, next: n}}
-        deception:
-          {decoy}
-          budget: {_yaml(budget)}
-          cost: {{default: {_yaml(cost)}}}
-        """
-    )
     path = tmp_path / "scale.yaml"
-    path.write_text(text)
+    path.write_text(scale_model_text(p=p, weight=weight, cost=cost, budget=budget))
     return load_problem(path)
 
 
