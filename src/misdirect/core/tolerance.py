@@ -71,6 +71,13 @@ weight: every chain's values lie below it) is the rounding of double arithmetic 
 whatever the answer's own size: a claim of 2e-18 where the chain gives 0 is no contradiction,
 and a bound of 2e-18 proves 0."""
 
+ILL_CONDITIONED = 1e6
+"""A low-rank update (a Woodbury system of the rows an alteration changes) whose condition
+estimate exceeds this may be off by about ``u · 1e6 ≈ 1e-10`` of the values' scale, near what
+:data:`NEAR_TIE` lets pass, and far more above it (an alteration that almost traps the robot
+reads 1e11 and is 4e-7 off): its alteration is valued exactly instead, one chain each. On
+chains without near-traps the systems read at most about 1e5."""
+
 UNIT_ROUNDOFF = 2.0**-53
 SMALLEST = 2.0**-1074  # the smallest subnormal: every float is a multiple of it
 

@@ -22,6 +22,7 @@ small enough to enumerate, with their bases kept in a :class:`BasisCache`).
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -40,7 +41,7 @@ from misdirect.core.alterations import (
     rank_in_group,
 )
 from misdirect.core.attack import AttackInstance
-from misdirect.core.reachability import reach_probabilities
+from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
 from misdirect.solvers.deadline import Deadline
@@ -60,6 +61,7 @@ from misdirect.solvers.engines.lowrank_updates import (
     flagged_values,
     row_deltas,
     selected_groups,
+    update_error,
 )
 
 INNER_ROWS = 200  # inner observations together may own at least this many product states,
@@ -192,6 +194,7 @@ class _BlockBase(NamedTuple):
     cycles: _Cycles | None = None
     fixed_rows: tuple[np.ndarray, np.ndarray] | None = None
     rows: BaseRows | None = None
+    steps: float = np.inf  # proven bound on the base chain's expected steps (its conditioning)
 
 
 class BasisCache:
@@ -275,6 +278,8 @@ class LowRankEnumeration:
         self.cycling = bool(instance.cycling.any())
         self.closed_group = chain.transitions.shape[0]
         self.exact_evaluations = 0  # alterations that could close a class, valued one by one
+        self.ill_conditioned = 0  # ... and those whose low-rank update was ill-conditioned
+        self.verified = 0  # ... and those that might be best on an ill-conditioned base
         self.trap_updates = 0  # alterations that close a class, valued by low rank
 
     @cached_property
@@ -386,7 +391,7 @@ class LowRankEnumeration:
         blocks: list[tuple[np.ndarray, AlteredEntries]] = []
         costs: list[np.ndarray] = []
         values: list[np.ndarray] = []
-        unevaluated, evaluations = np.inf, 0
+        unevaluated, evaluations, steps = np.inf, 0, 0.0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
         factor_s, per_alteration, last_count = 0.0, 0.0, 0
@@ -414,6 +419,7 @@ class LowRankEnumeration:
                 outer_pick,
             )
             inner_costs, found, altered, cut_at = block
+            steps = max(steps, base.steps)
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
@@ -423,7 +429,7 @@ class LowRankEnumeration:
             per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
             report(progress, len(blocks), len(outer_costs), stage="incremental")
         done = len(blocks)
-        return Enumerated(
+        enumerated = Enumerated(
             costs=np.concatenate([np.zeros(0), *costs]),
             values=np.clip(
                 np.concatenate([np.zeros(0), *values]),
@@ -442,6 +448,38 @@ class LowRankEnumeration:
             scale=scale,
             top=top,
         )
+        return self._verified(enumerated, steps, deadline)
+
+    def _verified(self, found: Enumerated, steps: float, deadline: Deadline) -> Enumerated:
+        """``found`` with every alteration that may be the best within some budget valued
+        exactly, when its base chains are so ill-conditioned (left after up to ``steps``
+        expected steps) that low-rank values may be off by more than near-ties allow
+        (:func:`~misdirect.solvers.engines.lowrank_updates.update_error`, ``M``).
+
+        Those are the alterations within ``2M`` of the best value at their cost or less: any
+        other is at least ``2M`` below one of them, so, off by at most ``M`` each way, below
+        its exact value. Those the deadline leaves are unvalued (cost ``inf``), as a block
+        cut short leaves them: their budgets are not proven."""
+        top_value = self.instance.problem.objective.max_value
+        margin = update_error(steps, top_value)
+        precise = margin <= tolerance.slack(top_value, rel=tolerance.NEAR_TIE) / 10
+        if precise or not found.values.size:
+            return found
+        costs, values = found.costs, found.values
+        order = np.lexsort((-values, costs))  # by cost, the best first among equal costs
+        best_so_far = np.maximum.accumulate(values[order])
+        candidates = order[values[order] >= best_so_far - 2 * margin]
+        candidates = candidates[np.isfinite(costs[candidates])]
+        unevaluated = found.unevaluated
+        for index in candidates[np.argsort(-values[candidates], kind="stable")].tolist():
+            if deadline.expired():
+                unevaluated = min(unevaluated, float(costs[index]))
+                costs[index] = np.inf
+                continue
+            values[index] = min(max(self._exact_value(found.picks(index)), 0.0), top_value)
+            self.exact_evaluations += 1
+        self.verified += int(candidates.size)
+        return dataclasses.replace(found, unevaluated=unevaluated)
 
     def _outer_blocks(
         self, top: float, fixed: dict[int, int], outer: list[int]
@@ -494,11 +532,13 @@ class LowRankEnumeration:
         cycles = kept.cycles
         if cycles is not None and any(cycles.unsafe[j, k] for j, k in fixed_inner):
             return self._solved_base(chosen, inner, deadline)  # its closed classes may differ
-        x_start, w_start, deltas, rows = kept.basis.with_fixed(
-            fixed_inner, [position[i] for i in inner], self.start
-        )
+        updated = kept.basis.with_fixed(fixed_inner, [position[i] for i in inner], self.start)
+        if updated is None:  # ill-conditioned: the block's values would all inherit its error
+            return self._solved_base(chosen, inner, deadline)
+        x_start, w_start, deltas, rows = updated
+        steps = kept.basis.steps
         if cycles is None:
-            return _BlockBase(x_start, w_start, deltas)
+            return _BlockBase(x_start, w_start, deltas, steps=steps)
         table = kept.basis.options
         fixed_slots = np.concatenate(
             [np.zeros(0, dtype=np.int64)]
@@ -506,7 +546,7 @@ class LowRankEnumeration:
         ).astype(np.int64)
         inner_cycles = cycles._replace(unsafe=cycles.unsafe[[position[i] for i in inner]])
         fixed_rows = (cycles.slot_state[fixed_slots], cycles.slot_group[fixed_slots])
-        return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows, rows)
+        return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows, rows, steps)
 
     def _solved_base(
         self, chosen: np.ndarray, inner: list[int], deadline: Deadline | None = None
@@ -523,7 +563,7 @@ class LowRankEnumeration:
             base_groups, option_groups, regions, deadline
         )
         rows = self._rows_within(inner)
-        x0, W = base_solve(
+        x0, W, steps = base_solve(
             self._inside, self._to_target, base_groups, self.live_index[rows], self._live_node
         )
         deltas = row_deltas(
@@ -536,12 +576,12 @@ class LowRankEnumeration:
         )
         cycles = self._cycles(closing, base_groups, deltas, self.live_index[rows])
         if start < 0:
-            return _BlockBase(0.0, None, deltas, cycles)
+            return _BlockBase(0.0, None, deltas, cycles, steps=steps)
         if cycles is None:
-            return _BlockBase(float(x0[start]), W[start], deltas)
+            return _BlockBase(float(x0[start]), W[start], deltas, steps=steps)
         none = np.zeros(0, dtype=np.int64)
         solved = BaseRows(x0, W, none, np.zeros((0, 0)))  # kept: emptied rows read from it
-        return _BlockBase(float(x0[start]), W[start], deltas, cycles, None, solved)
+        return _BlockBase(float(x0[start]), W[start], deltas, cycles, None, solved, steps)
 
     def _basis(self, chosen: np.ndarray, deadline: Deadline | None = None) -> _KeptBasis:
         """The basis of the outer picks in ``chosen`` with every natural inner one unaltered."""
@@ -633,6 +673,15 @@ class LowRankEnumeration:
                 cut_at = float(inner_costs[cut].min())
                 inner_costs = inner_costs.copy()
                 inner_costs[cut] = np.inf
+            ill = np.flatnonzero(in_batch)[corrected & np.isnan(part)]
+            if ill.size:  # ill-conditioned updates: one chain each, refined
+                inner_costs = inner_costs if trap is not None else inner_costs.copy()
+                self.ill_conditioned += int(ill.size)
+                block = (outer, outer_pick, inner)
+                cut_at = min(
+                    cut_at,
+                    self._value_exactly(ill, found, inner_costs, altered, block, deadline),
+                )
         if trap is not None:
             cut_at = min(
                 cut_at,
@@ -695,8 +744,8 @@ class LowRankEnumeration:
         choices, their picks, and its inner choices), each by its own low-rank update: where
         the trap search found a class closing, with the changed rows that can no longer reach
         the decoy emptied (:func:`~misdirect.solvers.engines.lowrank_updates.flagged_values`).
-        Those that change a row of a base closed class (it may open), and any whose system
-        rounding made singular, are valued exactly, one chain each. One cut short by
+        Those that change a row of a base closed class (it may open), and any whose system is
+        singular or ill-conditioned, are valued exactly, one chain each. One cut short by
         ``deadline`` (or by a trap search cut short) gets cost ``inf`` (not valued), as in
         :func:`add_corrections`; returns the cheapest of those (``inf``: none)."""
         flagged = trap.flagged
@@ -712,14 +761,33 @@ class LowRankEnumeration:
         if base.w_start is not None and base.rows is not None:
             low_rank = left_out & ~trap.touched
             cut_at = self._update_flagged(found, inner_costs, trap, low_rank, base, deadline)
-            exact |= low_rank & np.isnan(found[flagged])  # singular by rounding
+            exact |= low_rank & np.isnan(found[flagged])  # singular, or ill-conditioned
         else:  # no start row (the start is not live) or no rows kept: one chain each
             exact = trap.closes.copy()
+        return min(
+            cut_at,
+            self._value_exactly(flagged[exact], found, inner_costs, altered, block, deadline),
+        )
+
+    def _value_exactly(
+        self,
+        indices: np.ndarray,
+        found: np.ndarray,
+        inner_costs: np.ndarray,
+        altered: AlteredEntries,
+        block: tuple[list[int], np.ndarray, list[int]],
+        deadline: Deadline,
+    ) -> float:
+        """Value the alterations ``indices`` (of ``block``'s ``altered``) one chain each, with
+        its error proven and refined (:func:`~misdirect.core.reachability.
+        reach_probability_bounded`): they are the ones a low-rank update would get wrong. Those
+        the deadline leaves get cost ``inf``; returns the cheapest of them (``inf``: none)."""
         outer, outer_pick, inner = block
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        for index in flagged[exact & np.isfinite(inner_costs[flagged])].tolist():
-            if deadline.expired():  # the chain, solved exactly
+        cut_at = np.inf
+        for index in indices[np.isfinite(inner_costs[indices])].tolist():
+            if deadline.expired():
                 cut_at = min(cut_at, float(inner_costs[index]))
                 inner_costs[index] = np.inf
                 continue
@@ -773,10 +841,13 @@ class LowRankEnumeration:
         for i in np.flatnonzero(picked).tolist():
             rows = self.rows_of[self.observations[i]]
             policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
-        values = reach_probabilities(
-            chain.transitions[policy], chain.target, blocks=chain.node, value=chain.target_value
-        )
-        return float(values[chain.initial])
+        return reach_probability_bounded(
+            chain.transitions[policy],
+            chain.target,
+            chain.initial,
+            blocks=chain.node,
+            value=chain.target_value,
+        ).value
 
     @cached_property
     def _unaltered_policy(self) -> np.ndarray:

@@ -23,10 +23,11 @@ from typing import NamedTuple, cast
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.core import tolerance
 from misdirect.core.alterations import AlteredEntries, rank_in_group
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.jit import njit
-from misdirect.core.reachability import solve_chain
+from misdirect.core.reachability import solve_chain, steps_bound
 from misdirect.solvers.deadline import Deadline
 
 BATCH_ENTRIES = 4_000_000  # numbers per batch of parents when threads share the batches
@@ -41,14 +42,28 @@ def base_solve(
     base_groups: np.ndarray,
     local: np.ndarray,
     live_node: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, float]:
     """``x0`` and ``W`` (the base chain's solution for ``b`` and for a unit column per inner
-    row ``local``), as contiguous arrays: sparse @ dense copies a strided operand per call."""
-    rhs = np.zeros((inside.shape[1], 1 + local.size))
+    row ``local``), as contiguous arrays (sparse @ dense copies a strided operand per call),
+    and a proven bound on the chain's expected steps before leaving (its conditioning: how
+    far every low-rank value built on it may be off, :func:`update_error`)."""
+    rhs = np.zeros((inside.shape[1], 2 + local.size))
     rhs[:, 0] = to_target[base_groups]
-    rhs[local, 1 + np.arange(local.size)] = 1.0
-    solved = solve_chain(inside[base_groups], rhs, live_node)
-    return np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 1:])
+    rhs[:, 1] = 1.0
+    rhs[local, 2 + np.arange(local.size)] = 1.0
+    chain = inside[base_groups]
+    solved = solve_chain(chain, rhs, live_node)
+    steps = steps_bound(chain, solved[:, 1])
+    return np.ascontiguousarray(solved[:, 0]), np.ascontiguousarray(solved[:, 2:]), steps
+
+
+def update_error(steps: float, scale: float) -> float:
+    """How far a low-rank value on a base chain left after at most ``steps`` steps (expected,
+    from any state) may be off, for values up to ``scale``: a double solve of a chain whose
+    condition number is at most ``2 steps`` loses that many units of roundoff, and the
+    Woodbury products about as many again (the ill-conditioned systems themselves are valued
+    exactly, :data:`~misdirect.core.tolerance.ILL_CONDITIONED`)."""
+    return 4 * tolerance.UNIT_ROUNDOFF * max(steps, 1.0) * scale
 
 
 class Basis(NamedTuple):
@@ -60,6 +75,7 @@ class Basis(NamedTuple):
     x0: np.ndarray
     W: np.ndarray
     options: RowDeltas
+    steps: float  # a proven bound on its expected steps before leaving (:func:`base_solve`)
 
     @staticmethod
     def of(
@@ -74,18 +90,20 @@ class Basis(NamedTuple):
         its live states (local indices); ``option_groups``: per inner choice, per state of its
         region its group under each option."""
         local = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
-        x0, W = base_solve(inside, to_target, groups, local, live_node)
+        x0, W, steps = base_solve(inside, to_target, groups, local, live_node)
         options = row_deltas(list(option_groups), groups[local], inside, to_target, x0, W)
-        return Basis(x0, W, options)
+        return Basis(x0, W, options, steps)
 
     def with_fixed(
         self, fixed: Sequence[tuple[int, int]], inner: Sequence[int] | np.ndarray, start: int
-    ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows]:
+    ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows] | None:
         """(value at the start, its row of ``W``, options' table of the ``inner`` choices, its
         rows on demand) of the chain whose choices ``fixed`` (position, option) take those
         options: with ``F`` their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``,
         every row difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its
-        right-hand side likewise) and the start's row ``W' = W + W_F Z``."""
+        right-hand side likewise) and the start's row ``W' = W + W_F Z``. None when that system
+        is ill-conditioned (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`): every value of
+        the block would inherit its error, so the block's base is better solved anew."""
         table = self.options
         if fixed:
             changed = np.concatenate(
@@ -106,6 +124,9 @@ class Basis(NamedTuple):
         own = table.column[changed]
         d_w = table.d_w[:, :-1]  # without the pad's column
         system = np.eye(changed.size) - d_w[np.ix_(changed, own)]
+        with np.errstate(all="ignore"):
+            if not np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED:
+                return None
         z = np.linalg.solve(system, np.column_stack([table.rhs[changed], d_w[changed]]))
         reach = d_w[:, own]  # D W_F for every row slot (the pad's: zero)
         updated_d_w = table.d_w.copy()
@@ -273,7 +294,35 @@ def add_corrections(
     else:  # taken in order, so a cut-short run has still done the smallest alterations
         with ThreadPoolExecutor(max_workers=threads) as pool:
             list(pool.map(run, batches))  # LAPACK and numpy's gathers release the GIL
+    # bordered on an ill-conditioned parent (or Schur complement): each on its own system
+    ill = np.flatnonzero(corrected & np.isnan(found))
+    if ill.size:
+        unaltered = float(found[np.flatnonzero(altered.parent < 0)[0]])  # the base value
+        found[ill] = unaltered + _direct_corrections(ill, tree, deltas, weight)
     return corrected
+
+
+def _direct_corrections(
+    alterations: np.ndarray, tree: _Tree, deltas: RowDeltas, weight: np.ndarray
+) -> np.ndarray:
+    """The Woodbury corrections of ``alterations``, each from its own whole system rather than
+    bordered on its parent's; NaN where that system is ill-conditioned
+    (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`: the caller values those exactly)."""
+    pad = deltas.rhs.size - 1
+    out = np.full(alterations.size, np.nan)
+    width = tree.width[alterations]
+    for w in np.unique(width):
+        pick = np.flatnonzero(width == w)
+        slots = tree.slots(alterations[pick], pad)
+        system = deltas.system(slots)
+        with np.errstate(all="ignore"):
+            fine = np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED
+        if not fine.any():
+            continue
+        slots, system, pick = slots[fine], system[fine], pick[fine]
+        z = np.linalg.solve(system, deltas.rhs[slots][..., None])[..., 0]
+        out[pick] = np.einsum("ni,ni->n", weight[slots], z)
+    return out
 
 
 class _Tree(NamedTuple):
@@ -359,6 +408,8 @@ def _children_of(
     system = deltas.system(slots_p)
     inverse = np.linalg.inv(system) if slots_p.shape[1] else system
     y = np.einsum("pij,pj->pi", inverse, rhs[slots_p])
+    # each parent's condition number (1-norm; a parent without rows: 1), for its children's
+    conditioned = _norm1(system) * _norm1(inverse) if slots_p.shape[1] else np.ones(parents.size)
     s_p = np.einsum("pi,pi->p", weight[slots_p], y)
     last = tree.first_entry[kids] + tree.depth[kids] - 1
     first = tree.entry_slot[last].astype(np.int64)
@@ -382,9 +433,16 @@ def _children_of(
         deltas.column,
         rhs,
         weight,
+        np.nan_to_num(conditioned, nan=np.inf),
+        tolerance.ILL_CONDITIONED,
         out,
     )
     return out
+
+
+def _norm1(matrices: np.ndarray) -> np.ndarray:
+    """The 1-norm (largest column sum of magnitudes) of each matrix of a stack."""
+    return cast(np.ndarray, np.abs(matrices).sum(axis=1).max(axis=1, initial=0.0))
 
 
 @njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
@@ -401,6 +459,8 @@ def _schur_corrections(
     column: np.ndarray,
     rhs: np.ndarray,
     weight: np.ndarray,
+    conditioned: np.ndarray,
+    limit: float,
     out: np.ndarray,
 ) -> None:  # pragma: no cover (compiled; its results are tested against dense solves)
     """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
@@ -408,7 +468,12 @@ def _schur_corrections(
     ``reach[p]`` the rows ``(A⁻¹ D W(P, s))ᵀ`` of the slots ``s`` from ``begin`` on,
     ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][E − begin]ᵀ``, so the signs cancel:
     ``S = F_EE − D W(E, P) G``. Padded parent slots have zero
-    rows, columns and weights."""
+    rows, columns and weights.
+
+    A child whose system is ill-conditioned gets NaN (valued exactly by the caller): its
+    estimate is the parent's condition number (``conditioned[p]``) times ``S``'s, estimated as
+    its 1-norm over its smallest pivot (within a factor ``w`` of the true one), above
+    ``limit``."""
     wp = slots_p.shape[1]
     widest = max(1, width.max()) if width.size else 1
     g = np.empty((widest, wp))  # Gᵀ = (A⁻¹ D W(P, E))ᵀ, one row per slot of E
@@ -424,7 +489,7 @@ def _schur_corrections(
         f = first[c]
         total = s_p[p]
         if w == 0:
-            out[c] = total
+            out[c] = total if conditioned[p] <= limit else np.nan
             continue
         if p != parent:  # children come grouped by parent
             parent = p
@@ -450,6 +515,12 @@ def _schur_corrections(
                 for j in range(wp):
                     v -= row_p[j] * g[e, j]
                 schur[i, e] = v
+        size = 0.0  # S's 1-norm, before elimination
+        for e in range(w):
+            column_sum = 0.0
+            for i in range(w):
+                column_sum += abs(schur[i, e])
+            size = max(size, column_sum)
         # Gaussian elimination with partial pivoting: S z = right
         for k in range(w):
             pivot = k
@@ -465,6 +536,12 @@ def _schur_corrections(
                 for e in range(k, w):
                     schur[i, e] -= factor * schur[k, e]
                 right[i] -= factor * right[k]
+        smallest = np.inf
+        for k in range(w):
+            smallest = min(smallest, abs(schur[k, k]))
+        if not conditioned[p] * size <= limit * smallest:  # NaN-safe: also a zero pivot
+            out[c] = np.nan
+            continue
         for k in range(w - 1, -1, -1):
             acc = right[k]
             for e in range(k + 1, w):
@@ -488,11 +565,14 @@ def _schur_corrections_numpy(
     column: np.ndarray,
     rhs: np.ndarray,
     weight: np.ndarray,
+    conditioned: np.ndarray,
+    limit: float,
     out: np.ndarray,
 ) -> None:
     """:func:`_schur_corrections` batched in numpy, the children grouped by the width of their
-    last entry (each group's Schur complements solved at once)."""
-    out[:] = s_p[local]  # a last entry that changes no row: the parent's value
+    last entry (each group's Schur complements solved at once; ``S``'s condition number
+    computed, not estimated)."""
+    out[:] = np.where(conditioned[local] <= limit, s_p[local], np.nan)  # no row changed
     columns_p, weight_p = column[slots_p], weight[slots_p]
     for w in np.unique(width[width > 0]):
         pick = np.flatnonzero(width == w)
@@ -504,8 +584,10 @@ def _schur_corrections_numpy(
         schur -= np.matmul(row_p, np.swapaxes(g, 1, 2))
         right = rhs[rows] + np.einsum("nij,nj->ni", row_p, y[p])
         grad = weight[rows] + np.einsum("nij,nj->ni", g, weight_p[p])
-        z = np.linalg.solve(schur, right[..., None])[..., 0]
-        out[pick] += np.einsum("ni,ni->n", grad, z)
+        with np.errstate(all="ignore"):
+            z = np.linalg.solve(schur, right[..., None])[..., 0]
+            ill = ~(conditioned[p] * np.linalg.cond(schur, 1) <= limit)
+        out[pick] = np.where(ill, np.nan, out[pick] + np.einsum("ni,ni->n", grad, z))
 
 
 def selected_groups(
@@ -547,7 +629,8 @@ def flagged_values(
     emptied, the system is non-singular, and its solution the least fixed point.
 
     Returns (values, reached): alterations not reached were cut by ``deadline``; a reached one
-    whose value is NaN had a singular system (rounding) and needs an exact solve."""
+    whose value is NaN had a singular or ill-conditioned system (:data:`~misdirect.core.
+    tolerance.ILL_CONDITIONED`) and needs an exact solve."""
     values = np.full(count, np.nan)
     reached = np.zeros(count, dtype=bool)
     owner, slots, states = changed
@@ -587,5 +670,7 @@ def flagged_values(
             z = np.linalg.solve(system, rhs[..., None])[..., 0]
         except np.linalg.LinAlgError:
             continue  # left NaN: solved exactly by the caller
-        values[batch] = x_start + np.einsum("ni,ni->n", weight[column], z)
+        with np.errstate(all="ignore"):
+            ill = ~(np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED)
+        values[batch] = np.where(ill, np.nan, x_start + np.einsum("ni,ni->n", weight[column], z))
     return values, reached
