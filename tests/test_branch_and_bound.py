@@ -178,3 +178,77 @@ def test_auto_enumerates_a_large_trap_grid():
         assert point.probability == pytest.approx(TRAP9_EXHAUSTIVE[point.budget], abs=1e-7)
         assert point.upper_bound == pytest.approx(point.probability, abs=1e-9)
         assert point.cost <= point.budget + 1e-9
+
+
+def test_a_levelled_curve_is_proven_by_its_largest_budget(monkeypatch):
+    """The paper's grid levels off at 0.863622 from budget 4 (the paper's Table: four sensors
+    altered are all it takes). Once budgets 4 and 5 are certified at that value, the largest
+    budget is solved next (7: the front door clamps 8 to what the costliest alteration needs)
+    and proves 6 without a search of its own; the curve is the paper's and exhaustive
+    search's."""
+    searched = []
+    solve_budget = BranchAndBoundSolver._solve_budget
+
+    def counted(self, curve, step, deadline, progress):
+        searched.append(step.budget)
+        return solve_budget(self, curve, step, deadline, progress)
+
+    monkeypatch.setattr(BranchAndBoundSolver, "_solve_budget", counted)
+    budgets = list(range(9))
+    result = solve(paper_grid(5), budgets=budgets, method="branch-and-bound")
+    assert searched == [0, 1, 2, 3, 4, 5, 7]
+    monkeypatch.undo()
+    reference = solve(paper_grid(5), budgets=budgets, method="exhaustive")
+    for mine, theirs in zip(result.curve, reference.curve, strict=True):
+        assert mine.status.value == "optimal"
+        assert mine.probability == pytest.approx(theirs.probability, abs=1e-9)
+        assert mine.cost <= mine.budget
+    assert [round(p.probability, 6) for p in result.curve[4:]] == [0.863622] * 5
+
+
+def test_a_curve_that_rises_again_after_a_level_is_still_searched_budget_by_budget():
+    """Knapsack items (weight, value) (1, 3), (3, 5), (3, 0.5): budgets 1 and 2 level at 3,
+    then the curve rises (5 at 3, 8 from 4). The largest budget, solved next, is higher than
+    the level, so nothing between is filled from it; every budget is the brute-force optimum
+    (the reduction: the best packing's value over twice the values' sum)."""
+    weights, values = [1.0, 3.0, 3.0], [3.0, 5.0, 0.5]
+    problem = knapsack(weights, values, capacity=6.0)
+    budgets = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    result = solve(problem, budgets=budgets, method="branch-and-bound")
+    for point in result.curve:
+        best = max(
+            sum(values[i] for i in subset)
+            for r in range(4)
+            for subset in itertools.combinations(range(3), r)
+            if sum(weights[i] for i in subset) <= point.budget
+        )
+        assert point.status.value == "optimal"
+        assert point.probability == pytest.approx(best / (2 * sum(values)), rel=1e-9)
+
+
+def test_an_earlier_stage_level_sends_the_largest_budget_first(monkeypatch):
+    """Given budget 4's certified answer (as auto hands it over) and seeds no better than it,
+    budgets 5..7 of the paper's grid take one search, of budget 7, which proves them all at
+    the paper's 0.863622 (exhaustive search agrees)."""
+    problem = paper_grid(5)
+    solver = BranchAndBoundSolver()
+    (below,) = solver.solve(problem, [4.0])
+    searched = []
+    solve_budget = BranchAndBoundSolver._solve_budget
+
+    def counted(self, curve, step, deadline, progress):
+        searched.append(step.budget)
+        return solve_budget(self, curve, step, deadline, progress)
+
+    monkeypatch.setattr(BranchAndBoundSolver, "_solve_budget", counted)
+    budgets = [5.0, 6.0, 7.0]
+    answers = solver.solve(problem, budgets, seeds=[below.alteration] * 3, below=below)
+    assert searched == [7.0]
+    reference = ExhaustiveSolver().solve(problem, budgets)
+    for mine, theirs in zip(answers, reference, strict=True):
+        assert mine.status.value == "optimal"
+        assert decoy_probability(problem, mine.alteration) == pytest.approx(
+            theirs.solver_probability, abs=1e-9
+        )
+        assert mine.upper_bound == pytest.approx(theirs.solver_probability, abs=1e-9)
+    assert round(answers[0].solver_probability, 6) == 0.863622

@@ -170,6 +170,7 @@ class _Stage:
         deadline: Deadline,
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         raise NotImplementedError
 
@@ -196,6 +197,7 @@ class _Enumeration(_Stage):
         deadline: Deadline,
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         solver = IncrementalSolver(SolveOptions(threads=self.auto.options.threads), hand_over=True)
         return solver.solve(problem, budgets, progress=progress, deadline=deadline)
@@ -234,6 +236,7 @@ class _Exhaustive(_Stage):
         deadline: Deadline,
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         return ExhaustiveSolver().solve(problem, budgets, progress=progress, deadline=deadline)
 
@@ -272,6 +275,7 @@ class _Milp(_Stage):
         deadline: Deadline,
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         # the MILP warm-starts from its own previous budget, not from seeds
         return self.auto.milp.solve(problem, budgets, progress=progress, deadline=deadline)
@@ -338,9 +342,12 @@ class _Search(_Stage):
         deadline: Deadline,
         progress: ProgressCallback | None,
         seeds: Sequence[AlterationArray | None] | None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         solver = self.auto.branch_and_bound(self.max_nodes or self.auto.node_limit)
-        return solver.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds)
+        return solver.solve(
+            problem, budgets, progress=progress, deadline=deadline, seeds=seeds, below=below
+        )
 
 
 # the first stage that applies answers every budget; its hand-overs take what it leaves
@@ -490,7 +497,14 @@ class AutoSolver:
         report(progress, 0, len(unfinished), note=f"auto: budgets {listed}: {why}")
         earlier = [solutions[j] for j in unfinished]
         seeds = [s.alteration for s in earlier]
-        later = stage.run(problem, [budgets[j] for j in unfinished], deadline, progress, seeds)
+        # the largest budget proven below these: where the curve may have levelled off
+        lowest = min(budgets[j] for j in unfinished)
+        proven = [
+            s for b, s in zip(budgets, solutions, strict=True) if b < lowest and _certified(s)
+        ]
+        below = max(proven, key=lambda s: s.budget, default=None)
+        unfinished_budgets = [budgets[j] for j in unfinished]
+        later = stage.run(problem, unfinished_budgets, deadline, progress, seeds, below=below)
         later = _label(later, stage.method, "")
         for j, second in zip(unfinished, later, strict=True):
             solutions[j] = _better(exact, solutions[j], second, why)

@@ -17,6 +17,11 @@ Where this search does not certify a budget of a large chain without end compone
 segment search (:mod:`misdirect.solvers.engines.segment_search`) takes it over from its
 incumbent; the two bounds are both proven, and the smaller one is reported. How time is
 shared between them is :mod:`misdirect.solvers.schedule`'s.
+
+Budgets go smallest first, except where the curve levels off: once two budgets in a row are
+certified at the same value, the largest budget is solved next. If it is certified at that
+value too, every budget between is proven by it (its optimum lies between the two), without a
+search of its own; a larger budget's tree is often no bigger than a smaller one's.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
+from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
@@ -108,9 +114,12 @@ class BranchAndBoundSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
         seeds: Sequence[AlterationArray | None] | None = None,
+        below: Solution | None = None,
     ) -> list[Solution]:
         """``seeds`` (one per budget, optional): known good alterations, e.g. a MILP's
-        incumbents, that the search starts from."""
+        incumbents, that the search starts from. ``below``: a certified answer of a smaller
+        budget (an earlier stage's); where no seed beats it, the curve may have levelled off
+        there, and the largest budget is solved first (see the module docstring)."""
         deadline = deadline or Deadline(self.options.time_limit)
         instance = prepare(problem, max(budgets))
         relax = PerStateRelaxation(problem, instance.space, instance.chain)
@@ -126,14 +135,48 @@ class BranchAndBoundSolver:
         )
         if self.options.pool is not None:
             curve.shared_problem = self.options.pool.share(problem)
-        order = sorted(range(len(budgets)), key=lambda j: budgets[j])
+        pending = sorted(range(len(budgets)), key=lambda j: budgets[j])
         answers: dict[int, Solution] = {}
-        for done, j in enumerate(order):
+        last = below  # the last budget solved in order
+
+        def solve(j: int) -> Solution:
             seed = None if seeds is None else seeds[j]
-            step = _Budget(float(budgets[j]), done, len(order), seed)
+            step = _Budget(float(budgets[j]), len(answers), len(budgets), seed)
             answers[j] = self._solve_budget(curve, step, deadline, progress)
-            report(progress, done + 1, len(order), stage="branch-and-bound")
+            report(progress, len(answers), len(budgets), stage="branch-and-bound")
+            return answers[j]
+
+        if last is not None and len(pending) >= 2 and _no_seed_beats(problem, last, seeds):
+            self._jump_to_top(curve, last, pending, budgets, answers, solve)
+        while pending:
+            answer = solve(pending.pop(0))
+            if len(pending) >= 2 and last is not None and _level(last, answer):
+                self._jump_to_top(curve, answer, pending, budgets, answers, solve)
+            last = answer
         return [answers[j] for j in range(len(budgets))]
+
+    @staticmethod
+    def _jump_to_top(
+        curve: _Curve,
+        level: Solution,
+        pending: list[int],
+        budgets: Sequence[float],
+        answers: dict[int, Solution],
+        solve: Callable[[int], Solution],
+    ) -> None:
+        """The curve levelled off at ``level``'s value: solve the largest budget left next;
+        if it is certified at that value, every budget ``pending`` between is proven by it
+        (taken out of ``pending``, with ``level``'s alteration and the top's bound)."""
+        kept = curve.incumbent  # the top's answer may not fit the budgets between
+        top = solve(pending.pop())
+        curve.incumbent = kept
+        if not _level(level, top):
+            return
+        assert top.upper_bound is not None and level.solver_probability is not None
+        bound = max(top.upper_bound, level.solver_probability)
+        for j in pending:
+            answers[j] = replace(level, budget=float(budgets[j]), upper_bound=bound)
+        pending.clear()
 
     def _solve_budget(
         self, curve: _Curve, step: _Budget, deadline: Deadline, progress: ProgressCallback | None
@@ -248,6 +291,32 @@ class BranchAndBoundSolver:
             upper_bound=value if finished else bound,
             stats=stats,
         )
+
+
+def _no_seed_beats(
+    problem: Problem, level: Solution, seeds: Sequence[AlterationArray | None] | None
+) -> bool:
+    """Whether every seed is worth no more than ``level``'s answer (up to near-ties): an
+    earlier stage found nothing better for the larger budgets."""
+    if level.status != Status.OPTIMAL or level.solver_probability is None or not seeds:
+        return False
+    distinct = {np.asarray(seed).tobytes(): seed for seed in seeds if seed is not None}
+    worth = [decoy_probability(problem, seed) for seed in distinct.values()]
+    return bool(worth) and not any(
+        tolerance.better(value, level.solver_probability, rel=tolerance.NEAR_TIE) for value in worth
+    )
+
+
+def _level(lower: Solution, higher: Solution) -> bool:
+    """Whether two budgets' answers are both certified at the same value (up to near-ties)."""
+    certified = Status.OPTIMAL == lower.status == higher.status
+    low, high = lower.solver_probability, higher.solver_probability
+    return (
+        certified
+        and low is not None
+        and high is not None
+        and not tolerance.better(high, low, rel=tolerance.NEAR_TIE)
+    )
 
 
 @dataclass
