@@ -474,7 +474,7 @@ def test_auto_searches_first_and_enumerates_what_the_search_did_not_certify(
     given = []
 
     class NoProof:
-        def solve(self, problem, budgets, *, progress=None, deadline=None, seeds=None):
+        def solve(self, problem, budgets, *, progress=None, deadline=None, seeds=None, below=None):
             given.append(deadline.remaining())
             value = decoy_probability(problem, problem.identity())
             return [
