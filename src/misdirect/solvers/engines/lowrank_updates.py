@@ -433,7 +433,7 @@ def _children_of(
         deltas.column,
         rhs,
         weight,
-        np.nan_to_num(conditioned, nan=np.inf),
+        conditioned,  # NaN (a singular parent) reads as ill-conditioned there
         tolerance.ILL_CONDITIONED,
         out,
     )
