@@ -287,3 +287,11 @@ def _lowest_bit(value: float) -> int:
         numerator //= 2
         exponent += 1
     return max(exponent, -1074)
+
+
+PROOF_OFFSET = 2.0**-50
+"""The least offset (relative to the objective's largest value) a proven upper bound adds to
+policy iteration's values before checking that they are a pre-fixed point of the Bellman
+operator (:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`):
+a few units of rounding, so that values whose measured defect is 0 still leave room for the
+rounding of the check itself."""

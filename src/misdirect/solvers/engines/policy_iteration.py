@@ -7,7 +7,10 @@
   scores 0, and a state switches only on a strict gain. At termination the values are a fixed
   point of the Bellman operator attained by some policy; every fixed point lies above the least
   one, which is the optimum, and no policy lies above the optimum: so they are the optimum.
-  The per-state relaxation and the defender's MDPs use it.
+  The per-state relaxation and the defender's MDPs use it. Its values are floating-point
+  solutions, so the bound the searches prune with is :meth:`MaxReachability.proven_bound`: a
+  vector checked, with the rounding of the check accounted for, to be a pre-fixed point of
+  the Bellman operator, which lies above the optimum (Knaster–Tarski).
 * :class:`TransientPolicyIteration`: maximal expected total reward of an MDP whose every
   policy leaves its states with probability 1 (no end components), by LU factorisations of
   ``I − P`` that also give visits (transposed solves); a policy switching few choices is solved
@@ -16,6 +19,8 @@
 
 from __future__ import annotations
 
+import math
+from fractions import Fraction
 from typing import Protocol, cast
 
 import numpy as np
@@ -25,12 +30,17 @@ from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.core import tolerance
 from misdirect.core.model import reachable_from
-from misdirect.core.reachability import reach_probabilities
+from misdirect.core.reachability import reach_probabilities, solve_chain
 from misdirect.errors import SolverError
 from misdirect.solvers.deadline import Deadline
 
 LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
 # solved by Woodbury from that factorisation (a few solves instead of a new LU)
+PROOF_TRIES = 3  # offsets a proven bound tries (each PROOF_GROWTH times the last)
+PROOF_GROWTH = 64.0
+PROOF_LIFTS = 8  # rounds of raising the states a check fails at, per offset
+PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
+EXACT_SUMS = 50_000  # rows whose sum is decided exactly (Fractions) per proof, at most
 
 
 class LinearSolver(Protocol):
@@ -64,6 +74,8 @@ class MaxReachability:
         self.state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.live = self._live() if live is None else live
         self.evaluations = 0
+        self._by_state = np.argsort(owner, kind="stable")  # choices grouped by state
+        self._row_sum_at_most_one = np.full(owner.size, -1, dtype=np.int8)  # -1: not known
 
     def _live(self) -> np.ndarray:
         """States outside the target that can reach it under some policy."""
@@ -127,6 +139,150 @@ class MaxReachability:
             rounds += 1
             if max_rounds is not None and rounds >= max_rounds:
                 raise SolverError(f"policy iteration did not settle in {max_rounds:,} rounds")
+
+    def proven_bound(
+        self,
+        values: np.ndarray,
+        policy: np.ndarray,
+        state: int,
+        penalty: np.ndarray | float = 0.0,
+        deadline: Deadline | None = None,
+    ) -> float:
+        """A proven upper bound at ``state`` on the optimum among the choices whose ``penalty``
+        is 0, from the values and policy :meth:`optimise` returned; the largest target value
+        (the trivial bound) when no proof is found.
+
+        The optimum is the least fixed point of the Bellman operator ``T`` (target states fixed
+        at their value, values capped at the largest one: no value of the chain exceeds it),
+        so every ``u`` with ``T u <= u`` lies above it (Knaster–Tarski), end components or
+        not. ``u`` is policy iteration's values ``v`` plus an offset ``f``: the expected sum,
+        along the policy's chain until it leaves the states of positive value, of each
+        state's defect (how far ``T v`` lies above ``v``, rounding of the check included,
+        plus :data:`~misdirect.core.tolerance.PROOF_OFFSET`), doubled. ``f`` falls along the
+        policy by at least the defect, so the policy's rows stay below ``u``; states where
+        another choice still lies above ``u`` (ties, end components, states of value 0) are
+        raised to it, a few rounds. ``u`` is accepted only when the check ``T u <= u``
+        holds, each row's product bounded above with its rounding (:meth:`_upper`); else
+        ``f`` grows and it tries again. Raises :class:`DeadlineExpiredError` once
+        ``deadline`` has passed."""
+        target = self.target
+        allowed, fixed, top = self._operator(penalty)
+        if top <= 0.0 or not target.any():
+            return 0.0
+        matrix = self.transitions
+        if matrix.nnz and matrix.data.min() < 0:
+            return top  # not a probability matrix: nothing to prove with
+        values = np.where(np.isfinite(values), values, top)
+        values = np.clip(np.where(target, fixed, values), 0.0, top)
+        positive = ~target & (values > 0) & (values < top)
+        defect = np.maximum(self._upper(values, allowed, target, fixed, top) - values, 0.0)
+        offset = self._accumulated(policy, positive, 2 * defect + tolerance.PROOF_OFFSET * top)
+        for _ in range(PROOF_TRIES):
+            if deadline is not None:
+                deadline.check()
+            u = np.minimum(values + offset, top)
+            for _ in range(PROOF_LIFTS):
+                bellman = self._upper(u, allowed, target, fixed, top)
+                if (bellman <= u).all():
+                    for _ in range(PROOF_TIGHTEN):  # T u <= u: T u is a pre-fixed point too
+                        u = np.minimum(u, self._upper(u, allowed, target, fixed, top))
+                    return float(u[state])
+                u = np.maximum(u, bellman)
+            offset *= PROOF_GROWTH
+        return top
+
+    def pre_fixed(self, u: np.ndarray, penalty: np.ndarray | float = 0.0) -> bool:
+        """Whether ``T u <= u`` is proven (``u >= 0``, target states at their value): then
+        ``u`` lies above the optimum among the choices whose ``penalty`` is 0."""
+        allowed, fixed, top = self._operator(penalty)
+        u = np.asarray(u, dtype=np.float64)
+        if (
+            not (np.isfinite(u).all() and (u >= 0).all())
+            or (u[self.target] < fixed[self.target]).any()
+        ):
+            return False
+        if self.transitions.nnz and self.transitions.data.min() < 0:
+            return False
+        return bool((self._upper(u, allowed, self.target, fixed, top) <= u).all())
+
+    def _operator(self, penalty: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The Bellman operator's data: allowed choices, target values, the cap."""
+        target = self.target
+        top = 1.0 if self.value is None else float(np.max(self.value[target], initial=0.0))
+        penalties = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (self.owner.size,))
+        fixed = np.where(target, 1.0 if self.value is None else self.value, 0.0)
+        return penalties == 0, fixed, top
+
+    def _accumulated(
+        self, policy: np.ndarray, positive: np.ndarray, cost: np.ndarray
+    ) -> np.ndarray:
+        """Expected sum of ``cost`` along the chain of ``policy`` until it leaves ``positive``
+        (states from which it reaches the target, so it leaves them surely); 0 outside, and
+        ``cost`` itself where that solve fails."""
+        inner = np.flatnonzero(positive)
+        total = np.zeros(positive.size)
+        if not inner.size:
+            return total
+        block = self.transitions[policy[inner]][:, inner]
+        labels = None if self.blocks is None else self.blocks[inner]
+        own = cost[inner]
+        try:
+            solved = solve_chain(block, own, labels)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            solved = own
+        total[inner] = np.where(np.isfinite(solved) & (solved >= own), solved, own)
+        return total
+
+    def _upper(
+        self, u: np.ndarray, allowed: np.ndarray, target: np.ndarray, fixed: np.ndarray, top: float
+    ) -> np.ndarray:
+        """An upper bound, in exact arithmetic, on ``(T u)(s)`` for every state (``u >= 0``).
+
+        Each row's product is computed in floats and raised by Higham's bound for a dot
+        product of the row's length (``γ_n`` relative; doubled to cover computing the bound
+        itself), plus the smallest subnormal per product that may underflow. A row that sums
+        to at most 1 (decided exactly, :meth:`_sums_at_most_one`) is also at most the
+        largest ``u`` it reaches: exact, so a constant ``u`` on an end component passes."""
+        matrix = self.transitions
+        product = matrix @ u
+        length = np.diff(matrix.indptr)
+        gamma = 2.02 * (length + 2) * tolerance.UNIT_ROUNDOFF
+        bound = product + gamma * product + np.where(product > 0, tolerance.SMALLEST, 0.0)
+        if matrix.nnz:
+            lowest = float(np.min(u[u > 0], initial=top)) * float(
+                matrix.data[matrix.data > 0].min()
+            )
+            if lowest < 2.0**-1000:  # a product may be subnormal: its absolute rounding
+                hits = (matrix != 0).astype(np.float64) @ (u > 0).astype(np.float64)
+                bound = bound + hits * tolerance.SMALLEST
+            largest = np.zeros(length.size)
+            rows = length > 0
+            largest[rows] = np.maximum.reduceat(u[matrix.indices], matrix.indptr[:-1][rows])
+            owner_u = u[self.owner]
+            helps = allowed & (largest < bound) & (bound > owner_u)
+            if helps.any():
+                exact = self._sums_at_most_one(np.flatnonzero(helps))
+                bound = np.where(exact, np.minimum(bound, largest), bound)
+        score = np.where(allowed, bound, -np.inf)[self._by_state]
+        best = np.maximum.reduceat(score, self.state_start)
+        return np.where(target, fixed, np.clip(best, 0.0, top))
+
+    def _sums_at_most_one(self, rows: np.ndarray) -> np.ndarray:
+        """Per choice: whether ``rows`` is one whose entries sum to at most 1 exactly (each
+        decided once and kept; at most :data:`EXACT_SUMS` new ones per call)."""
+        known = self._row_sum_at_most_one
+        unknown = rows[known[rows] < 0][:EXACT_SUMS]
+        matrix = self.transitions
+        for g in unknown.tolist():
+            entries = matrix.data[matrix.indptr[g] : matrix.indptr[g + 1]].tolist()
+            total = math.fsum(entries)  # correctly rounded: decides all but a sum rounding to 1
+            if total != 1.0:
+                known[g] = total < 1.0
+            else:
+                known[g] = sum((Fraction(p) for p in entries), Fraction(0)) <= 1
+        result = np.zeros(self.owner.size, dtype=bool)
+        result[rows] = known[rows] == 1
+        return result
 
 
 class UpdatedLU:
