@@ -19,13 +19,12 @@
 
 from __future__ import annotations
 
-import math
-from fractions import Fraction
 from typing import Protocol, cast
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lu_factor, lu_solve
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.core import tolerance
@@ -38,9 +37,9 @@ LOW_RANK = 32  # a policy differing from a factorised one in at most this many s
 # solved by Woodbury from that factorisation (a few solves instead of a new LU)
 PROOF_TRIES = 3  # offsets a proven bound tries (each PROOF_GROWTH times the last)
 PROOF_GROWTH = 64.0
-PROOF_LIFTS = 8  # rounds of raising the states a check fails at, per offset
+PROOF_LIFTS = 4  # rounds of raising the states a check fails at (ties, end components)...
+PROOF_ROUNDS = 4  # ...before the other states are solved again above the raised ones
 PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
-EXACT_SUMS = 50_000  # rows whose sum is decided exactly (Fractions) per proof, at most
 
 
 class LinearSolver(Protocol):
@@ -75,7 +74,6 @@ class MaxReachability:
         self.live = self._live() if live is None else live
         self.evaluations = 0
         self._by_state = np.argsort(owner, kind="stable")  # choices grouped by state
-        self._row_sum_at_most_one = np.full(owner.size, -1, dtype=np.int8)  # -1: not known
 
     def _live(self) -> np.ndarray:
         """States outside the target that can reach it under some policy."""
@@ -155,15 +153,18 @@ class MaxReachability:
         The optimum is the least fixed point of the Bellman operator ``T`` (target states fixed
         at their value, values capped at the largest one: no value of the chain exceeds it),
         so every ``u`` with ``T u <= u`` lies above it (Knaster–Tarski), end components or
-        not. ``u`` is policy iteration's values ``v`` plus an offset ``f``: the expected sum,
-        along the policy's chain until it leaves the states of positive value, of each
-        state's defect (how far ``T v`` lies above ``v``, rounding of the check included,
-        plus :data:`~misdirect.core.tolerance.PROOF_OFFSET`), doubled. ``f`` falls along the
-        policy by at least the defect, so the policy's rows stay below ``u``; states where
-        another choice still lies above ``u`` (ties, end components, states of value 0) are
-        raised to it, a few rounds. ``u`` is accepted only when the check ``T u <= u``
-        holds, each row's product bounded above with its rounding (:meth:`_upper`); else
-        ``f`` grows and it tries again. Raises :class:`DeadlineExpiredError` once
+        not. ``u`` is policy iteration's values ``v`` plus an offset: the expected sum, along
+        the policy's chain until it leaves the states of positive value, of each state's
+        defect (how far ``T v`` lies above ``v``, rounding of the check included, plus
+        :data:`~misdirect.core.tolerance.PROOF_OFFSET`), doubled. The offset falls along the
+        policy by at least the defect, so the policy's rows stay below ``u``. States where
+        another choice still lies above ``u`` (a tie) are raised to it, a few rounds, and the
+        others solved again above them. A tie that closes a cycle (an end component of the
+        tied choices) admits no falling offset: there ``u`` is one constant, which a row that
+        stays inside meets exactly (:meth:`_upper`), and the component is one state of the
+        policy's chain (:meth:`_tied_components`). ``u`` is accepted only when the check
+        ``T u <= u`` holds, each row's product bounded above with its rounding; else the
+        offset grows and it tries again. Raises :class:`DeadlineExpiredError` once
         ``deadline`` has passed."""
         target = self.target
         allowed, fixed, top = self._operator(penalty)
@@ -175,20 +176,47 @@ class MaxReachability:
         values = np.where(np.isfinite(values), values, top)
         values = np.clip(np.where(target, fixed, values), 0.0, top)
         positive = ~target & (values > 0) & (values < top)
-        defect = np.maximum(self._upper(values, allowed, target, fixed, top) - values, 0.0)
-        offset = self._accumulated(policy, positive, 2 * defect + tolerance.PROOF_OFFSET * top)
-        for _ in range(PROOF_TRIES):
+        bellman = self._upper(values, allowed, target, fixed, top)
+        defect = np.maximum(bellman - values, 0.0)
+        cost = np.where(positive, 2 * defect + tolerance.PROOF_OFFSET * top, 0.0)
+        # first without end components (cheap: one solve), then with them, growing
+        components: np.ndarray | None = None
+        for attempt in range(PROOF_TRIES + 1):
             if deadline is not None:
                 deadline.check()
-            u = np.minimum(values + offset, top)
-            for _ in range(PROOF_LIFTS):
-                bellman = self._upper(u, allowed, target, fixed, top)
-                if (bellman <= u).all():
-                    for _ in range(PROOF_TIGHTEN):  # T u <= u: T u is a pre-fixed point too
-                        u = np.minimum(u, self._upper(u, allowed, target, fixed, top))
-                    return float(u[state])
-                u = np.maximum(u, bellman)
-            offset *= PROOF_GROWTH
+            if attempt == 1:
+                components = self._tied_components(values, bellman, allowed, positive)
+            if attempt >= 2:
+                cost = cost * PROOF_GROWTH
+            u = self._settle(policy, positive, values, cost, components, offset=attempt == 0)
+            if u is None:
+                continue
+            u = np.minimum(u, top)
+            raised = np.zeros(positive.size, dtype=bool)
+            for round_ in range(PROOF_ROUNDS):
+                if deadline is not None:
+                    deadline.check()
+                for _ in range(PROOF_LIFTS):
+                    upper = self._upper(u, allowed, target, fixed, top)
+                    failing = upper > u
+                    if not failing.any():
+                        for _ in range(PROOF_TIGHTEN):  # T u <= u: so is T u, and tighter
+                            u = np.minimum(u, self._upper(u, allowed, target, fixed, top))
+                        return float(u[state])
+                    raised |= failing
+                    u = np.maximum(u, upper)
+                    if components is not None:  # one constant per end component
+                        inside = components >= 0
+                        level = np.zeros(int(components.max(initial=-1)) + 1)
+                        np.maximum.at(level, components[inside], u[inside])
+                        u = np.where(inside, level[components], u)
+                        touched = np.zeros(level.size, dtype=bool)
+                        touched[components[raised & inside]] = True
+                        raised |= inside & touched[components]
+                if round_ + 1 < PROOF_ROUNDS:  # the others follow the raised states
+                    settled = self._settle(policy, positive & ~raised, u, cost, components)
+                    if settled is not None:
+                        u = np.minimum(settled, top)
         return top
 
     def pre_fixed(self, u: np.ndarray, penalty: np.ndarray | float = 0.0) -> bool:
@@ -213,76 +241,135 @@ class MaxReachability:
         fixed = np.where(target, 1.0 if self.value is None else self.value, 0.0)
         return penalties == 0, fixed, top
 
-    def _accumulated(
-        self, policy: np.ndarray, positive: np.ndarray, cost: np.ndarray
-    ) -> np.ndarray:
-        """Expected sum of ``cost`` along the chain of ``policy`` until it leaves ``positive``
-        (states from which it reaches the target, so it leaves them surely); 0 outside, and
-        ``cost`` itself where that solve fails."""
-        inner = np.flatnonzero(positive)
-        total = np.zeros(positive.size)
+    def _settle(
+        self,
+        policy: np.ndarray,
+        free: np.ndarray,
+        u: np.ndarray,
+        cost: np.ndarray,
+        components: np.ndarray | None,
+        *,
+        offset: bool = False,
+    ) -> np.ndarray | None:
+        """``u`` with its ``free`` states solved again: each the expected sum of ``cost``
+        along ``policy``'s chain until it leaves them, plus ``u`` where it leaves to (the
+        chain leaves surely: every free state reaches the target). With ``offset`` the solve
+        is for the sum of ``cost`` alone, added to ``u`` (which keeps policy iteration's
+        values as they are). The states of one end component (``components``) are one
+        state, whose row is that of a member the policy leads out of it. None if the solve
+        fails."""
+        inner = np.flatnonzero(free)
         if not inner.size:
-            return total
-        block = self.transitions[policy[inner]][:, inner]
-        labels = None if self.blocks is None else self.blocks[inner]
-        own = cost[inner]
+            return u
+        node = np.arange(inner.size)
+        reps = inner
+        if components is not None and (components[inner] >= 0).any():
+            node, reps = self._quotient(policy, inner, components)
+        rows = self.transitions[policy[reps]]
+        aggregate = sp.csr_matrix(
+            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
+        )
+        block = (rows @ aggregate).tocsr()
+        reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
+        labels = None if self.blocks is None else self.blocks[reps]
         try:
-            solved = solve_chain(block, own, labels)
+            solved = solve_chain(block, reward, labels)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
-            solved = own
-        total[inner] = np.where(np.isfinite(solved) & (solved >= own), solved, own)
-        return total
+            return None
+        if not np.isfinite(solved).all():
+            return None
+        settled = u.copy()
+        if offset:
+            settled[inner] = u[inner] + np.maximum(solved[node], cost[inner])
+        else:
+            settled[inner] = solved[node]
+        return settled
+
+    def _quotient(
+        self, policy: np.ndarray, inner: np.ndarray, components: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per state of ``inner``: its node once each end component is one node; and per
+        node, the state whose row it takes (for a component, a member the policy leads out
+        of it; a component it never leaves stays apart, state by state)."""
+        label = components[inner]
+        rows = self.transitions[policy[inner]].tocoo()
+        outside = np.full(components.size, -2)
+        outside[inner] = label
+        leaves = np.bincount(
+            rows.row, weights=(outside[rows.col] != label[rows.row]), minlength=inner.size
+        )
+        exit_of = np.full(int(components.max(initial=-1)) + 1, -1)
+        exits = np.flatnonzero((label >= 0) & (leaves > 0))
+        exit_of[label[exits]] = exits  # any one member that leaves
+        merged = (label >= 0) & (exit_of[np.maximum(label, 0)] >= 0)
+        # one node per merged component (its exit's), one per other state
+        key = np.where(merged, exit_of[np.maximum(label, 0)], np.arange(inner.size))
+        firsts, node = np.unique(key, return_inverse=True)
+        return node, inner[firsts]
+
+    def _tied_components(
+        self, values: np.ndarray, bellman: np.ndarray, allowed: np.ndarray, positive: np.ndarray
+    ) -> np.ndarray:
+        """Per state: its end component of the tied choices among ``positive`` states (those
+        whose product with ``values`` comes within :data:`~misdirect.core.tolerance.IMPROVE`
+        of the best, the room policy iteration left), or -1. Maximal end components as
+        usual: strongly connected components, less the choices that leave theirs, until
+        none does."""
+        matrix = self.transitions
+        product = matrix @ values
+        room = 4 * tolerance.IMPROVE * max(float(np.abs(values).max(initial=0.0)), 0.0)
+        active = allowed & positive[self.owner] & (product >= bellman[self.owner] - room)
+        n = positive.size
+        while True:
+            chosen = np.flatnonzero(active)
+            if not chosen.size:
+                return np.full(n, -1)
+            rows = matrix[chosen].tocoo()
+            source = self.owner[chosen][rows.row]
+            graph = sp.csr_matrix((np.ones(rows.nnz), (source, rows.col)), shape=(n, n))
+            _, scc = connected_components(graph, directed=True, connection="strong")
+            out = (scc[rows.col] != scc[source]) | ~positive[rows.col]
+            leaving = np.bincount(rows.row, weights=out, minlength=chosen.size) > 0
+            if not leaving.any():
+                break
+            active[chosen[leaving]] = False
+        has = np.zeros(n, dtype=bool)
+        has[self.owner[chosen]] = True
+        sizes = np.bincount(scc[has], minlength=int(scc.max()) + 1)
+        keep = has & (sizes[scc] > 1)  # a lone state on its own loop needs no merging
+        return np.where(keep, scc, -1)
 
     def _upper(
         self, u: np.ndarray, allowed: np.ndarray, target: np.ndarray, fixed: np.ndarray, top: float
     ) -> np.ndarray:
         """An upper bound, in exact arithmetic, on ``(T u)(s)`` for every state (``u >= 0``).
 
-        Each row's product is computed in floats and raised by Higham's bound for a dot
-        product of the row's length (``γ_n`` relative; doubled to cover computing the bound
-        itself), plus the smallest subnormal per product that may underflow. A row that sums
-        to at most 1 (decided exactly, :meth:`_sums_at_most_one`) is also at most the
-        largest ``u`` it reaches: exact, so a constant ``u`` on an end component passes."""
+        A row stands for a distribution: one whose doubles sum to a little over 1 (0.8 + 0.2
+        is 1 + 2^-54) is read divided by its sum, else a run cycling through it would gain a
+        factor 1 + 2^-54 per round and nothing below the largest value would bound an end
+        component. So a row's value is at most the largest ``u`` it reaches (exact: a
+        constant ``u`` on an end component passes), and at most its product computed in
+        floats, raised by Higham's bound for a dot product of the row's length (``γ_n``
+        relative; doubled to cover computing the bound itself) plus the smallest subnormal
+        per product that may underflow."""
         matrix = self.transitions
         product = matrix @ u
         length = np.diff(matrix.indptr)
         gamma = 2.02 * (length + 2) * tolerance.UNIT_ROUNDOFF
         bound = product + gamma * product + np.where(product > 0, tolerance.SMALLEST, 0.0)
         if matrix.nnz:
-            lowest = float(np.min(u[u > 0], initial=top)) * float(
-                matrix.data[matrix.data > 0].min()
-            )
-            if lowest < 2.0**-1000:  # a product may be subnormal: its absolute rounding
+            smallest = float(matrix.data[matrix.data > 0].min(initial=1.0))
+            if float(np.min(u[u > 0], initial=top)) * smallest < 2.0**-1000:
+                # a product may be subnormal: its rounding is absolute
                 hits = (matrix != 0).astype(np.float64) @ (u > 0).astype(np.float64)
                 bound = bound + hits * tolerance.SMALLEST
-            largest = np.zeros(length.size)
             rows = length > 0
+            largest = np.zeros(length.size)
             largest[rows] = np.maximum.reduceat(u[matrix.indices], matrix.indptr[:-1][rows])
-            owner_u = u[self.owner]
-            helps = allowed & (largest < bound) & (bound > owner_u)
-            if helps.any():
-                exact = self._sums_at_most_one(np.flatnonzero(helps))
-                bound = np.where(exact, np.minimum(bound, largest), bound)
+            bound = np.minimum(bound, largest)
         score = np.where(allowed, bound, -np.inf)[self._by_state]
         best = np.maximum.reduceat(score, self.state_start)
         return np.where(target, fixed, np.clip(best, 0.0, top))
-
-    def _sums_at_most_one(self, rows: np.ndarray) -> np.ndarray:
-        """Per choice: whether ``rows`` is one whose entries sum to at most 1 exactly (each
-        decided once and kept; at most :data:`EXACT_SUMS` new ones per call)."""
-        known = self._row_sum_at_most_one
-        unknown = rows[known[rows] < 0][:EXACT_SUMS]
-        matrix = self.transitions
-        for g in unknown.tolist():
-            entries = matrix.data[matrix.indptr[g] : matrix.indptr[g + 1]].tolist()
-            total = math.fsum(entries)  # correctly rounded: decides all but a sum rounding to 1
-            if total != 1.0:
-                known[g] = total < 1.0
-            else:
-                known[g] = sum((Fraction(p) for p in entries), Fraction(0)) <= 1
-        result = np.zeros(self.owner.size, dtype=bool)
-        result[rows] = known[rows] == 1
-        return result
 
 
 class UpdatedLU:
