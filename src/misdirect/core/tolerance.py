@@ -295,3 +295,12 @@ policy iteration's values before checking that they are a pre-fixed point of the
 operator (:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`):
 a few units of rounding, so that values whose measured defect is 0 still leave room for the
 rounding of the check itself."""
+
+PROOF_EXTENDED = CERTIFY / 100
+"""A proven bound further than this (relative) above policy iteration's value is sought again
+with the values and the check in double-double: certification needs the bound within
+:data:`CERTIFY`, and a chain absorbed after 10^8 steps adds up the check's rounding to more."""
+
+PROOF_EXTENDED_OFFSET = 2.0**-90
+""":data:`PROOF_OFFSET` for the double-double check: above the rounding of its residuals
+(about 10^-32 relative), far below anything certification sees even after 10^9 steps."""
