@@ -440,6 +440,9 @@ class MaxReachability:
         above = (hi[j] > hi[s]) | ((hi[j] == hi[s]) & (lo[j] > lo[s]))
         below = np.bincount(entry_row, weights=above, minlength=chosen.size) == 0
         below &= inner | (high[chosen] <= 0)
+        # a row whose every successor has u = 0 is 0, whatever its sum
+        reached = ((hi[j] != 0) | (lo[j] != 0)).astype(np.float64)
+        below |= np.bincount(entry_row, weights=reached, minlength=chosen.size) == 0
         upper = np.where(below, np.minimum(upper, 0.0), upper)
         np.maximum.at(rise, own, upper)
         if not choices:
