@@ -304,3 +304,8 @@ with the values and the check in double-double: certification needs the bound wi
 PROOF_EXTENDED_OFFSET = 2.0**-90
 """:data:`PROOF_OFFSET` for the double-double check: above the rounding of its residuals
 (about 10^-32 relative), far below anything certification sees even after 10^9 steps."""
+
+PROOF_EXTENDED_GAIN = 2.0**-80
+"""In double-double, a gain (relative to the objective's largest value) that policy iteration
+switches for before proving: far below :data:`IMPROVE`'s room, whose refused gains add up on a
+chain that returns to a state 10^7 times, and far above the residuals' rounding."""

@@ -44,8 +44,6 @@ PROOF_ROUNDS = 3  # ...before the other states are solved again above the raised
 EXTENDED_TRIES = 1  # the same in double-double
 EXTENDED_REFINE = 2  # refinement rounds (one solve each) of the double-double values
 EXTENDED_SWITCHES = 3  # policy improvements in double-double, at most
-EXTENDED_GAIN = 2.0**-80  # a gain (relative to the largest value) worth switching for there
-ROUNDING_FLOOR = 2.0**-1022  # values below it are measured against it, not themselves
 PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
 
 
@@ -189,7 +187,9 @@ class MaxReachability:
         bound = top if found is None else min(found, top)
         # far above the values (a chain absorbed after 10^8 steps: the check's own rounding,
         # 10^-16 a step, adds up): again with the values and the check in double-double
-        if bound - values[state] > tolerance.PROOF_EXTENDED * max(values[state], ROUNDING_FLOOR):
+        if bound - values[state] > tolerance.PROOF_EXTENDED * max(
+            values[state], tolerance.SMALLEST
+        ):
             if deadline is not None:
                 deadline.check()
             components = self._tied_components(values, bellman, allowed, positive)
@@ -284,7 +284,7 @@ class MaxReachability:
             if deadline is not None:
                 deadline.check()
             rise, best = self._rise(hi, lo, allowed, internal, choices=True)
-            switch = positive & (rise > EXTENDED_GAIN * top) & (best >= 0)
+            switch = positive & (rise > tolerance.PROOF_EXTENDED_GAIN * top) & (best >= 0)
             if not switch.any():
                 break
             tried = np.where(switch, best, policy)
@@ -295,7 +295,10 @@ class MaxReachability:
             )
             # an improvement raises every value; a fall means a solve that went wrong (a
             # chain so close to closing that the switch closed it): keep the last policy
-            if not refined or ((new_hi - hi) + (new_lo - lo) < -EXTENDED_GAIN * top).any():
+            if (
+                not refined
+                or ((new_hi - hi) + (new_lo - lo) < -tolerance.PROOF_EXTENDED_GAIN * top).any()
+            ):
                 break
             policy, prefer, hi, lo = tried, preferred, new_hi, new_lo
         # what the tied choices still gain, doubled
