@@ -294,3 +294,25 @@ def _lowest_bit(value: float) -> int:
         numerator //= 2
         exponent += 1
     return max(exponent, -1074)
+
+
+PROOF_OFFSET = 2.0**-50
+"""The least offset (relative to the objective's largest value) a proven upper bound adds to
+policy iteration's values before checking that they are a pre-fixed point of the Bellman
+operator (:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`):
+a few units of rounding, so that values whose measured defect is 0 still leave room for the
+rounding of the check itself."""
+
+PROOF_EXTENDED = CERTIFY / 100
+"""A proven bound further than this (relative) above policy iteration's value is sought again
+with the values and the check in double-double: certification needs the bound within
+:data:`CERTIFY`, and a chain absorbed after 10^8 steps adds up the check's rounding to more."""
+
+PROOF_EXTENDED_OFFSET = 2.0**-90
+""":data:`PROOF_OFFSET` for the double-double check: above the rounding of its residuals
+(about 10^-32 relative), far below anything certification sees even after 10^9 steps."""
+
+PROOF_EXTENDED_GAIN = 2.0**-80
+"""In double-double, a gain (relative to the objective's largest value) that policy iteration
+switches for before proving: far below :data:`IMPROVE`'s room, whose refused gains add up on a
+chain that returns to a state 10^7 times, and far above the residuals' rounding."""

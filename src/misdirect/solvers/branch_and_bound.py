@@ -392,12 +392,13 @@ class _Search(IncumbentSearch):
         relax = self.relax
         self.nodes += 1
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
-        bound, _, policy = relax.optimise(allowed, node.policy.copy(), deadline)
+        bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)
         if self.root_bound is None:
             self.root_bound, self.root_policy = bound, policy
         level = len(node.picks)
         if level == len(relax.order):  # every observation fixed: the relaxation is the chain
-            self.incumbent.offer(node.picks, bound)
+            # its value, not the bound above it (the two differ by the rounding proven away)
+            self.incumbent.offer(node.picks, float(values[relax.chain.initial]))
             return
         usage = relax.usage(policy)
         self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))

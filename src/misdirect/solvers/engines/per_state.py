@@ -7,12 +7,14 @@ fits the remaining budget; states of fixed observations keep their candidate's g
 feasible completion is one scheduler of that MDP, so its maximal reachability probability
 bounds them all.
 
-The bound is computed exactly by policy iteration: each policy is evaluated by
+The relaxation is solved by policy iteration: each policy is evaluated by
 :func:`misdirect.core.reachability.reach_probabilities` (the least fixed point, so policies that
 cycle forever score 0 and end components need no special care), and a state switches only on a
-strict gain of more than :data:`~misdirect.core.tolerance.IMPROVE`. Used by branch-and-bound
-(its node bound), by the segment search (its picks and exact values), and by every method that
-needs a proven bound when cut short (:func:`relaxation_bound`).
+strict gain of more than :data:`~misdirect.core.tolerance.IMPROVE`. Those values are rounded
+solutions; the bound is proven from them
+(:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`). Used by
+branch-and-bound (its node bound), by the segment search (its picks and exact values), and by
+every method that needs a proven bound when cut short (:func:`relaxation_bound`).
 """
 
 from __future__ import annotations
@@ -88,14 +90,18 @@ class PerStateRelaxation:
     def optimise(
         self, allowed_groups: np.ndarray, policy: np.ndarray, deadline: Deadline | None = None
     ) -> tuple[float, np.ndarray, np.ndarray]:
-        """Maximal reachability of the relaxation (value at the start, values, policy); raises
-        :class:`DeadlineExpiredError` once ``deadline`` has passed."""
+        """Maximal reachability of the relaxation: (a proven upper bound on its optimum at the
+        start, policy iteration's values, its policy). The values are floating-point
+        solutions and may lie a little below the optimum; the bound
+        (:meth:`MaxReachability.proven_bound`) does not. Raises :class:`DeadlineExpiredError`
+        once ``deadline`` has passed."""
         penalty = np.where(allowed_groups, 0.0, -np.inf)
         if not allowed_groups[policy].all():  # the parent's choice is no longer allowed here
             fallback, _ = self.best_groups(penalty + self.live_groups)
             policy = np.where(allowed_groups[policy], policy, fallback)
         values, policy = self.mdp.optimise(policy, penalty, deadline=deadline)
-        return float(values[self.chain.initial]), values, policy
+        bound = self.mdp.proven_bound(values, policy, self.chain.initial, penalty, deadline)
+        return bound, values, policy
 
     def ranked(self, i: int, remaining: float, usage: np.ndarray) -> np.ndarray:
         """Affordable candidates of observation ``i``, most used by the policy first, then

@@ -7,7 +7,10 @@
   scores 0, and a state switches only on a strict gain. At termination the values are a fixed
   point of the Bellman operator attained by some policy; every fixed point lies above the least
   one, which is the optimum, and no policy lies above the optimum: so they are the optimum.
-  The per-state relaxation and the defender's MDPs use it.
+  The per-state relaxation and the defender's MDPs use it. Its values are floating-point
+  solutions, so the bound the searches prune with is :meth:`MaxReachability.proven_bound`: a
+  vector checked, with the rounding of the check accounted for, to be a pre-fixed point of
+  the Bellman operator, which lies above the optimum (Knaster–Tarski).
 * :class:`TransientPolicyIteration`: maximal expected total reward of an MDP whose every
   policy leaves its states with probability 1 (no end components), by LU factorisations of
   ``I − P`` that also give visits (transposed solves); a policy switching few choices is solved
@@ -16,21 +19,32 @@
 
 from __future__ import annotations
 
-from typing import Protocol, cast
+from typing import Literal, Protocol, cast, overload
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lu_factor, lu_solve
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
-from misdirect.core import tolerance
+from misdirect.core import residual, tolerance
 from misdirect.core.model import reachable_from
-from misdirect.core.reachability import reach_probabilities
+from misdirect.core.reachability import reach_probabilities, solve_chain
 from misdirect.errors import SolverError
 from misdirect.solvers.deadline import Deadline
 
 LOW_RANK = 32  # a policy differing from a factorised one in at most this many states is
 # solved by Woodbury from that factorisation (a few solves instead of a new LU)
+# A proof costs a few linear solves, like a round or two of policy iteration; one that does
+# not verify within these gives the trivial bound.
+PROOF_TRIES = 2  # offsets a proven bound tries after the first (each PROOF_GROWTH times more)
+PROOF_GROWTH = 64.0
+PROOF_LIFTS = 4  # rounds of raising the states a check fails at (ties, end components)...
+PROOF_ROUNDS = 3  # ...before the other states are solved again above the raised ones
+EXTENDED_TRIES = 1  # the same in double-double
+EXTENDED_REFINE = 2  # refinement rounds (one solve each) of the double-double values
+EXTENDED_SWITCHES = 3  # policy improvements in double-double, at most
+PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
 
 
 class LinearSolver(Protocol):
@@ -64,6 +78,8 @@ class MaxReachability:
         self.state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.live = self._live() if live is None else live
         self.evaluations = 0
+        self._by_state = np.argsort(owner, kind="stable")  # choices grouped by state
+        self._row_excess: tuple[np.ndarray, np.ndarray] | None = None  # row sum less 1
 
     def _live(self) -> np.ndarray:
         """States outside the target that can reach it under some policy."""
@@ -127,6 +143,526 @@ class MaxReachability:
             rounds += 1
             if max_rounds is not None and rounds >= max_rounds:
                 raise SolverError(f"policy iteration did not settle in {max_rounds:,} rounds")
+
+    def proven_bound(
+        self,
+        values: np.ndarray,
+        policy: np.ndarray,
+        state: int,
+        penalty: np.ndarray | float = 0.0,
+        deadline: Deadline | None = None,
+    ) -> float:
+        """A proven upper bound at ``state`` on the optimum among the choices whose ``penalty``
+        is 0, from the values and policy :meth:`optimise` returned; the largest target value
+        (the trivial bound) when no proof is found.
+
+        The optimum is the least fixed point of the Bellman operator ``T`` (target states fixed
+        at their value, values capped at the largest one: no value of the chain exceeds it),
+        so every ``u`` with ``T u <= u`` lies above it (Knaster–Tarski), end components or
+        not. ``u`` is policy iteration's values ``v`` plus an offset: the expected sum, along
+        the policy's chain until it leaves the states of positive value, of each state's
+        defect (how far ``T v`` lies above ``v``, rounding of the check included, plus
+        :data:`~misdirect.core.tolerance.PROOF_OFFSET`), doubled. The offset falls along the
+        policy by at least the defect, so the policy's rows stay below ``u``. States where
+        another choice still lies above ``u`` (a tie) are raised to it, a few rounds, and the
+        others solved again above them. A tie that closes a cycle (an end component of the
+        tied choices) admits no falling offset: there ``u`` is one constant, which a row that
+        stays inside meets exactly (:meth:`_upper`), and the component is one state of the
+        policy's chain (:meth:`_tied_components`). ``u`` is accepted only when the check
+        ``T u <= u`` holds, each row's product bounded above with its rounding; else the
+        offset grows and it tries again. Raises :class:`DeadlineExpiredError` once
+        ``deadline`` has passed."""
+        target = self.target
+        allowed, fixed, top = self._operator(penalty)
+        if top <= 0.0 or not target.any():
+            return 0.0
+        matrix = self.transitions
+        if matrix.nnz and matrix.data.min() < 0:
+            return top  # not a probability matrix: nothing to prove with
+        values = np.where(np.isfinite(values), values, top)
+        values = np.clip(np.where(target, fixed, values), 0.0, top)
+        positive = ~target & (values > 0) & (values < top)
+        bellman = self._upper(values, allowed, target, fixed, top)
+        found = self._proven_double(values, bellman, policy, state, allowed, positive, deadline)
+        bound = top if found is None else min(found, top)
+        # far above the values (a chain absorbed after 10^8 steps: the check's own rounding,
+        # 10^-16 a step, adds up): again with the values and the check in double-double
+        if bound - values[state] > tolerance.PROOF_EXTENDED * max(
+            values[state], tolerance.SMALLEST
+        ):
+            if deadline is not None:
+                deadline.check()
+            components = self._tied_components(values, bellman, allowed, positive)
+            extended = self._proven_extended(
+                values, policy, state, allowed, positive, components, deadline
+            )
+            if extended is not None:
+                bound = min(bound, extended)
+        return float(bound)
+
+    def _proven_double(
+        self,
+        values: np.ndarray,
+        bellman: np.ndarray,
+        policy: np.ndarray,
+        state: int,
+        allowed: np.ndarray,
+        positive: np.ndarray,
+        deadline: Deadline | None,
+    ) -> float | None:
+        """:meth:`proven_bound` in double precision: the bound, or None."""
+        target = self.target
+        _, fixed, top = self._operator(0.0)
+        defect = np.maximum(bellman - values, 0.0)
+        cost = np.where(positive, 2 * defect + tolerance.PROOF_OFFSET * top, 0.0)
+        # first without end components (cheap: one solve), then with them, growing
+        components: np.ndarray | None = None
+        internal: np.ndarray | None = None
+        for attempt in range(PROOF_TRIES + 1):
+            if deadline is not None:
+                deadline.check()
+            if attempt == 1:
+                components = self._tied_components(values, bellman, allowed, positive)
+                internal = self._internal(components)
+            if attempt >= 2:
+                cost = cost * PROOF_GROWTH
+            u = self._settle(policy, positive, values, cost, components, offset=attempt == 0)
+            if u is None:
+                continue
+            u = np.minimum(u, top)
+            raised = np.zeros(positive.size, dtype=bool)
+            for round_ in range(PROOF_ROUNDS):
+                if deadline is not None:
+                    deadline.check()
+                for _ in range(PROOF_LIFTS):
+                    upper = self._upper(u, allowed, target, fixed, top, internal)
+                    failing = upper > u
+                    if not failing.any():
+                        for _ in range(PROOF_TIGHTEN):  # T u <= u: so is T u, and tighter
+                            u = np.minimum(u, self._upper(u, allowed, target, fixed, top, internal))
+                        return float(u[state])
+                    raised |= failing
+                    u = np.maximum(u, upper)
+                    if components is not None:
+                        u, _ = _flatten(u, np.zeros_like(u), components)
+                        raised |= _touched(components, raised)
+                if round_ + 1 < PROOF_ROUNDS:  # the others follow the raised states
+                    settled = self._settle(policy, positive & ~raised, u, cost, components)
+                    if settled is not None:
+                        u = np.minimum(settled, top)
+        return None
+
+    def _proven_extended(
+        self,
+        values: np.ndarray,
+        policy: np.ndarray,
+        state: int,
+        allowed: np.ndarray,
+        positive: np.ndarray,
+        components: np.ndarray,
+        deadline: Deadline | None,
+    ) -> float | None:
+        """:meth:`proven_bound` with ``u`` a double-double ``hi + lo``: policy iteration's
+        values refined on the policy's chain (end components as one state), residuals
+        computed exactly enough (:func:`misdirect.core.residual.residual`), so that the
+        offset covers what the values lack, not the rounding of the check; the bound, or
+        None."""
+        top = self._operator(0.0)[2]
+        internal = self._internal(components)
+        hi, lo = _flatten(values.copy(), np.zeros(values.size), components)
+        floor = np.where(positive, tolerance.PROOF_EXTENDED_OFFSET * top, 0.0)
+        # policy iteration again, switching on the gains below its room: on a chain that
+        # returns 10^7 times to a state, a gain of 10^-16 there is worth 10^-9
+        # (in an end component, the member whose way out gains becomes the one whose row
+        # the component takes)
+        policy = policy.copy()
+        prefer = np.zeros(positive.size, dtype=bool)
+        inside = components >= 0
+        if not self._refine(policy, positive, hi, lo, floor, components, EXTENDED_REFINE):
+            return None
+        for _ in range(EXTENDED_SWITCHES):
+            if deadline is not None:
+                deadline.check()
+            rise, best = self._rise(hi, lo, allowed, internal, choices=True)
+            switch = positive & (rise > tolerance.PROOF_EXTENDED_GAIN * top) & (best >= 0)
+            if not switch.any():
+                break
+            tried = np.where(switch, best, policy)
+            preferred = (prefer & ~_touched(components, switch)) | (switch & inside)
+            new_hi, new_lo = _flatten(hi, lo, components)
+            refined = self._refine(
+                tried, positive, new_hi, new_lo, floor, components, EXTENDED_REFINE, preferred
+            )
+            # an improvement raises every value; a fall means a solve that went wrong (a
+            # chain so close to closing that the switch closed it): keep the last policy
+            if (
+                not refined
+                or ((new_hi - hi) + (new_lo - lo) < -tolerance.PROOF_EXTENDED_GAIN * top).any()
+            ):
+                break
+            policy, prefer, hi, lo = tried, preferred, new_hi, new_lo
+        # what the tied choices still gain, doubled
+        cost = floor + 2 * np.maximum(rise, 0.0)
+        for attempt in range(EXTENDED_TRIES):
+            if deadline is not None:
+                deadline.check()
+            if attempt:
+                cost = cost * PROOF_GROWTH
+            if not self._refine(
+                policy, positive, hi, lo, cost, components, EXTENDED_REFINE, prefer
+            ):
+                return None
+            raised = np.zeros(positive.size, dtype=bool)
+            for round_ in range(PROOF_ROUNDS):
+                for _ in range(PROOF_LIFTS):
+                    rise = self._rise(hi, lo, allowed, internal)
+                    failing = rise > 0
+                    if not failing.any():
+                        return float(np.nextafter(hi[state] + lo[state], np.inf))
+                    raised |= failing
+                    hi, lo = _raise(hi, lo, np.where(failing, rise, 0.0), top)
+                    hi, lo = _flatten(hi, lo, components)
+                    raised |= _touched(components, raised)
+                if round_ + 1 < PROOF_ROUNDS:
+                    if deadline is not None:
+                        deadline.check()
+                    free = positive & ~raised
+                    self._refine(policy, free, hi, lo, cost, components, EXTENDED_REFINE, prefer)
+        return None
+
+    def _excess(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per choice: lower and upper bounds, in exact arithmetic, on how far its row's sum
+        exceeds 1 (0.8 + 0.2 is 1 + 2^-54 in doubles), computed once."""
+        if self._row_excess is None:
+            n = self.target.size
+            ones = np.ones(n)
+            r, bound = residual.residual(self.transitions.tocsr(), ones, np.zeros(n), self.owner)
+            error = 2 * (bound - np.abs(r))
+            self._row_excess = (r - error, r + error)
+        return self._row_excess
+
+    def _internal(self, components: np.ndarray | None) -> np.ndarray:
+        """Per choice: whether its row stays inside its state's end component."""
+        inside = np.zeros(self.owner.size, dtype=bool)
+        if components is None or not (components >= 0).any():
+            return inside
+        matrix = self.transitions
+        entry_row = np.repeat(np.arange(self.owner.size), np.diff(matrix.indptr))
+        mine = components[self.owner]
+        away = (components[matrix.indices] != mine[entry_row]).astype(np.float64)
+        stays = np.bincount(entry_row, weights=away, minlength=mine.size) == 0
+        return cast(np.ndarray, (mine >= 0) & stays)
+
+    def _refine(
+        self,
+        policy: np.ndarray,
+        free: np.ndarray,
+        hi: np.ndarray,
+        lo: np.ndarray,
+        cost: np.ndarray,
+        components: np.ndarray,
+        rounds: int,
+        prefer: np.ndarray | None = None,
+    ) -> bool:
+        """Refine ``hi + lo`` in place on the ``free`` states towards ``u = P u + cost`` along
+        ``policy`` (end components as one state, :meth:`_quotient`), the others fixed:
+        residuals in double-double, corrections solved in double. False if a solve fails."""
+        inner = np.flatnonzero(free)
+        if not inner.size:
+            return True
+        node, reps = np.arange(inner.size), inner
+        if (components[inner] >= 0).any():
+            node, reps = self._quotient(policy, inner, components, prefer)
+        rows = self.transitions[policy[reps]].tocsr()
+        aggregate = sp.csr_matrix(
+            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
+        )
+        block = (rows @ aggregate).tocsr()
+        labels = None if self.blocks is None else self.blocks[reps]
+        for _ in range(rounds):
+            r, _ = residual.residual(rows, hi, lo, reps, cost[reps])
+            try:
+                correction = solve_chain(block, r, labels)
+            except (RuntimeError, ValueError, np.linalg.LinAlgError):
+                return False
+            if not np.isfinite(correction).all():
+                return False
+            hi[inner], lo[inner] = residual.add(hi[inner], lo[inner], correction[node])
+        return True
+
+    @overload
+    def _rise(
+        self, hi: np.ndarray, lo: np.ndarray, allowed: np.ndarray, internal: np.ndarray
+    ) -> np.ndarray: ...
+
+    @overload
+    def _rise(
+        self,
+        hi: np.ndarray,
+        lo: np.ndarray,
+        allowed: np.ndarray,
+        internal: np.ndarray,
+        *,
+        choices: Literal[True],
+    ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def _rise(
+        self,
+        hi: np.ndarray,
+        lo: np.ndarray,
+        allowed: np.ndarray,
+        internal: np.ndarray,
+        *,
+        choices: bool = False,
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Per state: an upper bound, in exact arithmetic, on ``(T u)(s) - u(s)`` for the
+        double-double ``u = hi + lo`` (-inf where nothing is checked: target states and
+        states at the largest value, which ``T`` caps); with ``choices``, also the choice
+        that attains it (-1 where none)."""
+        _, _, top = self._operator(0.0)
+        checked = ~self.target & (hi < top)
+        chosen = np.flatnonzero(allowed & checked[self.owner])
+        rise = np.full(hi.size, -np.inf)
+        if not chosen.size:
+            return (rise, np.full(hi.size, -1)) if choices else rise
+        rows = self.transitions[chosen].tocsr()
+        own = self.owner[chosen]
+        r, bound = residual.residual(rows, hi, lo, own)
+        upper = r + 2 * (bound - np.abs(r))  # |exact - r| <= bound - |r|, doubled for rounding
+        # a row inside an end component summing to 1 + e is read divided by its sum
+        # (:meth:`_upper`): it may exceed u(s) by e u(s) (less 2^-50 of it for rounding)
+        low, high = self._excess()
+        inner = internal[chosen]
+        upper = upper - np.where(inner, np.maximum(low[chosen], 0.0), 0.0) * hi[own] * (
+            1 - 2.0**-50
+        )
+        # such a row, or one summing to at most 1, whose every successor lies at most at its
+        # state's u: at most u (exactly)
+        entry_row = np.repeat(np.arange(chosen.size), np.diff(rows.indptr))
+        j, s = rows.indices, own[entry_row]
+        above = (hi[j] > hi[s]) | ((hi[j] == hi[s]) & (lo[j] > lo[s]))
+        below = np.bincount(entry_row, weights=above, minlength=chosen.size) == 0
+        below &= inner | (high[chosen] <= 0)
+        # a row whose every successor has u = 0 is 0, whatever its sum
+        reached = ((hi[j] != 0) | (lo[j] != 0)).astype(np.float64)
+        below |= np.bincount(entry_row, weights=reached, minlength=chosen.size) == 0
+        upper = np.where(below, np.minimum(upper, 0.0), upper)
+        np.maximum.at(rise, own, upper)
+        if not choices:
+            return rise
+        best = np.full(hi.size, -1)
+        attains = upper >= rise[own]
+        best[own[attains]] = chosen[attains]
+        return rise, best
+
+    def pre_fixed(self, u: np.ndarray, penalty: np.ndarray | float = 0.0) -> bool:
+        """Whether ``T u <= u`` is proven (``u >= 0``, target states at their value): then
+        ``u`` lies above the optimum among the choices whose ``penalty`` is 0."""
+        allowed, fixed, top = self._operator(penalty)
+        u = np.asarray(u, dtype=np.float64)
+        if (
+            not (np.isfinite(u).all() and (u >= 0).all())
+            or (u[self.target] < fixed[self.target]).any()
+        ):
+            return False
+        if self.transitions.nnz and self.transitions.data.min() < 0:
+            return False
+        return bool((self._upper(u, allowed, self.target, fixed, top) <= u).all())
+
+    def _operator(self, penalty: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The Bellman operator's data: allowed choices, target values, the cap."""
+        target = self.target
+        top = 1.0 if self.value is None else float(np.max(self.value[target], initial=0.0))
+        penalties = np.broadcast_to(np.asarray(penalty, dtype=np.float64), (self.owner.size,))
+        fixed = np.where(target, 1.0 if self.value is None else self.value, 0.0)
+        return penalties == 0, fixed, top
+
+    def _settle(
+        self,
+        policy: np.ndarray,
+        free: np.ndarray,
+        u: np.ndarray,
+        cost: np.ndarray,
+        components: np.ndarray | None,
+        *,
+        offset: bool = False,
+    ) -> np.ndarray | None:
+        """``u`` with its ``free`` states solved again: each the expected sum of ``cost``
+        along ``policy``'s chain until it leaves them, plus ``u`` where it leaves to (the
+        chain leaves surely: every free state reaches the target). With ``offset`` the solve
+        is for the sum of ``cost`` alone, added to ``u`` (which keeps policy iteration's
+        values as they are). The states of one end component (``components``) are one
+        state, whose row is that of a member the policy leads out of it. None if the solve
+        fails."""
+        inner = np.flatnonzero(free)
+        if not inner.size:
+            return u
+        node = np.arange(inner.size)
+        reps = inner
+        if components is not None and (components[inner] >= 0).any():
+            node, reps = self._quotient(policy, inner, components)
+        rows = self.transitions[policy[reps]]
+        aggregate = sp.csr_matrix(
+            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
+        )
+        block = (rows @ aggregate).tocsr()
+        reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
+        labels = None if self.blocks is None else self.blocks[reps]
+        try:
+            solved = solve_chain(block, reward, labels)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            return None
+        if not np.isfinite(solved).all():
+            return None
+        settled = u.copy()
+        if offset:
+            settled[inner] = u[inner] + np.maximum(solved[node], cost[inner])
+        else:
+            settled[inner] = solved[node]
+        return settled
+
+    def _quotient(
+        self,
+        policy: np.ndarray,
+        inner: np.ndarray,
+        components: np.ndarray,
+        prefer: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per state of ``inner``: its node once each end component is one node; and per
+        node, the state whose row it takes (for a component, a member the policy leads out
+        of it; a component it never leaves stays apart, state by state)."""
+        if prefer is None:
+            prefer = np.zeros(components.size, dtype=bool)
+        label = components[inner]
+        rows = self.transitions[policy[inner]].tocoo()
+        outside = np.full(components.size, -2)
+        outside[inner] = label
+        leaves = np.bincount(
+            rows.row, weights=(outside[rows.col] != label[rows.row]), minlength=inner.size
+        )
+        exit_of = np.full(int(components.max(initial=-1)) + 1, -1)
+        leaving = (label >= 0) & (leaves > 0)
+        exits = np.flatnonzero(leaving & ~prefer[inner])
+        exit_of[label[exits]] = exits  # any one member that leaves...
+        exits = np.flatnonzero(leaving & prefer[inner])
+        exit_of[label[exits]] = exits  # ...a preferred one if any
+        merged = (label >= 0) & (exit_of[np.maximum(label, 0)] >= 0)
+        # one node per merged component (its exit's), one per other state
+        key = np.where(merged, exit_of[np.maximum(label, 0)], np.arange(inner.size))
+        firsts, node = np.unique(key, return_inverse=True)
+        return node, inner[firsts]
+
+    def _tied_components(
+        self, values: np.ndarray, bellman: np.ndarray, allowed: np.ndarray, positive: np.ndarray
+    ) -> np.ndarray:
+        """Per state: its end component of the tied choices among ``positive`` states (those
+        whose product with ``values`` comes within :data:`~misdirect.core.tolerance.IMPROVE`
+        of the best, the room policy iteration left), or -1. Maximal end components as
+        usual: strongly connected components, less the choices that leave theirs, until
+        none does."""
+        matrix = self.transitions
+        product = matrix @ values
+        room = 4 * tolerance.IMPROVE * max(float(np.abs(values).max(initial=0.0)), 0.0)
+        active = allowed & positive[self.owner] & (product >= bellman[self.owner] - room)
+        n = positive.size
+        while True:
+            chosen = np.flatnonzero(active)
+            if not chosen.size:
+                return np.full(n, -1)
+            rows = matrix[chosen].tocoo()
+            source = self.owner[chosen][rows.row]
+            graph = sp.csr_matrix((np.ones(rows.nnz), (source, rows.col)), shape=(n, n))
+            _, scc = connected_components(graph, directed=True, connection="strong")
+            out = (scc[rows.col] != scc[source]) | ~positive[rows.col]
+            leaving = np.bincount(rows.row, weights=out, minlength=chosen.size) > 0
+            if not leaving.any():
+                break
+            active[chosen[leaving]] = False
+        has = np.zeros(n, dtype=bool)
+        has[self.owner[chosen]] = True
+        sizes = np.bincount(scc[has], minlength=int(scc.max()) + 1)
+        keep = has & (sizes[scc] > 1)  # a lone state on its own loop needs no merging
+        return np.where(keep, scc, -1)
+
+    def _upper(
+        self,
+        u: np.ndarray,
+        allowed: np.ndarray,
+        target: np.ndarray,
+        fixed: np.ndarray,
+        top: float,
+        internal: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """An upper bound, in exact arithmetic, on ``(T u)(s)`` for every state (``u >= 0``).
+
+        A row's value is at most its product computed in floats, raised by Higham's bound for
+        a dot product of the row's length (``γ_n`` relative; doubled to cover computing the
+        bound itself) plus the smallest subnormal per product that may underflow; and at most
+        the largest ``u`` it reaches times its sum (at least 1). A row that stays inside an
+        end component of ``internal`` stands for a distribution: one whose doubles sum to a
+        little over 1 (0.8 + 0.2 is 1 + 2^-54) is read divided by its sum, else a run
+        cycling through it would gain a factor 1 + 2^-54 per round and nothing below the
+        largest value would bound the component. Its value is then at most the largest
+        ``u`` it reaches (exact: a constant ``u`` on an end component passes)."""
+        matrix = self.transitions
+        product = matrix @ u
+        length = np.diff(matrix.indptr)
+        gamma = 2.02 * (length + 2) * tolerance.UNIT_ROUNDOFF
+        bound = product + gamma * product + np.where(product > 0, tolerance.SMALLEST, 0.0)
+        if matrix.nnz:
+            smallest = float(matrix.data[matrix.data > 0].min(initial=1.0))
+            if float(np.min(u[u > 0], initial=top)) * smallest < 2.0**-1000:
+                # a product may be subnormal: its rounding is absolute
+                hits = (matrix != 0).astype(np.float64) @ (u > 0).astype(np.float64)
+                bound = bound + hits * tolerance.SMALLEST
+            rows = length > 0
+            largest = np.zeros(length.size)
+            largest[rows] = np.maximum.reduceat(u[matrix.indices], matrix.indptr[:-1][rows])
+            high = np.maximum(self._excess()[1], 0.0)
+            if internal is not None:
+                high = np.where(internal, 0.0, high)
+            bound = np.minimum(bound, largest + 2 * high * largest)
+        score = np.where(allowed, bound, -np.inf)[self._by_state]
+        best = np.maximum.reduceat(score, self.state_start)
+        return np.where(target, fixed, np.clip(best, 0.0, top))
+
+
+def _flatten(
+    hi: np.ndarray, lo: np.ndarray, components: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``hi + lo`` with every end component at its largest member's value (double-doubles
+    compare by ``hi``, then ``lo``)."""
+    inside = np.flatnonzero(components >= 0)
+    if not inside.size:
+        return hi, lo
+    label = components[inside]
+    order = np.lexsort((lo[inside], hi[inside], label))
+    last = np.flatnonzero(np.concatenate([label[order][1:] != label[order][:-1], [True]]))
+    top_of = np.zeros(int(label.max()) + 1, dtype=np.int64)
+    top_of[label[order][last]] = inside[order][last]
+    hi, lo = hi.copy(), lo.copy()
+    hi[inside], lo[inside] = hi[top_of[label]], lo[top_of[label]]
+    return hi, lo
+
+
+def _touched(components: np.ndarray, raised: np.ndarray) -> np.ndarray:
+    """The states of every end component with a raised member."""
+    inside = components >= 0
+    if not inside.any():
+        return np.zeros(raised.size, dtype=bool)
+    label = np.maximum(components, 0)
+    touched = np.zeros(int(components.max()) + 1, dtype=bool)
+    touched[label[raised & inside]] = True
+    return cast(np.ndarray, inside & touched[label])
+
+
+def _raise(
+    hi: np.ndarray, lo: np.ndarray, rise: np.ndarray, top: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``hi + lo + rise`` (``rise >= 0``), capped at ``top``."""
+    hi, lo = residual.add(hi, lo, rise)
+    capped = hi >= top
+    return np.where(capped, top, hi), np.where(capped, 0.0, lo)
 
 
 class UpdatedLU:
