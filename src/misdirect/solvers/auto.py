@@ -399,10 +399,12 @@ class AutoSolver:
         seeds: Sequence[AlterationArray | None] | None,
         *,
         may_split: bool,
+        below: Solution | None = None,
     ) -> list[Solution]:
         """:meth:`solve`; ``may_split``: whether a curve's small budgets may be enumerated
         first (not for budgets an enumeration has just left unproven: it would only start
-        over on them)."""
+        over on them); ``below``: a smaller budget's certified answer (where the curve may
+        have levelled off, :meth:`BranchAndBoundSolver.solve`)."""
         deadline = deadline or Deadline(self.options.time_limit)
         facts = _Facts.measure(problem, budgets)
         split = self._split_curve(facts, budgets, deadline, progress) if may_split else None
@@ -415,7 +417,9 @@ class AutoSolver:
         reason = facts.reason
         if first.announced:
             report(progress, 0, len(budgets), stage=first.method, note=f"auto: {reason}")
-        solutions = first.run(problem, budgets, first.deadline(facts, deadline), progress, seeds)
+        solutions = first.run(
+            problem, budgets, first.deadline(facts, deadline), progress, seeds, below=below
+        )
         solutions = _label(solutions, first.method, reason)
         exact = exact_values(problem)  # the front door's: each answer is evaluated once
         for handover in handovers:
@@ -460,6 +464,7 @@ class AutoSolver:
         # once it has measured its own rate) is searched with the larger budgets
         proven = {b for b, s in zip(small, first, strict=True) if _certified(s)}
         rest = [b for b in ordered if b not in proven]
+        certified = [s for s in first if _certified(s)]
         later = self._solve(
             facts.problem,
             rest,
@@ -467,6 +472,7 @@ class AutoSolver:
             deadline,
             [first[-1].alteration] * len(rest),
             may_split=proven.issuperset(b for b in rest if b in small),
+            below=max(certified, key=lambda s: s.budget, default=None),
         )
         found = dict(zip(small, _label(first, enumeration.method, reason), strict=True))
         exact = exact_values(facts.problem)
