@@ -251,3 +251,16 @@ def test_an_earlier_stage_level_sends_the_largest_budget_first(monkeypatch):
         )
         assert mine.upper_bound == pytest.approx(theirs.solver_probability, abs=1e-9)
     assert round(answers[0].solver_probability, 6) == 0.863622
+
+
+def test_a_seed_above_the_level_keeps_the_budgets_in_order(monkeypatch):
+    """Budget 2's answer (0.860130) as ``below``, but a seed worth more (budget 4's, 0.863622,
+    as the paper's table says): the curve has not levelled, so budgets 3..5 go in order."""
+    problem = paper_grid(5)
+    solver = BranchAndBoundSolver()
+    below, richer = solver.solve(problem, [2.0, 4.0])
+    assert decoy_probability(problem, richer.alteration) > below.solver_probability + 1e-3
+    searched = _count_searches(monkeypatch)
+    answers = solver.solve(problem, [3.0, 4.0, 5.0], seeds=[richer.alteration] * 3, below=below)
+    assert searched == [3.0, 4.0, 5.0]
+    assert [round(a.solver_probability, 6) for a in answers] == [0.862442, 0.863622, 0.863622]
