@@ -14,6 +14,8 @@ import pytest
 
 from misdirect import problem_from_dict, solve
 from misdirect.core.tolerance import CERTIFY
+from misdirect.errors import SolverError
+from misdirect.scenarios import paper_grid
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.model import ModelBuilder
 
@@ -136,3 +138,34 @@ def test_margin_is_the_gap_the_backend_prunes_with():
     assert tolerances.margin(0.0) == 0.0
     both = backends.Tolerances(drop=0, feasibility=0, rel_gap=1e-10, abs_gap=1e-9)
     assert both.margin(2.0) == 1e-9
+
+
+def test_scip_retries_numerical_trouble_with_its_numerics_emphasis(monkeypatch):
+    """SCIP's LP solver may stop with unresolved numerical trouble ("error in LP solver"; on
+    the compact MILP of sensor_grid(20, 16) it does at budget 0): the backend solves once more
+    with SCIP's numerics emphasis, and fails only if that fails too. Here the trouble is
+    simulated on the paper's grid; the curve is still exhaustive search's."""
+    pytest.importorskip("pyscipopt")
+    calls = []
+    once = backends.ScipBackend._solve_once
+
+    def troubled(self, start, limit, cancel, *, careful):
+        calls.append(careful)
+        if not careful:
+            raise backends._NumericalTroubleError("SCIP: error in LP solver!")
+        return once(self, start, limit, cancel, careful=careful)
+
+    monkeypatch.setattr(backends.ScipBackend, "_solve_once", troubled)
+    problem = paper_grid(5)
+    mine = solve(problem, method="milp", solver="scip", budgets=[0, 1])
+    assert calls and calls[0] is False and True in calls
+    oracle = solve(problem, method="exhaustive", budgets=[0, 1])
+    for a, b in zip(mine.curve, oracle.curve, strict=True):
+        assert a.probability == pytest.approx(b.probability, abs=1e-9)
+
+    def always(self, start, limit, cancel, *, careful):
+        raise backends._NumericalTroubleError("SCIP: error in LP solver!")
+
+    monkeypatch.setattr(backends.ScipBackend, "_solve_once", always)
+    with pytest.raises(SolverError, match="also with its numerics emphasis"):
+        solve(problem, method="milp", solver="scip", budgets=[1])

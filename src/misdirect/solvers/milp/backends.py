@@ -652,7 +652,37 @@ class ScipBackend:
         time_limit: float | None = None,
         cancel: CancelToken | None = None,
     ) -> BackendResult:
+        """SCIP's answer; where its LP solver meets numerical trouble it cannot resolve, once
+        more with SCIP's numerics emphasis (more careful LPs: Markowitz pivoting, no fast-MIP
+        shortcuts), in the time left. The tolerances :meth:`tolerances` reports are set again
+        after the emphasis, which leaves them alone."""
         limit = self.options.time_limit if time_limit is None else time_limit
+        began = time.perf_counter()
+        try:
+            return self._solve_once(start, limit, cancel, careful=False)
+        except _NumericalTroubleError:
+            left = None if limit is None else limit - (time.perf_counter() - began)
+            if left is not None and left <= 0:
+                raise SolverError(
+                    "SCIP failed: its LP solver met numerical trouble; try another backend: "
+                    "--solver highs"
+                ) from None
+        try:
+            return self._solve_once(start, left, cancel, careful=True)
+        except _NumericalTroubleError as error:
+            raise SolverError(
+                f"SCIP failed: {error} (also with its numerics emphasis); try another "
+                "backend: --solver highs"
+            ) from None
+
+    def _solve_once(
+        self,
+        start: tuple[np.ndarray, np.ndarray] | None,
+        limit: float | None,
+        cancel: CancelToken | None,
+        *,
+        careful: bool,
+    ) -> BackendResult:
         # SCIP reads the model from the MPS file HiGHS writes: a bulk path with no per-row calls
         with tempfile.TemporaryDirectory() as folder:
             path = Path(folder) / "model.mps"
@@ -663,6 +693,8 @@ class ScipBackend:
         if limit is not None:  # SCIP takes at most 1e20 s, which is no limit at all
             _set_scip(scip, "limits/time", min(float(limit), SCIP_MAX_SECONDS), "time_limit")
         _set_scip(scip, "limits/gap", float(self.options.mip_gap), "mip_gap")
+        if careful:
+            scip.setEmphasis(self.pyscipopt.SCIP_PARAMEMPHASIS.NUMERICS)
         scip.setParam("numerics/feastol", INTEGRALITY_TOLERANCE)  # also SCIP's integrality one
         threads = self.options.threads
         if threads is not None:
@@ -699,9 +731,7 @@ class ScipBackend:
         except Exception as error:  # pyscipopt raises plain Exception ("error in LP solver")
             if cancel is not None and cancel.cancelled:
                 raise KeyboardInterrupt from None  # cut short by the stop request: no answer
-            raise SolverError(
-                f"SCIP failed: {error}; try another backend: --solver highs"
-            ) from None
+            raise _NumericalTroubleError(str(error)) from None
         finally:
             stopper.close()
         elapsed = time.perf_counter() - began
@@ -727,6 +757,10 @@ class ScipBackend:
             solve_time_s=elapsed,
             detail={"scip_status": raw, "scip_threads": concurrent or 1},
         )
+
+
+class _NumericalTroubleError(Exception):
+    """SCIP stopped with an error of its own (in practice: its LP solver's numerical trouble)."""
 
 
 class _ScipStopper:
