@@ -370,15 +370,9 @@ class MaxReachability:
         inner = np.flatnonzero(free)
         if not inner.size:
             return True
-        node, reps = np.arange(inner.size), inner
-        if (components[inner] >= 0).any():
-            node, reps = self._quotient(policy, inner, components, prefer)
-        rows = self.transitions[policy[reps]].tocsr()
-        aggregate = sp.csr_matrix(
-            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
+        node, reps, rows, block, labels = self._quotient_chain(
+            policy, free, inner, components, prefer
         )
-        block = (rows @ aggregate).tocsr()
-        labels = None if self.blocks is None else self.blocks[reps]
         for _ in range(rounds):
             r, _ = residual.residual(rows, hi, lo, reps, cost[reps])
             try:
@@ -497,17 +491,8 @@ class MaxReachability:
         inner = np.flatnonzero(free)
         if not inner.size:
             return u
-        node = np.arange(inner.size)
-        reps = inner
-        if components is not None and (components[inner] >= 0).any():
-            node, reps = self._quotient(policy, inner, components)
-        rows = self.transitions[policy[reps]]
-        aggregate = sp.csr_matrix(
-            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
-        )
-        block = (rows @ aggregate).tocsr()
+        node, reps, rows, block, labels = self._quotient_chain(policy, free, inner, components)
         reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
-        labels = None if self.blocks is None else self.blocks[reps]
         try:
             solved = solve_chain(block, reward, labels)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):
@@ -520,6 +505,29 @@ class MaxReachability:
         else:
             settled[inner] = solved[node]
         return settled
+
+    def _quotient_chain(
+        self,
+        policy: np.ndarray,
+        free: np.ndarray,
+        inner: np.ndarray,
+        components: np.ndarray | None,
+        prefer: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix, sp.csr_matrix, np.ndarray | None]:
+        """``policy``'s chain on the ``free`` states (``inner``: their indices) with each end
+        component one node (:meth:`_quotient`): per inner state its node, per node the state
+        whose row it takes, those rows, the block of them among the nodes, and the nodes'
+        labels for :func:`~misdirect.core.reachability.solve_chain`."""
+        node, reps = np.arange(inner.size), inner
+        if components is not None and (components[inner] >= 0).any():
+            node, reps = self._quotient(policy, inner, components, prefer)
+        rows = self.transitions[policy[reps]].tocsr()
+        aggregate = sp.csr_matrix(
+            (np.ones(inner.size), (inner, node)), shape=(free.size, reps.size)
+        )
+        block = (rows @ aggregate).tocsr()
+        labels = None if self.blocks is None else self.blocks[reps]
+        return node, reps, rows, block, labels
 
     def _quotient(
         self,
