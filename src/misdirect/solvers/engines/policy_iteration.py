@@ -375,11 +375,8 @@ class MaxReachability:
         )
         for _ in range(rounds):
             r, _ = residual.residual(rows, hi, lo, reps, cost[reps])
-            try:
-                correction = solve_chain(block, r, labels)
-            except (RuntimeError, ValueError, np.linalg.LinAlgError):
-                return False
-            if not np.isfinite(correction).all():
+            correction = _solved_or_none(block, r, labels)
+            if correction is None:
                 return False
             hi[inner], lo[inner] = residual.add(hi[inner], lo[inner], correction[node])
         return True
@@ -493,11 +490,8 @@ class MaxReachability:
             return u
         node, reps, rows, block, labels = self._quotient_chain(policy, free, inner, components)
         reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
-        try:
-            solved = solve_chain(block, reward, labels)
-        except (RuntimeError, ValueError, np.linalg.LinAlgError):
-            return None
-        if not np.isfinite(solved).all():
+        solved = _solved_or_none(block, reward, labels)
+        if solved is None:
             return None
         settled = u.copy()
         if offset:
@@ -671,6 +665,18 @@ def _raise(
     hi, lo = residual.add(hi, lo, rise)
     capped = hi >= top
     return np.where(capped, top, hi), np.where(capped, 0.0, lo)
+
+
+def _solved_or_none(
+    block: sp.csr_matrix, rhs: np.ndarray, labels: np.ndarray | None
+) -> np.ndarray | None:
+    """``(I - block)⁻¹ rhs``, or None where the solve fails or is not finite: a proof that
+    cannot solve gives up (the trivial bound), it never raises."""
+    try:
+        solved = solve_chain(block, rhs, labels)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError):
+        return None
+    return solved if np.isfinite(solved).all() else None
 
 
 class UpdatedLU:
