@@ -37,11 +37,11 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
-from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
+from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
@@ -300,8 +300,8 @@ def _no_seed_beats(
     earlier stage found nothing better for the larger budgets."""
     if level.status != Status.OPTIMAL or level.solver_probability is None or not seeds:
         return False
-    distinct = {np.asarray(seed).tobytes(): seed for seed in seeds if seed is not None}
-    worth = [decoy_probability(problem, seed) for seed in distinct.values()]
+    exact = exact_values(problem)  # the solve's table: each alteration valued once
+    worth = [exact(seed) for seed in seeds if seed is not None]
     return bool(worth) and not any(
         tolerance.better(value, level.solver_probability, rel=tolerance.NEAR_TIE) for value in worth
     )

@@ -277,9 +277,9 @@ class LowRankEnumeration:
         # with end components: closed classes get an empty row (this extra group) in the base
         self.cycling = bool(instance.cycling.any())
         self.closed_group = chain.transitions.shape[0]
-        self.exact_evaluations = 0  # alterations that could close a class, valued one by one
-        self.ill_conditioned = 0  # ... and those whose low-rank update was ill-conditioned
-        self.verified = 0  # ... and those that might be best on an ill-conditioned base
+        # alterations valued one chain each: those that could close a class, whose low-rank
+        # update was ill-conditioned, or that might be the best on an ill-conditioned base
+        self.exact_evaluations = 0
         self.trap_updates = 0  # alterations that close a class, valued by low rank
 
     @cached_property
@@ -478,7 +478,6 @@ class LowRankEnumeration:
                 continue
             values[index] = min(max(self._exact_value(found.picks(index)), 0.0), top_value)
             self.exact_evaluations += 1
-        self.verified += int(candidates.size)
         return dataclasses.replace(found, unevaluated=unevaluated)
 
     def _outer_blocks(
@@ -660,6 +659,7 @@ class LowRankEnumeration:
         inner_costs = altered.costs if trap is None else altered.costs.copy()  # cut in place
         found = np.full(len(inner_costs), float(chain.target_value[chain.initial]))
         cut_at = np.inf
+        block = (outer, outer_pick, inner)
         if self.start >= 0:
             assert w_start is not None  # the start is live: it has a row of W
             found[:] = x_start
@@ -668,16 +668,14 @@ class LowRankEnumeration:
                 part, batch, deltas, w_start, deadline, threads=self.threads, compiled=compiled
             )
             found[in_batch] = part
-            if not corrected.all():  # cut short: those alterations were not evaluated
-                cut = np.flatnonzero(in_batch)[~corrected]
-                cut_at = float(inner_costs[cut].min())
-                inner_costs = inner_costs.copy()
-                inner_costs[cut] = np.inf
+            cut = np.flatnonzero(in_batch)[~corrected]
             ill = np.flatnonzero(in_batch)[corrected & np.isnan(part)]
+            if (cut.size or ill.size) and inner_costs is altered.costs:
+                inner_costs = inner_costs.copy()  # cut in place below
+            if cut.size:  # cut short: those alterations were not evaluated
+                cut_at = float(inner_costs[cut].min())
+                inner_costs[cut] = np.inf
             if ill.size:  # ill-conditioned updates: one chain each, refined
-                inner_costs = inner_costs if trap is not None else inner_costs.copy()
-                self.ill_conditioned += int(ill.size)
-                block = (outer, outer_pick, inner)
                 cut_at = min(
                     cut_at,
                     self._value_exactly(ill, found, inner_costs, altered, block, deadline),
@@ -685,9 +683,7 @@ class LowRankEnumeration:
         if trap is not None:
             cut_at = min(
                 cut_at,
-                self._value_flagged(
-                    found, inner_costs, altered, trap, base, (outer, outer_pick, inner), deadline
-                ),
+                self._value_flagged(found, inner_costs, altered, trap, base, block, deadline),
             )
         return inner_costs, found, altered, cut_at
 
