@@ -280,18 +280,10 @@ def test_a_cut_curve_keeps_its_small_budgets_proven(monkeypatch):
     budget leaves the smaller ones proven, with the optimum that exhaustive search (every
     alteration evaluated exactly) gives (and the cut one is not called optimal)."""
     from misdirect.solvers import schedule
-    from misdirect.solvers.engines import lowrank
 
     problem = sensor_grid(8, 6, seed=0)
     alone = {b: solve(problem, method="exhaustive", budgets=[b]).curve[-1] for b in (0, 1)}
-    original = lowrank.LowRankEnumeration.run
-
-    def cut_at_two(self, top, *args, **kwargs):  # the run at budget 2 runs out of time at once
-        if top >= 2:
-            kwargs["deadline"] = Deadline(0.0)
-        return original(self, top, *args, **kwargs)
-
-    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut_at_two)
+    _runs_out_of_time_from(monkeypatch, 2)  # the run at budget 2 runs out of time at once
     monkeypatch.setattr(schedule, "STAGE_FROM", 0)  # each budget its own run, however small
     curve = solve(problem, method="incremental", budgets=[0, 1, 2], time_limit=600).curve
     for point in curve[:2]:
@@ -355,7 +347,6 @@ def test_auto_searches_what_its_enumeration_left_unproven_without_enumerating_it
     the enumeration leaves unproven goes to the search, not to another enumeration (which
     would leave it unproven again, and again), and the search certifies exhaustive's optima."""
     from misdirect.solvers import incremental, schedule
-    from misdirect.solvers.engines import lowrank
 
     problem = sensor_grid(8, 6, seed=0)
     budgets = [0, 1, 2, 3]
@@ -365,14 +356,7 @@ def test_auto_searches_what_its_enumeration_left_unproven_without_enumerating_it
     monkeypatch.setattr(
         schedule, "enumeration_fits", lambda count, needed, deadline, *, limit: count <= small
     )
-    original = lowrank.LowRankEnumeration.run
-
-    def cut(self, top, *args, **kwargs):  # every run above budget 0 runs out of time at once
-        if top >= 1:
-            kwargs["deadline"] = Deadline(0.0)
-        return original(self, top, *args, **kwargs)
-
-    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut)
+    _runs_out_of_time_from(monkeypatch, 1)  # every run above budget 0 runs out at once
     calls = []
     solve_enumeration = incremental.IncrementalSolver.solve
 
@@ -386,3 +370,18 @@ def test_auto_searches_what_its_enumeration_left_unproven_without_enumerating_it
     for point, truth in zip(curve, oracle, strict=True):
         assert point.status == "optimal"
         assert point.probability == pytest.approx(truth.probability, abs=1e-12)
+
+
+def _runs_out_of_time_from(monkeypatch, budget: float) -> None:
+    """From now on, every low-rank enumeration at ``budget`` or above finds its deadline
+    passed at once."""
+    from misdirect.solvers.engines import lowrank
+
+    original = lowrank.LowRankEnumeration.run
+
+    def cut(self, top, *args, **kwargs):
+        if top >= budget:
+            kwargs["deadline"] = Deadline(0.0)
+        return original(self, top, *args, **kwargs)
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut)
