@@ -232,7 +232,7 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
     rng = np.random.default_rng(seed)
     bases = BasisCache()
     enumeration = LowRankEnumeration(instance)
-    checked = 0
+    checked = roomy = 0
     for _ in range(12):
         picked = rng.choice(len(choices), size=min(2, len(choices)), replace=False)
         fixed = {int(i): int(rng.integers(choices[i].size)) for i in picked}
@@ -245,8 +245,13 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
         assert value == pytest.approx(exact, abs=1e-9)
         assert value == pytest.approx(brute_force_with(problem, instance, budget, fixed), abs=1e-9)
         checked += 1
+        left = budget - sum(choices[i].costs[o] for i, o in fixed.items())
+        inner = [i for i in enumeration.natural_inner if i not in fixed]
+        roomy += any(min(choices[i].costs[1:]) <= left for i in inner)
     assert checked >= 4
-    assert bases._bases  # the bases were kept and reused
+    # a subtree with room for inner alterations uses a kept base (the others are one
+    # alteration each, valued on its own chain)
+    assert bool(bases._bases) == (roomy > 0)
 
 
 def test_every_value_on_chains_with_end_components_equals_its_chain():
@@ -385,3 +390,33 @@ def _runs_out_of_time_from(monkeypatch, budget: float) -> None:
         return original(self, top, *args, **kwargs)
 
     monkeypatch.setattr(lowrank.LowRankEnumeration, "run", cut)
+
+
+@pytest.mark.parametrize("budget", [0.0, 1.0, 2.0])
+def test_a_block_with_no_inner_alteration_is_valued_without_a_base_solve(monkeypatch, budget):
+    """Where an outer pick leaves no budget for an inner alteration, its block is that one
+    alteration: valued on its own chain, with no base solved for the inner rows (on a big map
+    each base solves thousands of columns). Every value still equals its chain's, and a base
+    is solved only for the blocks with inner alterations to value."""
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.solvers.engines import lowrank
+
+    monkeypatch.setattr(lowrank, "INNER_ROWS", 12)  # most observations outer
+    monkeypatch.setattr(lowrank, "INNER_ENTRIES", 0)
+    solves = []
+    real = lowrank.base_solve
+    monkeypatch.setattr(lowrank, "base_solve", lambda *a: solves.append(1) or real(*a))
+    problem = sensor_grid(8, 8, seed=3)  # uniform costs: every alteration costs 1
+    instance = prepare(problem, 2.0)
+    enumeration = lowrank.LowRankEnumeration(instance)
+    assert enumeration.natural_outer and enumeration.natural_inner
+    found = enumeration.run(budget)
+    assert found.complete_for(budget)
+    for index in range(len(found.values)):
+        alteration = instance.space.alteration(problem, found.picks(index))
+        assert found.values[index] == pytest.approx(decoy_probability(problem, alteration), abs=1e-9)
+    # with uniform costs, a block has inner alterations iff its outer picks cost < budget
+    outer_costs = found.costs[found.offsets[:-1]]  # each block's first: inner unaltered
+    assert len(solves) == int((outer_costs < budget).sum())
+    # every alteration within the budget listed once: as many as the space counts
+    assert len(found.values) == instance.space.count_within(budget, 10**6)

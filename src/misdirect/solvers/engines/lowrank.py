@@ -406,20 +406,20 @@ class LowRankEnumeration:
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
-            base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
-            factored = time.perf_counter()
-            block = self._block(
-                scale.remaining(top, outer_cost),
-                inner,
-                base,
-                deadline,
-                evaluations,
-                compiled,
-                outer,
-                outer_pick,
-            )
+            remaining = scale.remaining(top, outer_cost)
+            if inner_space.count_within(remaining, 1) <= 1:
+                # no inner alteration fits: the block is one alteration, valued on its own
+                # chain (a base solve would solve for every inner row, thousands on a big map)
+                factored = began
+                block = self._single_block(outer, outer_pick)
+            else:
+                base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
+                factored = time.perf_counter()
+                block = self._block(
+                    remaining, inner, base, deadline, evaluations, compiled, outer, outer_pick
+                )
+                steps = max(steps, base.steps)
             inner_costs, found, altered, cut_at = block
-            steps = max(steps, base.steps)
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
@@ -686,6 +686,19 @@ class LowRankEnumeration:
                 self._value_flagged(found, inner_costs, altered, trap, base, block, deadline),
             )
         return inner_costs, found, altered, cut_at
+
+    def _single_block(
+        self, outer: list[int], outer_pick: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
+        """:meth:`_block` for a block whose only alteration leaves every inner choice
+        unaltered: its value exactly, from its own chain."""
+        picked = np.zeros(len(self.observations), dtype=np.int64)
+        picked[outer] = outer_pick
+        value = self._exact_value(picked)
+        self.exact_evaluations += 1
+        none = np.zeros(0, dtype=np.int64)
+        altered = AlteredEntries(none, none, none, np.zeros(1), np.full(1, -1, dtype=np.int64))
+        return altered.costs, np.array([value]), altered, np.inf
 
     def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> _Trap:
         """The alterations of a block that take an unsafe option, their row slots, and which
