@@ -414,7 +414,9 @@ def test_a_block_with_no_inner_alteration_is_valued_without_a_base_solve(monkeyp
     assert found.complete_for(budget)
     for index in range(len(found.values)):
         alteration = instance.space.alteration(problem, found.picks(index))
-        assert found.values[index] == pytest.approx(decoy_probability(problem, alteration), abs=1e-9)
+        assert found.values[index] == pytest.approx(
+            decoy_probability(problem, alteration), abs=1e-9
+        )
     # with uniform costs, a block has inner alterations iff its outer picks cost < budget
     outer_costs = found.costs[found.offsets[:-1]]  # each block's first: inner unaltered
     assert len(solves) == int((outer_costs < budget).sum())
