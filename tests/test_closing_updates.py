@@ -130,3 +130,52 @@ def test_the_safe_states_loop_stops_at_the_deadline():
     # is claimed complete, and it returns
     found = enumeration.run(2.0, deadline=Deadline(0.0))
     assert not found.complete_for(1.0)
+
+
+@pytest.mark.parametrize("case", ["turn-back 6", "turn-back 8, budget 3", "drone 5x5"])
+def test_the_trap_search_flags_exactly_the_alterations_that_close_or_open_a_class(case):
+    """The trap search finds the alterations that close a class without listing every
+    changed row of every alteration; checked against the definition, one chain each: an
+    alteration closes a class when a changed state cannot reach a leaking row or a state that
+    leaves under every alteration (or a base closed class). Those, the ones that change a
+    row of a base closed class, and all their extensions are flagged, and no other."""
+    from misdirect.core.model import reachable_from
+    from misdirect.solvers.engines.lowrank import _with_extensions
+
+    make, top, _ = CASES[case]
+    problem = make()
+    instance = prepare(problem, top)
+    enumeration = LowRankEnumeration(instance)
+    chosen = np.zeros(instance.chain.options.size, dtype=bool)
+    chosen[enumeration.first_option[:-1]] = True
+    inner = enumeration.natural_inner
+    base = enumeration._solved_base(chosen, inner, None)
+    cycles, table = base.cycles, base.deltas
+    assert cycles is not None
+    altered = instance.space.altered_within(float(top), inner)
+    trap = enumeration._trap_search(altered, base, Deadline(None))
+    assert trap.closes is not None
+
+    inside, leaks = enumeration._inside, enumeration._leaks
+    stop = cycles.classes.safe | cycles.classes.closed
+    closing = np.zeros(altered.costs.size, dtype=bool)
+    opening = np.zeros(altered.costs.size, dtype=bool)
+    for a in range(altered.costs.size):
+        groups = cycles.base_groups.copy()
+        changed = []
+        for e in np.flatnonzero(altered.alteration == a):
+            j, k = altered.choice[e], altered.option[e]
+            slots = table.flat_start[j, k] + np.arange(table.flat_length[j, k])
+            groups[cycles.slot_state[slots]] = cycles.slot_group[slots]
+            changed.extend(cycles.slot_state[slots].tolist())
+        if not changed:
+            continue
+        moves = inside[groups].tocsr()
+        exits = np.flatnonzero(leaks[groups] | stop)
+        can_leave = reachable_from(moves.T.tocsr(), exits)
+        closing[a] = not can_leave[changed].all()
+        opening[a] = cycles.classes.closed[changed].any()
+    expected = np.flatnonzero(_with_extensions(altered.parent, np.flatnonzero(closing | opening)))
+    assert closing.any()  # the case exercises it
+    assert np.array_equal(trap.flagged, expected)
+    assert np.array_equal(trap.closes, (closing | opening)[expected])

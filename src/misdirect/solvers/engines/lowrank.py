@@ -50,6 +50,7 @@ from misdirect.solvers.engines.closed_classes import (
     closed_classes,
     closing_alterations,
     group_leaks,
+    may_close,
     unsafe_options,
 )
 from misdirect.solvers.engines.lowrank_updates import (
@@ -134,11 +135,12 @@ class _Cycles(NamedTuple):
 
 
 class _Trap(NamedTuple):
-    """The alterations of a block that take an unsafe option (``flagged``), their row slots
-    (``slots``, each owned by ``owner``, ``counts`` per alteration), and which of them may
-    close a class (``closes``; None when the deadline cut the search short): those that change
-    a row of a base closed class (``touched``), and the others, whose changed rows that can no
-    longer reach the decoy ``emptied`` marks (per row slot)."""
+    """The alterations of a block the batch leaves out (``flagged``: those that may close or
+    open a class, and their extensions; every one that takes an unsafe option when the deadline
+    cut the search short), their row slots (``slots``, each owned by ``owner``, ``counts`` per
+    alteration), and which of them may close a class (``closes``; None when cut short): those
+    that change a row of a base closed class (``touched``), and the others, whose changed rows
+    that can no longer reach the decoy ``emptied`` marks (per row slot)."""
 
     flagged: np.ndarray
     slots: np.ndarray
@@ -701,12 +703,55 @@ class LowRankEnumeration:
         return altered.costs, np.array([value]), altered, np.inf
 
     def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> _Trap:
-        """The alterations of a block that take an unsafe option, their row slots, and which
-        of them may close a class (None when ``deadline`` cut the search short)."""
+        """The alterations of a block that may close a class or open one, with every extension
+        of those (the batch leaves them all out), their row slots, and which of them may close
+        a class (``closes``; None when ``deadline`` cut the search short: ``flagged`` then
+        lists every alteration that takes an unsafe option)."""
         cycles, table = base.cycles, base.deltas
         assert cycles is not None
-        risky = cycles.unsafe[altered.choice, altered.option]
-        flagged = np.unique(altered.alteration[risky])
+        n_alterations = altered.costs.size
+        risky = np.zeros(n_alterations, dtype=bool)
+        risky[altered.alteration[cycles.unsafe[altered.choice, altered.option]]] = True
+        candidates = np.flatnonzero(risky)
+        entries = np.flatnonzero(risky[altered.alteration])  # grouped by alteration
+        counts = np.bincount(altered.alteration[entries], minlength=n_alterations)[candidates]
+        start = np.concatenate([[0], np.cumsum(counts)])
+        closing = np.zeros(candidates.size, dtype=bool)
+        for lo in range(0, candidates.size, TRAP_BATCH):
+            if deadline.expired():
+                none = np.zeros(0, dtype=np.int64)
+                return _Trap(candidates, none, none, none, None)
+            hi = min(lo + TRAP_BATCH, candidates.size)
+            part = entries[start[lo] : start[hi]]
+            closing[lo:hi] = may_close(
+                self._inside,
+                self._leaks,
+                cycles.classes,
+                cycles.base_groups,
+                (start[lo : hi + 1] - start[lo], altered.choice[part], altered.option[part]),
+                (table.flat_start, table.flat_length),
+                (cycles.slot_state, cycles.slot_group),
+                base.fixed_rows,
+            )
+        # an option that changes a row of a base closed class may open it: its alterations are
+        # valued exactly
+        in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
+        ends = table.flat_start + table.flat_length
+        opens = in_closed[ends] > in_closed[table.flat_start]
+        touching = np.zeros(n_alterations, dtype=bool)
+        touching[altered.alteration[opens[altered.choice, altered.option]]] = True
+        roots = np.union1d(candidates[closing], np.flatnonzero(touching & risky))
+        flagged = np.flatnonzero(_with_extensions(altered.parent, roots))
+        return self._traps_of(flagged, altered, base, deadline)
+
+    def _traps_of(
+        self, flagged: np.ndarray, altered: AlteredEntries, base: _BlockBase, deadline: Deadline
+    ) -> _Trap:
+        """The trap search's details for the alterations ``flagged`` (few: those that may close
+        or open a class, and their extensions): their row slots, which of them may close a
+        class, and the changed rows found trapped."""
+        cycles, table = base.cycles, base.deltas
+        assert cycles is not None
         entries = np.flatnonzero(np.isin(altered.alteration, flagged))
         choice, option = altered.choice[entries], altered.option[entries]
         lengths = table.flat_length[choice, option]
