@@ -31,6 +31,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.core import residual, tolerance
+from misdirect.core.lu_solve import solve_many
 from misdirect.core.model import reachable_from
 
 
@@ -101,8 +102,11 @@ def _lu(system: sp.spmatrix) -> SuperLU:
 
 
 def _solve(a: sp.spmatrix, b: np.ndarray, *, transpose: bool = False) -> np.ndarray:
-    """Solve ``(I - a) x = b`` (or its transpose) by sparse LU."""
-    return cast(np.ndarray, factorise(a).solve(b, trans="T" if transpose else "N"))
+    """Solve ``(I - a) x = b`` (or its transpose) by sparse LU; many columns at once through
+    :func:`~misdirect.core.lu_solve.solve_many`."""
+    if transpose:
+        return cast(np.ndarray, factorise(a).solve(b, trans="T"))
+    return solve_many(factorise(a), b)
 
 
 def _rows(matrix: sp.csr_matrix, start: int, stop: int) -> tuple[np.ndarray, ...]:
