@@ -546,3 +546,20 @@ def test_audit_single_sensor_bound_follows_the_costs(no_proof):
     zero, one = result.curve
     assert zero.status == "optimal" and one.status != "optimal"
     assert one.upper_bound >= max(v for v, _ in brute_values(cheap, 1.0)) - 1e-12
+
+
+def test_an_unattacked_sensor_of_a_certified_optimum_is_exactly_not_critical():
+    """Protecting a sensor the optimal alteration leaves alone keeps it feasible, and only
+    removes alterations: the optimum is unchanged, a drop of exactly 0, even when the
+    certified optimum's bound sits a rounding above its value (a gap of 1e-16 over 0 read as
+    unproven, and the whole audit as uncertified). Uncertified, the gap is the honest range."""
+    from misdirect.defence.attack import Attack
+    from misdirect.defence.auditing import _criticality
+    from misdirect.solvers.status import Status
+
+    value = 0.8636215453434299
+    certified = Attack(value, value + 1.1e-16, Status.OPTIMAL, {}, frozenset(), 0.0)
+    assert _criticality(certified, None) == (0.0, 0.0)
+    open_ = Attack(value, 0.9, Status.TIME_LIMIT, {}, frozenset(), 0.0)
+    low, high = _criticality(open_, None)
+    assert low == 0.0 and high == pytest.approx(0.9 - value)

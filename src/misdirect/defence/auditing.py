@@ -314,7 +314,9 @@ def _criticality(optimum: Attack, protected: Attack | None) -> tuple[float, floa
     """Proven ``(low, high)`` bounds on how much protecting one sensor lowers the optimum;
     ``protected``: the attacker's answer with it protected, None when it was not re-solved."""
     if protected is None:  # the optimal alteration stays feasible: the optimum is unchanged
-        return 0.0, max(optimum.upper - optimum.value, 0.0)
+        # certified: exactly 0 (its bound may sit a rounding above its value, and a gap of
+        # 1e-16 over 0 would read as unproven relative to 0)
+        return 0.0, 0.0 if optimum.certified else max(optimum.upper - optimum.value, 0.0)
     if optimum.certified and protected.certified:
         drop = max(optimum.value - protected.value, 0.0)
         return drop, drop
