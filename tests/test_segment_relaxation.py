@@ -253,3 +253,21 @@ def test_policy_iteration_stops_only_above_the_threshold_and_below_the_optimum()
         reward, start=start, enough=values[start] + 1e-6
     )
     assert never[3] is True and never[0][start] == pytest.approx(values[start], abs=1e-12)
+
+
+@pytest.mark.parametrize(("n", "k"), [(16, 4), (20, 4), (10, 3)])
+def test_the_reported_root_bound_bounds_the_optimum_when_the_root_is_split(n, k):
+    """Where one reading covers much of the map (the blank one), the search starts from one
+    node per option of it instead of a root: its reported root bound is the largest of their
+    bounds, so at least the optimum (exhaustive search's), not the first node's own (which
+    read 7e-7 against an optimum of 0.046)."""
+    from misdirect.solvers.engines.segment_search import BIG_REGION
+
+    problem = sensor_grid(n, k)
+    seg = segment_relaxation(problem, 2)
+    assert any(seg.region_size[i] >= BIG_REGION * seg.live_total for i in seg.order)
+    search = SegmentSearch(seg, 2.0)
+    search.run()
+    optimum = ExhaustiveSolver().solve(problem, [2.0])[0].solver_probability
+    assert search.root_bound is not None
+    assert search.root_bound >= optimum - 1e-12

@@ -108,11 +108,17 @@ class SegmentSearch(IncumbentSearch):
         self.heap: list[_Open] = []
         self.counter = 0
         self.nodes = 0
+        # the bound over the whole tree (or the subtrees given) once each of its first
+        # nodes has been bounded: the largest of theirs (a first node split off a large
+        # region is one of several)
         self.root_bound: float | None = None
+        self._root_bounds: dict[int, float] = {}
+        first = self.counter + 1
         if roots is None:
             self._push_roots()
         for fixed, remaining, bound, bounded in roots or ():
             self._push(dict(fixed), remaining, bound, bounded)
+        self._root_tokens = set(range(first, self.counter + 1))
 
     def _push_roots(self) -> None:
         seg, cap = self.seg, self.cap
@@ -344,8 +350,10 @@ class SegmentSearch(IncumbentSearch):
         value = self.incumbent.value_of(rounded)
         with self._lock:
             self._last_node_s = time.perf_counter() - began
-            if self.root_bound is None:
-                self.root_bound = bound
+            if entry.token in self._root_tokens:
+                self._root_bounds[entry.token] = bound
+                if len(self._root_bounds) == len(self._root_tokens):
+                    self.root_bound = max(self._root_bounds.values())
             self.incumbent.offer(rounded, value)
             if not layers or self.incumbent.prune(bound):
                 return
