@@ -422,19 +422,3 @@ def test_a_block_with_no_inner_alteration_is_valued_without_a_base_solve(monkeyp
     assert len(solves) == int((outer_costs < budget).sum())
     # every alteration within the budget listed once: as many as the space counts
     assert len(found.values) == instance.space.count_within(budget, 10**6)
-
-
-def test_the_next_budget_is_predicted_from_the_rate_besides_the_bases():
-    """A staged enumeration predicts its next run as the last run's base chains plus the
-    count at the last run's rate besides them (bases do not grow with the count). By hand,
-    with 60 s left (a fair share of 30 s): 0.7 s of bases and 0.25 s for 32,500 alterations
-    predict 0.7 + 2.7e6 x 7.7e-6 = 21.5 s, which fits; the whole run's rate (29 µs each)
-    would have predicted 79 s. Bases of 40 s do not fit, whatever the rate."""
-    from misdirect.solvers import schedule
-
-    deadline = Deadline(60.0)
-    assert schedule.next_level_fits(2_700_000, (0.25, 32_500, 0.7), deadline)
-    assert not schedule.next_level_fits(2_700_000, (0.95, 32_500, 0.0), deadline)
-    assert not schedule.next_level_fits(2_700_000, (0.25, 32_500, 40.0), deadline)
-    # a small sample is not trusted: the default rate (UPDATE_SECONDS each), bases still added
-    assert schedule.next_level_fits(2_700_000, (5.0, 100, 0.7), deadline)

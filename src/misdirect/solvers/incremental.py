@@ -133,14 +133,13 @@ class IncrementalSolver:
             kept.append(len(levels) - 1)
             levels, counts = [levels[j] for j in kept], [counts[j] for j in kept]
         runs: list[tuple[float, Enumerated]] = []
-        measured: tuple[float, int, float] | None = None
+        measured: tuple[float, int] | None = None
         for level, count in zip(levels, counts, strict=True):
             if hand_over and runs and not schedule.next_level_fits(count, measured, deadline):
                 break
             began = time.perf_counter()
             found = enumeration.run(level, deadline=deadline, progress=progress)
-            elapsed = time.perf_counter() - began
-            measured = (elapsed - found.base_seconds, found.evaluations, found.base_seconds)
+            measured = (time.perf_counter() - began, found.evaluations)
             runs.append((level, found))
             if not found.complete_for(level):
                 break

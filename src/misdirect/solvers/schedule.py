@@ -42,25 +42,18 @@ STAGE_FROM = INCREMENTAL_SURE  # a budget of a curve is enumerated on its own (b
 RATE_SAMPLE = 10_000  # alterations an enumeration must have valued to measure its own rate
 
 
-def next_level_fits(
-    count: int, measured: tuple[float, int, float] | None, deadline: Deadline
-) -> bool:
+def next_level_fits(count: int, measured: tuple[float, int] | None, deadline: Deadline) -> bool:
     """Whether a staged enumeration takes on its next budget, of ``count`` alterations, when
     it has a search to hand that budget to instead: when it fits in the fair share of the
-    time left, at the rate the last budget was enumerated at (``measured``: its seconds
-    besides its base chains, its alterations, and the seconds its base chains took, which
-    the next run spends again; the rate is trusted from ``RATE_SAMPLE`` alterations on), and
-    never faster than ``UPDATE_SECONDS`` each. The bases are counted apart because they do
-    not grow with the count: a run of a few ten thousand alterations can be mostly its
-    bases, and its whole time per alteration then predicts several times what the next run
-    takes (bench/hard_instances.py, the turn-back grids)."""
-    per_alteration, fixed = UPDATE_SECONDS, 0.0
-    if measured is not None:
-        seconds, valued, fixed = measured
-        if valued >= RATE_SAMPLE:
-            per_alteration = max(per_alteration, seconds / valued)
-    needed = fixed + enumeration_seconds(count, per_alteration)
-    return count <= INCREMENTAL_SURE or needed <= _fair_share(deadline)
+    time left, at the rate the last budget was enumerated at (``measured``: its seconds and
+    alterations; trusted from ``RATE_SAMPLE`` alterations on, since a small run is mostly
+    the building of its bases), and never faster than ``UPDATE_SECONDS`` each."""
+    per_alteration = UPDATE_SECONDS
+    if measured is not None and measured[1] >= RATE_SAMPLE:
+        per_alteration = max(per_alteration, measured[0] / measured[1])
+    return count <= INCREMENTAL_SURE or enumeration_seconds(count, per_alteration) <= _fair_share(
+        deadline
+    )
 
 
 def _fair_share(deadline: Deadline) -> float:

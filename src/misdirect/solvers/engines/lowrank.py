@@ -98,7 +98,6 @@ class Enumerated:
     next_outer_cost: float  # cost of the first outer vector not reached (inf: all were)
     unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
     evaluations: int
-    base_seconds: float  # spent on the blocks' base chains (the rest grows with the count)
     scale: tolerance.CostScale  # how the costs fit a budget
     top: float  # the budget enumerated within: nothing costlier was listed
 
@@ -394,7 +393,7 @@ class LowRankEnumeration:
         blocks: list[tuple[np.ndarray, AlteredEntries]] = []
         costs: list[np.ndarray] = []
         values: list[np.ndarray] = []
-        unevaluated, evaluations, steps, base_seconds = np.inf, 0, 0.0, 0.0
+        unevaluated, evaluations, steps = np.inf, 0, 0.0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
         factor_s, per_alteration, last_count = 0.0, 0.0, 0
@@ -423,7 +422,6 @@ class LowRankEnumeration:
                 )
                 steps = max(steps, base.steps)
             inner_costs, found, altered, cut_at = block
-            base_seconds += factored - began
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
@@ -449,7 +447,6 @@ class LowRankEnumeration:
             next_outer_cost=float(outer_costs[done]) if done < len(outer_costs) else np.inf,
             unevaluated=unevaluated,
             evaluations=evaluations,
-            base_seconds=base_seconds,
             scale=scale,
             top=top,
         )
