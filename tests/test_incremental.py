@@ -422,3 +422,28 @@ def test_a_block_with_no_inner_alteration_is_valued_without_a_base_solve(monkeyp
     assert len(solves) == int((outer_costs < budget).sum())
     # every alteration within the budget listed once: as many as the space counts
     assert len(found.values) == instance.space.count_within(budget, 10**6)
+
+
+def test_a_run_with_a_share_stops_before_the_blocks_that_would_pass_it(monkeypatch):
+    """With a search to hand its budget to, an enumeration stops before a block once the
+    blocks left project past its share of the time (on a big map each is a base solve of
+    thousands of columns). What it did is still proven: the budgets below the first outer
+    pick it did not reach; without a share, or with a generous one, it values every block."""
+    from misdirect.solvers.engines import lowrank
+
+    monkeypatch.setattr(lowrank, "INNER_ROWS", 12)  # most observations outer: many blocks
+    monkeypatch.setattr(lowrank, "INNER_ENTRIES", 0)
+    problem = sensor_grid(8, 8, seed=3)
+    instance = prepare(problem, 2.0)
+    enumeration = lowrank.LowRankEnumeration(instance)
+    whole = enumeration.run(2.0)
+    assert len(whole.blocks) > 2 and whole.complete_for(2.0)
+    assert len(enumeration.run(2.0, share=1e9).blocks) == len(whole.blocks)
+    cut = enumeration.run(2.0, share=0.0)
+    assert len(cut.blocks) == 1  # the first block always runs
+    assert not cut.complete_for(2.0)
+    assert cut.complete_for(0.0)  # the first block's outer pick is the unaltered one
+    if cut.complete_for(1.0):  # the next outer pick costs more than 1: budget 1 is proven
+        assert cut.next_outer_cost > 1.0
+    best = cut.best_within([0.0])[0]
+    assert cut.values[best] == pytest.approx(whole.values[whole.best_within([0.0])[0]])

@@ -138,7 +138,8 @@ class IncrementalSolver:
             if hand_over and runs and not schedule.next_level_fits(count, measured, deadline):
                 break
             began = time.perf_counter()
-            found = enumeration.run(level, deadline=deadline, progress=progress)
+            share = schedule.fair_share(deadline) if hand_over else None
+            found = enumeration.run(level, deadline=deadline, progress=progress, share=share)
             measured = (time.perf_counter() - began, found.evaluations)
             runs.append((level, found))
             if not found.complete_for(level):

@@ -51,14 +51,15 @@ def next_level_fits(count: int, measured: tuple[float, int] | None, deadline: De
     per_alteration = UPDATE_SECONDS
     if measured is not None and measured[1] >= RATE_SAMPLE:
         per_alteration = max(per_alteration, measured[0] / measured[1])
-    return count <= INCREMENTAL_SURE or enumeration_seconds(count, per_alteration) <= _fair_share(
+    return count <= INCREMENTAL_SURE or enumeration_seconds(count, per_alteration) <= fair_share(
         deadline
     )
 
 
-def _fair_share(deadline: Deadline) -> float:
+def fair_share(deadline: Deadline) -> float:
     """What an enumeration may take before anything else runs: ``ENUMERATION_FIRST`` of the
-    time left (with no limit: ``UNLIMITED_FIRST`` seconds)."""
+    time left (with no limit: ``UNLIMITED_FIRST`` seconds); a run with a search to hand its
+    budget to stops once its blocks project past it."""
     left = deadline.remaining()
     return UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
 
@@ -67,7 +68,7 @@ def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: in
     """Whether auto enumerates ``count`` alterations (at most ``limit``; about ``needed``
     seconds) with low-rank updates before anything else: always up to ``INCREMENTAL_SURE``,
     else when they take at most the fair share of the time left."""
-    return count <= INCREMENTAL_SURE or (count <= limit and needed <= _fair_share(deadline))
+    return count <= INCREMENTAL_SURE or (count <= limit and needed <= fair_share(deadline))
 
 
 def search_before_enumerating(

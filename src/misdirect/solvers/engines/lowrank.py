@@ -376,10 +376,14 @@ class LowRankEnumeration:
         deadline: Deadline | None = None,
         progress: ProgressCallback | None = None,
         bases: BasisCache | None = None,
+        share: float | None = None,
     ) -> Enumerated:
         """Every alteration within ``top`` that agrees with ``fixed``, valued at the start;
         outer blocks cheapest first, so a run cut short by ``deadline`` has still proven every
-        budget below the first block it did not reach."""
+        budget below the first block it did not reach. With ``share`` (seconds), the run also
+        stops before a block once the blocks left, at the last one's time, would take it past
+        that: a caller with a search to hand the budget to keeps the time (each block of a
+        big map is a base solve of thousands of columns)."""
         fixed = fixed or {}
         deadline = deadline or Deadline()
         inner = [i for i in self.natural_inner if i not in fixed]  # fixed ones: outer
@@ -396,8 +400,31 @@ class LowRankEnumeration:
         unevaluated, evaluations, steps = np.inf, 0, 0.0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
-        factor_s, per_alteration, last_count = 0.0, 0.0, 0
+        factor_s, per_alteration, last_count, base_s = 0.0, 0.0, 0, 0.0
+        run_began = time.perf_counter()
+        if share is not None:  # per block, its inner alterations (by its budget left)
+            counted: dict[float, int] = {}
+            for cost in outer_costs.tolist():
+                if cost not in counted:
+                    left_over = scale.remaining(top, cost)
+                    counted[cost] = inner_space.count_within(left_over, self.max_evaluations)
+            per_block = np.array([counted[c] for c in outer_costs.tolist()])
+            after = np.cumsum(per_block[::-1])[::-1]  # alterations from each block on
+            bases_after = np.cumsum((per_block > 1)[::-1])[::-1]  # blocks with a base
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
+            if blocks and share is not None:
+                # the blocks left that solve a base, each as long as the last base, and
+                # their alterations at the last block's rate (a block of one alteration
+                # solves no base)
+                done = len(blocks)
+                projected = (
+                    time.perf_counter()
+                    - run_began
+                    + float(bases_after[done]) * base_s
+                    + per_alteration * float(after[done])
+                )
+                if projected > share:
+                    break
             if blocks and not self._block_fits(
                 deadline,
                 factor_s,
@@ -428,6 +455,8 @@ class LowRankEnumeration:
             values.append(found)
             blocks.append((outer_pick, altered))
             factor_s, last_count = factored - began, len(inner_costs)
+            if len(inner_costs) > 1:
+                base_s = factor_s
             per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
             report(progress, len(blocks), len(outer_costs), stage="incremental")
         done = len(blocks)
