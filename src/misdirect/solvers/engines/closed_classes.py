@@ -148,12 +148,47 @@ def unsafe_options(
 
 
 @njit(cache=True, nogil=True)
+def _search_from(
+    origin: int,
+    stamp: int,
+    chain: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    override: np.ndarray,
+    scratch: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> tuple[bool, int]:  # pragma: no cover (compiled; its callers are tested)
+    """Depth-first search from ``origin`` over the rows of the chain (``chain``: indptr,
+    indices, leaks, stop, base_group; ``override[s]``: the group of an altered state ``s``,
+    else ``base_group[s]``), marking ``seen`` with ``stamp`` (``scratch``: seen, stack,
+    visited): (whether it met a leaking row or a ``stop`` state, how many it visited)."""
+    indptr, indices, leaks, stop, base_group = chain
+    seen, stack, visited = scratch
+    stack[0] = origin
+    seen[origin] = stamp
+    visited[0] = origin
+    top, count = 1, 1
+    if stop[origin]:
+        return True, count
+    while top > 0:
+        top -= 1
+        s = stack[top]
+        g = override[s] if override[s] >= 0 else base_group[s]
+        if leaks[g]:
+            return True, count
+        for p in range(indptr[g], indptr[g + 1]):
+            t = indices[p]
+            if stop[t]:
+                return True, count
+            if seen[t] != stamp:
+                seen[t] = stamp
+                stack[top] = t
+                top += 1
+                visited[count] = t
+                count += 1
+    return False, count
+
+
+@njit(cache=True, nogil=True)
 def _closes_a_class(
-    indptr: np.ndarray,
-    indices: np.ndarray,
-    leaks: np.ndarray,
-    stop: np.ndarray,
-    base_group: np.ndarray,
+    chain: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     override: np.ndarray,
     alteration_start: np.ndarray,
     changed_state: np.ndarray,
@@ -167,6 +202,7 @@ def _closes_a_class(
     searched, and ``emptied`` marks the changed rows the exhausted searches saw: none of them
     can reach the decoy, and every new closed class holds one (it holds a changed state, whose
     own search stays in it)."""
+    base_group = chain[4]
     n = base_group.size
     n_alterations = alteration_start.size - 1
     closes = np.zeros(n_alterations, dtype=np.bool_)
@@ -176,6 +212,7 @@ def _closes_a_class(
     stamp = 0
     stack = np.empty(n, dtype=np.int64)
     visited = np.empty(n, dtype=np.int64)
+    scratch = (seen, stack, visited)
     for a in range(n_alterations):
         lo, hi = alteration_start[a], alteration_start[a + 1]
         for e in range(lo, hi):
@@ -185,29 +222,7 @@ def _closes_a_class(
             if mine[origin] == a:  # in a trap this alteration already found
                 continue
             stamp += 1
-            stack[0] = origin
-            seen[origin] = stamp
-            visited[0] = origin
-            top, count = 1, 1
-            found = stop[origin]
-            while top > 0 and not found:
-                top -= 1
-                s = stack[top]
-                g = override[s] if override[s] >= 0 else base_group[s]
-                if leaks[g]:
-                    found = True
-                    break
-                for p in range(indptr[g], indptr[g + 1]):
-                    t = indices[p]
-                    if stop[t]:
-                        found = True
-                        break
-                    if seen[t] != stamp:
-                        seen[t] = stamp
-                        stack[top] = t
-                        top += 1
-                        visited[count] = t
-                        count += 1
+            found, count = _search_from(origin, stamp, chain, override, scratch)
             if not found:
                 closes[a] = True
                 for i in range(count):
@@ -220,11 +235,7 @@ def _closes_a_class(
 
 @njit(cache=True, nogil=True)
 def _closes_by_options(
-    indptr: np.ndarray,
-    indices: np.ndarray,
-    leaks: np.ndarray,
-    stop: np.ndarray,
-    base_group: np.ndarray,
+    chain: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     override: np.ndarray,
     alteration_start: np.ndarray,
     entry_choice: np.ndarray,
@@ -241,11 +252,14 @@ def _closes_by_options(
     built), and only from the changed rows that could lie in a closed class
     (``slot_risky``: a row that leaks, or has a ``stop`` successor, or whose state is one,
     ends its search at once)."""
+    base_group = chain[4]
     n = base_group.size
     n_alterations = alteration_start.size - 1
     closes = np.zeros(n_alterations, dtype=np.bool_)
     seen = np.zeros(n, dtype=np.int64)
     stack = np.empty(n, dtype=np.int64)
+    visited = np.empty(n, dtype=np.int64)
+    scratch = (seen, stack, visited)
     stamp = 0
     for a in range(n_alterations):
         lo, hi = alteration_start[a], alteration_start[a + 1]
@@ -260,28 +274,8 @@ def _closes_by_options(
             for slot in range(first, first + flat_length[entry_choice[e], entry_option[e]]):
                 if not slot_risky[slot]:
                     continue
-                origin = slot_state[slot]
                 stamp += 1
-                stack[0] = origin
-                seen[origin] = stamp
-                top = 1
-                found = stop[origin]
-                while top > 0 and not found:
-                    top -= 1
-                    s = stack[top]
-                    g = override[s] if override[s] >= 0 else base_group[s]
-                    if leaks[g]:
-                        found = True
-                        break
-                    for p in range(indptr[g], indptr[g + 1]):
-                        t = indices[p]
-                        if stop[t]:
-                            found = True
-                            break
-                        if seen[t] != stamp:
-                            seen[t] = stamp
-                            stack[top] = t
-                            top += 1
+                found, _ = _search_from(slot_state[slot], stamp, chain, override, scratch)
                 if not found:
                     closes[a] = True
                     break
@@ -290,6 +284,33 @@ def _closes_by_options(
             for slot in range(first, first + flat_length[entry_choice[e], entry_option[e]]):
                 override[slot_state[slot]] = -1
     return closes
+
+
+def _chain_arrays(
+    inside: sp.csr_matrix, leaks: np.ndarray, classes: ClosedClasses, base_groups: np.ndarray
+) -> tuple[
+    sp.csr_matrix, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+]:
+    """(the transitions as CSR, the stop states, the chain as the compiled searches read it:
+    indptr, indices, leaks, stop, base_group)."""
+    inside = inside.tocsr()
+    stop = classes.safe | classes.closed
+    arrays = (
+        inside.indptr.astype(np.int64),
+        inside.indices.astype(np.int64),
+        leaks,
+        stop,
+        base_groups.astype(np.int64),
+    )
+    return inside, stop, arrays
+
+
+def _override(size: int, fixed: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Per live state, the group the block fixes for it (-1: none)."""
+    override = np.full(size, -1, dtype=np.int64)
+    if fixed is not None:
+        override[fixed[0]] = fixed[1]
+    return override
 
 
 def may_close(
@@ -308,23 +329,15 @@ def may_close(
     count) and ``slots`` (live state and new group per row slot). Most alterations of a chain
     with end components close nothing (none of 2.7 million on the 40x40 turn-back grid at
     budget 3): this finds the few that do, for :func:`closing_alterations` to detail."""
-    inside = inside.tocsr()
-    stop = classes.safe | classes.closed
+    inside, stop, chain = _chain_arrays(inside, leaks, classes, base_groups)
     slot_state, slot_group = slots
     escapes = leaks | (np.asarray(inside @ stop.astype(np.float64)).ravel() > 0)
     slot_risky = ~(stop[slot_state] | escapes[slot_group])
-    override = np.full(base_groups.size, -1, dtype=np.int64)
-    if fixed is not None:
-        override[fixed[0]] = fixed[1]
     start, choice, option = entries
     flat_start, flat_length = flat
     closes: np.ndarray = _closes_by_options(
-        inside.indptr.astype(np.int64),
-        inside.indices.astype(np.int64),
-        leaks,
-        stop,
-        base_groups.astype(np.int64),
-        override,
+        chain,
+        _override(base_groups.size, fixed),
         start.astype(np.int64),
         choice.astype(np.int64),
         option.astype(np.int64),
@@ -364,17 +377,10 @@ def closing_alterations(
     those rows (value 0, which they have) leaves no new closed class, as each holds one of
     them: the system is non-singular again and its solution the least fixed point.
     ``fixed``: rows (live state, group) every alteration of the block takes."""
-    inside = inside.tocsr()
-    override = np.full(base_groups.size, -1, dtype=np.int64)
-    if fixed is not None:
-        override[fixed[0]] = fixed[1]
+    _, _, chain = _chain_arrays(inside, leaks, classes, base_groups)
     closes, emptied = _closes_a_class(
-        inside.indptr.astype(np.int64),
-        inside.indices.astype(np.int64),
-        leaks,
-        classes.safe | classes.closed,
-        base_groups.astype(np.int64),
-        override,
+        chain,
+        _override(base_groups.size, fixed),
         alteration_start.astype(np.int64),
         changed_state.astype(np.int64),
         changed_group.astype(np.int64),
