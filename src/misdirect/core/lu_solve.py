@@ -57,6 +57,14 @@ def _substitute(
                     x[i, c] -= v * x[j, c]
 
 
+def _cores() -> int:
+    """The cores this process may run on (its affinity: a batch job's share, not the node's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
 def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.ndarray:
     """``A⁻¹ b`` for the matrix ``A`` that ``lu`` factorises and a block ``b`` (n, k):
     SuperLU's solve for few columns, the compiled loop for many."""
@@ -81,7 +89,7 @@ def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.nda
     blocks = [
         np.ascontiguousarray(permuted[:, c : c + BLOCK_COLUMNS]) for c in range(0, k, BLOCK_COLUMNS)
     ]
-    workers = max(1, min(threads or os.cpu_count() or 1, len(blocks)))
+    workers = max(1, min(threads or _cores(), len(blocks)))
     if workers == 1:
         for block in blocks:
             _substitute(*factors, block)
