@@ -420,6 +420,7 @@ def test_a_block_with_no_inner_alteration_is_valued_without_a_base_solve(monkeyp
     # with uniform costs, a block has inner alterations iff its outer picks cost < budget
     outer_costs = found.costs[found.offsets[:-1]]  # each block's first: inner unaltered
     assert len(solves) == int((outer_costs < budget).sum())
+    assert found.base_solves == len(solves)  # what the stats call factorisations
     # every alteration within the budget listed once: as many as the space counts
     assert len(found.values) == instance.space.count_within(budget, 10**6)
 

@@ -81,7 +81,7 @@ class IncrementalSolver:
         last = runs[-1][1]
         stats = IncrementalStats(
             evaluations=sum(found.evaluations for _, found in runs),
-            factorisations=sum(found.blocks_done for _, found in runs),
+            factorisations=sum(found.base_solves for _, found in runs),
             inner_observations=len(last.inner),
             outer_observations=len(last.outer),
         )

@@ -47,7 +47,7 @@ class ExhaustiveStats(MethodStats):
 @dataclass(frozen=True)
 class IncrementalStats(MethodStats):
     evaluations: int  # alterations valued (by low-rank updates or solves)
-    factorisations: int  # outer choices, each one base solve
+    factorisations: int  # blocks that solved a base chain (one per outer choice vector)
     inner_observations: int
     outer_observations: int
 

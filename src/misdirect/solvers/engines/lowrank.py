@@ -98,6 +98,7 @@ class Enumerated:
     next_outer_cost: float  # cost of the first outer vector not reached (inf: all were)
     unevaluated: float  # cheapest alteration of a reached block cut short by the deadline
     evaluations: int
+    base_solves: int  # blocks that solved (or updated) a base chain: not those of one alteration
     scale: tolerance.CostScale  # how the costs fit a budget
     top: float  # the budget enumerated within: nothing costlier was listed
 
@@ -397,7 +398,7 @@ class LowRankEnumeration:
         blocks: list[tuple[np.ndarray, AlteredEntries]] = []
         costs: list[np.ndarray] = []
         values: list[np.ndarray] = []
-        unevaluated, evaluations, steps = np.inf, 0, 0.0
+        unevaluated, evaluations, steps, base_solves = np.inf, 0, 0.0, 0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
         factor_s, per_alteration, last_count, base_s = 0.0, 0.0, 0, 0.0
@@ -443,6 +444,7 @@ class LowRankEnumeration:
                 block = self._single_block(outer, outer_pick)
             else:
                 base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
+                base_solves += 1
                 factored = time.perf_counter()
                 block = self._block(
                     remaining, inner, base, deadline, evaluations, compiled, outer, outer_pick
@@ -476,6 +478,7 @@ class LowRankEnumeration:
             next_outer_cost=float(outer_costs[done]) if done < len(outer_costs) else np.inf,
             unevaluated=unevaluated,
             evaluations=evaluations,
+            base_solves=base_solves,
             scale=scale,
             top=top,
         )
