@@ -1,12 +1,11 @@
 """Many right-hand sides through one sparse LU: the triangular solves as one compiled loop.
 
 The low-rank enumeration solves its base chain for a unit column per row it may alter
-(thousands on a big map). SuperLU's own solve handles the columns as separate
-sweeps over its factors, about 4 ms per column on an 18,000-state chain; here each entry of
-``L`` and ``U`` is read once per block of columns and applied to the whole row of the block
-(contiguous, so the inner loop vectorises), and the blocks run on threads (the loop holds no
-GIL). The arithmetic is SuperLU's: the same factors, the same order of eliminations per
-column, so the same rounding up to the order of additions.
+(thousands on a big map). SuperLU's own solve sweeps its factors once per column; here each
+entry of ``L`` and ``U`` is read once per block of columns and applied to the whole row of the
+block (contiguous, so the inner loop vectorises), and the blocks run on threads (the loop holds
+no GIL). The arithmetic is SuperLU's: the same factors, the same eliminations per column, so
+the same rounding up to the order of additions. Measured in docs/benchmarks.md (H5).
 """
 
 from __future__ import annotations
@@ -71,12 +70,9 @@ def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.nda
     b = np.asarray(b, dtype=np.float64)
     if b.ndim != 2 or b.shape[1] < MANY_COLUMNS:
         return np.asarray(lu.solve(b))
-    k = b.shape[1]
-    # Pr A Pc = L U: A x = b is L U (Pcᵀ x) = Pr b
+    n, k = b.shape
+    # Pr A Pc = L U: A x = b is L U (Pcᵀ x) = Pr b, and (Pr b)[perm_r[i]] = b[i]
     lower, upper = sp.csc_matrix(lu.L), sp.csc_matrix(lu.U)
-    diagonal = upper.diagonal()
-    permuted = np.empty_like(b)
-    permuted[lu.perm_r] = b
     factors = (
         lower.indptr.astype(np.int64),
         lower.indices.astype(np.int64),
@@ -84,17 +80,24 @@ def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.nda
         upper.indptr.astype(np.int64),
         upper.indices.astype(np.int64),
         upper.data,
-        diagonal,
+        upper.diagonal(),
     )
-    blocks = [
-        np.ascontiguousarray(permuted[:, c : c + BLOCK_COLUMNS]) for c in range(0, k, BLOCK_COLUMNS)
-    ]
-    workers = max(1, min(threads or _cores(), len(blocks)))
+    row_of = np.empty(n, dtype=np.int64)
+    row_of[lu.perm_r] = np.arange(n)
+    solved = np.empty_like(b)
+
+    def solve_block(first: int) -> None:
+        # one block at a time: the memory beyond ``b`` and the answer is a block per thread
+        block = b[row_of, first : first + BLOCK_COLUMNS]  # a C-ordered copy, Pr applied
+        _substitute(*factors, block)
+        solved[:, first : first + BLOCK_COLUMNS] = block[lu.perm_c]
+
+    firsts = range(0, k, BLOCK_COLUMNS)
+    workers = max(1, min(threads or _cores(), len(firsts)))
     if workers == 1:
-        for block in blocks:
-            _substitute(*factors, block)
+        for first in firsts:
+            solve_block(first)
     else:
         with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(lambda block: _substitute(*factors, block), blocks))
-    solved: np.ndarray = np.concatenate(blocks, axis=1)[lu.perm_c]
+            list(pool.map(solve_block, firsts))
     return solved
