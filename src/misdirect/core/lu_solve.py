@@ -10,7 +10,6 @@ the same rounding up to the order of additions. Measured in docs/benchmarks.md (
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -18,6 +17,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import SuperLU
 
 from misdirect.core.jit import njit
+from misdirect.core.memory import available_cores
 
 MANY_COLUMNS = 32  # from this many right-hand sides on, the compiled loop
 BLOCK_COLUMNS = 128  # columns per block: a row of one is 1 KiB, read whole per entry of L, U
@@ -56,14 +56,6 @@ def _substitute(
                     x[i, c] -= v * x[j, c]
 
 
-def _cores() -> int:
-    """The cores this process may run on (its affinity: a batch job's share, not the node's)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on every platform
-        return os.cpu_count() or 1
-
-
 def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.ndarray:
     """``A⁻¹ b`` for the matrix ``A`` that ``lu`` factorises and a block ``b`` (n, k):
     SuperLU's solve for few columns, the compiled loop for many."""
@@ -93,7 +85,7 @@ def solve_many(lu: SuperLU, b: np.ndarray, threads: int | None = None) -> np.nda
         solved[:, first : first + BLOCK_COLUMNS] = block[lu.perm_c]
 
     firsts = range(0, k, BLOCK_COLUMNS)
-    workers = max(1, min(threads or _cores(), len(firsts)))
+    workers = max(1, min(threads or available_cores(), len(firsts)))
     if workers == 1:
         for first in firsts:
             solve_block(first)

@@ -21,6 +21,15 @@ from misdirect.errors import ProblemError
 MEMORY_CHECK_FLOOR = 256 * 1024**2  # below this, an allocation is not checked against memory
 
 
+def available_cores() -> int:
+    """Cores this process may run on: its CPU affinity (a batch job's share of a node, not the
+    node's), where the platform tells it, else the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
 def available_memory() -> int | None:
     """Bytes this process can still allocate, as far as Linux tells (MemAvailable, and the
     cgroup v2 limit if one is set); None where it cannot be read."""

@@ -6,7 +6,6 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Protocol
@@ -14,6 +13,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.memory import available_cores
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.stats import MethodStats, NoStats
@@ -91,8 +91,9 @@ DEFAULT_THREADS = 2  # both cores of the machines misdirect is tuned for
 
 
 def thread_count(threads: int | None, default: int = DEFAULT_THREADS) -> int:
-    """Threads to use: ``threads``, else ``default``, never more than the machine's cores."""
-    return min(threads or default, os.cpu_count() or 1)
+    """Threads to use: ``threads``, else ``default``, never more than the cores this process
+    may run on."""
+    return min(threads or default, available_cores())
 
 
 def best_per_budget(

@@ -170,6 +170,13 @@ def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
         marked = grown
 
 
+def _taking(altered: AlteredEntries, marked: np.ndarray) -> np.ndarray:
+    """Per alteration, whether it takes some option that ``marked[choice, option]`` marks."""
+    taking = np.zeros(altered.costs.size, dtype=bool)
+    taking[altered.alteration[marked[altered.choice, altered.option]]] = True
+    return taking
+
+
 def _restricted(altered: AlteredEntries, keep: np.ndarray) -> AlteredEntries:
     """The alterations ``keep`` selects, renumbered; each one's parent must be kept too."""
     number = np.cumsum(keep) - 1
@@ -742,8 +749,7 @@ class LowRankEnumeration:
         cycles, table = base.cycles, base.deltas
         assert cycles is not None
         n_alterations = altered.costs.size
-        risky = np.zeros(n_alterations, dtype=bool)
-        risky[altered.alteration[cycles.unsafe[altered.choice, altered.option]]] = True
+        risky = _taking(altered, cycles.unsafe)
         candidates = np.flatnonzero(risky)
         entries = np.flatnonzero(risky[altered.alteration])  # grouped by alteration
         counts = np.bincount(altered.alteration[entries], minlength=n_alterations)[candidates]
@@ -770,9 +776,7 @@ class LowRankEnumeration:
         in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
         ends = table.flat_start + table.flat_length
         opens = in_closed[ends] > in_closed[table.flat_start]
-        touching = np.zeros(n_alterations, dtype=bool)
-        touching[altered.alteration[opens[altered.choice, altered.option]]] = True
-        roots = np.union1d(candidates[closing], np.flatnonzero(touching & risky))
+        roots = np.union1d(candidates[closing], np.flatnonzero(_taking(altered, opens) & risky))
         flagged = np.flatnonzero(_with_extensions(altered.parent, roots))
         return self._traps_of(flagged, altered, base, deadline)
 
