@@ -45,6 +45,9 @@ EXTENDED_TRIES = 1  # the same in double-double
 EXTENDED_REFINE = 2  # refinement rounds (one solve each) of the double-double values
 EXTENDED_SWITCHES = 3  # policy improvements in double-double, at most
 PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
+# what a proven potential falls by at least, per step of any policy: over 1, so that twice it
+# plus one more step's mass (a row's doubles may sum to a little over 1) still falls by 1
+STEP_MARGIN = 1.0 + 2.0**-30
 
 
 class LinearSolver(Protocol):
@@ -667,6 +670,11 @@ def _raise(
     return np.where(capped, top, hi), np.where(capped, 0.0, lo)
 
 
+def _round_up(value: float) -> float:
+    """``value``, the rounded result of one addition, raised past its rounding."""
+    return float(np.nextafter(value + abs(value) * tolerance.UNIT_ROUNDOFF, np.inf))
+
+
 def _solved_or_none(
     block: sp.csr_matrix, rhs: np.ndarray, labels: np.ndarray | None
 ) -> np.ndarray | None:
@@ -765,6 +773,65 @@ class TransientPolicyIteration:
             if not again.all():
                 raise AssertionError("a closed class without a stop row: not an end component")
         return policy
+
+    def defect(self, reward: np.ndarray, values: np.ndarray) -> float:
+        """A proven upper bound, in exact arithmetic, on how far the Bellman operator raises
+        ``values`` anywhere: ``max_x max_a (reward_a + P_a v − v(x))``, at least 0 (inf when
+        it cannot be computed)."""
+        zeros = np.zeros(values.size)
+        r, bound = residual.residual(self.matrix, values, zeros, self.row_state, reward)
+        upper = r + 2 * (bound - np.abs(r))  # |exact - r| <= bound - |r|, doubled for rounding
+        if not np.isfinite(upper).all():
+            return np.inf
+        return max(float(upper.max(initial=0.0)), 0.0)
+
+    def proven_bound(
+        self, reward: np.ndarray, values: np.ndarray, state: int, potential: np.ndarray
+    ) -> float:
+        """A proven upper bound at ``state`` on the optimum (over every policy; this MDP has no
+        end components) for ``reward``, from approximate ``values`` (policy iteration's).
+
+        ``potential`` is a proven ``W`` with ``W(x) ≥ 1 + P_a W`` for every row ``a`` of
+        every state ``x`` (:meth:`proven_potential`, or one built from it). With ``δ`` the
+        largest defect of ``v`` (:meth:`defect`), ``u = v + δ W`` satisfies
+        ``reward_a + P_a u ≤ v(x) + δ + δ (W(x) − 1) = u(x)``: a pre-fixed point of the Bellman
+        operator, which lies above the optimum when every policy leaves the states (the
+        operator's iterates from ``u`` fall to it). The rounding is in ``δ`` (its rows summed
+        in double-double with a bound) and in the last sum, rounded up. ``inf`` if nothing is
+        proven."""
+        if not values.size:
+            return 0.0
+        if not (np.isfinite(values).all() and np.isfinite(potential[state])):
+            return np.inf
+        delta = self.defect(reward, values)
+        raise_by = delta * float(potential[state]) * (1 + 4 * tolerance.UNIT_ROUNDOFF)
+        return _round_up(float(values[state]) + raise_by)
+
+    def proven_potential(self, deadline: Deadline | None = None) -> np.ndarray | None:
+        """A proven ``W`` with ``W(x) ≥ STEP_MARGIN + P_a W`` for every row ``a`` of every
+        state ``x``: a little over the largest expected number of steps before leaving, over
+        every policy (None where it cannot be proven: end components, or a chain whose runs
+        last so long that doubles cannot tell). Policy iteration for a reward of 1 per step
+        gives ``N`` with defect ``D < 1``; then ``c N`` with ``c = margin / (1 − D)`` passes,
+        and is checked to (one retry, a little higher)."""
+        if self.stop_row is not None:
+            return None
+        n_rows = self.matrix.shape[0]
+        steps, _, _, optimal = self.optimise(np.ones(n_rows), deadline=deadline)
+        if not (optimal and np.isfinite(steps).all()) or (steps.size and steps.min() < 0):
+            return None
+        steps = np.maximum(steps, 1.0)
+        # 1 + P N - N(x) <= D for every row: margin + P (c N) - c N(x) <= margin - c (1 - D)
+        level = self.defect(np.ones(n_rows), steps)
+        if not level < 0.5:
+            return None
+        scale = STEP_MARGIN / (1.0 - level)
+        for attempt in range(2):
+            scale *= 1 + (2.0**-40 if attempt == 0 else 2.0**-20)
+            potential = steps * scale
+            if self.defect(np.full(n_rows, STEP_MARGIN), potential) <= 0.0:
+                return cast(np.ndarray, potential)
+        return None
 
     def factorise(self, policy: np.ndarray) -> SuperLU:
         """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves

@@ -32,14 +32,20 @@ option. Its charges add up, in expectation, to
 The run and the charges stop at the decoy and at states that cannot reach it (their value is
 0 under every scheduler, so a scheduler never pays there). Values are computed exactly by
 policy iteration, which needs every policy to leave the live states with probability 1: the
-bound is offered only when the choice product has no end component among its live states
+charges apply only when the choice product has no end component among its live states
 (then no scheduler of the mode MDP, whose runs project onto runs of the choice product, has
-one either). Otherwise :func:`segment_relaxation` returns None.
+one either); with end components the states in them get a stop row instead.
+
+**Proven.** Policy iteration's values are rounded (on a model with probabilities of 1e-12
+the root value lay 2.8e-5 of itself below the optimum), so a node's bound is a proof built
+from them (:meth:`SegmentMdp.proven_value`), and so is each ``M_o`` (a charge computed from
+too few entries would overcharge).
 """
 
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -55,7 +61,11 @@ from misdirect.solvers.base import thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
 from misdirect.solvers.engines.per_state import PerStateRelaxation
-from misdirect.solvers.engines.policy_iteration import LinearSolver, TransientPolicyIteration
+from misdirect.solvers.engines.policy_iteration import (
+    LinearSolver,
+    MaxReachability,
+    TransientPolicyIteration,
+)
 
 Layer = tuple[int, int, np.ndarray]  # (choice index, option, group per product state)
 
@@ -99,6 +109,29 @@ class SegmentLagrangian:
         self.rank_in_region = np.full(chain.n_states, -1)
         self.rank_in_region[by_obs] = rank_in_group(counts)
         self.evaluations = 0
+        self._potential_lock = threading.Lock()
+        self._potential: tuple[np.ndarray | None] | None = None  # computed once, on first use
+
+    def potential(self) -> np.ndarray | None:
+        """Per live state, a proven ``N(s) ≥ STEP_MARGIN + P_g N`` over every group ``g`` of
+        the choice product (restricted to the live states): every segment MDP built on it
+        falls along it at every step (:class:`SegmentMdp`), which is what proves its bounds.
+        None with end components (runs may last for ever) or where it cannot be proven."""
+        with self._potential_lock:
+            if self._potential is None:
+                self._potential = (self._proven_potential(),)
+            return self._potential[0]
+
+    def _proven_potential(self) -> np.ndarray | None:
+        if self.cycling.any() or not self.live_states.size:
+            return None
+        chain = self.chain
+        groups = np.flatnonzero(self.live[chain.group_state])
+        rows = chain.transitions[groups][:, self.live_states].tocsr()
+        mdp = TransientPolicyIteration(
+            self.live_index[chain.group_state[groups]], rows, self.live_states.size
+        )
+        return mdp.proven_potential()
 
     def lagrangian_on(
         self,
@@ -125,7 +158,7 @@ class SegmentLagrangian:
             return LagrangeResult(value, 0.0, 0, 0), None, None
         lines: list[tuple[float, float, float]] = []  # (λ, h(λ), slope) at the multipliers tried
         best = (np.inf, 0.0)
-        best_policy = best_lu = None
+        best_policy = best_lu = best_values = None
         lam = 0.0
         positive = mdp.charge[mdp.charge > 0]
         high = 1.0 / max(float(positive.min(initial=1.0)), 1e-300)
@@ -149,6 +182,7 @@ class SegmentLagrangian:
             if h < best[0]:
                 best = (h, lam)
                 best_policy, best_lu = policy, lu
+                best_values = values if optimal else None
             if best[0] <= stop_below:
                 break
             lines.append((lam, h, slope))
@@ -176,7 +210,12 @@ class SegmentLagrangian:
                 break
             lam = cross
         self.evaluations += mdp.solver.evaluations
-        result = LagrangeResult(best[0], best[1], len(lines), mdp.solver.evaluations)
+        bound = float(known_bound)  # proven before; the multipliers' values are rounded
+        if best_values is not None:
+            assert best_policy is not None  # it comes with the values
+            g = mdp.proven_value(best[1], best_values, best_policy, deadline)
+            bound = min(bound, _round_up(best[1] * remaining, g))
+        result = LagrangeResult(bound, best[1], len(lines), mdp.solver.evaluations)
         return result, best_policy, best_lu
 
 
@@ -265,6 +304,26 @@ class SegmentMdp:
             shape=(n_moving + n_entries, n),
         )
         self.reward_const = np.concatenate([to_target, np.zeros(n_entries)])
+        # the same raised past its rounding (a sum of products per row): what proofs use
+        terms = np.bincount(coo.row, minlength=groups.size)
+        raised = to_target * (1 + 2.02 * (terms + 2) * tolerance.UNIT_ROUNDOFF) + np.where(
+            to_target > 0, (terms + 1) * tolerance.SMALLEST, 0.0
+        )
+        self.reward_up = np.concatenate([raised, np.zeros(n_entries)])
+        self.top = float(target.max(initial=0.0))
+        # a proven potential, falling by 1 along every row (SegmentLagrangian.potential):
+        # twice N in the layers, once more at the entries (whose choice is a step of its own)
+        potential = owner.potential()
+        self.potential: np.ndarray | None = None
+        if potential is not None:
+            twice = 2 * potential
+            self.potential = np.concatenate(
+                [
+                    twice,
+                    np.nextafter(twice[live_index[free_states]] + 1, np.inf),
+                    twice[live_index[layer_states]],
+                ]
+            )
         charge = np.asarray(charges, dtype=float)
         self.charge = np.concatenate(
             [np.zeros(n_moving + free_states.size), charge[layer_of] if layers else []]
@@ -283,6 +342,8 @@ class SegmentMdp:
             n_rows = self.matrix.shape[0]
             self.matrix = sp.vstack([self.matrix, sp.csr_matrix((stopping.size, n))], format="csr")
             self.reward_const = np.concatenate([self.reward_const, np.zeros(stopping.size)])
+            self.reward_up = np.concatenate([self.reward_up, np.zeros(stopping.size)])
+            self.potential = None  # runs may stay for ever: the proof is by reachability
             self.charge = np.concatenate([self.charge, np.zeros(stopping.size)])
             row_state = np.concatenate([row_state, stopping])
             leaks = np.concatenate([leaks, np.ones(stopping.size, dtype=bool)])
@@ -298,6 +359,58 @@ class SegmentMdp:
         self.free_states, self.entry_index = free_states, entry_index
         self.keys = np.arange(len(layers)) if keys is None else np.asarray(keys, dtype=np.int64)
         self.rank = rank
+
+    def proven_value(
+        self,
+        lam: float,
+        values: np.ndarray,
+        policy: np.ndarray,
+        deadline: Deadline | None = None,
+    ) -> float:
+        """A proven upper bound on ``G(λ)``, this MDP's optimum at the start with every
+        charge at ``λ``, from policy iteration's ``values`` and ``policy`` (inf if none is
+        found). Rewards are read raised past their rounding, charges lowered: the bound is
+        then on an MDP that pays at least as much as the exact one.
+
+        Without end components, by the potential (:meth:`TransientPolicyIteration.
+        proven_bound`: one pass over the rows). With them nothing is charged, and the MDP is
+        one of reachability: a target state worth the largest decoy weight, entered with
+        probability ``reward / top`` (:meth:`MaxReachability.proven_bound`, end components
+        and ill-conditioned chains included)."""
+        assert self.start is not None
+        charged = np.nextafter(lam * self.charge, 0.0) if lam > 0 else np.zeros_like(self.charge)
+        reward = np.nextafter(self.reward_up - charged, np.inf)
+        if self.potential is not None:
+            return self.solver.proven_bound(reward, values, self.start, self.potential)
+        if (charged > 0).any() or self.top <= 0:
+            return np.inf
+        return self._reachability().proven_bound(
+            np.concatenate([values, [self.top, 0.0]]),
+            np.concatenate([policy, self.matrix.shape[0] + np.arange(2)]),
+            self.start,
+            deadline=deadline,
+        )
+
+    def _reachability(self) -> MaxReachability:
+        """This MDP, uncharged, as one of reachability with stochastic rows: two more
+        states, the target (worth ``top``), entered with (at least) each row's reward over
+        ``top``, and a sink that takes what is left of each row."""
+        n, n_rows = self.n, self.matrix.shape[0]
+        into = np.nextafter(self.reward_up / self.top, np.inf) * (self.reward_up > 0)
+        left = np.maximum(1.0 - (np.asarray(self.matrix.sum(axis=1)).ravel() + into), 0.0)
+        rows = np.arange(n_rows)
+        extra = sp.csr_matrix(
+            (np.concatenate([into, left]), (np.tile(rows, 2), np.repeat([0, 1], n_rows))),
+            shape=(n_rows, 2),
+        )
+        loops = sp.csr_matrix(([1.0, 1.0], ([0, 1], [n, n + 1])), shape=(2, n + 2))
+        transitions = sp.vstack([sp.hstack([self.matrix, extra]), loops], format="csr")
+        transitions.eliminate_zeros()
+        owner = np.concatenate([self.solver.row_state, [n, n + 1]])
+        target = np.zeros(n + 2, dtype=bool)
+        target[n] = True
+        value = np.where(target, self.top, 0.0)
+        return MaxReachability(owner, transitions, target, value=value)
 
     def entry_choices(self, policy: np.ndarray) -> dict[int, np.ndarray]:
         """Per layer key chosen somewhere: the product states whose entries choose it."""
@@ -356,8 +469,15 @@ class SegmentMdp:
             if not reward.any():
                 result[j] = first
                 continue
-            values, policy, _, _ = self.solver.optimise(reward, policy, deadline=deadline)
-            result[j] = values[self.start] + first
+            values, policy, _, optimal = self.solver.optimise(reward, policy, deadline=deadline)
+            # a proven bound: a charge computed from less than the most entries overcharges
+            if not optimal or self.potential is None:
+                result[j] = np.inf
+                continue
+            terms = np.bincount(coo.row[hit], minlength=self.matrix.shape[0])
+            raised = reward * (1 + 2.02 * (terms + 2) * tolerance.UNIT_ROUNDOFF)
+            bound = self.solver.proven_bound(raised, values, self.start, self.potential)
+            result[j] = np.nextafter(bound + first, np.inf)
         return result
 
 
@@ -475,8 +595,9 @@ class SegmentRelaxation:
         if self.entries is None:
             charges = [0.0] * len(layers)
         else:
+            # lowered past their rounding: a charge above c / M_o would overcharge
             charges = [
-                self.space.choices[i].costs[k] / max(self.entries.get(i, 0.0), 1e-300)
+                float(np.nextafter(self.space.choices[i].costs[k] / self.entries[i], 0.0))
                 if self.entries.get(i, 0.0) > 0
                 else 0.0
                 for i, k, _ in layers
@@ -503,6 +624,13 @@ class SegmentRelaxation:
             usage = mdp.layer_usage(policy, lu, len(layers))
             choices = mdp.entry_choices(policy)
         return result, usage, layers, choices
+
+
+def _round_up(a: float, b: float) -> float:
+    """``a + b`` in exact arithmetic, or a little above (``a``: a rounded product)."""
+    a = float(np.nextafter(a, np.inf)) if a > 0 else a
+    total = a + b
+    return float(np.nextafter(total + abs(total) * tolerance.UNIT_ROUNDOFF, np.inf))
 
 
 def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | None:
