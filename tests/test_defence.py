@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 import json
 from dataclasses import replace
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.io.problem_file import write_problem
 from misdirect.scenarios import paper_grid, random_problem
 from prism_product import world_module
+from stress_model import stress_model
 
 runner = CliRunner()
 
@@ -142,6 +144,21 @@ def test_online_value_bounds_offline_optimum():
         assert online >= offline - 1e-9, seed
         strict += online > offline + 1e-6
     assert strict >= 1  # not always tight: memory and shared sensors matter (also the grid)
+
+
+@pytest.mark.parametrize("seed", [0, 23, 25, 31])
+def test_online_bound_lies_above_the_offline_optimum_where_doubles_round(seed):
+    """On models with probabilities down to 1e-12, policy iteration's online value lay below
+    the exhaustive offline optimum (seed 0: 0.9999980240 against 0.9999998733), which the
+    online value bounds by a theorem; the proven bound does not. Budget 3 lets the offline
+    attacker alter all three alterable sensors."""
+    problem = stress_model(seed)
+    offline = misdirect.solve(problem, method="exhaustive", budgets=[3.0]).curve[0]
+    online = misdirect.online_attack_value(problem)
+    assert offline.error_bound is not None
+    floor = Fraction(offline.probability) - Fraction(offline.error_bound)
+    assert Fraction(online.unlimited_bound) >= floor
+    assert online.unlimited_bound >= online.unlimited_probability
 
 
 @pytest.mark.parametrize("seed", range(8))

@@ -106,7 +106,9 @@ def _print_audit(result: AuditResult) -> None:
     if online is None:
         parts.append(f"online attacker not computed: {note}")
     else:
-        parts.append(f"online attacker: unlimited {online.unlimited_probability:.6f} (upper bound)")
+        parts.append(
+            f"online attacker: unlimited {online.unlimited_bound:.6f} (a proven upper bound)"
+        )
         if online.budgeted_probability is not None:
             parts.append(f"paying per reading within B {online.budgeted_probability:.6f}")
         else:

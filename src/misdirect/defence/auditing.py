@@ -349,9 +349,9 @@ def _online_value(
     except DeadlineExpiredError:
         return None, expired
     # the online attacker sees more than the offline one: below it would contradict a theorem
-    if tolerance.better(optimum.value, online.unlimited_probability, rel=tolerance.CERTIFY):
+    if tolerance.better(optimum.value, online.unlimited_bound, rel=tolerance.CERTIFY):
         raise SolverError(
-            f"online value {online.unlimited_probability:.12f} below the offline value "
+            f"online bound {online.unlimited_bound:.12f} below the offline value "
             f"{optimum.value:.12f}"
         )
     return online, note

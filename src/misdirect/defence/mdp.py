@@ -44,6 +44,29 @@ def max_reach(
     return values, policy, mdp.evaluations
 
 
+def max_reach_bounded(
+    owner: np.ndarray,
+    transitions: sp.csr_matrix,
+    target: np.ndarray,
+    state: int,
+    *,
+    blocks: np.ndarray | None = None,
+    value: np.ndarray | None = None,
+    deadline: Deadline | None = None,
+) -> tuple[float, float, int]:
+    """:func:`max_reach` at ``state``, with a proven upper bound on it: ``(value, bound,
+    evaluations)``. Policy iteration's values are rounded solutions; the bound is a
+    pre-fixed point of the Bellman operator checked with its rounding
+    (:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`), what
+    a claim "the online attacker gets at most this" needs."""
+    mdp = MaxReachability(owner, transitions, target, blocks=blocks, value=value)
+    values, policy = mdp.optimise(
+        mdp.first_choices(), max_rounds=MAX_POLICY_ROUNDS, deadline=deadline
+    )
+    bound = mdp.proven_bound(values, policy, state, deadline=deadline)
+    return float(values[state]), max(bound, float(values[state])), mdp.evaluations
+
+
 def budgeted_mdp(
     chain: ChoiceProduct, group_units: np.ndarray, levels: int
 ) -> tuple[np.ndarray, sp.csr_matrix, np.ndarray, int]:

@@ -20,7 +20,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.checkpoint import interruptible
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.model import Problem
-from misdirect.defence.mdp import budgeted_mdp, max_reach
+from misdirect.defence.mdp import budgeted_mdp, max_reach_bounded
 from misdirect.defence.results import OnlineAttack
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
@@ -58,25 +58,29 @@ def online_attack_value(
     check = None if deadline is None else deadline.check
     with interruptible(check):
         chain = prepare(problem, math.inf).chain
-    values, _, evaluations = max_reach(
+    unlimited, unlimited_bound, evaluations = max_reach_bounded(
         chain.group_state,
         chain.transitions,
         chain.target,
+        chain.initial,
         blocks=chain.node,
         value=chain.target_value,
         deadline=deadline,
     )
-    unlimited = float(values[chain.initial])
-    budgeted = unit = None
+    budgeted = budgeted_bound = unit = None
     mdp_states = chain.n_states
     if budget is not None:
-        budgeted, unit, b_evaluations, mdp_states = _budgeted_value(chain, budget, deadline)
+        budgeted, budgeted_bound, unit, b_evaluations, mdp_states = _budgeted_value(
+            chain, budget, deadline
+        )
         evaluations += b_evaluations
     return OnlineAttack(
         probability=unlimited if budgeted is None else budgeted,
         unlimited_probability=unlimited,
+        unlimited_bound=unlimited_bound,
         budget=None if budget is None else float(budget),
         budgeted_probability=budgeted,
+        budgeted_bound=budgeted_bound,
         cost_unit=unit,
         product_states=chain.n_states,
         mdp_states=mdp_states,
@@ -87,10 +91,10 @@ def online_attack_value(
 
 def _budgeted_value(
     chain: ChoiceProduct, budget: float, deadline: Deadline | None = None
-) -> tuple[float, float, int, int]:
+) -> tuple[float, float, float, int, int]:
     """The online attacker paying per altered reading within ``budget``: the optimum of the
-    MDP whose states carry the remaining budget in whole cost units. Returns ``(value, unit,
-    policy evaluations, MDP states)``."""
+    MDP whose states carry the remaining budget in whole cost units. Returns ``(value, its
+    proven upper bound, unit, policy evaluations, MDP states)``."""
     unit = cost_unit(chain.options.cost)
     if unit is None:
         raise ProblemError(
@@ -106,10 +110,15 @@ def _budgeted_value(
             field="budget",
         )
     owner, matrix, target, initial = budgeted_mdp(chain, _group_units(chain, unit), levels)
-    values, _, evaluations = max_reach(
-        owner, matrix, target, value=np.tile(chain.target_value, levels), deadline=deadline
+    value, bound, evaluations = max_reach_bounded(
+        owner,
+        matrix,
+        target,
+        initial,
+        value=np.tile(chain.target_value, levels),
+        deadline=deadline,
     )
-    return float(values[initial]), unit, evaluations, target.size
+    return value, bound, unit, evaluations, target.size
 
 
 def _group_units(chain: ChoiceProduct, unit: float) -> np.ndarray:

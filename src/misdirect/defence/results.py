@@ -23,9 +23,12 @@ class OnlineAttack:
     """The online attacker's value: unlimited, and with a per-step budget if one was asked."""
 
     probability: float  # the value asked for: budgeted if ``budget`` is set, else unlimited
-    unlimited_probability: float  # every allowed target at any cost: bounds the offline optimum
+    unlimited_probability: float  # every allowed target at any cost (policy iteration's value)
+    # a proven upper bound on it (hence on the offline optimum at every budget)
+    unlimited_bound: float
     budget: float | None  # paid per altered reading along the run; None: not asked
     budgeted_probability: float | None
+    budgeted_bound: float | None  # a proven upper bound on the budgeted value
     cost_unit: float | None  # the common unit the budgeted MDP counts costs in
     product_states: int
     mdp_states: int  # of the MDP actually solved (product states x budget levels)
@@ -38,8 +41,10 @@ class OnlineAttack:
         return {
             "value": self.probability,
             "unlimited_value": self.unlimited_probability,
+            "unlimited_bound": self.unlimited_bound,
             "budget": self.budget,
             "budgeted_value": self.budgeted_probability,
+            "budgeted_bound": self.budgeted_bound,
             "cost_unit": self.cost_unit,
             "product_states": self.product_states,
             "mdp_states": self.mdp_states,

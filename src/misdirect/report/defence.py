@@ -108,7 +108,7 @@ def curve_figure(result: AuditResult):
         )
     if result.online is not None:
         ax.axhline(
-            result.online.unlimited_probability,
+            result.online.unlimited_bound,
             color="C2",
             linestyle="--",
             label="online attacker, unlimited (upper bound)",
@@ -327,7 +327,8 @@ def report_text(result: AuditResult) -> str:
     else:
         lines.append(
             "* unlimited (every allowed target, any cost): "
-            f"**{online.unlimited_probability:.9f}** — an upper bound of the offline optimum "
+            f"**{online.unlimited_probability:.9f}** (proven at most "
+            f"{online.unlimited_bound:.9f}) — an upper bound of the offline optimum "
             f"at every budget (offline at B: {result.probability:.9f});"
         )
         if online.budgeted_probability is not None:
