@@ -37,11 +37,24 @@ def max_reach(
     evaluations)``; raises :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once
     ``deadline`` has passed (checked before every round).
     """
+    mdp, values, policy = _optimised(owner, transitions, target, blocks, value, deadline)
+    return values, policy, mdp.evaluations
+
+
+def _optimised(
+    owner: np.ndarray,
+    transitions: sp.csr_matrix,
+    target: np.ndarray,
+    blocks: np.ndarray | None,
+    value: np.ndarray | None,
+    deadline: Deadline | None,
+) -> tuple[MaxReachability, np.ndarray, np.ndarray]:
+    """The MDP, and policy iteration's values and policy on it."""
     mdp = MaxReachability(owner, transitions, target, blocks=blocks, value=value)
     values, policy = mdp.optimise(
         mdp.first_choices(), max_rounds=MAX_POLICY_ROUNDS, deadline=deadline
     )
-    return values, policy, mdp.evaluations
+    return mdp, values, policy
 
 
 def max_reach_bounded(
@@ -59,10 +72,7 @@ def max_reach_bounded(
     pre-fixed point of the Bellman operator checked with its rounding
     (:meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proven_bound`), what
     a claim "the online attacker gets at most this" needs."""
-    mdp = MaxReachability(owner, transitions, target, blocks=blocks, value=value)
-    values, policy = mdp.optimise(
-        mdp.first_choices(), max_rounds=MAX_POLICY_ROUNDS, deadline=deadline
-    )
+    mdp, values, policy = _optimised(owner, transitions, target, blocks, value, deadline)
     bound = mdp.proven_bound(values, policy, state, deadline=deadline)
     return float(values[state]), max(bound, float(values[state])), mdp.evaluations
 
