@@ -465,12 +465,15 @@ class AutoSolver:
         proven = {b for b, s in zip(small, first, strict=True) if _certified(s)}
         rest = [b for b in ordered if b not in proven]
         certified = [s for s in first if _certified(s)]
+        # no seeds: the enumeration did not search these budgets, and its last answer as a
+        # seed for each would read as "searched, and nothing better found" (the curve levelled
+        # off) and send the largest budget first; the search starts from ``below`` instead
         later = self._solve(
             facts.problem,
             rest,
             progress,
             deadline,
-            [first[-1].alteration] * len(rest),
+            None,
             may_split=proven.issuperset(b for b in rest if b in small),
             below=max(certified, key=lambda s: s.budget, default=None),
         )

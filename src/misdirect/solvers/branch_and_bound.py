@@ -118,8 +118,9 @@ class BranchAndBoundSolver:
     ) -> list[Solution]:
         """``seeds`` (one per budget, optional): known good alterations, e.g. a MILP's
         incumbents, that the search starts from. ``below``: a certified answer of a smaller
-        budget (an earlier stage's); where no seed beats it, the curve may have levelled off
-        there, and the largest budget is solved first (see the module docstring)."""
+        budget (an earlier stage's), the first incumbent; where no seed beats it, the curve
+        may have levelled off there, and the largest budget is solved first (see the module
+        docstring)."""
         deadline = deadline or Deadline(self.options.time_limit)
         instance = prepare(problem, max(budgets))
         relax = PerStateRelaxation(problem, instance.space, instance.chain)
@@ -133,6 +134,10 @@ class BranchAndBoundSolver:
             or self.options.pool is not None,
             max_budget=max(budgets),
         )
+        if below is not None and below.alteration is not None:
+            picks = relax.picks_of(below.alteration)  # feasible at every larger budget
+            if picks is not None:
+                curve.incumbent = (picks, relax.value_of(picks))
         if self.options.pool is not None:
             curve.shared_problem = self.options.pool.share(problem)
         pending = sorted(range(len(budgets)), key=lambda j: budgets[j])
