@@ -264,3 +264,40 @@ def test_a_seed_above_the_level_keeps_the_budgets_in_order(monkeypatch):
     answers = solver.solve(problem, [3.0, 4.0, 5.0], seeds=[richer.alteration] * 3, below=below)
     assert searched == [3.0, 4.0, 5.0]
     assert [round(a.solver_probability, 6) for a in answers] == [0.862442, 0.863622, 0.863622]
+
+
+@pytest.mark.parametrize("costs", ["uniform", "random"])
+def test_a_segment_root_bound_with_every_option_affordable_bounds_every_budget(costs):
+    """Every option costs 1 (``uniform``): the segment search's root at budget 1 offers every
+    option and charges nothing, so its bound holds at every budget, budget 5's exhaustive
+    optimum included, and the curve keeps it for the budgets it has not certified. With costs
+    of 1..3 (``random``) budget 1 leaves options out, and the curve keeps nothing."""
+    from misdirect.core.attack import prepare
+    from misdirect.scenarios import sensor_grid
+    from misdirect.solvers.branch_and_bound import _Curve
+    from misdirect.solvers.deadline import Deadline
+    from misdirect.solvers.engines.per_state import PerStateRelaxation
+    from misdirect.solvers.engines.segment_relaxation import segment_relaxation
+    from misdirect.solvers.engines.segment_search import SegmentSearch
+    from misdirect.solvers.status import Status
+
+    problem = sensor_grid(12, 6, costs=costs)
+    seg = segment_relaxation(problem, 5.0)
+    search = SegmentSearch(seg, 1.0)
+    search.run(Deadline(60))
+    assert search.root_bound is not None
+    (top,) = ExhaustiveSolver().solve(problem, [5.0])
+    instance = prepare(problem, 5.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    curve = _Curve(instance, relax, policy=np.zeros(0, dtype=np.int64))
+    curve.note_segment_root(search.root_bound, 1.0)
+    open_answer = dataclasses.replace(top, status=Status.TIME_LIMIT, upper_bound=1.0)
+    if costs == "uniform":
+        assert top.solver_probability - 1e-12 <= search.root_bound < 1.0
+        assert curve.every_budget_bound == search.root_bound
+        assert curve.bounded(open_answer).upper_bound == max(
+            search.root_bound, top.solver_probability
+        )
+    else:
+        assert curve.every_budget_bound == np.inf
+        assert curve.bounded(open_answer).upper_bound == 1.0

@@ -73,6 +73,32 @@ class _Curve:
     # once the per-state search fails a budget the segment search had to take, it fails the
     # larger ones too (its bound only loosens with the budget): they go to the segment search
     per_state_failed: bool = False
+    # a segment search's root bound that holds at every budget (see ``note_segment_root``)
+    every_budget_bound: float = np.inf
+
+    def note_segment_root(self, bound: float | None, budget: float) -> None:
+        """Keep a segment search's root bound if it holds at every budget: the segment MDP at
+        its root offers every option it can afford, and nothing else depends on the budget
+        (the search charges nothing), so where every option fitted ``budget`` every alteration
+        of any budget is one of its schedulers."""
+        if bound is None:
+            return
+        cap = self.instance.space.scale.cap(budget)
+        if all(float(c.costs.max(initial=0.0)) <= cap for c in self.instance.space.choices):
+            self.every_budget_bound = min(self.every_budget_bound, float(bound))
+
+    def bounded(self, answer: Solution) -> Solution:
+        """``answer`` with its bound lowered to ``every_budget_bound`` where that is tighter
+        (a budget the time limit cut before its own search, say, keeps a bound below 1)."""
+        if (
+            answer.status == Status.OPTIMAL
+            or answer.upper_bound is None
+            or answer.solver_probability is None
+            or not answer.upper_bound > self.every_budget_bound
+        ):
+            return answer
+        bound = max(self.every_budget_bound, answer.solver_probability)
+        return replace(answer, upper_bound=bound)
 
 
 @dataclass(frozen=True)
@@ -224,7 +250,7 @@ class BranchAndBoundSolver:
             curve.per_state_failed = True
             answer = self._segment_phase(curve, search, answer, step, deadline, progress)
         curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
-        return answer
+        return curve.bounded(answer)
 
     def _segment_phase(
         self,
@@ -273,6 +299,7 @@ class BranchAndBoundSolver:
             workers=self.workers(),
         )
         search.incumbent.offer(second.best_picks, second.best_value)  # carried to the next budget
+        curve.note_segment_root(second.root_bound, step.budget)
         claimed = answer.solver_probability
         assert claimed is not None, "the per-state search always has an incumbent"
         value = max(second.best_value, claimed)
