@@ -634,8 +634,8 @@ def _round_up(a: float, b: float) -> float:
 
 
 def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | None:
-    """The segment relaxation of ``problem`` for budgets up to ``budget``; None when the choice
-    product has an end component among its live states (policy iteration needs none)."""
+    """The segment relaxation of ``problem`` for budgets up to ``budget`` (on chains with end
+    components too: their states get stop rows, and nothing is charged)."""
     instance = prepare(problem, budget)
     relax = PerStateRelaxation(problem, instance.space, instance.chain)
     return SegmentRelaxation(instance, relax)
