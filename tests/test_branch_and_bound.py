@@ -20,6 +20,7 @@ from misdirect.scenarios.grid import ACTIONS, BLANK, E_TYPE, N_TYPE, OBSERVATION
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.exhaustive import ExhaustiveSolver
+from searches import count_searches
 
 SPEC_N5 = [0.084957, 0.719924, 0.860130, 0.862442, 0.863622, 0.863622]
 
@@ -180,26 +181,13 @@ def test_auto_enumerates_a_large_trap_grid():
         assert point.cost <= point.budget + 1e-9
 
 
-def _count_searches(monkeypatch) -> list[float]:
-    """The budgets branch-and-bound searches, in order, from now on."""
-    searched: list[float] = []
-    solve_budget = BranchAndBoundSolver._solve_budget
-
-    def counted(self, curve, step, deadline, progress):
-        searched.append(step.budget)
-        return solve_budget(self, curve, step, deadline, progress)
-
-    monkeypatch.setattr(BranchAndBoundSolver, "_solve_budget", counted)
-    return searched
-
-
 def test_a_levelled_curve_is_proven_by_its_largest_budget(monkeypatch):
     """The paper's grid levels off at 0.863622 from budget 4 (the paper's Table: four sensors
     altered are all it takes). Once budgets 4 and 5 are certified at that value, the largest
     budget is solved next (7: the front door clamps 8 to what the costliest alteration needs)
     and proves 6 without a search of its own; the curve is the paper's and exhaustive
     search's."""
-    searched = _count_searches(monkeypatch)
+    searched = count_searches(monkeypatch)
     budgets = list(range(9))
     result = solve(paper_grid(5), budgets=budgets, method="branch-and-bound")
     assert searched == [0, 1, 2, 3, 4, 5, 7]
@@ -239,7 +227,7 @@ def test_an_earlier_stage_level_sends_the_largest_budget_first(monkeypatch):
     problem = paper_grid(5)
     solver = BranchAndBoundSolver()
     (below,) = solver.solve(problem, [4.0])
-    searched = _count_searches(monkeypatch)
+    searched = count_searches(monkeypatch)
     budgets = [5.0, 6.0, 7.0]
     answers = solver.solve(problem, budgets, seeds=[below.alteration] * 3, below=below)
     assert searched == [7.0]
@@ -260,7 +248,7 @@ def test_a_seed_above_the_level_keeps_the_budgets_in_order(monkeypatch):
     solver = BranchAndBoundSolver()
     below, richer = solver.solve(problem, [2.0, 4.0])
     assert decoy_probability(problem, richer.alteration) > below.solver_probability + 1e-3
-    searched = _count_searches(monkeypatch)
+    searched = count_searches(monkeypatch)
     answers = solver.solve(problem, [3.0, 4.0, 5.0], seeds=[richer.alteration] * 3, below=below)
     assert searched == [3.0, 4.0, 5.0]
     assert [round(a.solver_probability, 6) for a in answers] == [0.862442, 0.863622, 0.863622]

@@ -25,6 +25,7 @@ from misdirect.solvers.base import Solution
 from misdirect.solvers.incremental import NotApplicableError
 from misdirect.solvers.milp import compact
 from misdirect.solvers.options import SolveOptions
+from searches import count_searches
 
 runner = CliRunner()
 BUDGETS = [0.0, 1.0, 2.0, 3.0, 4.0]
@@ -449,7 +450,6 @@ def test_the_budgets_a_split_curve_searches_go_smallest_first(monkeypatch):
     since)."""
     from misdirect.core.alterations import alteration_space
     from misdirect.solvers import auto
-    from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 
     problem = paper_grid(7)
     budgets = [0.0, 1.0, 2.0, 3.0, 4.0]
@@ -457,14 +457,7 @@ def test_the_budgets_a_split_curve_searches_go_smallest_first(monkeypatch):
     monkeypatch.setattr(schedule, "INCREMENTAL_SURE", at_one)
     monkeypatch.setattr(auto, "INCREMENTAL_LIMIT", at_one)
     monkeypatch.setattr(auto, "ENUMERATION_LIMIT", 0)
-    searched: list[float] = []
-    solve_budget = BranchAndBoundSolver._solve_budget
-
-    def counted(self, curve, step, deadline, progress):
-        searched.append(step.budget)
-        return solve_budget(self, curve, step, deadline, progress)
-
-    monkeypatch.setattr(BranchAndBoundSolver, "_solve_budget", counted)
+    searched = count_searches(monkeypatch)
     result = solve(problem, budgets=budgets)
     oracle = solve(problem, method="exhaustive", budgets=budgets)
     values = [p.probability for p in oracle.curve]
