@@ -126,3 +126,16 @@ def test_a_turn_back_grid_root_bound_lies_above_its_own_policy_certified():
     bound = seg.node({}, cap, -np.inf)[0].bound
     assert Fraction(bound) >= Fraction(certified.value) - Fraction(certified.error)
     assert bound <= certified.value + 1e-9
+
+
+def test_the_potential_is_computed_within_the_deadline():
+    """The first node of a search computes the potential (a policy iteration over the whole
+    choice product): past its deadline it stops, and the next node computes it again."""
+    from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
+
+    seg = segment_relaxation(sensor_grid(12, 6), 2.0)
+    with pytest.raises(DeadlineExpiredError):
+        seg.bound.potential(Deadline(0.0))
+    assert seg.bound.potential() is not None  # not kept as "none": computed again
+    cap = seg.space.scale.cap(2.0)
+    assert seg.node({}, cap, -np.inf)[0].bound < 1.0

@@ -112,17 +112,19 @@ class SegmentLagrangian:
         self._potential_lock = threading.Lock()
         self._potential: tuple[np.ndarray | None] | None = None  # computed once, on first use
 
-    def potential(self) -> np.ndarray | None:
+    def potential(self, deadline: Deadline | None = None) -> np.ndarray | None:
         """Per live state, a proven ``N(s) ≥ STEP_MARGIN + P_g N`` over every group ``g`` of
         the choice product (restricted to the live states): every segment MDP built on it
         falls along it at every step (:class:`SegmentMdp`), which is what proves its bounds.
-        None with end components (runs may last for ever) or where it cannot be proven."""
+        None with end components (runs may last for ever) or where it cannot be proven.
+        Raises :class:`DeadlineExpiredError` once ``deadline`` has passed (computed again on
+        the next call)."""
         with self._potential_lock:
             if self._potential is None:
-                self._potential = (self._proven_potential(),)
+                self._potential = (self._proven_potential(deadline),)
             return self._potential[0]
 
-    def _proven_potential(self) -> np.ndarray | None:
+    def _proven_potential(self, deadline: Deadline | None) -> np.ndarray | None:
         if self.cycling.any() or not self.live_states.size:
             return None
         chain = self.chain
@@ -131,7 +133,7 @@ class SegmentLagrangian:
         mdp = TransientPolicyIteration(
             self.live_index[chain.group_state[groups]], rows, self.live_states.size
         )
-        return mdp.proven_potential()
+        return mdp.proven_potential(deadline)
 
     def lagrangian_on(
         self,
@@ -241,11 +243,14 @@ class SegmentMdp:
         layers: Sequence[tuple[int, np.ndarray]],
         charges: Sequence[float],
         keys: Sequence[int] | None = None,
+        deadline: Deadline | None = None,
     ):
         """``default_group``: per product state, its group in the default layer (-1 if not
         live); ``layers``: list of (observation, group per product state of it);
         ``charges``: per layer, the charge per unit of λ; ``keys``: per layer, a number naming
-        it across nodes (for :meth:`entry_choices` and :meth:`policy_from`)."""
+        it across nodes (for :meth:`entry_choices` and :meth:`policy_from`); ``deadline``:
+        the first MDP of a search computes its owner's potential, a policy iteration that
+        raises :class:`DeadlineExpiredError` once it has passed."""
         chain, live, state_obs = owner.chain, owner.live, owner.state_obs
         live_states, live_index, rank = owner.live_states, owner.live_index, owner.rank_in_region
         n_live = live_states.size
@@ -313,7 +318,7 @@ class SegmentMdp:
         self.top = float(target.max(initial=0.0))
         # a proven potential, falling by 1 along every row (SegmentLagrangian.potential):
         # twice N in the layers, once more at the entries (whose choice is a step of its own)
-        potential = owner.potential()
+        potential = owner.potential(deadline)
         self.potential: np.ndarray | None = None
         if potential is not None:
             twice = 2 * potential
@@ -571,6 +576,7 @@ class SegmentRelaxation:
             default_group,
             [(self.space.choices[i].observation, g) for i, _, g in layers],
             [1.0] * len(layers),
+            deadline=deadline,
         )
         observations = sorted({i for i, _, _ in layers})
         values = mdp.entries([self.space.choices[i].observation for i in observations], deadline)
@@ -608,6 +614,7 @@ class SegmentRelaxation:
             [(self.space.choices[i].observation, g) for i, _, g in layers],
             charges,
             keys=[self.relax.first_option[i] + k for i, k, _ in layers],
+            deadline=deadline,
         )
         result, policy, lu = self.bound.lagrangian_on(
             mdp,
