@@ -139,3 +139,28 @@ def test_the_potential_is_computed_within_the_deadline():
     assert seg.bound.potential() is not None  # not kept as "none": computed again
     cap = seg.space.scale.cap(2.0)
     assert seg.node({}, cap, -np.inf)[0].bound < 1.0
+
+
+def test_defects_are_charged_where_runs_meet_them():
+    """Start A (value 1e-4) moves to B (value about 1) with 1e-7 a step, and stays 999 steps
+    in 1000. B's one-ulp defect charged at each of A's thousand steps is 2.6e-13 of A's value;
+    collected where runs meet it (A's runs reach B one time in 10^4), much less. Exact values
+    by hand: v(B) = 0.0007 / (1 - 0.9993), v(A) = 1e-7 v(B) / (1 - 0.999)."""
+    rows = [
+        (0, 0.0, {0: 0.999, 1: 1e-7}),
+        (0, 0.0, {0: 0.5}),
+        (1, 0.0007, {1: 0.9993}),
+        (1, 0.0, {0: 0.3}),
+    ]
+    mdp, reward = _transient(rows, 2)
+    potential = _potential(mdp)
+    values, policy, lu, optimal = mdp.optimise(reward)
+    assert optimal and policy.tolist() == [0, 2]
+    v_b = Fraction(0.0007) / (1 - Fraction(0.9993))
+    v_a = Fraction(1e-7) * v_b / (1 - Fraction(0.999))
+    charged_everywhere = mdp.proven_bound(reward, values, 0, potential)
+    where_met = mdp.proven_bound(reward, values, 0, potential, policy, lu)
+    assert Fraction(charged_everywhere) >= v_a
+    assert Fraction(where_met) >= v_a
+    assert (where_met - float(v_a)) / float(v_a) <= 1e-14
+    assert where_met < charged_everywhere

@@ -465,15 +465,17 @@ class AutoSolver:
         proven = {b for b, s in zip(small, first, strict=True) if _certified(s)}
         rest = [b for b in ordered if b not in proven]
         certified = [s for s in first if _certified(s)]
-        # no seeds: the enumeration did not search these budgets, and its last answer as a
-        # seed for each would read as "searched, and nothing better found" (the curve levelled
-        # off) and send the largest budget first; the search starts from ``below`` instead
+        # the enumeration did not search these budgets: its last answer as a seed for each
+        # reads as "searched, nothing better found" (the curve levelled off), which sends the
+        # largest budget first; so it is one only where the enumeration's own last two
+        # certified budgets are level (else the search starts from ``below``)
+        seeds = [first[-1].alteration] * len(rest) if _levelled(certified) else None
         later = self._solve(
             facts.problem,
             rest,
             progress,
             deadline,
-            None,
+            seeds,
             may_split=proven.issuperset(b for b in rest if b in small),
             below=max(certified, key=lambda s: s.budget, default=None),
         )
@@ -518,6 +520,19 @@ class AutoSolver:
         for j, second in zip(unfinished, later, strict=True):
             solutions[j] = _better(exact, solutions[j], second, why)
         return solutions
+
+
+def _levelled(certified: Sequence[Solution]) -> bool:
+    """Whether the last two of these certified answers (by budget) have the same value, up to
+    near-ties: the curve has levelled off there."""
+    if len(certified) < 2:
+        return False
+    low, high = (s.solver_probability for s in sorted(certified, key=lambda s: s.budget)[-2:])
+    return (
+        low is not None
+        and high is not None
+        and not tolerance.better(high, low, rel=tolerance.NEAR_TIE)
+    )
 
 
 def _certified(solution: Solution) -> bool:

@@ -215,7 +215,7 @@ class SegmentLagrangian:
         bound = float(known_bound)  # proven before; the multipliers' values are rounded
         if best_values is not None:
             assert best_policy is not None  # it comes with the values
-            g = mdp.proven_value(best[1], best_values, best_policy, deadline)
+            g = mdp.proven_value(best[1], best_values, best_policy, deadline, best_lu)
             bound = min(bound, _round_up(best[1] * remaining, g))
         result = LagrangeResult(bound, best[1], len(lines), mdp.solver.evaluations)
         return result, best_policy, best_lu
@@ -371,6 +371,7 @@ class SegmentMdp:
         values: np.ndarray,
         policy: np.ndarray,
         deadline: Deadline | None = None,
+        lu: LinearSolver | None = None,
     ) -> float:
         """A proven upper bound on ``G(λ)``, this MDP's optimum at the start with every
         charge at ``λ``, from policy iteration's ``values`` and ``policy`` (inf if none is
@@ -386,7 +387,7 @@ class SegmentMdp:
         charged = np.nextafter(lam * self.charge, 0.0) if lam > 0 else np.zeros_like(self.charge)
         reward = np.nextafter(self.reward_up - charged, np.inf)
         if self.potential is not None:
-            return self.solver.proven_bound(reward, values, self.start, self.potential)
+            return self.solver.proven_bound(reward, values, self.start, self.potential, policy, lu)
         if (charged > 0).any() or self.top <= 0:
             return np.inf
         return self._reachability().proven_bound(
