@@ -89,6 +89,12 @@ def slack(*values: float, rel: float = CERTIFY) -> float:
     return rel * max((abs(float(v)) for v in values if math.isfinite(v)), default=0.0)
 
 
+def round_up(value: float) -> float:
+    """``value``, the rounded result of one operation, raised past its rounding: at least
+    the exact result (for a proven upper bound)."""
+    return float(np.nextafter(value + abs(value) * UNIT_ROUNDOFF, np.inf))
+
+
 def tied(a: float, b: float, rel: float = TIE) -> bool:
     """Whether ``a`` and ``b`` are the same number up to rounding (relative ``rel``)."""
     return bool(abs(a - b) <= slack(a, b, rel=rel))

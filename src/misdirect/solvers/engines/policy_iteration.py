@@ -48,7 +48,6 @@ PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one
 # what a proven potential falls by at least, per step of any policy: over 1, so that twice it
 # plus one more step's mass (a row's doubles may sum to a little over 1) still falls by 1
 STEP_MARGIN = 1.0 + 2.0**-30
-UNIT = tolerance.UNIT_ROUNDOFF
 
 
 class LinearSolver(Protocol):
@@ -671,11 +670,6 @@ def _raise(
     return np.where(capped, top, hi), np.where(capped, 0.0, lo)
 
 
-def _round_up(value: float) -> float:
-    """``value``, the rounded result of one addition, raised past its rounding."""
-    return float(np.nextafter(value + abs(value) * tolerance.UNIT_ROUNDOFF, np.inf))
-
-
 def _solved_or_none(
     block: sp.csr_matrix, rhs: np.ndarray, labels: np.ndarray | None
 ) -> np.ndarray | None:
@@ -822,7 +816,8 @@ class TransientPolicyIteration:
             return np.inf
         defects = self.row_defects(reward, values)
         delta = max(float(defects.max(initial=0.0)), 0.0)
-        bound = _round_up(float(values[state]) + delta * float(potential[state]) * (1 + 4 * UNIT))
+        raised = delta * float(potential[state]) * (1 + 4 * tolerance.UNIT_ROUNDOFF)
+        bound = tolerance.round_up(float(values[state]) + raised)
         if policy is None or lu is None or not delta > 0 or not np.isfinite(delta):
             return bound
         d = np.maximum(defects, 0.0)
@@ -830,8 +825,9 @@ class TransientPolicyIteration:
         if not (optimal and np.isfinite(w).all()):
             return bound
         w_delta = self.defect(d, w)
-        raise_by = float(w[state]) + w_delta * float(potential[state]) * (1 + 4 * UNIT)
-        return min(bound, _round_up(float(values[state]) + _round_up(raise_by)))
+        collected = w_delta * float(potential[state]) * (1 + 4 * tolerance.UNIT_ROUNDOFF)
+        raise_by = tolerance.round_up(float(w[state]) + collected)
+        return min(bound, tolerance.round_up(float(values[state]) + raise_by))
 
     def proven_potential(self, deadline: Deadline | None = None) -> np.ndarray | None:
         """A proven ``W`` with ``W(x) ≥ STEP_MARGIN + P_a W`` for every row ``a`` of every

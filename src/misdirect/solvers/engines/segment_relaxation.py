@@ -216,7 +216,9 @@ class SegmentLagrangian:
         if best_values is not None:
             assert best_policy is not None  # it comes with the values
             g = mdp.proven_value(best[1], best_values, best_policy, deadline, best_lu)
-            bound = min(bound, _round_up(best[1] * remaining, g))
+            # λ r rounded up (one product), then the sum
+            charged = float(np.nextafter(best[1] * remaining, np.inf)) if best[1] > 0 else 0.0
+            bound = min(bound, tolerance.round_up(charged + g))
         result = LagrangeResult(bound, best[1], len(lines), mdp.solver.evaluations)
         return result, best_policy, best_lu
 
@@ -309,11 +311,8 @@ class SegmentMdp:
             shape=(n_moving + n_entries, n),
         )
         self.reward_const = np.concatenate([to_target, np.zeros(n_entries)])
-        # the same raised past its rounding (a sum of products per row): what proofs use
-        terms = np.bincount(coo.row, minlength=groups.size)
-        raised = to_target * (1 + 2.02 * (terms + 2) * tolerance.UNIT_ROUNDOFF) + np.where(
-            to_target > 0, (terms + 1) * tolerance.SMALLEST, 0.0
-        )
+        # the same raised past its rounding: what proofs use
+        raised = _raised(to_target, np.bincount(coo.row, minlength=groups.size))
         self.reward_up = np.concatenate([raised, np.zeros(n_entries)])
         self.top = float(target.max(initial=0.0))
         # a proven potential, falling by 1 along every row (SegmentLagrangian.potential):
@@ -481,7 +480,7 @@ class SegmentMdp:
                 result[j] = np.inf
                 continue
             terms = np.bincount(coo.row[hit], minlength=self.matrix.shape[0])
-            raised = reward * (1 + 2.02 * (terms + 2) * tolerance.UNIT_ROUNDOFF)
+            raised = _raised(reward, terms)
             bound = self.solver.proven_bound(raised, values, self.start, self.potential)
             result[j] = np.nextafter(bound + first, np.inf)
         return result
@@ -634,11 +633,11 @@ class SegmentRelaxation:
         return result, usage, layers, choices
 
 
-def _round_up(a: float, b: float) -> float:
-    """``a + b`` in exact arithmetic, or a little above (``a``: a rounded product)."""
-    a = float(np.nextafter(a, np.inf)) if a > 0 else a
-    total = a + b
-    return float(np.nextafter(total + abs(total) * tolerance.UNIT_ROUNDOFF, np.inf))
+def _raised(sums: np.ndarray, terms: np.ndarray) -> np.ndarray:
+    """Row sums of ``terms`` products each, computed in doubles, raised past their rounding
+    (Higham's bound, doubled, plus a subnormal per product that may underflow)."""
+    relative = sums * (1 + 2.02 * (terms + 2) * tolerance.UNIT_ROUNDOFF)
+    return np.where(sums > 0, relative + (terms + 1) * tolerance.SMALLEST, relative)
 
 
 def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | None:
