@@ -166,3 +166,32 @@ def test_defects_are_charged_where_runs_meet_them():
     assert Fraction(where_met) >= v_a
     assert (where_met - float(v_a)) / float(v_a) <= 1e-14
     assert where_met < charged_everywhere
+
+
+def test_collecting_defects_is_spared_where_it_cannot_decide_a_prune():
+    """The collected bound costs a policy iteration; a search only needs it where it could
+    prune the node: the first bound above the threshold, the values at or below it."""
+    rows = [
+        (0, 0.0, {0: 0.999, 1: 1e-7}),
+        (0, 0.0, {0: 0.5}),
+        (1, 0.0007, {1: 0.9993}),
+        (1, 0.0, {0: 0.3}),
+    ]
+    mdp, reward = _transient(rows, 2)
+    potential = _potential(mdp)
+    values, policy, lu, _ = mdp.optimise(reward)
+    v_a = Fraction(0.0007) / (1 - Fraction(0.9993)) * Fraction(1e-7) / (1 - Fraction(0.999))
+    first = mdp.proven_bound(reward, values, 0, potential)
+    collected = mdp.proven_bound(reward, values, 0, potential, policy, lu)
+    assert collected < first
+    between = (float(values[0]) + collected) / 2  # above the values, below both bounds
+    assert values[0] < between < collected
+    for prune_at, expected in [
+        (float(values[0]) / 2, first),  # the values lie above it: the node stays open
+        (np.nextafter(first, np.inf), first),  # pruned with the first bound already
+        (collected, collected),  # only the collected bound prunes it
+    ]:
+        bound = mdp.proven_bound(reward, values, 0, potential, policy, lu, prune_at)
+        assert bound == expected
+        assert Fraction(bound) >= v_a
+    assert mdp.proven_bound(reward, values, 0, potential, policy, lu, between) == collected

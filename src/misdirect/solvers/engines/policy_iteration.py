@@ -791,6 +791,7 @@ class TransientPolicyIteration:
         potential: np.ndarray,
         policy: np.ndarray | None = None,
         lu: LinearSolver | None = None,
+        prune_at: float | None = None,
     ) -> float:
         """A proven upper bound at ``state`` on the optimum (over every policy; this MDP has no
         end components) for ``reward``, from approximate ``values`` (policy iteration's).
@@ -809,7 +810,10 @@ class TransientPolicyIteration:
         ``values`` are of) and ``lu`` (its factorisation), the defects are collected where
         runs meet them instead: ``w``, the most any policy collects of the row defects ``d``
         (policy iteration from ``policy``), then ``u = v + w + δ_w W`` with ``δ_w`` the largest
-        defect of ``w`` for ``d`` (a few ulps of numbers of the size of ``d``)."""
+        defect of ``w`` for ``d`` (a few ulps of numbers of the size of ``d``). That costs a
+        policy iteration, so given ``prune_at`` (a search's pruning threshold) it is skipped
+        where it cannot change the decision: where the first bound is at most ``prune_at``
+        already, or the values alone lie above it (the collected bound lies above them)."""
         if not values.size:
             return 0.0
         if not (np.isfinite(values).all() and np.isfinite(potential[state])):
@@ -820,6 +824,8 @@ class TransientPolicyIteration:
         bound = tolerance.round_up(float(values[state]) + raised)
         if policy is None or lu is None or not delta > 0 or not np.isfinite(delta):
             return bound
+        if prune_at is not None and not float(values[state]) <= prune_at < bound:
+            return bound  # pruned as it is, or not even at the values themselves
         d = np.maximum(defects, 0.0)
         w, _, _, optimal = self.optimise(d, policy, base=lu)
         if not (optimal and np.isfinite(w).all()):

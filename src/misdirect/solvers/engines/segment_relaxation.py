@@ -215,9 +215,10 @@ class SegmentLagrangian:
         bound = float(known_bound)  # proven before; the multipliers' values are rounded
         if best_values is not None:
             assert best_policy is not None  # it comes with the values
-            g = mdp.proven_value(best[1], best_values, best_policy, deadline, best_lu)
             # λ r rounded up (one product), then the sum
             charged = float(np.nextafter(best[1] * remaining, np.inf)) if best[1] > 0 else 0.0
+            prune_at = stop_below - charged if np.isfinite(stop_below) else None
+            g = mdp.proven_value(best[1], best_values, best_policy, deadline, best_lu, prune_at)
             bound = min(bound, tolerance.round_up(charged + g))
         result = LagrangeResult(bound, best[1], len(lines), mdp.solver.evaluations)
         return result, best_policy, best_lu
@@ -371,11 +372,14 @@ class SegmentMdp:
         policy: np.ndarray,
         deadline: Deadline | None = None,
         lu: LinearSolver | None = None,
+        prune_at: float | None = None,
     ) -> float:
         """A proven upper bound on ``G(λ)``, this MDP's optimum at the start with every
         charge at ``λ``, from policy iteration's ``values`` and ``policy`` (inf if none is
-        found). Rewards are read raised past their rounding, charges lowered: the bound is
-        then on an MDP that pays at least as much as the exact one.
+        found); ``prune_at``: the search's threshold for it, which spares a refinement that
+        cannot change the decision (:meth:`TransientPolicyIteration.proven_bound`). Rewards
+        are read raised past their rounding, charges lowered: the bound is then on an MDP
+        that pays at least as much as the exact one.
 
         Without end components, by the potential (:meth:`TransientPolicyIteration.
         proven_bound`: one pass over the rows). With them nothing is charged, and the MDP is
@@ -386,7 +390,9 @@ class SegmentMdp:
         charged = np.nextafter(lam * self.charge, 0.0) if lam > 0 else np.zeros_like(self.charge)
         reward = np.nextafter(self.reward_up - charged, np.inf)
         if self.potential is not None:
-            return self.solver.proven_bound(reward, values, self.start, self.potential, policy, lu)
+            return self.solver.proven_bound(
+                reward, values, self.start, self.potential, policy, lu, prune_at
+            )
         if (charged > 0).any() or self.top <= 0:
             return np.inf
         return self._reachability().proven_bound(
