@@ -227,3 +227,35 @@ def test_the_sweep_command_prints_a_result_document_and_resumes(tmp_path):
     assert str(out / "results.csv") in document["written"]
     again = checked(runner.invoke(app, ["sweep", str(spec), "-o", str(out), "--json"]).stdout)
     assert (again["rows"], again["computed"], again["skipped"]) == (6, 0, 6)
+
+
+def test_open_subtrees_travel_with_their_parents_entry_choices():
+    """A task's policy iterations start where one process's would (the parent's entry
+    choices), so that it branches as one process does: without them its tree grew by 80 %."""
+    problem, budget = CASES[-1]
+    seg = _relaxation(problem, budget)
+    search = SegmentSearch(seg, budget)
+    search.run(max_nodes=2)
+    handed = search.open_nodes()
+    assert any(warm for *_, warm in handed)
+    again = SegmentSearch(seg, budget, roots=handed)
+    kept = {e.token: e.warm for e in again.heap}
+    assert sorted(map(id, kept.values())) == sorted(id(warm) for *_, warm in handed)
+
+
+def test_tasks_take_subtrees_in_batches_largest_bound_first():
+    from misdirect.solvers.engines.subtrees import BATCH
+
+    problem, budget = CASES[-1]
+    search = DistributedSegmentSearch(
+        _relaxation(problem, budget), budget, LocalPool(), problem=problem, max_budget=budget
+    )
+    v = search.incumbent.value
+    assert v > 0
+    search.queue = [({}, 1.0, b, False, None) for b in [v / 2, v + 0.1, v + 0.2, v + 0.3, v + 0.4]]
+    # five subtrees over two free slots: three, then one; the last is pruned (below v)
+    assert [node[2] for node in search._batch(2)] == [v + 0.4, v + 0.3, v + 0.2]
+    assert [node[2] for node in search._batch(2)] == [v + 0.1]
+    assert search._batch(2) == [] and not search.queue
+    search.queue = [({}, 1.0, v + 1, False, None)] * (3 * BATCH)
+    assert len(search._batch(1)) == BATCH

@@ -41,8 +41,10 @@ NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most
 BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
 SHARE_EVERY_S = 0.2  # a search with a shared incumbent reads and raises it at most this often
 
-# an open node handed between processes: picks, remaining budget, bound, bounded (its own)
-Subtree = tuple[dict[int, int], float, float, bool]
+# an open node handed between processes: picks, remaining budget, bound, bounded (its own),
+# its parent's entry choices (where its policy iteration starts: without them a task would
+# branch on other observations than one process does, and its tree grows)
+Subtree = tuple[dict[int, int], float, float, bool, dict[int, np.ndarray] | None]
 
 
 @dataclass(order=True)
@@ -116,8 +118,8 @@ class SegmentSearch(IncumbentSearch):
         first = self.counter + 1
         if roots is None:
             self._push_roots()
-        for fixed, remaining, bound, bounded in roots or ():
-            self._push(dict(fixed), remaining, bound, bounded)
+        for fixed, remaining, bound, bounded, warm in roots or ():
+            self._push(dict(fixed), remaining, bound, bounded, warm)
         self._root_tokens = set(range(first, self.counter + 1))
 
     def _push_roots(self) -> None:
@@ -176,7 +178,7 @@ class SegmentSearch(IncumbentSearch):
     def open_nodes(self) -> list[Subtree]:
         """The nodes still open (none is held by a worker once ``run`` returns)."""
         with self._lock:
-            return [(e.picks, e.remaining, e.bound, e.bounded) for e in self.heap]
+            return [(e.picks, e.remaining, e.bound, e.bounded, e.warm) for e in self.heap]
 
     def _share(self) -> None:
         """Raise the shared best to ours, and prune against it (at most every

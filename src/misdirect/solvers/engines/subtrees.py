@@ -39,6 +39,7 @@ from misdirect.solvers.status import Status
 FRONTIER_PER_WORKER = 4  # open subtrees per worker before the coordinator hands them out
 EXPAND_STEP = 8  # nodes the coordinator bounds between looks at its frontier
 TASK_SECONDS = 2.0  # a task's slice: what it leaves open comes back to the queue
+BATCH = 8  # subtrees a task takes at most
 CACHED = 2  # relaxations a worker keeps (one per problem being solved)
 
 _cache: dict[str, SegmentRelaxation] = {}
@@ -159,7 +160,7 @@ class DistributedSegmentSearch(IncumbentSearch):
         return self.local.root_bound
 
     def open_bound(self) -> float:
-        bounds = [b for _, _, b, _ in self.queue] + list(self._in_flight.values())
+        bounds = [node[2] for node in self.queue] + list(self._in_flight.values())
         # the coordinator's own heap: open until the frontier is handed out
         local = self.local.open_bound()
         return max(local, self.incumbent.proven_bound(max(bounds, default=-np.inf)))
@@ -197,8 +198,8 @@ class DistributedSegmentSearch(IncumbentSearch):
                 status = Status.TIME_LIMIT if deadline.expired() else Status.FEASIBLE
             self.queue.sort(key=lambda node: node[2])  # the largest bound last: popped first
             while not stop and self.queue and len(self._in_flight) < 2 * pool.size:
-                node = self.queue.pop()
-                if incumbent.prune(node[2]):
+                batch = self._batch(2 * pool.size - len(self._in_flight))
+                if not batch:
                     continue
                 left = deadline.remaining()
                 seconds = TASK_SECONDS if left is None else max(min(TASK_SECONDS, left), 0.05)
@@ -208,13 +209,13 @@ class DistributedSegmentSearch(IncumbentSearch):
                     self.key,
                     self.max_budget,
                     self.budget,
-                    [node],
+                    batch,
                     incumbent.picks,
                     shared,
                     seconds,
                     self.enumerate_at,
                 )
-                self._in_flight[ticket] = node[2]
+                self._in_flight[ticket] = batch[0][2]  # the largest bound of the batch
             if not self._in_flight:
                 if stop:
                     break
@@ -227,6 +228,19 @@ class DistributedSegmentSearch(IncumbentSearch):
             if tick is not None:
                 tick()
         return status
+
+    def _batch(self, slots: int) -> list[Subtree]:
+        """The next task's subtrees, largest bound first (pruned ones are dropped): the
+        queue shared out over the ``slots`` free, at most :data:`BATCH` each. A subtree is
+        often pruned within a few nodes, and a task costs a round trip and a search's set-up,
+        so one subtree a task left each worker idle for much of its time."""
+        size = min(BATCH, max(1, -(-len(self.queue) // max(slots, 1))))
+        batch: list[Subtree] = []
+        while self.queue and len(batch) < size:
+            node = self.queue.pop()
+            if not self.incumbent.prune(node[2]):
+                batch.append(node)
+        return batch
 
     def _take(self, result: SubtreeResult, shared: SharedBest) -> None:
         incumbent = self.incumbent
