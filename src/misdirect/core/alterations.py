@@ -17,10 +17,12 @@ from typing import NamedTuple, cast
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.core.checkpoint import checkpoint
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
 
 GROW_CHUNK = 8_000_000  # candidate extensions listed at once by altered_within (64 MB each)
+READBACK_CHUNK = 1_000_000  # alterations it reads back at once (a check of the deadline each)
 
 
 @dataclass(frozen=True)
@@ -164,6 +166,7 @@ class AlterationSpace:
             counts = cand_cost.size - first[growing]
             parents, cands = [], []
             for chunk in _chunks(counts, GROW_CHUNK):  # candidates listed a chunk at a time
+                checkpoint()  # millions of alterations take seconds: the caller's deadline
                 parent = np.repeat(growing[chunk], counts[chunk])
                 cand = np.repeat(first[growing[chunk]], counts[chunk]) + rank_in_group(
                     counts[chunk]
@@ -181,26 +184,39 @@ class AlterationSpace:
             levels.append((parent, cand))
             last, level_cost = cand, level_cost[parent] + cand_cost[cand]
             costs_out.append(level_cost)
-        alteration, entry_cand, parents = [], [], [np.full(1, -1)]
-        offset, parent_offset = 1, 0
+        # read back along the parents, into arrays allocated once (ten million alterations
+        # are hundreds of MB per copy), a chunk of rows at a time between the caller's checks
+        sizes = np.array([level[1].size for level in levels[1:]], dtype=np.int64)
+        depths = np.arange(1, len(levels), dtype=np.int64)
+        n_entries = int((sizes * depths).sum())
+        alteration = np.empty(n_entries, dtype=np.int64)
+        entry_choice = np.empty(n_entries, dtype=np.int64)
+        entry_option = np.empty(n_entries, dtype=np.int64)
+        parents = [np.full(1, -1)]
+        offset, parent_offset, position = 1, 0, 0
         for depth in range(1, len(levels)):
             n = levels[depth][1].size
             parents.append(levels[depth][0] + parent_offset)
             parent_offset = offset
-            entries = np.empty((n, depth), dtype=np.int64)
-            row = np.arange(n)
-            for d in range(depth, 0, -1):  # read back along the parents
-                parent, cand = levels[d]
-                entries[:, d - 1] = cand[row]
-                row = parent[row]
-            alteration.append(np.repeat(np.arange(offset, offset + n), depth))
-            entry_cand.append(entries.ravel())
+            for lo in range(0, n, READBACK_CHUNK):
+                checkpoint()
+                hi = min(n, lo + READBACK_CHUNK)
+                entries = np.empty((hi - lo, depth), dtype=np.int64)
+                row = np.arange(lo, hi)
+                for d in range(depth, 0, -1):
+                    parent, cand = levels[d]
+                    entries[:, d - 1] = cand[row]
+                    row = parent[row]
+                end = position + entries.size
+                alteration[position:end] = np.repeat(np.arange(offset + lo, offset + hi), depth)
+                entry_choice[position:end] = cand_choice[entries.ravel()]
+                entry_option[position:end] = cand_option[entries.ravel()]
+                position = end
             offset += n
-        picked = np.concatenate([np.zeros(0, dtype=np.int64), *entry_cand])
         return AlteredEntries(
-            alteration=np.concatenate([np.zeros(0, dtype=np.int64), *alteration]),
-            choice=cand_choice[picked],
-            option=cand_option[picked],
+            alteration=alteration,
+            choice=entry_choice,
+            option=entry_option,
             costs=np.concatenate(costs_out),
             parent=np.concatenate(parents),
         )

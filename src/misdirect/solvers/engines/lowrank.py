@@ -44,7 +44,7 @@ from misdirect.core.attack import AttackInstance
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
-from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.closed_classes import (
     ClosedClasses,
     closed_classes,
@@ -155,6 +155,12 @@ class _Trap(NamedTuple):
 class _KeptBasis(NamedTuple):
     basis: Basis
     cycles: _Cycles | None
+
+
+def _cheapest(space: AlterationSpace) -> float:
+    """The cost of the cheapest alteration of ``space`` (inf where none alters anything)."""
+    costs = [float(np.min(c.costs[1:])) for c in space.choices if len(c.costs) > 1]
+    return min(costs, default=np.inf)
 
 
 def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
@@ -410,6 +416,7 @@ class LowRankEnumeration:
         # cost more outside, so they have fewer alterations)
         factor_s, per_alteration, last_count, base_s = 0.0, 0.0, 0, 0.0
         run_began = time.perf_counter()
+        cut_first = False  # the deadline cut the first block while it was being listed
         if share is not None:  # per block, its inner alterations (by its budget left)
             counted: dict[float, int] = {}
             for cost in outer_costs.tolist():
@@ -450,13 +457,24 @@ class LowRankEnumeration:
                 factored = began
                 block = self._single_block(outer, outer_pick)
             else:
-                base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
-                base_solves += 1
-                factored = time.perf_counter()
-                block = self._block(
-                    remaining, inner, base, deadline, evaluations, compiled, outer, outer_pick
-                )
-                steps = max(steps, base.steps)
+                try:
+                    base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
+                    base_solves += 1
+                    factored = time.perf_counter()
+                    block = self._block(
+                        remaining, inner, base, deadline, evaluations, compiled, outer, outer_pick
+                    )
+                    steps = max(steps, base.steps)
+                except DeadlineExpiredError:
+                    # cut while listing the block's alterations (core.checkpoint: ten million
+                    # take seconds): the budgets from its cost are open. The first block keeps
+                    # its alteration without inner ones, valued on its own chain (budget 0)
+                    if blocks:
+                        break
+                    cut_first = True
+                    factored = time.perf_counter()
+                    costs_0, found_0, altered_0, _ = self._single_block(outer, outer_pick)
+                    block = (costs_0, found_0, altered_0, _cheapest(inner_space))
             inner_costs, found, altered, cut_at = block
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
@@ -468,6 +486,8 @@ class LowRankEnumeration:
                 base_s = factor_s
             per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
             report(progress, len(blocks), len(outer_costs), stage="incremental")
+            if cut_first:
+                break
         done = len(blocks)
         enumerated = Enumerated(
             costs=np.concatenate([np.zeros(0), *costs]),

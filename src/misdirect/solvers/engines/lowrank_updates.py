@@ -269,12 +269,16 @@ def add_corrections(
     corrected = np.zeros(n, dtype=bool)
     corrected[altered.parent < 0] = True  # the unaltered one: the base value
     tree = _Tree.of(altered, deltas)
+    if deadline is not None and deadline.expired():
+        return corrected  # each step here takes seconds on ten million alterations
     weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
     parents, first_child, n_children = np.unique(
         altered.parent[altered.parent >= 0], return_index=True, return_counts=True
     )
     first_child += 1  # children are numbered after the unaltered alteration, by parent
     order = np.lexsort((tree.width[parents], tree.depth[parents]))
+    if deadline is not None and deadline.expired():
+        return corrected
 
     def run(batch: np.ndarray) -> None:
         if deadline is not None and deadline.expired():
@@ -338,14 +342,20 @@ class _Tree(NamedTuple):
     @staticmethod
     def of(altered: AlteredEntries, deltas: RowDeltas) -> _Tree:
         n = altered.costs.size
-        entry_width = deltas.flat_length[altered.choice, altered.option]
+        # one flat index per entry, read twice (tens of millions of entries on a big map)
+        flat = altered.choice * deltas.flat_length.shape[1] + altered.option
+        entry_width = deltas.flat_length.ravel()[flat]
+        depth = np.bincount(altered.alteration, minlength=n)
+        # entries are grouped by alteration, in order: each starts where the last ended
+        first_entry = np.zeros(n, dtype=np.int64)
+        np.cumsum(depth[:-1], out=first_entry[1:])
         return _Tree(
-            depth=np.bincount(altered.alteration, minlength=n),
+            depth=depth,
             width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
                 np.int64
             ),
-            first_entry=np.searchsorted(altered.alteration, np.arange(n)),
-            entry_slot=deltas.flat_start[altered.choice, altered.option],
+            first_entry=first_entry,
+            entry_slot=deltas.flat_start.ravel()[flat],
             entry_width=entry_width,
         )
 
