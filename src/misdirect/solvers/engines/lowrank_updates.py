@@ -268,9 +268,11 @@ def add_corrections(
     n = altered.costs.size
     corrected = np.zeros(n, dtype=bool)
     corrected[altered.parent < 0] = True  # the unaltered one: the base value
+    if deadline is not None and deadline.expired():
+        return corrected  # each step below takes seconds on ten million alterations
     tree = _Tree.of(altered, deltas)
     if deadline is not None and deadline.expired():
-        return corrected  # each step here takes seconds on ten million alterations
+        return corrected
     weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
     parents, first_child, n_children = np.unique(
         altered.parent[altered.parent >= 0], return_index=True, return_counts=True
