@@ -451,6 +451,14 @@ class LowRankEnumeration:
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
             remaining = scale.remaining(top, outer_cost)
+            # with a share, a block stops where the share ends too (its smaller alterations
+            # first): the first block always starts, and one of a million deep alterations
+            # took 39 s of a 28 s share on sensor_grid(40, 16), leaving the search nothing
+            block_deadline = (
+                deadline
+                if share is None
+                else deadline.within(max(share - (began - run_began), 0.0))
+            )
             if inner_space.count_within(remaining, 1) <= 1:
                 # no inner alteration fits: the block is one alteration, valued on its own
                 # chain (a base solve would solve for every inner row, thousands on a big map)
@@ -458,11 +466,18 @@ class LowRankEnumeration:
                 block = self._single_block(outer, outer_pick)
             else:
                 try:
-                    base = self._block_base(outer, outer_pick, inner, fixed, bases, deadline)
+                    base = self._block_base(outer, outer_pick, inner, fixed, bases, block_deadline)
                     base_solves += 1
                     factored = time.perf_counter()
                     block = self._block(
-                        remaining, inner, base, deadline, evaluations, compiled, outer, outer_pick
+                        remaining,
+                        inner,
+                        base,
+                        block_deadline,
+                        evaluations,
+                        compiled,
+                        outer,
+                        outer_pick,
                     )
                     steps = max(steps, base.steps)
                 except DeadlineExpiredError:

@@ -34,6 +34,7 @@ BATCH_ENTRIES = 4_000_000  # numbers per batch of parents when threads share the
 CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay in cache while
 # its children read them (on two threads the pool's overhead per batch outweighs that)
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
+DIRECT_CHUNK = 4096  # alterations valued on their whole systems between looks at the deadline
 
 
 def base_solve(
@@ -304,31 +305,46 @@ def add_corrections(
     ill = np.flatnonzero(corrected & np.isnan(found))
     if ill.size:
         unaltered = float(found[np.flatnonzero(altered.parent < 0)[0]])  # the base value
-        found[ill] = unaltered + _direct_corrections(ill, tree, deltas, weight)
+        direct, done = _direct_corrections(ill, tree, deltas, weight, deadline)
+        found[ill] = unaltered + direct
+        corrected[ill[~done]] = False  # left by the deadline
     return corrected
 
 
 def _direct_corrections(
-    alterations: np.ndarray, tree: _Tree, deltas: RowDeltas, weight: np.ndarray
-) -> np.ndarray:
-    """The Woodbury corrections of ``alterations``, each from its own whole system rather than
+    alterations: np.ndarray,
+    tree: _Tree,
+    deltas: RowDeltas,
+    weight: np.ndarray,
+    deadline: Deadline | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(corrections, done) of ``alterations``, each from its own whole system rather than
     bordered on its parent's; NaN where that system is ill-conditioned
-    (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`: the caller values those exactly)."""
+    (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`: the caller values those exactly).
+    A chunk at a time, between looks at ``deadline``: on a map of tiny probabilities most
+    deep alterations come here (175,000 of 1.2 million took 30 s on sensor_grid(40, 16));
+    ``done`` says which the deadline left."""
     pad = deltas.rhs.size - 1
     out = np.full(alterations.size, np.nan)
+    done = np.zeros(alterations.size, dtype=bool)
     width = tree.width[alterations]
     for w in np.unique(width):
-        pick = np.flatnonzero(width == w)
-        slots = tree.slots(alterations[pick], pad)
-        system = deltas.system(slots)
-        with np.errstate(all="ignore"):
-            fine = np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED
-        if not fine.any():
-            continue
-        slots, system, pick = slots[fine], system[fine], pick[fine]
-        z = np.linalg.solve(system, deltas.rhs[slots][..., None])[..., 0]
-        out[pick] = np.einsum("ni,ni->n", weight[slots], z)
-    return out
+        same = np.flatnonzero(width == w)
+        for lo in range(0, same.size, DIRECT_CHUNK):
+            if deadline is not None and deadline.expired():
+                return out, done
+            pick = same[lo : lo + DIRECT_CHUNK]
+            done[pick] = True
+            slots = tree.slots(alterations[pick], pad)
+            system = deltas.system(slots)
+            with np.errstate(all="ignore"):
+                fine = np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED
+            if not fine.any():
+                continue
+            slots, system, pick = slots[fine], system[fine], pick[fine]
+            z = np.linalg.solve(system, deltas.rhs[slots][..., None])[..., 0]
+            out[pick] = np.einsum("ni,ni->n", weight[slots], z)
+    return out, done
 
 
 class _Tree(NamedTuple):
