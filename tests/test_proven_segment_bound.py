@@ -143,11 +143,10 @@ def test_the_potential_is_computed_within_the_deadline():
     assert seg.node({}, cap, -np.inf)[0].bound < 1.0
 
 
-def test_defects_are_charged_where_runs_meet_them():
+def _slow_start() -> tuple[TransientPolicyIteration, np.ndarray, np.ndarray, Fraction]:
     """Start A (value 1e-4) moves to B (value about 1) with 1e-7 a step, and stays 999 steps
-    in 1000. B's one-ulp defect charged at each of A's thousand steps is 2.6e-13 of A's value;
-    collected where runs meet it (A's runs reach B one time in 10^4), much less. Exact values
-    by hand: v(B) = 0.0007 / (1 - 0.9993), v(A) = 1e-7 v(B) / (1 - 0.999)."""
+    in 1000: (MDP, reward, potential, A's exact value). By hand: v(B) = 0.0007 / (1 -
+    0.9993), v(A) = 1e-7 v(B) / (1 - 0.999)."""
     rows = [
         (0, 0.0, {0: 0.999, 1: 1e-7}),
         (0, 0.0, {0: 0.5}),
@@ -155,11 +154,16 @@ def test_defects_are_charged_where_runs_meet_them():
         (1, 0.0, {0: 0.3}),
     ]
     mdp, reward = _transient(rows, 2)
-    potential = _potential(mdp)
+    v_b = Fraction(0.0007) / (1 - Fraction(0.9993))
+    return mdp, reward, _potential(mdp), Fraction(1e-7) * v_b / (1 - Fraction(0.999))
+
+
+def test_defects_are_charged_where_runs_meet_them():
+    """B's one-ulp defect charged at each of A's thousand steps is 2.6e-13 of A's value;
+    collected where runs meet it (A's runs reach B one time in 10^4), much less."""
+    mdp, reward, potential, v_a = _slow_start()
     values, policy, lu, optimal = mdp.optimise(reward)
     assert optimal and policy.tolist() == [0, 2]
-    v_b = Fraction(0.0007) / (1 - Fraction(0.9993))
-    v_a = Fraction(1e-7) * v_b / (1 - Fraction(0.999))
     charged_everywhere = mdp.proven_bound(reward, values, 0, potential)
     where_met = mdp.proven_bound(reward, values, 0, potential, policy, lu)
     assert Fraction(charged_everywhere) >= v_a
@@ -171,16 +175,8 @@ def test_defects_are_charged_where_runs_meet_them():
 def test_collecting_defects_is_spared_where_it_cannot_decide_a_prune():
     """The collected bound costs a policy iteration; a search only needs it where it could
     prune the node: the first bound above the threshold, the values at or below it."""
-    rows = [
-        (0, 0.0, {0: 0.999, 1: 1e-7}),
-        (0, 0.0, {0: 0.5}),
-        (1, 0.0007, {1: 0.9993}),
-        (1, 0.0, {0: 0.3}),
-    ]
-    mdp, reward = _transient(rows, 2)
-    potential = _potential(mdp)
+    mdp, reward, potential, v_a = _slow_start()
     values, policy, lu, _ = mdp.optimise(reward)
-    v_a = Fraction(0.0007) / (1 - Fraction(0.9993)) * Fraction(1e-7) / (1 - Fraction(0.999))
     first = mdp.proven_bound(reward, values, 0, potential)
     collected = mdp.proven_bound(reward, values, 0, potential, policy, lu)
     assert collected < first
@@ -190,8 +186,8 @@ def test_collecting_defects_is_spared_where_it_cannot_decide_a_prune():
         (float(values[0]) / 2, first),  # the values lie above it: the node stays open
         (np.nextafter(first, np.inf), first),  # pruned with the first bound already
         (collected, collected),  # only the collected bound prunes it
+        (between, collected),
     ]:
         bound = mdp.proven_bound(reward, values, 0, potential, policy, lu, prune_at)
         assert bound == expected
         assert Fraction(bound) >= v_a
-    assert mdp.proven_bound(reward, values, 0, potential, policy, lu, between) == collected
