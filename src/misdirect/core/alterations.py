@@ -221,6 +221,11 @@ class AlterationSpace:
             parent=np.concatenate(parents),
         )
 
+    def cheapest(self) -> float:
+        """The cost of the cheapest alteration (inf where no choice has one)."""
+        costs = [float(np.min(c.costs[1:])) for c in self.choices if len(c.costs) > 1]
+        return min(costs, default=float("inf"))
+
     def count_within(self, budget: float, limit: int) -> int:
         """How many choice vectors cost at most ``budget`` (``limit + 1`` once it is more than
         ``limit``), without listing them: a count per distinct total cost, the polynomial of

@@ -157,12 +157,6 @@ class _KeptBasis(NamedTuple):
     cycles: _Cycles | None
 
 
-def _cheapest(space: AlterationSpace) -> float:
-    """The cost of the cheapest alteration of ``space`` (inf where none alters anything)."""
-    costs = [float(np.min(c.costs[1:])) for c in space.choices if len(c.costs) > 1]
-    return min(costs, default=np.inf)
-
-
 def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
     """Mask of the alterations ``roots`` and every alteration that extends one of them (whose
     chain of parents reaches it)."""
@@ -489,7 +483,7 @@ class LowRankEnumeration:
                     cut_first = True
                     factored = time.perf_counter()
                     costs_0, found_0, altered_0, _ = self._single_block(outer, outer_pick)
-                    block = (costs_0, found_0, altered_0, _cheapest(inner_space))
+                    block = (costs_0, found_0, altered_0, inner_space.cheapest())
             inner_costs, found, altered, cut_at = block
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)

@@ -269,10 +269,14 @@ def add_corrections(
     n = altered.costs.size
     corrected = np.zeros(n, dtype=bool)
     corrected[altered.parent < 0] = True  # the unaltered one: the base value
-    if deadline is not None and deadline.expired():
-        return corrected  # each step below takes seconds on ten million alterations
+
+    def expired() -> bool:
+        return deadline is not None and deadline.expired()
+
+    if expired():
+        return corrected  # each step of the set-up takes seconds on ten million alterations
     tree = _Tree.of(altered, deltas)
-    if deadline is not None and deadline.expired():
+    if expired():
         return corrected
     weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
     parents, first_child, n_children = np.unique(
@@ -280,11 +284,11 @@ def add_corrections(
     )
     first_child += 1  # children are numbered after the unaltered alteration, by parent
     order = np.lexsort((tree.width[parents], tree.depth[parents]))
-    if deadline is not None and deadline.expired():
+    if expired():
         return corrected
 
     def run(batch: np.ndarray) -> None:
-        if deadline is not None and deadline.expired():
+        if expired():
             return
         counts = n_children[batch]
         kids = np.repeat(first_child[batch], counts) + rank_in_group(counts)
