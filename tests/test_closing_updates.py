@@ -179,3 +179,44 @@ def test_the_trap_search_flags_exactly_the_alterations_that_close_or_open_a_clas
     assert closing.any()  # the case exercises it
     assert np.array_equal(trap.flagged, expected)
     assert np.array_equal(trap.closes, (closing | opening)[expected])
+
+
+def test_alterations_that_open_a_closed_class_are_valued_by_blocks_of_their_own(monkeypatch):
+    """With one sensor fixed, the drone's base chain has closed classes (the drone circles for
+    ever); an alteration that changes one of their rows may open it. Those sharing an opening
+    option are a block of their own (that option fixed, its base solved once, the others by
+    low rank): each value so found (a sample) against the exact solve of its own chain."""
+    from misdirect.solvers.engines import lowrank
+
+    monkeypatch.setattr(lowrank, "OPENED_BLOCK_FROM", 1)  # every group, however small
+    problem = drone(5, agents=1, rows=2)
+    top = 3.0
+    instance = prepare(problem, top)
+    choices = instance.space.choices
+    opened: list[tuple[np.ndarray, float]] = []  # (choice vector, value found)
+    value_opening = LowRankEnumeration._value_opening
+
+    def recording(self, indices, found, inner_costs, altered, base, block, inner_run, deadline):
+        cut_at, valued = value_opening(
+            self, indices, found, inner_costs, altered, base, block, inner_run, deadline
+        )
+        outer, outer_pick, inner = block
+        for index in valued.tolist():
+            picked = np.zeros(len(choices), dtype=np.int64)
+            picked[outer] = outer_pick
+            picked[inner] = altered.picks(index, len(inner))
+            opened.append((picked, found[index]))
+        return cut_at, valued
+
+    monkeypatch.setattr(LowRankEnumeration, "_value_opening", recording)
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        i = int(rng.integers(len(choices)))
+        fixed = {i: int(rng.integers(1, choices[i].size))}
+        assert LowRankEnumeration(instance).run(top, fixed, Deadline(None)).complete_for(top)
+    values = np.array([value for _, value in opened])
+    assert len(opened) >= 1000 and np.unique(values.round(9)).size >= 10  # the case exercises it
+    for j in np.random.default_rng(1).choice(len(opened), size=300, replace=False).tolist():
+        picked, value = opened[j]
+        exact = decoy_probability(problem, instance.space.alteration(problem, picked))
+        assert value == pytest.approx(exact, abs=1e-9), picked
