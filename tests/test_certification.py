@@ -351,6 +351,23 @@ def test_auto_hands_over_from_branch_and_bound_to_the_milp(monkeypatch):
     assert result.curve[0].certified_by in ("milp", "branch-and-bound")
 
 
+def test_the_milp_hand_over_says_how_branch_and_bound_stopped():
+    """The reason names the node limit only where branch-and-bound reported one (FEASIBLE);
+    an answer it left at its time (TIME_LIMIT) says so, and certified answers do not count."""
+    from misdirect.solvers.auto import _why_the_milp
+    from misdirect.solvers.base import Solution
+    from misdirect.solvers.status import Status
+
+    none = np.zeros(3, dtype=np.int64)
+    done = Solution(1.0, none, 0.5, Status.OPTIMAL, 0.5)
+    timed = Solution(2.0, none, 0.5, Status.TIME_LIMIT, 0.9)
+    nodes = Solution(3.0, none, 0.5, Status.FEASIBLE, 0.9)
+    assert "in its time" in _why_the_milp([done, timed])
+    assert "node limit" not in _why_the_milp([done, timed])
+    assert "node limit" in _why_the_milp([timed, nodes])
+    assert "node limit" not in _why_the_milp([Solution(3.0, none, 0.5, Status.FEASIBLE, 0.5)])
+
+
 @pytest.mark.parametrize("method", ["exhaustive", "incremental"])
 def test_enumeration_cut_short_still_proves_the_budgets_it_finished(method, monkeypatch):
     """Enumeration runs cheapest first, so when the deadline stops it, every budget whose
@@ -633,3 +650,42 @@ def test_milp_ties_negative_zeros_and_the_reason_when_nothing_is_live(tmp_path):
     assert shown.exit_code == 0, shown.output
     assert "-0.0" not in shown.stdout
     assert json.loads(shown.stdout)["upper_bound"] == 0.0
+
+
+def test_an_open_budget_on_a_cycling_chain_says_why_its_bound_is_trivial(tmp_path):
+    """On a turn-back grid the relaxations steer the robot anywhere (no budget charge on end
+    components), so an open budget's bound is 1: its point says so, with the number of live
+    product states in end components (counted by the attack's own preparation), and `solve`
+    prints it under its table. A grid without cycles, cut short too, says nothing of it."""
+    from misdirect.core.attack import prepare
+    from misdirect.scenarios import sensor_grid
+
+    problem = sensor_grid(40, 64, goal="inside")
+    cycling = int(prepare(problem, 5).cycling.sum())
+    assert cycling > 0
+    point = solve(problem, budgets=[5], method="branch-and-bound", time_limit=1.0).curve[0]
+    assert point.status == "time_limit" and point.upper_bound >= 1 - 1e-6
+    assert f"{cycling:,} live product states lie in end components" in point.notes["trivial_bound"]
+    corner = solve(sensor_grid(40, 64), budgets=[5], method="branch-and-bound", time_limit=1.0)
+    assert "trivial_bound" not in corner.curve[0].notes
+
+    path = tmp_path / "turn-back.yaml"
+    grid = ["--size", "40", "--sensors", "64", "--goal", "inside"]
+    made = CliRunner().invoke(app, ["scenario", "sensor-grid", "-o", str(path), *grid])
+    assert made.exit_code == 0, made.output
+    result = CliRunner().invoke(app, ["solve", str(path), "--budget", "6", "--time-limit", "1"])
+    assert "budget 6: no budget-aware bound on this chain" in " ".join(result.stderr.split())
+
+
+def test_solve_lists_the_budgets_each_open_point_note_is_about():
+    """One line per distinct note, with every budget it is about, in curve order."""
+    from misdirect.cli.solving import _point_notes
+    from misdirect.solvers.run import BudgetResult
+    from misdirect.solvers.status import Status
+
+    def point(budget, **notes):
+        return BudgetResult(budget, Status.TIME_LIMIT, 0.5, {}, budget, 1.0, 0.5, notes=notes)
+
+    curve = [point(1.0), point(2.0, trivial_bound="T"), point(3.0, trivial_bound="T")]
+    curve.append(point(4.5, not_certified="N", replaced="R"))
+    assert _point_notes(curve) == ["budgets 2, 3: T", "budget 4.5: N"]

@@ -54,7 +54,7 @@ from misdirect.solvers import SOLVERS
 from misdirect.solvers.milp.backends import BACKENDS
 from misdirect.solvers.milp.solver import FORMULATIONS
 from misdirect.solvers.options import MILP_OPTIONS
-from misdirect.solvers.run import SolveResult
+from misdirect.solvers.run import BudgetResult, SolveResult
 from misdirect.solvers.run import solve as solve_problem
 from misdirect.solvers.stats import AutoStats, MethodStats, MilpStats
 from misdirect.solvers.status import Status
@@ -227,8 +227,25 @@ def solve(
         print_json(json_output.solve(result, notes=[implied] if implied else []))
     else:
         _print_solve(result, problem)
-        _print_notes(result.notes)
+        _print_notes([*result.notes, *_point_notes(result.curve)])
     _finish_solve(result, received)
+
+
+POINT_NOTES = ("trivial_bound", "not_certified")  # why a point is open: shown under the table
+
+
+def _point_notes(curve: Sequence[BudgetResult]) -> list[str]:
+    """The notes that say why a budget is left open, each once with the budgets it is about
+    (``--json`` has every point's under ``certification``)."""
+    budgets: dict[str, list[str]] = {}
+    for point in curve:
+        for key in POINT_NOTES:
+            if key in point.notes:
+                budgets.setdefault(point.notes[key], []).append(f"{point.budget:g}")
+    return [
+        f"budget{'s' if len(listed) > 1 else ''} {', '.join(listed)}: {text}"
+        for text, listed in budgets.items()
+    ]
 
 
 def milp_method(method: str | None, given: dict[str, Any]) -> tuple[str, str | None]:

@@ -137,7 +137,9 @@ class _Handover:
     """A stage that takes over the budgets the ones before it did not certify."""
 
     stage: _Stage
-    why: str  # appended to the reason: "the MILP did not certify it, so ..."
+    # appended to the reason: "the MILP did not certify it, so ..."; or made from the answers
+    # left uncertified (how the stage before stopped)
+    why: str | Callable[[Sequence[Solution]], str]
 
 
 class _Stage:
@@ -331,8 +333,7 @@ class _Search(_Stage):
             kind = "exhaustive enumeration" if self.then.method == "exhaustive" else "enumeration"
             why = f"branch-and-bound did not certify it, so {kind}"
             later.append(_Handover(self.then, why))
-        why = "branch-and-bound hit its node limit, so the MILP"
-        later.append(_Handover(_Milp(self.auto), why))
+        later.append(_Handover(_Milp(self.auto), _why_the_milp))
         return later
 
     def run(
@@ -423,7 +424,8 @@ class AutoSolver:
         solutions = _label(solutions, first.method, reason)
         exact = exact_values(problem)  # the front door's: each answer is evaluated once
         for handover in handovers:
-            why = f"{reason}; {handover.why}"
+            said = handover.why
+            why = f"{reason}; {said if isinstance(said, str) else said(solutions)}"
             solutions = self._hand_over(
                 handover.stage, problem, budgets, solutions, exact, why, progress, deadline
             )
@@ -522,6 +524,14 @@ class AutoSolver:
         return solutions
 
 
+def _why_the_milp(solutions: Sequence[Solution]) -> str:
+    """Why the MILP takes over from branch-and-bound: its node limit, or the time it had."""
+    left = [s for s in solutions if not _certified(s)]
+    if any(s.status == Status.FEASIBLE for s in left):  # how it reports its node limit
+        return "branch-and-bound hit its node limit, so the MILP"
+    return "branch-and-bound did not certify it in its time, so the MILP"
+
+
 def _levelled(certified: Sequence[Solution]) -> bool:
     """Whether the last two of these certified answers (by budget) have the same value, up to
     near-ties: the curve has levelled off there."""
@@ -571,6 +581,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         upper_bound=bound,
         stats=stats,
         certified_by=(closer if proven else pick).certified_by or "auto",
+        notes={**first.notes, **second.notes},  # what each method said of its answer or bound
     )
 
 

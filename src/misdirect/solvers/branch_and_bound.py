@@ -54,6 +54,7 @@ from misdirect.solvers.status import Status
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
+TRIVIAL_BOUND = 1e-6  # relative: a bound this close to the objective's maximum says nothing
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
 
 
@@ -250,7 +251,17 @@ class BranchAndBoundSolver:
             curve.per_state_failed = True
             answer = self._segment_phase(curve, search, answer, step, deadline, progress)
         curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
-        return curve.bounded(answer)
+        answer = curve.bounded(answer)
+        top = curve.instance.problem.objective.max_value
+        cycling = int(curve.instance.cycling.sum())
+        bound = top if answer.upper_bound is None else answer.upper_bound
+        if answer.status != Status.OPTIMAL and cycling and bound >= top * (1 - TRIVIAL_BOUND):
+            answer.notes["trivial_bound"] = (
+                f"no budget-aware bound on this chain: {cycling:,} live product states lie in "
+                "end components (the robot can circle back), where the relaxations cannot "
+                "charge for the budget; only enumerating a budget proves it"
+            )
+        return answer
 
     def _segment_phase(
         self,

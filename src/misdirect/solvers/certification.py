@@ -249,6 +249,7 @@ def certify_curve(
             point.notes["certified_by_bound"] = "a bound at this or a larger budget meets it"
         if status == Status.OPTIMAL:  # a second pass (with evidence) may prove what was not
             point.notes.pop("not_certified", None)
+            point.notes.pop("trivial_bound", None)  # a bound from elsewhere met it
         point.status = status
     if cancelled:
         for point in curve:
