@@ -507,6 +507,31 @@ def test_alterations_valued_on_their_own_systems_stop_at_the_deadline(monkeypatc
     assert np.allclose(cut.values[valued], full.values[valued], rtol=1e-9, atol=1e-15)
 
 
+def test_the_alterations_tree_is_indexed_between_looks_at_the_deadline(monkeypatch):
+    """Indexing a block's alterations (28 million entries took 2 s past a 5 s limit on a big
+    map) goes a chunk of entries at a time: a deadline that passes between two chunks leaves
+    every alteration but the unaltered one unvalued, with the tree never finished."""
+    from misdirect.core.attack import prepare
+    from misdirect.solvers.engines import lowrank_updates
+    from misdirect.solvers.engines.lowrank import LowRankEnumeration
+
+    original = lowrank_updates._Tree.of
+    trees: list[object] = []
+
+    def recorded(altered, deltas, expired=None):
+        tree = original(altered, deltas, expired)
+        trees.append(tree)
+        return tree
+
+    monkeypatch.setattr(lowrank_updates, "TREE_CHUNK", 64)
+    monkeypatch.setattr(lowrank_updates._Tree, "of", staticmethod(recorded))
+    # looks before the tree: one on entry, one after listing; the third is between chunks
+    cut = LowRankEnumeration(prepare(sensor_grid(20, 10), 2)).run(2.0, deadline=ExpiresAtLook(3))
+    assert trees == [None]
+    assert np.isfinite(cut.costs).sum() == 1 and cut.complete_for(0.0)
+    assert not cut.complete_for(1.0)
+
+
 def test_a_staged_runs_first_block_stops_where_its_share_ends():
     """A run with a share (auto, with a search to hand the budget to) always starts its first
     block; the block itself now stops at the share's end, not the solve's: with no share at

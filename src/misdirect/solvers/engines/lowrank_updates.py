@@ -16,7 +16,7 @@ base with every option's row differences, so a subtree that fixes some sensors n
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, cast
 
@@ -35,6 +35,7 @@ CACHED_BATCH_ENTRIES = 250_000  # ... and on one thread: a batch's gathers stay 
 # its children read them (on two threads the pool's overhead per batch outweighs that)
 WIDEST_ENTRY = 16  # rows of one sensor's option, for sizing batches (1-18 on sensor grids)
 DIRECT_CHUNK = 4096  # alterations valued on their whole systems between looks at the deadline
+TREE_CHUNK = 4_000_000  # entries indexed between two looks at the deadline (about 0.3 s)
 
 
 def base_solve(
@@ -275,8 +276,8 @@ def add_corrections(
 
     if expired():
         return corrected  # each step of the set-up takes seconds on ten million alterations
-    tree = _Tree.of(altered, deltas)
-    if expired():
+    tree = _Tree.of(altered, deltas, expired)
+    if tree is None or expired():
         return corrected
     weight = np.append(w_start, 0.0)[deltas.column]  # per row slot; the pad's is 0
     parents, first_child, n_children = np.unique(
@@ -362,24 +363,36 @@ class _Tree(NamedTuple):
     entry_width: np.ndarray  # per entry: its number of row slots
 
     @staticmethod
-    def of(altered: AlteredEntries, deltas: RowDeltas) -> _Tree:
-        n = altered.costs.size
-        # one flat index per entry, read twice (tens of millions of entries on a big map)
-        flat = altered.choice * deltas.flat_length.shape[1] + altered.option
-        entry_width = deltas.flat_length.ravel()[flat]
-        depth = np.bincount(altered.alteration, minlength=n)
-        # entries are grouped by alteration, in order: each starts where the last ended
+    def of(
+        altered: AlteredEntries, deltas: RowDeltas, expired: Callable[[], bool] | None = None
+    ) -> _Tree | None:
+        """The tree of ``altered``, a chunk of :data:`TREE_CHUNK` entries at a time with a
+        look at ``expired`` between two (None once it says so: 28 million entries took 2 s)."""
+        n, n_entries = altered.costs.size, altered.alteration.size
+        depth = np.zeros(n, dtype=np.int64)
+        width = np.zeros(n, dtype=np.int64)
+        entry_slot = np.empty(n_entries, dtype=deltas.flat_start.dtype)
+        entry_width = np.empty(n_entries, dtype=deltas.flat_length.dtype)
+        starts, lengths = deltas.flat_start.ravel(), deltas.flat_length.ravel()
+        for lo in range(0, n_entries, TREE_CHUNK):
+            if lo and expired is not None and expired():
+                return None
+            hi = min(lo + TREE_CHUNK, n_entries)
+            # one flat index per entry, read twice
+            flat = altered.choice[lo:hi] * deltas.flat_length.shape[1] + altered.option[lo:hi]
+            entry_slot[lo:hi] = starts[flat]
+            entry_width[lo:hi] = lengths[flat]
+            # entries are grouped by alteration, in order: a chunk's alterations are a range
+            owner = altered.alteration[lo:hi]
+            first, last = int(owner[0]), int(owner[-1])
+            depth[first : last + 1] += np.bincount(owner - first)
+            width[first : last + 1] += np.bincount(
+                owner - first, weights=entry_width[lo:hi]
+            ).astype(np.int64)
+        # each alteration's entries start where the last one's ended
         first_entry = np.zeros(n, dtype=np.int64)
         np.cumsum(depth[:-1], out=first_entry[1:])
-        return _Tree(
-            depth=depth,
-            width=np.bincount(altered.alteration, weights=entry_width, minlength=n).astype(
-                np.int64
-            ),
-            first_entry=first_entry,
-            entry_slot=deltas.flat_start.ravel()[flat],
-            entry_width=entry_width,
-        )
+        return _Tree(depth, width, first_entry, entry_slot, entry_width)
 
     def slots(self, alterations: np.ndarray, pad: int) -> np.ndarray:
         """(alterations, widest) row slots of each alteration's entries, padded with ``pad``."""
