@@ -54,7 +54,6 @@ from misdirect.solvers.status import Status
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
-TRIVIAL_BOUND = 1e-6  # relative: a bound this close to the objective's maximum says nothing
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
 
 
@@ -252,14 +251,12 @@ class BranchAndBoundSolver:
             answer = self._segment_phase(curve, search, answer, step, deadline, progress)
         curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
         answer = curve.bounded(answer)
-        top = curve.instance.problem.objective.max_value
-        cycling = int(curve.instance.cycling.sum())
-        bound = top if answer.upper_bound is None else answer.upper_bound
-        if answer.status != Status.OPTIMAL and cycling and bound >= top * (1 - TRIVIAL_BOUND):
+        if answer.status != Status.OPTIMAL and _budget_blind(answer, curve.instance):
             answer.notes["trivial_bound"] = (
-                f"no budget-aware bound on this chain: {cycling:,} live product states lie in "
-                "end components (the robot can circle back), where the relaxations cannot "
-                "charge for the budget; only enumerating a budget proves it"
+                f"no budget-aware bound on this chain: {int(curve.instance.cycling.sum()):,} "
+                "live product states lie in end components (the robot can circle back), where "
+                "the relaxations cannot charge for the budget; only enumerating a budget "
+                "proves it"
             )
         return answer
 
@@ -334,6 +331,21 @@ class BranchAndBoundSolver:
             upper_bound=value if finished else bound,
             stats=stats,
         )
+
+
+def _budget_blind(answer: Solution, instance: AttackInstance) -> bool:
+    """Whether an open answer's bound is the relaxations' own on a chain with end components:
+    no better than their bound at the root (or none yet), which does not see the budget there."""
+    stats = answer.stats
+    if not instance.cycling.any() or not isinstance(stats, BranchAndBoundStats):
+        return False
+    roots = [stats.root_bound]
+    if stats.segment is not None:
+        roots.append(stats.segment.root_bound)
+    # the objective's maximum too: answers' bounds are clipped to it, and it is the root's
+    # bound before the root is bounded
+    known = [r for r in roots if r is not None] + [instance.problem.objective.max_value]
+    return answer.upper_bound is None or answer.upper_bound >= min(known)
 
 
 def _no_seed_beats(
