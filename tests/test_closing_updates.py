@@ -220,3 +220,30 @@ def test_alterations_that_open_a_closed_class_are_valued_by_blocks_of_their_own(
         picked, value = opened[j]
         exact = decoy_probability(problem, instance.space.alteration(problem, picked))
         assert value == pytest.approx(exact, abs=1e-9), picked
+
+
+@pytest.mark.parametrize("looks", [3, 10, 13, 16, 25, 40, 60, 120, 200])
+def test_a_deadline_inside_the_opening_blocks_leaves_values_unvalued_never_wrong(
+    looks, monkeypatch
+):
+    """Cut anywhere (in a block of alterations that open a class, in its base, in its own
+    corrections), every alteration the run still prices has the value and cost of the uncut
+    run, and a budget it calls complete has the uncut run's best."""
+    from misdirect.solvers.engines import lowrank
+
+    monkeypatch.setattr(lowrank, "OPENED_BLOCK_FROM", 1)
+    problem = drone(5, agents=1, rows=2)
+    instance = prepare(problem, 3.0)
+    fixed = {35: 3}  # its base chain has closed classes that later options open
+    full = LowRankEnumeration(instance).run(3.0, fixed, Deadline(None))
+    assert full.complete_for(3.0)
+    enumeration = LowRankEnumeration(instance)
+    cut = enumeration.run(3.0, fixed, _ExpiresAt(looks))
+    assert cut.costs.size <= full.costs.size
+    priced = np.flatnonzero(np.isfinite(cut.costs))
+    assert np.array_equal(cut.costs[priced], full.costs[priced])
+    assert np.allclose(cut.values[priced], full.values[priced], rtol=0, atol=1e-12)
+    for budget in (1.0, 2.0, 3.0):
+        if cut.complete_for(budget):
+            mine, theirs = cut.best_within([budget])[0], full.best_within([budget])[0]
+            assert cut.values[mine] == pytest.approx(full.values[theirs], abs=1e-12)
