@@ -333,7 +333,7 @@ def _online_value(
     """The online attacker's value within the audit's time, budgeted within ``budget`` when
     it can be computed (else unlimited only, with the reason), checked against the offline
     optimum it must bound; None (with the reason) when even the unlimited value was cut."""
-    expired = "not computed: the time limit was reached"
+    expired = "the time limit was reached"
     if clock.expired():
         return None, expired
     note = None
