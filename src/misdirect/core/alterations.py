@@ -58,6 +58,14 @@ class AlteredEntries(NamedTuple):
         picked[self.choice[lo:hi]] = self.option[lo:hi]
         return picked
 
+    def picks_of(self, indices: np.ndarray, n_choices: int) -> np.ndarray:
+        """The dense choice vectors of the alterations ``indices`` (ascending), one row each."""
+        mask = np.isin(self.alteration, indices)
+        picked = np.zeros((indices.size, n_choices), dtype=np.int64)
+        rows = np.searchsorted(indices, self.alteration[mask])
+        picked[rows, self.choice[mask]] = self.option[mask]
+        return picked
+
 
 def _chunks(counts: np.ndarray, size: int) -> Iterator[slice]:
     """Consecutive slices of ``counts`` whose sums are about ``size`` (at least one item)."""

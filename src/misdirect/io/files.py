@@ -239,14 +239,7 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
                 collection[key] = value
                 stack[-1][1] = None
         get_event()  # DocumentEnd
-        if not self.check_event(StreamEndEvent):
-            event = get_event()
-            raise yaml.composer.ComposerError(
-                None,
-                None,
-                "expected one document, found another",
-                event.start_mark,
-            )
+        self._end_of_stream()
         return value
 
     # the Composer interface BaseConstructor.get_single_data uses
@@ -258,6 +251,11 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
             document = self._compose()
             self.get_event()  # DocumentEnd
             self.anchors, self.anchor_sizes = {}, {}
+        self._end_of_stream()
+        return document
+
+    def _end_of_stream(self) -> None:
+        """Consume the end of the stream, refusing a second document."""
         if not self.check_event(StreamEndEvent):
             event = self.get_event()
             raise yaml.composer.ComposerError(
@@ -267,7 +265,6 @@ class BoundedSafeLoader(_EventSource, SafeConstructor, Resolver):
                 event.start_mark,  # type: ignore[union-attr,arg-type]
             )
         self.get_event()
-        return document
 
     def _compose(self) -> Any:
         # stack entries: [node, anchor, nodes before it, pending mapping key]

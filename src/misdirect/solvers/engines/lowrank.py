@@ -173,16 +173,6 @@ def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
         marked = grown
 
 
-def _dense_picks(altered: AlteredEntries, indices: np.ndarray, n_choices: int) -> np.ndarray:
-    """The choice vectors of the alterations ``indices`` (ascending), one row each."""
-    mask = np.isin(altered.alteration, indices)
-    dense = np.zeros((indices.size, n_choices), dtype=np.int64)
-    dense[np.searchsorted(indices, altered.alteration[mask]), altered.choice[mask]] = (
-        altered.option[mask]
-    )
-    return dense
-
-
 def _taking(altered: AlteredEntries, marked: np.ndarray) -> np.ndarray:
     """Per alteration, whether it takes some option that ``marked[choice, option]`` marks."""
     taking = np.zeros(altered.costs.size, dtype=bool)
@@ -1008,9 +998,8 @@ class LowRankEnumeration:
                 continue
             self.opened_blocks += 1
             # match each member to the sub-block's alteration with the same other picks
-            mine = _dense_picks(altered, members, len(inner))
-            mine = np.delete(mine, j, axis=1)
-            theirs = _dense_picks(sub_altered, np.arange(sub_costs.size), len(sub_inner))
+            mine = np.delete(altered.picks_of(members, len(inner)), j, axis=1)
+            theirs = sub_altered.picks_of(np.arange(sub_costs.size), len(sub_inner))
             where = {row.tobytes(): b for b, row in enumerate(theirs)}
             match = np.array([where.get(row.tobytes(), -1) for row in mine], dtype=np.int64)
             hit = members[match >= 0]
