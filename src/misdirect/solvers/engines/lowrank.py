@@ -173,6 +173,14 @@ def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
         marked = grown
 
 
+def _opening(cycles: _Cycles, table: RowDeltas) -> np.ndarray:
+    """Per (choice, option), whether it changes a row of a base closed class (may open it)."""
+    in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
+    return cast(
+        np.ndarray, in_closed[table.flat_start + table.flat_length] > in_closed[table.flat_start]
+    )
+
+
 def _taking(altered: AlteredEntries, marked: np.ndarray) -> np.ndarray:
     """Per alteration, whether it takes some option that ``marked[choice, option]`` marks."""
     taking = np.zeros(altered.costs.size, dtype=bool)
@@ -803,10 +811,8 @@ class LowRankEnumeration:
                 base.fixed_rows,
             )
         # an option that changes a row of a base closed class may open it: its alterations are
-        # valued exactly
-        in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
-        ends = table.flat_start + table.flat_length
-        opens = in_closed[ends] > in_closed[table.flat_start]
+        # valued apart (_value_flagged)
+        opens = _opening(cycles, table)
         roots = np.union1d(candidates[closing], np.flatnonzero(_taking(altered, opens) & risky))
         flagged = np.flatnonzero(_with_extensions(altered.parent, roots))
         return self._traps_of(flagged, altered, base, deadline)
@@ -951,8 +957,7 @@ class LowRankEnumeration:
             return np.inf, np.zeros(0, dtype=np.int64)
         outer, outer_pick, inner = block
         budget, compiled = inner_run
-        in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
-        opens = in_closed[table.flat_start + table.flat_length] > in_closed[table.flat_start]
+        opens = _opening(cycles, table)
         entries = np.flatnonzero(
             np.isin(altered.alteration, indices) & opens[altered.choice, altered.option]
         )
