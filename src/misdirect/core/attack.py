@@ -25,6 +25,7 @@ from misdirect.core.choice_product import (
     ChoiceProduct,
     build_choice_product,
     check_choice_product_fits,
+    distinct_options,
     end_component_states,
 )
 from misdirect.core.model import Problem
@@ -39,18 +40,44 @@ class AttackInstance:
 
     problem: Problem
     budget: float
-    space: AlterationSpace
+    candidates: AlterationSpace  # the cheapest target of every behaviour class
+
+    @cached_property
+    def _distinct(self) -> tuple[AlterationSpace, ChoiceProduct | None, np.ndarray | None]:
+        """The space without options that change nothing the value sees
+        (:func:`~misdirect.core.choice_product.distinct_options`), and the candidates' MDP and
+        live states when they are that space's too."""
+        chain = build_choice_product(self.problem, self.candidates)
+        live = _live(chain)
+        space = distinct_options(chain, self.candidates, live)
+        if space is self.candidates:
+            return space, chain, live
+        return space, None, None
+
+    @property
+    def space(self) -> AlterationSpace:
+        """The attacker's real choices: per observation, one option per distinct way the
+        robot can then move (an option that moves it as another, cheaper one does is left
+        out: no alteration taking it is worth more)."""
+        return self._distinct[0]
+
+    @property
+    def left_out(self) -> int:
+        """How many candidate options :attr:`space` leaves out."""
+        return _options(self.candidates) - _options(self.space)
 
     @cached_property
     def chain(self) -> ChoiceProduct:
         """The attacker's MDP over the product states reachable under some alteration."""
-        return build_choice_product(self.problem, self.space)
+        space, chain, _ = self._distinct
+        return chain if chain is not None else build_choice_product(self.problem, space)
 
     @cached_property
     def live(self) -> np.ndarray:
         """Product states outside the decoy from which some alteration can still reach it: the
         only ones whose value is unknown (elsewhere it is the decoy's weight, or 0)."""
-        return cast(np.ndarray, self.chain.can_reach_target() & ~self.chain.target)
+        live = self._distinct[2]
+        return live if live is not None else _live(self.chain)
 
     @cached_property
     def live_states_per_observation(self) -> np.ndarray:
@@ -65,6 +92,14 @@ class AttackInstance:
         forever without reaching the decoy (the MILP's witness rows, incremental's refusal)."""
         chain = self.chain
         return end_component_states(chain.group_state, chain.transitions, self.live)
+
+
+def _options(space: AlterationSpace) -> int:
+    return sum(choice.size - 1 for choice in space.choices)
+
+
+def _live(chain: ChoiceProduct) -> np.ndarray:
+    return cast(np.ndarray, chain.can_reach_target() & ~chain.target)
 
 
 # per problem (by id; the entry keeps the problem alive, so the id stays its own): the

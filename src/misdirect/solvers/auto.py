@@ -79,8 +79,17 @@ class _Facts:
         instance = prepare(problem, max(budgets))
         count = instance.space.count_within(max(budgets), INCREMENTAL_LIMIT)
         facts = cls(problem, instance, count)
+        if instance.left_out:
+            facts.reasons.append(
+                f"{instance.left_out:,} options left out (each moves the robot as no "
+                "alteration or a cheaper option does wherever the decoy can still be reached)"
+            )
         facts.reasons.append(
-            f"{count:,} alterations fit the budget"
+            (
+                "1 alteration fits the budget"
+                if count == 1
+                else f"{count:,} alterations fit the budget"
+            )
             if count <= INCREMENTAL_LIMIT
             else f"more than {INCREMENTAL_LIMIT:,} alterations fit the budget"
         )
