@@ -247,3 +247,50 @@ def test_a_deadline_inside_the_opening_blocks_leaves_values_unvalued_never_wrong
         if cut.complete_for(budget):
             mine, theirs = cut.best_within([budget])[0], full.best_within([budget])[0]
             assert cut.values[mine] == pytest.approx(full.values[theirs], abs=1e-12)
+
+
+def test_a_subtree_fixing_an_option_that_may_close_a_class_but_does_not_keeps_the_basis(
+    monkeypatch,
+):
+    """A search's subtree that fixes an option which only *may* close a class (the trap
+    search finds none) is the kept basis updated in low rank, not a new base solve; one that
+    does close a class, or changes a row of a closed class, is solved anew. Every value of
+    every such subtree against the exact solve of its own chain."""
+    problem = drone(5, agents=1, rows=2)
+    budget = 2.0
+    instance = prepare(problem, budget)
+    enumeration = LowRankEnumeration(instance)
+    bases = BasisCache()
+    solved = []
+    original = LowRankEnumeration._solved_base
+
+    def counting(self, *args, **kwargs):
+        solved.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(LowRankEnumeration, "_solved_base", counting)
+    assert not enumeration.natural_outer  # one basis: every choice inner
+    enumeration.run(1.0, {}, Deadline(None), None, bases)  # builds it
+    (kept,) = bases._bases.values()
+    natural = enumeration.natural_inner
+    unsafe = [
+        (natural[j], int(k))
+        for j, k in zip(*np.nonzero(kept.cycles.unsafe), strict=True)
+        if k < instance.space.choices[natural[j]].size
+    ]
+    assert unsafe
+    # 64 of them here: 4 change a row of a closed class, 13 close one, 47 neither
+    reused = 0
+    rng = np.random.default_rng(5)
+    for i, k in unsafe:
+        before = len(solved)
+        found = enumeration.run(budget, {i: k}, Deadline(None), None, bases)
+        assert found.complete_for(budget)
+        reused += len(solved) == before
+        size = found.values.size
+        for index in rng.choice(size, size=min(size, 12), replace=False).tolist():
+            alpha = instance.space.alteration(problem, found.picks(index))
+            assert found.values[index] == pytest.approx(
+                decoy_probability(problem, alpha), abs=1e-9
+            ), (i, k, index)
+    assert 0 < reused < len(unsafe)  # a new base solve only where the classes differ

@@ -472,7 +472,11 @@ class LowRankEnumeration:
                 block = self._single_block(outer, outer_pick)
             else:
                 try:
-                    base = self._block_base(outer, outer_pick, inner, fixed, bases, block_deadline)
+                    cheapest = inner_space.cheapest()
+                    one_entry = not scale.fits(cheapest + cheapest, remaining)
+                    base = self._block_base(
+                        outer, outer_pick, inner, fixed, bases, block_deadline, one_entry
+                    )
                     base_solves += 1
                     factored = time.perf_counter()
                     block = self._block(
@@ -593,9 +597,12 @@ class LowRankEnumeration:
         fixed: dict[int, int],
         bases: BasisCache | None,
         deadline: Deadline | None = None,
+        one_entry: bool = False,
     ) -> _BlockBase:
         """The block's base chain: solved here, or (with ``bases``) a kept basis updated in
-        low rank for the fixed inner choices (solved here if one of those may close a class)."""
+        low rank for the fixed inner choices (solved here if one of those may close a class).
+        ``one_entry``: no inner alteration of the block takes two options (its table is then
+        updated on each option's own rows only, :meth:`Basis.with_fixed`)."""
         chosen = self._chosen(outer, outer_pick, inner)
         if bases is None:
             return self._solved_base(chosen, inner, deadline)
@@ -606,24 +613,56 @@ class LowRankEnumeration:
         kept = bases.get_or_build(key, lambda: self._basis(chosen, deadline))
         position = {i: j for j, i in enumerate(natural)}
         fixed_inner = [(position[i], fixed[i]) for i in natural if i in fixed]
-        cycles = kept.cycles
-        if cycles is not None and any(cycles.unsafe[j, k] for j, k in fixed_inner):
-            return self._solved_base(chosen, inner, deadline)  # its closed classes may differ
-        updated = kept.basis.with_fixed(fixed_inner, [position[i] for i in inner], self.start)
+        cycles, table = kept.cycles, kept.basis.options
+        fixed_slots = np.concatenate(
+            [np.zeros(0, dtype=np.int64)]
+            + [table.flat_start[j, k] + np.arange(table.flat_length[j, k]) for j, k in fixed_inner]
+        ).astype(np.int64)
+        if cycles is not None and not self._keeps_classes(cycles, table, fixed_inner, fixed_slots):
+            return self._solved_base(chosen, inner, deadline)  # its closed classes differ
+        updated = kept.basis.with_fixed(
+            fixed_inner, [position[i] for i in inner], self.start, one_entry=one_entry
+        )
         if updated is None:  # ill-conditioned: the block's values would all inherit its error
             return self._solved_base(chosen, inner, deadline)
         x_start, w_start, deltas, rows = updated
         steps = kept.basis.steps
         if cycles is None:
             return _BlockBase(x_start, w_start, deltas, steps=steps)
-        table = kept.basis.options
-        fixed_slots = np.concatenate(
-            [np.zeros(0, dtype=np.int64)]
-            + [table.flat_start[j, k] + np.arange(table.flat_length[j, k]) for j, k in fixed_inner]
-        ).astype(np.int64)
         inner_cycles = cycles._replace(unsafe=cycles.unsafe[[position[i] for i in inner]])
         fixed_rows = (cycles.slot_state[fixed_slots], cycles.slot_group[fixed_slots])
         return _BlockBase(x_start, w_start, deltas, inner_cycles, fixed_rows, rows, steps)
+
+    def _keeps_classes(
+        self,
+        cycles: _Cycles,
+        table: RowDeltas,
+        fixed: list[tuple[int, int]],
+        slots: np.ndarray,
+    ) -> bool:
+        """Whether the kept basis's chain with the options ``fixed`` (their row ``slots``)
+        has exactly the basis's closed classes: none of them changes a row of one (which may
+        open it), and the trap search from their changed rows finds no new one. Then the
+        basis updated in low rank is the block's base, and a class closed by an inner
+        alteration holds one of its changed rows, as the block's trap search assumes. An
+        option that only *may* close a class rarely does (on the drones among patrolling
+        agents, the search's subtrees fixed such options hundreds of times, each a new base
+        solve)."""
+        if not any(cycles.unsafe[j, k] for j, k in fixed):
+            return True
+        opens = _opening(cycles, table)
+        if any(opens[j, k] for j, k in fixed):
+            return False
+        traps = closing_alterations(
+            self._inside,
+            self._leaks,
+            cycles.classes,
+            cycles.base_groups,
+            np.array([0, slots.size]),
+            cycles.slot_state[slots],
+            cycles.slot_group[slots],
+        )
+        return not bool(traps.closes[0])
 
     def _solved_base(
         self, chosen: np.ndarray, inner: list[int], deadline: Deadline | None = None

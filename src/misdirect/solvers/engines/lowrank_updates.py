@@ -97,7 +97,12 @@ class Basis(NamedTuple):
         return Basis(x0, W, options, steps)
 
     def with_fixed(
-        self, fixed: Sequence[tuple[int, int]], inner: Sequence[int] | np.ndarray, start: int
+        self,
+        fixed: Sequence[tuple[int, int]],
+        inner: Sequence[int] | np.ndarray,
+        start: int,
+        *,
+        one_entry: bool = False,
     ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows] | None:
         """(value at the start, its row of ``W``, options' table of the ``inner`` choices, its
         rows on demand) of the chain whose choices ``fixed`` (position, option) take those
@@ -105,7 +110,14 @@ class Basis(NamedTuple):
         every row difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its
         right-hand side likewise) and the start's row ``W' = W + W_F Z``. None when that system
         is ill-conditioned (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`): every value of
-        the block would inherit its error, so the block's base is better solved anew."""
+        the block would inherit its error, so the block's base is better solved anew.
+
+        ``one_entry``: every alteration of the block takes one inner option at most, so its
+        system reads ``D W'`` only on that option's own rows and their columns; only those
+        entries are updated (the others read 0 and are never read). A search's subtree one
+        sensor short of its budget is such a block, and updating the whole table (every row
+        slot by every inner row, thousands by thousands) cost it several times its
+        enumeration."""
         table = self.options
         if fixed:
             changed = np.concatenate(
@@ -131,8 +143,11 @@ class Basis(NamedTuple):
                 return None
         z = np.linalg.solve(system, np.column_stack([table.rhs[changed], d_w[changed]]))
         reach = d_w[:, own]  # D W_F for every row slot (the pad's: zero)
-        updated_d_w = table.d_w.copy()
-        updated_d_w[:, :-1] += reach @ z[:, 1:]
+        if one_entry:
+            updated_d_w = _own_blocks(table, flat_start, flat_length, reach, z[:, 1:])
+        else:
+            updated_d_w = table.d_w.copy()
+            updated_d_w[:, :-1] += reach @ z[:, 1:]
         return (
             x_start + float(w_start[own] @ z[:, 0]),
             w_start + w_start[own] @ z[:, 1:],
@@ -146,6 +161,28 @@ class Basis(NamedTuple):
             ),
             BaseRows(self.x0, self.W, own, z),
         )
+
+
+def _own_blocks(
+    table: RowDeltas,
+    flat_start: np.ndarray,
+    flat_length: np.ndarray,
+    reach: np.ndarray,
+    z: np.ndarray,
+) -> np.ndarray:
+    """``table.d_w + reach @ z`` on each option's own rows and their columns (every option
+    of ``flat_start``/``flat_length``), 0 elsewhere (calloc'd: the pages never written cost
+    nothing)."""
+    starts, lengths = flat_start.ravel(), flat_length.ravel()
+    starts, lengths = starts[lengths > 0], lengths[lengths > 0]
+    pairs = lengths * lengths
+    option = np.repeat(np.arange(starts.size), pairs)
+    within = np.arange(int(pairs.sum())) - np.repeat(np.cumsum(pairs) - pairs, pairs)
+    row = starts[option] + within // lengths[option]
+    column = table.column[starts[option] + within % lengths[option]]
+    updated = np.zeros(table.d_w.shape)
+    updated[row, column] = table.d_w[row, column] + np.einsum("pf,fp->p", reach[row], z[:, column])
+    return updated
 
 
 class BaseRows(NamedTuple):
