@@ -395,7 +395,8 @@ def _row_classes(rows: sp.csr_matrix, owner: np.ndarray) -> np.ndarray:
     (itself if none): candidates share two random projections, and are then compared entry by
     entry, so the classes are exact."""
     rows = rows.tocsr()
-    rows.sort_indices()
+    if not rows.has_sorted_indices:
+        rows = rows.sorted_indices()  # a copy: the chain's own matrix is left as it is
     projections = np.asarray(rows @ np.random.default_rng(0).random((rows.shape[1], 2)))
     nnz = np.diff(rows.indptr)
     keys = np.column_stack([owner, nnz, projections.view(np.int64)])

@@ -30,7 +30,7 @@ from scipy.linalg.lapack import dgbsv
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
-from misdirect.core import residual, tolerance
+from misdirect.core import elimination, residual, tolerance
 from misdirect.core.lu_solve import solve_many
 from misdirect.core.model import reachable_from
 
@@ -711,7 +711,8 @@ def _prove_forward(
     # for a dot product of the row's length, in any order, plus one); Q's rows are shorter
     steps = np.inf if lowest < 0 else _time_bound_at(q, t, gamma, k)
     if not np.isfinite(steps):
-        return Bounded(float(x[k]), np.inf)
+        jump = None if lowest < 0 else _jump_chain_value(q, rows, unknown, known, k)
+        return Bounded(float(x[k]) if jump is None else jump, np.inf)
     z = known.copy()
     z[unknown] = x
     rz = rows @ z
@@ -731,7 +732,42 @@ def _prove_forward(
         return r, float(bound.max(initial=0.0) * steps + UNIT_ROUNDOFF * abs(hi[k] + lo[k]))
 
     refined, hi, lo = _refine(x, proven, solve, lambda hi, lo: float(hi[k] + lo[k]))
-    return best if best.error <= refined else Bounded(float(hi[k] + lo[k]), refined)
+    best = best if best.error <= refined else Bounded(float(hi[k] + lo[k]), refined)
+    if np.isfinite(best.error):
+        return best
+    jump = _jump_chain_value(q, rows, unknown, known, k)
+    return best if jump is None else Bounded(jump, np.inf)
+
+
+def _jump_chain_value(
+    q: sp.spmatrix | np.ndarray,
+    rows: sp.spmatrix | np.ndarray,
+    unknown: np.ndarray,
+    known: np.ndarray,
+    k: int,
+) -> float | None:
+    """``x[k]`` where nothing can be proven (a chain absorbed after more than about 10^14
+    steps: LU's answer may be off in its first digit), by elimination without subtraction
+    (:class:`~misdirect.core.elimination.Elimination`, double-double) on the *jump chain*:
+    each state leaves by its other entries, its self-loop taken as what they leave. At that
+    conditioning the doubles as loaded no longer fix the value (their rows sum to 1 within
+    10^-16, which moves it by 0.1 on a chain absorbed after 10^15 steps), while the jump chain
+    moves by a few units of roundoff per state when its entries do, so this is the value of
+    the model whose probabilities the doubles round (on a drone, Storm's exact answer to all
+    16 digits where LU said 1.0). Not proven: the caller keeps the error bound infinite. None
+    where the chain is too large for dense factors or has a closed class."""
+    m = unknown.size
+    if not 0 < m <= elimination.MAX_STATES:
+        return None
+    csr = sp.csr_matrix(rows)
+    outside = np.ones(csr.shape[1])
+    outside[unknown] = 0.0
+    solver = elimination.Elimination(q, elimination.row_products(csr, outside))
+    if not solver.proper:
+        return None
+    high, low = solver.solve(elimination.row_products(csr, known * outside))
+    value = float(high[k] + low[k])
+    return value if np.isfinite(value) else None
 
 
 def _refine(

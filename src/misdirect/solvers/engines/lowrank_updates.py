@@ -114,7 +114,7 @@ class Basis(NamedTuple):
 
         ``one_entry``: every alteration of the block takes one inner option at most, so its
         system reads ``D W'`` only on that option's own rows and their columns; only those
-        entries are updated (the others read 0 and are never read). A search's subtree one
+        entries are updated (the others are left 0: nothing reads them). A search's subtree one
         sensor short of its budget is such a block, and updating the whole table (every row
         slot by every inner row, thousands by thousands) cost it several times its
         enumeration."""

@@ -1,0 +1,116 @@
+"""Chains absorbed only after about 10^17 steps: the value by elimination without subtraction.
+
+Five states in a cycle leak to a decoy and a goal with probabilities of a few 10^-18, far
+below the rounding of the other entries (the doubles of a row sum to 1 only within about
+10^-16). LU then gets even the first digit wrong, and nothing can be proven; the value
+reported is the jump chain's (each state leaves by its other entries), computed without
+cancellation. The references are exact rational solves written out here: the jump chain of
+the very doubles, and the model of the decimals before they were rounded.
+"""
+
+from __future__ import annotations
+
+from decimal import Decimal
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from misdirect.core import reachability
+
+UNIT = Decimal("3e-18")
+CYCLE = 5
+MOVES = {  # in-cycle moves; the entry left as None takes what the leaks leave
+    0: {1: "0.6", 3: None},
+    1: {2: "0.3", 0: "0.5", 4: None},
+    2: {3: "0.7", 2: "0.1", 0: None},
+    3: {4: "0.45", 1: None},
+    4: {0: "0.8", 2: None},
+}
+LEAKS = {0: (3, 4), 1: (1, 8), 2: (6, 2), 3: (2, 2), 4: (5, 5)}  # (to decoy, to goal) in UNITs
+DECOY, GOAL = CYCLE, CYCLE + 1
+
+
+def _rows() -> list[dict[int, Decimal]]:
+    """Each state's row as decimals summing to exactly 1."""
+    rows = []
+    for i in range(CYCLE):
+        row = {DECOY: LEAKS[i][0] * UNIT, GOAL: LEAKS[i][1] * UNIT}
+        given = {j: Decimal(p) for j, p in MOVES[i].items() if p is not None}
+        rest = 1 - sum(row.values()) - sum(given.values())
+        row.update(given)
+        row.update({j: rest for j, p in MOVES[i].items() if p is None})
+        rows.append(row)
+    return rows
+
+
+def _gauss(a: list[list[Fraction]], b: list[Fraction]) -> list[Fraction]:
+    n = len(b)
+    m = [[*a[i], b[i]] for i in range(n)]
+    for c in range(n):
+        pivot = next(r for r in range(c, n) if m[r][c] != 0)
+        m[c], m[pivot] = m[pivot], m[c]
+        for r in range(n):
+            if r != c and m[r][c] != 0:
+                f = m[r][c] / m[c][c]
+                m[r] = [x - f * y for x, y in zip(m[r], m[c], strict=True)]
+    return [m[i][n] / m[i][i] for i in range(n)]
+
+
+def _model_value(rows: list[dict[int, Decimal]]) -> Fraction:
+    """Pr(decoy) from state 0 of the decimal model, exactly."""
+    a = [
+        [Fraction(int(i == j)) - Fraction(rows[i].get(j, 0)) for j in range(CYCLE)]
+        for i in range(CYCLE)
+    ]
+    return _gauss(a, [Fraction(rows[i][DECOY]) for i in range(CYCLE)])[0]
+
+
+def _jump_value(p: np.ndarray) -> Fraction:
+    """Pr(decoy) from state 0 of the jump chain of the doubles ``p``, exactly: each state
+    leaves by its other entries (its self-loop is what they leave)."""
+    q = [[Fraction(float(p[i, j])) for j in range(p.shape[1])] for i in range(CYCLE)]
+    a = [
+        [
+            sum((q[i][k] for k in range(p.shape[1]) if k != i), Fraction(0)) if i == j else -q[i][j]
+            for j in range(CYCLE)
+        ]
+        for i in range(CYCLE)
+    ]
+    return _gauss(a, [q[i][DECOY] for i in range(CYCLE)])[0]
+
+
+def _chain() -> np.ndarray:
+    p = np.zeros((CYCLE + 2, CYCLE + 2))
+    for i, row in enumerate(_rows()):
+        for j, value in row.items():
+            p[i, j] = float(value)
+    p[DECOY, DECOY] = p[GOAL, GOAL] = 1.0
+    return p
+
+
+def test_the_chain_defeats_double_precision():
+    """The premise: the doubles' rows miss 1 by more than the leaks, and LU is off in the
+    first digits."""
+    p = _chain()
+    defects = [abs(sum(Fraction(float(x)) for x in p[i]) - 1) for i in range(CYCLE)]
+    assert max(defects) > Fraction(float(max(p[:CYCLE, DECOY])))
+    model = _model_value(_rows())
+    lu = np.linalg.solve(np.eye(CYCLE) - p[:CYCLE, :CYCLE], p[:CYCLE, DECOY])[0]
+    assert abs(lu - float(model)) > 1e-3
+
+
+@pytest.mark.parametrize("route", ["dense", "lu"])
+def test_the_value_is_the_jump_chains_and_the_models_unproven(route, monkeypatch):
+    if route == "lu":
+        monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
+    p = _chain()
+    target = np.zeros(p.shape[0], dtype=bool)
+    target[DECOY] = True
+    found = reachability.reach_probability_bounded(sp.csr_matrix(p), target, 0)
+    assert found.error == np.inf  # nothing is proven: never `optimal`
+    jump, model = _jump_value(p), _model_value(_rows())
+    assert found.value == pytest.approx(float(jump), rel=1e-13)
+    # the jump chain of the rounded entries is a relative perturbation of the model's
+    assert found.value == pytest.approx(float(model), rel=1e-13)
