@@ -25,6 +25,7 @@ from misdirect.core import reachability, residual, tolerance
 from misdirect.core.reachability import occupation, reach_probability_bounded
 from misdirect.solvers.certification import decide
 from misdirect.solvers.status import Status
+from rational import gauss_jordan
 
 UNIT = Decimal("3e-11")  # the leaks are multiples of this
 CYCLE = 5
@@ -69,18 +70,8 @@ def _matrix(actions: str) -> np.ndarray:
 def _exact(p: np.ndarray, rhs: np.ndarray) -> list[Fraction]:
     """``(I - Q) x = rhs`` on the cycle, Q and rhs taken as exact rationals (Gauss-Jordan)."""
     n = CYCLE
-    m = [
-        [Fraction(int(i == j)) - Fraction(float(p[i, j])) for j in range(n)] + [Fraction(rhs[i])]
-        for i in range(n)
-    ]
-    for c in range(n):
-        pivot = next(r for r in range(c, n) if m[r][c] != 0)
-        m[c], m[pivot] = m[pivot], m[c]
-        for r in range(n):
-            if r != c and m[r][c] != 0:
-                f = m[r][c] / m[c][c]
-                m[r] = [x - f * y for x, y in zip(m[r], m[c], strict=True)]
-    return [m[i][n] / m[i][i] for i in range(n)]
+    a = [[Fraction(int(i == j)) - Fraction(float(p[i, j])) for j in range(n)] for i in range(n)]
+    return gauss_jordan(a, [Fraction(rhs[i]) for i in range(n)])
 
 
 def _exact_decoy(p: np.ndarray) -> list[Fraction]:

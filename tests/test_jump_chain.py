@@ -18,6 +18,7 @@ import pytest
 import scipy.sparse as sp
 
 from misdirect.core import reachability
+from rational import gauss_jordan
 
 UNIT = Decimal("3e-18")
 CYCLE = 5
@@ -45,26 +46,13 @@ def _rows() -> list[dict[int, Decimal]]:
     return rows
 
 
-def _gauss(a: list[list[Fraction]], b: list[Fraction]) -> list[Fraction]:
-    n = len(b)
-    m = [[*a[i], b[i]] for i in range(n)]
-    for c in range(n):
-        pivot = next(r for r in range(c, n) if m[r][c] != 0)
-        m[c], m[pivot] = m[pivot], m[c]
-        for r in range(n):
-            if r != c and m[r][c] != 0:
-                f = m[r][c] / m[c][c]
-                m[r] = [x - f * y for x, y in zip(m[r], m[c], strict=True)]
-    return [m[i][n] / m[i][i] for i in range(n)]
-
-
 def _model_value(rows: list[dict[int, Decimal]]) -> Fraction:
     """Pr(decoy) from state 0 of the decimal model, exactly."""
     a = [
         [Fraction(int(i == j)) - Fraction(rows[i].get(j, 0)) for j in range(CYCLE)]
         for i in range(CYCLE)
     ]
-    return _gauss(a, [Fraction(rows[i][DECOY]) for i in range(CYCLE)])[0]
+    return gauss_jordan(a, [Fraction(rows[i][DECOY]) for i in range(CYCLE)])[0]
 
 
 def _jump_value(p: np.ndarray) -> Fraction:
@@ -78,7 +66,7 @@ def _jump_value(p: np.ndarray) -> Fraction:
         ]
         for i in range(CYCLE)
     ]
-    return _gauss(a, [q[i][DECOY] for i in range(CYCLE)])[0]
+    return gauss_jordan(a, [q[i][DECOY] for i in range(CYCLE)])[0]
 
 
 def _chain() -> np.ndarray:
