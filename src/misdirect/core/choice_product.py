@@ -289,12 +289,16 @@ def _distinct(values: np.ndarray) -> np.ndarray:
 
 def _row_entries(matrix: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
     """Column indices of the given rows' entries, concatenated (no new matrix is built)."""
-    starts = matrix.indptr[rows]
-    lengths = matrix.indptr[rows + 1] - starts
+    return cast(np.ndarray, matrix.indices[_entry_positions(matrix.indptr, rows)])
+
+
+def _entry_positions(indptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Where the given rows' entries are stored in a CSR matrix with ``indptr``, row after
+    row."""
+    starts = indptr[rows]
+    lengths = indptr[rows + 1] - starts
     offsets = np.cumsum(lengths) - lengths
-    return cast(
-        np.ndarray, matrix.indices[np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())]
-    )
+    return np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())
 
 
 def end_component_states(
@@ -406,11 +410,9 @@ def _row_classes(rows: sp.csr_matrix, owner: np.ndarray) -> np.ndarray:
     differs = np.zeros(rows.shape[0], dtype=bool)
     twin = np.flatnonzero(candidate != np.arange(rows.shape[0]))
     if twin.size:
-        length = nnz[twin]
-        entry = np.repeat(twin, length)
-        offset = np.arange(entry.size) - np.repeat(np.cumsum(length) - length, length)
-        mine = rows.indptr[entry] + offset
-        theirs = rows.indptr[candidate[entry]] + offset
+        # a row and its candidate have as many entries: their positions pair up one to one
+        mine = _entry_positions(rows.indptr, twin)
+        theirs = _entry_positions(rows.indptr, candidate[twin])
         bad = (rows.indices[mine] != rows.indices[theirs]) | (rows.data[mine] != rows.data[theirs])
-        differs[np.unique(entry[bad])] = True
+        differs[np.repeat(twin, nnz[twin])[bad]] = True
     return np.where(differs, np.arange(rows.shape[0]), candidate)
