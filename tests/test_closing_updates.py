@@ -86,7 +86,8 @@ def test_kept_bases_with_fixed_sensors_value_closing_alterations_too():
             continue
         answer = enumeration.best_with(budget, fixed, Deadline(None), bases)
         assert answer is not None
-        value, vector = answer
+        value, vector, complete = answer
+        assert complete
         assert all(vector[i] == k for i, k in fixed.items())
         assert value == pytest.approx(exact[agree].max(), abs=1e-9)
         checked += 1

@@ -243,7 +243,8 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
         fixed = {int(i): int(rng.integers(choices[i].size)) for i in picked}
         if sum(choices[i].costs[o] for i, o in fixed.items()) > budget:
             continue
-        value, vector = enumeration.best_with(budget, fixed, Deadline(None), bases)
+        value, vector, complete = enumeration.best_with(budget, fixed, Deadline(None), bases)
+        assert complete
         assert all(vector[i] == o for i, o in fixed.items())
         assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget + 1e-9
         exact = decoy_probability(problem, instance.space.alteration(problem, vector))
@@ -257,6 +258,57 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
     # a subtree with room for inner alterations uses a kept base (the others are one
     # alteration each, valued on its own chain)
     assert bool(bases._bases) == (roomy > 0)
+
+
+class _CancelAfter:
+    """A cancel token that reads as cancelled from its ``reads``-th look on: a deadline that
+    passes part way through an enumeration, at a point that does not depend on the clock."""
+
+    def __init__(self, reads: int):
+        self.reads = reads
+
+    @property
+    def cancelled(self) -> bool:
+        self.reads -= 1
+        return self.reads < 0
+
+
+def test_an_enumeration_cut_short_offers_the_best_it_valued_and_proves_nothing():
+    """Cut at every point of its run, a subtree's enumeration returns nothing, or an
+    alteration of the subtree whose value is its exact value and which is flagged as no
+    proof; left to finish, it is the brute-force best. Some cut returns a candidate."""
+    from misdirect.core.attack import prepare
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.scenarios import sensor_grid
+    from misdirect.solvers.deadline import Deadline
+    from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
+
+    problem = sensor_grid(7, 6, seed=1, memory=4)
+    budget = 2.0
+    instance = prepare(problem, budget)
+    choices = instance.space.choices
+    enumeration = LowRankEnumeration(instance)
+    fixed = {enumeration.natural_inner[0]: 1}
+    best = brute_force_with(problem, instance, budget, fixed)
+    candidates = 0
+    for reads in range(0, 400, 7):
+        deadline = Deadline(None, cancel=_CancelAfter(reads))  # type: ignore[arg-type]
+        found = enumeration.best_with(budget, fixed, deadline, BasisCache())
+        if found is None:
+            continue
+        value, vector, complete = found
+        assert all(vector[i] == o for i, o in fixed.items())
+        assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget
+        exact = decoy_probability(problem, instance.space.alteration(problem, vector))
+        assert value == pytest.approx(exact, abs=1e-9)
+        assert value <= best + 1e-9
+        if complete:
+            assert value == pytest.approx(best, abs=1e-9)
+        else:
+            candidates += 1
+    assert candidates > 0
+    value, _, complete = enumeration.best_with(budget, fixed, Deadline(None), BasisCache())
+    assert complete and value == pytest.approx(best, abs=1e-9)
 
 
 def test_every_value_on_chains_with_end_components_equals_its_chain():

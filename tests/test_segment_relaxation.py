@@ -271,3 +271,35 @@ def test_the_reported_root_bound_bounds_the_optimum_when_the_root_is_split(n, k)
     optimum = ExhaustiveSolver().solve(problem, [2.0])[0].solver_probability
     assert search.root_bound is not None
     assert search.root_bound >= optimum - 1e-12
+
+
+@pytest.mark.parametrize("blind", [True, False])
+def test_where_bounds_cannot_see_the_budget_a_node_with_small_children_is_enumerated(
+    blind, monkeypatch
+):
+    """A drone among patrolling agents has end components: the segment bound charges
+    nothing. Its root has more completions than ``enumerate_at``, but each child that alters
+    one more observation would be a tiny enumeration: the search enumerates the root whole
+    (no node bounded). Told the bound sees the budget, it bounds the root and branches. Both
+    certify the optimum that solving every alteration on its own chain gives."""
+    from misdirect.scenarios.drone import drone
+    from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
+
+    problem = drone(n=5, agents=1, rows=1)
+    budget = 2.0
+    seg = segment_relaxation(problem, budget)
+    assert seg.budget_blind
+    assert all((choice.costs[1:] == 1.0).all() for choice in seg.space.choices)
+    if not blind:
+        monkeypatch.setattr(SegmentRelaxation, "budget_blind", property(lambda self: False))
+    whole = seg.completions({}, budget, 10**9)
+    child = seg.completions({}, budget - 1.0, 10**9)  # every option costs 1 here
+    enumerate_at = max(-(-whole // 8), 16 * child)
+    assert enumerate_at < whole  # the root is above the plain threshold
+    search = SegmentSearch(seg, budget, enumerate_at=enumerate_at)
+    assert search.run(Deadline(120.0), workers=1) == "optimal"
+    assert search.best_value == pytest.approx(optima(problem.with_budget(budget), [budget])[0])
+    if blind:
+        assert search.nodes == 0 and search.enumerated == 1
+    else:
+        assert search.nodes >= 1

@@ -378,16 +378,18 @@ class LowRankEnumeration:
 
     def best_with(
         self, budget: float, fixed: dict[int, int], deadline: Deadline, bases: BasisCache
-    ) -> tuple[float, np.ndarray] | None:
+    ) -> tuple[float, np.ndarray, bool] | None:
         """The best alteration within ``budget`` that takes option ``fixed[i]`` for choice
-        ``i`` (value, choice vector); None when cut by ``deadline``. Each base chain is solved
-        once (kept in ``bases``), and a subtree's base is that one with its fixed sensors' rows
-        updated in (low rank)."""
+        ``i`` (value, choice vector, whether every such alteration was valued: ``deadline``
+        may cut the run short, and the best of those valued is then no proof); None when none
+        was valued. Each base chain is solved once (kept in ``bases``), and a subtree's base
+        is that one with its fixed sensors' rows updated in (low rank)."""
         found = self.run(budget, fixed, deadline, None, bases)
-        if not found.complete_for(budget):
+        costs = np.where(np.isnan(found.values), np.inf, found.costs)
+        if not (costs <= found.scale.cap(budget)).any():
             return None
-        index = found.best_within([budget])[0]
-        return float(found.values[index]), found.picks(index)
+        index = best_per_budget(costs, found.values, [budget], found.scale, tolerance.NEAR_TIE)[0]
+        return float(found.values[index]), found.picks(index), found.complete_for(budget)
 
     def run(
         self,

@@ -538,14 +538,23 @@ class SegmentRelaxation:
 
     def enumerate(
         self, picks: dict[int, int], budget: float, deadline: Deadline
-    ) -> tuple[float, tuple[int, ...]] | None:
-        """The best completion of ``picks`` within ``budget`` (value, picks), enumerated
-        exhaustively with low-rank updates; None when cut by ``deadline``."""
+    ) -> tuple[float, tuple[int, ...], bool] | None:
+        """The best completion of ``picks`` within ``budget`` (value, picks, whether it is
+        the best of them all), enumerated with low-rank updates: when ``deadline`` cuts the
+        run short, the best of those valued (a candidate, not a proof); None when none was."""
         found = self.enumeration.best_with(budget, picks, deadline, self.bases)
         if found is None:
             return None
-        value, vector = found
-        return value, tuple(int(vector[i]) for i in self.order)
+        value, vector, complete = found
+        return value, tuple(int(vector[i]) for i in self.order), complete
+
+    @property
+    def budget_blind(self) -> bool:
+        """Whether the node bounds cannot see the budget: with end components among the live
+        states nothing is charged (:meth:`SegmentMdp.entries`), so a node is pruned only
+        where its free observations, each as often as it likes, cannot beat the incumbent;
+        elsewhere only enumerating proves anything."""
+        return bool(self.bound.cycling.any())
 
     def complete(self, picks: dict[int, int]) -> tuple[int, ...]:
         """The search's picks (in ``relax.order``) with every unlisted observation unaltered."""

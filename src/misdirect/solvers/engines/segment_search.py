@@ -11,7 +11,10 @@ enumerated exactly (the low-rank enumeration, with a base kept per outer pick). 
 cannot see the budget, but it does see which sensors are left: on sensor networks a few
 sensors carry the value, so a node that leaves a strong sensor out is pruned, and one that
 alters it has a budget one smaller, soon small enough to enumerate. A node that would need a
-new base solve is bounded first (it may be pruned).
+new base solve is bounded first (it may be pruned). Where the bound cannot see the budget
+(chains with end components), a larger node is enumerated whole when branching it would only
+make tiny enumerations, each paying a subtree's fixed cost; an enumeration cut short by the
+deadline still offers the best alteration it valued (the node stays open).
 
 Each node's policy iteration starts from its parent's entry choices (mostly one factorisation
 instead of several from scratch). Whenever the incumbent improves, a local search enumerates
@@ -39,6 +42,11 @@ from misdirect.solvers.status import Status
 
 NEIGHBOURHOOD = 50_000  # the local search enumerates a neighbourhood of at most this many
 BIG_REGION = 0.25  # an observation owning this share of the live states is branched on first
+# where the bounds cannot see the budget, a node with up to this many times enumerate_at
+# completions is enumerated when its altered children would have at most this share of it
+# each: branching it would enumerate them all, each paying a subtree's fixed cost
+BLIND_ENUMERATE = 8
+SMALL_SUBTREE = 1 / 16
 SHARE_EVERY_S = 0.2  # a search with a shared incumbent reads and raises it at most this often
 
 # an open node handed between processes: picks, remaining budget, bound, bounded (its own),
@@ -59,6 +67,7 @@ class _Open:
     # the parent's entry choices
     warm: dict[int, np.ndarray] | None = field(compare=False, default=None)
     completions: int = field(compare=False, default=0)  # counted when taken off the heap
+    enumerable: bool = field(compare=False, default=False)  # decided then too
 
     @property
     def bound(self) -> float:
@@ -170,10 +179,12 @@ class SegmentSearch(IncumbentSearch):
                 if seg.completions(fixed, remaining, NEIGHBOURHOOD) > NEIGHBOURHOOD:
                     continue
                 found = seg.enumerate(fixed, self.budget, deadline)
-                if found is None or self._status is not None:
-                    return  # out of time, or the search is over
-                if tolerance.better(found[0], self.best_value, rel=tolerance.PRUNE):
+                if found is not None and tolerance.better(
+                    found[0], self.best_value, rel=tolerance.PRUNE
+                ):
                     self.incumbent.offer_exact(found[1])
+                if found is None or not found[2] or self._status is not None:
+                    return  # out of time, or the search is over
 
     def open_nodes(self) -> list[Subtree]:
         """The nodes still open (none is held by a worker once ``run`` returns)."""
@@ -298,14 +309,12 @@ class SegmentSearch(IncumbentSearch):
         """What to do with a node taken off the heap: nothing (pruned), bound or enumerate."""
         if self.incumbent.prune(entry.bound):
             return None
-        kind, entry.completions = "node", self.enumerate_at + 1
+        kind = "node"
         if self.enumerate_at:
-            entry.completions = self.seg.completions(
-                entry.picks, entry.remaining, self.enumerate_at
-            )
+            entry.enumerable = self._enumerable(entry)
             # a node needing a new base solve is bounded first (it may be pruned)
             ready = entry.bounded or self.seg.basis_ready(entry.picks)
-            if entry.completions <= self.enumerate_at and ready:
+            if entry.enumerable and ready:
                 kind = "enumerate"
         if kind == "node":
             self.nodes += 1
@@ -314,20 +323,40 @@ class SegmentSearch(IncumbentSearch):
         self._in_flight[entry.token] = entry.bound
         return kind, entry
 
+    def _enumerable(self, entry: _Open) -> bool:
+        """Whether to enumerate the node rather than branch: it has at most ``enumerate_at``
+        completions, or, where the bounds cannot see the budget (:attr:`SegmentRelaxation.
+        budget_blind`: its children would all be enumerated anyway), up to
+        ``BLIND_ENUMERATE`` times as many and its altered children would be small
+        enumerations, each paying a subtree's fixed cost (its basis updated) for few
+        alterations. Sets ``entry.completions``."""
+        seg, remaining = self.seg, entry.remaining
+        wide = self.enumerate_at * BLIND_ENUMERATE if seg.budget_blind else self.enumerate_at
+        entry.completions = seg.completions(entry.picks, remaining, wide)
+        if entry.completions <= self.enumerate_at:
+            return True
+        if entry.completions > wide:
+            return False
+        choices = seg.space.choices
+        free = [choices[i].costs[1:] for i in seg.order if i not in entry.picks]
+        cheapest = min((float(c.min(initial=np.inf)) for c in free), default=np.inf)
+        small = int(self.enumerate_at * SMALL_SUBTREE)
+        return bool(seg.completions(entry.picks, remaining - cheapest, small) <= small)
+
     def _do_enumerate(self, entry: _Open, deadline: Deadline) -> None:
         found = self.seg.enumerate(entry.picks, self.budget, deadline)
         exact = None
         if found is not None and tolerance.better(found[0], self.best_value, rel=tolerance.PRUNE):
             exact = self.incumbent.value_of(found[1])  # re-evaluated exactly, outside the lock
         with self._lock:
-            if found is None:  # cut by the deadline: the node stays open
+            if found is not None and exact is not None:
+                self.incumbent.offer(found[1], exact)  # even the best of a run cut short
+            if found is None or not found[2]:  # cut by the deadline: the node stays open
                 self._push(entry.picks, entry.remaining, entry.bound, bounded=True)
                 self._status = self._status or Status.TIME_LIMIT
                 return
             self.enumerated += 1
             self.enumerated_alterations += entry.completions
-            if exact is not None:
-                self.incumbent.offer(found[1], exact)
 
     def _do_node(self, entry: _Open, deadline: Deadline) -> None:
         seg = self.seg
@@ -359,7 +388,7 @@ class SegmentSearch(IncumbentSearch):
             self.incumbent.offer(rounded, value)
             if not layers or self.incumbent.prune(bound):
                 return
-            if entry.completions <= self.enumerate_at:  # bounded, not pruned: enumerated next
+            if entry.enumerable:  # bounded, not pruned: enumerated next
                 self._push(entry.picks, entry.remaining, bound, bounded=True)
                 return
             self._branch(entry, bound, usage, layers, entry_choices)
