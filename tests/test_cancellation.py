@@ -180,3 +180,34 @@ def test_policy_iterations_raise_once_their_deadline_has_passed():
     )
     with pytest.raises(DeadlineExpiredError):
         transient.optimise(np.array([1.0, 2.0]), deadline=cancelled)
+
+
+def test_bounds_proven_after_the_deadline_share_one_grace():
+    """A curve cut short proves a bound per budget once its time is up; all of them end one
+    grace after the deadline (not one grace each), and a cancellation still ends them."""
+    from misdirect.solvers.schedule import CLOSING_BOUND_SECONDS, closing_bound
+
+    deadline = Deadline(0.0)
+    first = closing_bound(deadline)
+    time.sleep(0.05)
+    second = closing_bound(deadline)
+    assert first.end == second.end == deadline.end + CLOSING_BOUND_SECONDS
+    unlimited = closing_bound(Deadline(None))
+    assert unlimited.end is not None and unlimited.end <= time.perf_counter() + 1.01 * (
+        CLOSING_BOUND_SECONDS
+    )
+    deadline.cancel.cancel()
+    assert closing_bound(deadline).expired()
+
+
+def test_a_portfolio_hands_over_only_with_time_to_answer():
+    """auto starts a later stage only with HANDOVER_MIN_SECONDS left (one started with half a
+    second overran the limit), always without a limit, never once stopped."""
+    from misdirect.solvers.schedule import HANDOVER_MIN_SECONDS, can_hand_over
+
+    assert can_hand_over(Deadline(None))
+    assert can_hand_over(Deadline(HANDOVER_MIN_SECONDS + 5.0))
+    assert not can_hand_over(Deadline(HANDOVER_MIN_SECONDS / 2))
+    stopped = Deadline(None)
+    stopped.cancel.cancel()
+    assert not can_hand_over(stopped)

@@ -512,7 +512,7 @@ class AutoSolver:
         unfinished = [j for j, s in enumerate(solutions) if not _certified(s)]
         if not unfinished:
             return solutions
-        if deadline.expired():
+        if not schedule.can_hand_over(deadline):
             report(progress, 0, 0, note=f"auto: no time left to hand over ({why})")
             return solutions
         listed = ", ".join(f"{budgets[j]:g}" for j in unfinished)

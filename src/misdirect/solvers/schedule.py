@@ -25,6 +25,9 @@ SAMPLE_SECONDS = 0.2  # ... stopping once this long is spent (after the first)
 # -- branch-and-bound: the per-state search, then the segment search ------------------------------
 CLIMB_SHARE = 0.25  # of a budget's even share: the hill climb before its search
 SEGMENT_MIN_SECONDS = 1.0  # the segment search backs a budget up with at least this much left
+HANDOVER_MIN_SECONDS = 1.0  # a later stage of auto starts only with at least this much left: a
+# MILP handed half a second built its model, solved, checked its claim and proved a bound past
+# a 10 s limit by 1.2 s, and answered nothing new
 SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, the per-state search gets this long first
 
@@ -133,5 +136,17 @@ CLOSING_BOUND_SECONDS = 1.0  # a method cut short proves its bound within this m
 
 def closing_bound(deadline: Deadline) -> Deadline:
     """The deadline of the bound a method proves once it is cut short (its own time is up):
-    ``CLOSING_BOUND_SECONDS`` more, and a cancellation still ends it at once."""
-    return Deadline(CLOSING_BOUND_SECONDS, cancel=deadline.cancel)
+    ``CLOSING_BOUND_SECONDS`` past ``deadline``, one grace shared by every such bound of the
+    run (a curve cut short proves one per budget: each its own second overran a 10 s limit by
+    2 s), and a cancellation still ends it at once. Without a time limit, that much from
+    now."""
+    if deadline.end is None:
+        return Deadline(CLOSING_BOUND_SECONDS, cancel=deadline.cancel)
+    return Deadline(None, cancel=deadline.cancel, end=deadline.end + CLOSING_BOUND_SECONDS)
+
+
+def can_hand_over(deadline: Deadline) -> bool:
+    """Whether a later stage of a portfolio has time to answer anything
+    (``HANDOVER_MIN_SECONDS`` left; without a time limit, unless stopped)."""
+    left = deadline.remaining()
+    return left is None or left >= HANDOVER_MIN_SECONDS

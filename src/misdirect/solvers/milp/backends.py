@@ -818,12 +818,13 @@ def violation(model: MilpModel, values: np.ndarray) -> float:
 
 
 def value_with_rounded_binaries(
-    model: MilpModel, values: np.ndarray, budget: float
+    model: MilpModel, values: np.ndarray, budget: float, time_limit: float | None = None
 ) -> float | None:
     """The model's optimum with every integer column fixed to ``values`` rounded: what the
     formulation claims for the alteration those binaries decode to, free of the solver's
-    integrality tolerance. A linear programme, solved by HiGHS in its worker process; None if
-    it does not solve to optimality (the caller then keeps the solver's own objective)."""
+    integrality tolerance. A linear programme, solved by HiGHS in its worker process within
+    ``time_limit`` seconds; None if it does not solve to optimality (the caller then keeps the
+    solver's own objective)."""
     rounded = np.round(values[model.integer])
     lower, upper = model.col_lower.copy(), model.col_upper.copy()
     lower[model.integer] = upper[model.integer] = rounded
@@ -839,7 +840,7 @@ def value_with_rounded_binaries(
     backend = HighsBackend(SolverOptions())
     try:
         backend.load(fixed)
-        result = backend.solve(None)
+        result = backend.solve(None, time_limit=time_limit)
     finally:
         backend.close()
     return result.objective if result.status == "optimal" else None

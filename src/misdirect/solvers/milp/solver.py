@@ -357,9 +357,11 @@ def _claim(
     gapped = result.bound is not None and result.bound - claimed > tolerance.slack(
         result.bound, claimed, rel=tolerance.CERTIFY
     )
-    # a stop request skips the LP (a second solve); the claim is only checked, never reported
-    if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled:
-        rounded = backends.value_with_rounded_binaries(model, result.values, row)
+    # a stop request skips the LP (a second solve), which has the closing grace at most once
+    # the time is up; the claim is only checked, never reported
+    grace = schedule.closing_bound(deadline).remaining()
+    if (violation > tolerance.FEASIBILITY or gapped) and grace != 0.0:
+        rounded = backends.value_with_rounded_binaries(model, result.values, row, grace)
         claimed = claimed if rounded is None else rounded * model.value_unit
     return claimed
 
