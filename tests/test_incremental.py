@@ -508,3 +508,28 @@ def test_a_run_with_a_share_stops_before_the_blocks_that_would_pass_it(monkeypat
     assert cut.values[best] == pytest.approx(
         decoy_probability(problem, problem.identity()), abs=1e-12
     )
+
+
+def test_stacked_woodbury_systems_are_solved_and_their_conditioning_flagged():
+    """One inverse per system gives each solution and its condition number: a well-conditioned
+    system's solution is numpy's solve's, one above ILL_CONDITIONED and a singular one are
+    flagged (NaN), and the singular one does not cost the others their values."""
+    from misdirect.core import tolerance
+    from misdirect.solvers.engines.lowrank_updates import solved_and_conditioned
+
+    rng = np.random.default_rng(3)
+    fine = np.eye(3) + 0.1 * rng.random((3, 3))
+    ill = np.diag([1.0, 1.0, 1.0 / (100 * tolerance.ILL_CONDITIONED)])
+    singular = np.array([[1.0, 2.0, 0.0], [2.0, 4.0, 0.0], [0.0, 0.0, 1.0]])
+    rhs = rng.random((4, 3))
+    for stack in ([fine, ill, fine], [fine, singular, ill, fine]):
+        systems = np.stack(stack)
+        right = rhs[: len(stack)]
+        z, flagged = solved_and_conditioned(systems, right)
+        expected_ill = [m is not fine for m in stack]
+        assert flagged.tolist() == expected_ill
+        for j, matrix in enumerate(stack):
+            if matrix is fine:
+                assert np.allclose(z[j], np.linalg.solve(matrix, right[j]), rtol=1e-13)
+            else:
+                assert np.isnan(z[j]).all()

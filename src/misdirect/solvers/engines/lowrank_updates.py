@@ -378,15 +378,31 @@ def _direct_corrections(
             pick = same[lo : lo + DIRECT_CHUNK]
             done[pick] = True
             slots = tree.slots(alterations[pick], pad)
-            system = deltas.system(slots)
-            with np.errstate(all="ignore"):
-                fine = np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED
-            if not fine.any():
-                continue
-            slots, system, pick = slots[fine], system[fine], pick[fine]
-            z = np.linalg.solve(system, deltas.rhs[slots][..., None])[..., 0]
-            out[pick] = np.einsum("ni,ni->n", weight[slots], z)
+            z, ill = solved_and_conditioned(deltas.system(slots), deltas.rhs[slots])
+            fine = ~ill
+            out[pick[fine]] = np.einsum("ni,ni->n", weight[slots[fine]], z[fine])
     return out, done
+
+
+def solved_and_conditioned(system: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per system of a stack: its solution for its ``rhs`` and whether it is ill-conditioned
+    (1-norm condition number above :data:`~misdirect.core.tolerance.ILL_CONDITIONED`, or
+    singular; its solution is then NaN), from one inverse each: the condition number needs
+    the inverse anyway (numpy's ``cond`` inverts too), and a solve besides cost a fifth of a
+    drone's enumeration. One singular system makes numpy's ``inv`` raise for the stack: then
+    only those whose condition number, computed one by one, is fine are inverted."""
+    with np.errstate(all="ignore"):
+        try:
+            inverse = np.linalg.inv(system)
+        except np.linalg.LinAlgError:
+            fine = np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED
+            inverse = np.full_like(system, np.nan)
+            if fine.any():
+                inverse[fine] = np.linalg.inv(system[fine])
+        conditioned = _norm1(system) * _norm1(inverse)
+        z = np.einsum("nij,nj->ni", inverse, rhs)
+    ill = ~(conditioned <= tolerance.ILL_CONDITIONED)
+    return np.where(ill[:, None], np.nan, z), ill
 
 
 class _Tree(NamedTuple):
@@ -748,11 +764,6 @@ def flagged_values(
         if empty.any():
             system = np.where(empty[:, :, None], rows.w(state, column), system)
             rhs = np.where(empty, -rows.x(state), rhs)
-        try:
-            z = np.linalg.solve(system, rhs[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            continue  # left NaN: solved exactly by the caller
-        with np.errstate(all="ignore"):
-            ill = ~(np.linalg.cond(system, 1) <= tolerance.ILL_CONDITIONED)
+        z, ill = solved_and_conditioned(system, rhs)  # ill ones: NaN, solved by the caller
         values[batch] = np.where(ill, np.nan, x_start + np.einsum("ni,ni->n", weight[column], z))
     return values, reached
