@@ -358,9 +358,9 @@ def _claim(
         result.bound, claimed, rel=tolerance.CERTIFY
     )
     # a stop request skips the LP (a second solve), which has the closing grace at most once
-    # the time is up; the claim is only checked, never reported
-    grace = schedule.closing_bound(deadline).remaining()
-    if (violation > tolerance.FEASIBILITY or gapped) and grace != 0.0:
+    # the time is up (no limit without one); the claim is only checked, never reported
+    grace = None if deadline.end is None else schedule.closing_bound(deadline).remaining()
+    if (violation > tolerance.FEASIBILITY or gapped) and not deadline.cancelled and grace != 0.0:
         rounded = backends.value_with_rounded_binaries(model, result.values, row, grace)
         claimed = claimed if rounded is None else rounded * model.value_unit
     return claimed
