@@ -533,3 +533,94 @@ def test_stacked_woodbury_systems_are_solved_and_their_conditioning_flagged():
                 assert np.allclose(z[j], np.linalg.solve(matrix, right[j]), rtol=1e-13)
             else:
                 assert np.isnan(z[j]).all()
+
+
+def test_inner_rows_are_capped_by_what_each_chain_keeps(monkeypatch):
+    """Without end components a base's ``W`` lives only while it is solved, so the inner
+    choices may own more rows (to the transient cap, within the memory limit); with them it
+    is kept per basis and the smaller cap holds. Sizes counted by hand from the regions."""
+    from misdirect.core.memory import MEMORY_LIMIT_ENV
+    from misdirect.solvers.engines import lowrank
+
+    def inner_rows(instance):
+        sizes = instance.live_states_per_observation
+        chosen = lowrank.inner_choices(instance)
+        return sum(int(sizes[instance.space.choices[i].observation]) for i in chosen)
+
+    corner = prepare(sensor_grid(12, 16, seed=0), 2.0)
+    turning = prepare(sensor_grid(10, 8, seed=0, goal="inside"), 2.0)
+    assert not corner.cycling.any() and turning.cycling.any()
+    monkeypatch.setattr(lowrank, "INNER_ROWS", 1)
+    for instance in (corner, turning):
+        n_live = int(instance.live.sum())
+        monkeypatch.setattr(lowrank, "INNER_ENTRIES", 20 * n_live)
+        monkeypatch.setattr(lowrank, "TRANSIENT_ENTRIES", 60 * n_live)
+        monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+        cap = 20 if instance.cycling.any() else 60
+        assert 0 < inner_rows(instance) <= cap
+        # a memory limit too small for the transient cap leaves the kept one
+        monkeypatch.setenv(MEMORY_LIMIT_ENV, "1K")
+        assert 0 < inner_rows(instance) <= 20
+    monkeypatch.delenv(MEMORY_LIMIT_ENV)
+    monkeypatch.setattr(lowrank, "INNER_ENTRIES", 20 * int(corner.live.sum()))
+    assert inner_rows(corner) > 20  # the bigger cap is used where W is not kept
+
+
+@pytest.mark.parametrize("goal", ["corner", "inside"])
+def test_a_kept_basis_keeps_w_only_where_rows_are_read_on_demand(goal):
+    """Bases kept between a search's enumerations hold ``W`` (live states x inner rows) only
+    on chains with end components, whose trap alterations read its rows; elsewhere the
+    options' table and the start's row, and the subtrees' bests still equal brute force."""
+    from misdirect.core.evaluate import decoy_probability
+    from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
+
+    problem = sensor_grid(8, 6, seed=1, goal=goal)
+    instance = prepare(problem, 2.0)
+    enumeration = LowRankEnumeration(instance)
+    bases = BasisCache()
+    first = enumeration.natural_inner[0]
+    fixed = {first: 1}
+    value, vector, complete = enumeration.best_with(2.0, fixed, Deadline(None), bases)
+    assert complete
+    (kept,) = bases._bases.values()
+    assert (kept.basis.W is not None) == bool(instance.cycling.any())
+    assert kept.basis.w_start is not None
+    assert value == pytest.approx(brute_force_with(problem, instance, 2.0, fixed), abs=1e-9)
+    exact = decoy_probability(problem, instance.space.alteration(problem, vector))
+    assert value == pytest.approx(exact, abs=1e-9)
+
+
+@pytest.mark.parametrize("goal", ["corner", "inside"])
+def test_bases_within_counts_the_base_solves_of_a_run(goal):
+    """A run's base solves are known before it starts: one per outer block with room for an
+    inner alteration (what the staged enumeration weighs before its next budget)."""
+    from misdirect.solvers.engines import lowrank
+
+    problem = sensor_grid(8, 6, seed=2, goal=goal)
+    instance = prepare(problem, 3.0)
+    enumeration = lowrank.LowRankEnumeration(instance)
+    # a small inner set leaves several outer choices, hence several blocks
+    enumeration.natural_inner = enumeration.natural_inner[:3]
+    enumeration.natural_outer = [
+        i for i in range(len(instance.space.choices)) if i not in enumeration.natural_inner
+    ]
+    for top in (0.0, 1.0, 2.0, 3.0):
+        found = enumeration.run(top)
+        assert enumeration.bases_within(top) == found.base_solves
+    assert found.base_solves > 1
+
+
+def test_the_next_budget_is_enumerated_only_if_its_bases_fit_the_fair_share():
+    """Few alterations are not enough when each of many bases costs seconds (a big map's base
+    solves thousands of columns): the measured seconds per base count, as the fair share
+    (half the time left) does."""
+    from misdirect.solvers import schedule
+
+    deadline = Deadline(20.0)  # fair share: about 10 s
+    assert schedule.next_level_fits(300_000, 1, None, deadline)  # 1.5 s of updates
+    assert schedule.next_level_fits(1_000, 1, (4.0, 100, 1), deadline)  # one base: 4 s
+    # four bases of about 4 s each: 16 s
+    assert not schedule.next_level_fits(1_000, 4, (4.0, 100, 1), deadline)
+    assert schedule.next_level_fits(1_000, 4, (0.4, 100, 1), deadline)
+    # a trusted rate (measured on RATE_SAMPLE alterations or more) counts too
+    assert not schedule.next_level_fits(10**6, 1, (1.0, 50_000, 1), deadline)  # 20 s

@@ -133,14 +133,20 @@ class IncrementalSolver:
             kept.append(len(levels) - 1)
             levels, counts = [levels[j] for j in kept], [counts[j] for j in kept]
         runs: list[tuple[float, Enumerated]] = []
-        measured: tuple[float, int] | None = None
+        measured: tuple[float, int, int] | None = None
         for level, count in zip(levels, counts, strict=True):
-            if hand_over and runs and not schedule.next_level_fits(count, measured, deadline):
+            if (
+                hand_over
+                and runs
+                and not schedule.next_level_fits(
+                    count, enumeration.bases_within(level), measured, deadline
+                )
+            ):
                 break
             began = time.perf_counter()
             share = schedule.fair_share(deadline) if hand_over else None
             found = enumeration.run(level, deadline=deadline, progress=progress, share=share)
-            measured = (time.perf_counter() - began, found.evaluations)
+            measured = (time.perf_counter() - began, found.evaluations, found.base_solves)
             runs.append((level, found))
             if not found.complete_for(level):
                 break

@@ -45,18 +45,25 @@ STAGE_FROM = INCREMENTAL_SURE  # a budget of a curve is enumerated on its own (b
 RATE_SAMPLE = 10_000  # alterations an enumeration must have valued to measure its own rate
 
 
-def next_level_fits(count: int, measured: tuple[float, int] | None, deadline: Deadline) -> bool:
-    """Whether a staged enumeration takes on its next budget, of ``count`` alterations, when
-    it has a search to hand that budget to instead: when it fits in the fair share of the
-    time left, at the rate the last budget was enumerated at (``measured``: its seconds and
-    alterations; trusted from ``RATE_SAMPLE`` alterations on, since a small run is mostly
-    the building of its bases), and never faster than ``UPDATE_SECONDS`` each."""
-    per_alteration = UPDATE_SECONDS
-    if measured is not None and measured[1] >= RATE_SAMPLE:
-        per_alteration = max(per_alteration, measured[0] / measured[1])
-    return count <= INCREMENTAL_SURE or enumeration_seconds(count, per_alteration) <= fair_share(
-        deadline
-    )
+def next_level_fits(
+    count: int, bases: int, measured: tuple[float, int, int] | None, deadline: Deadline
+) -> bool:
+    """Whether a staged enumeration takes on its next budget, of ``count`` alterations and
+    ``bases`` base solves, when it has a search to hand that budget to instead: when it fits
+    in the fair share of the time left. ``measured`` is the last budget's run (seconds,
+    alterations, base solves): each base costs at most what one of its bases took, whole
+    (on a big map a base solve of thousands of columns takes seconds, whatever the count),
+    and, from ``RATE_SAMPLE`` alterations on, its rate is trusted too (a small run is mostly
+    the building of its bases); never faster than ``UPDATE_SECONDS`` each."""
+    if count <= INCREMENTAL_SURE and bases <= 1:
+        return True
+    needed = enumeration_seconds(count)
+    if measured is not None:
+        seconds, alterations, solved = measured
+        needed += bases * seconds / max(solved, 1)
+        if alterations >= RATE_SAMPLE:
+            needed = max(needed, enumeration_seconds(count, seconds / alterations))
+    return needed <= fair_share(deadline)
 
 
 def fair_share(deadline: Deadline) -> float:

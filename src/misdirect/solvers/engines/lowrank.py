@@ -41,6 +41,7 @@ from misdirect.core.alterations import (
     rank_in_group,
 )
 from misdirect.core.attack import AttackInstance
+from misdirect.core.memory import memory_limit
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import SolverError
 from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
@@ -67,6 +68,11 @@ from misdirect.solvers.engines.lowrank_updates import (
 
 INNER_ROWS = 200  # inner observations together may own at least this many product states,
 INNER_ENTRIES = 50_000_000  # ... and more while W (live states x inner rows) stays this small
+# ... or this small where W lives only while its base is solved (no end components: a kept
+# basis keeps the options' table, not W), within the memory limit: the solve holds about
+# SOLVE_COPIES copies of it at once, and two blocks may be solved at a time
+TRANSIENT_ENTRIES = 100_000_000
+SOLVE_COPIES = 6
 INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their square)
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
@@ -258,7 +264,12 @@ def inner_choices(instance: AttackInstance) -> list[int]:
     size_of = [int(sizes[c.observation]) for c in instance.space.choices]
     n_live = int(instance.live.sum())
     # every inner row saves the outer enumeration a factor; W's memory caps them
-    inner_rows = max(INNER_ROWS, min(INNER_ENTRIES // max(n_live, 1), INNER_ROWS_MAX))
+    entries = INNER_ENTRIES
+    if not instance.cycling.any():
+        limit, _ = memory_limit()
+        fits = TRANSIENT_ENTRIES if limit is None else limit // (8 * SOLVE_COPIES * 2)
+        entries = max(entries, min(TRANSIENT_ENTRIES, fits))
+    inner_rows = max(INNER_ROWS, min(entries // max(n_live, 1), INNER_ROWS_MAX))
     inner, total = [], 0
     for i in sorted(range(len(size_of)), key=lambda i: size_of[i]):
         if total + size_of[i] > inner_rows or size_of[i] > INNER_BLOCK:
@@ -390,6 +401,20 @@ class LowRankEnumeration:
             return None
         index = best_per_budget(costs, found.values, [budget], found.scale, tolerance.NEAR_TIE)[0]
         return float(found.values[index]), found.picks(index), found.complete_for(budget)
+
+    def bases_within(self, top: float) -> int:
+        """How many base chains a run at ``top`` solves: one per outer block with room for an
+        inner alteration (a block of one alteration is valued on its own chain)."""
+        inner = list(self.natural_inner)
+        outer = [i for i in range(len(self.observations)) if i not in set(inner)]
+        _, outer_costs = self._outer_blocks(top, {}, outer)
+        scale = self.instance.space.scale
+        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner), scale)
+        roomy = {
+            cost: inner_space.count_within(scale.remaining(top, cost), 1) > 1
+            for cost in set(outer_costs.tolist())
+        }
+        return sum(roomy[cost] for cost in outer_costs.tolist())
 
     def run(
         self,
@@ -719,7 +744,14 @@ class LowRankEnumeration:
             root_groups, option_groups, regions, deadline
         )
         basis = Basis.of(
-            self._inside, self._to_target, root_groups, regions, option_groups, self._live_node
+            self._inside,
+            self._to_target,
+            root_groups,
+            regions,
+            option_groups,
+            self._live_node,
+            self.start,
+            keep_rows=closing is not None,  # rows on demand: only where classes may close
         )
         inner_rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
         cycles = self._cycles(closing, root_groups, basis.options, inner_rows)

@@ -72,10 +72,15 @@ class Basis(NamedTuple):
     """A base chain (every sensor unaltered) solved for every row that may be altered, with
     the row differences of every option (:class:`RowDeltas`, over every inner choice): a chain
     that fixes some sensors' options needs no solve, nor any pass over the chain's states.
-    Woodbury on the fixed sensors' rows updates the options' table in low rank."""
+    Woodbury on the fixed sensors' rows updates the options' table in low rank.
+
+    ``W`` (live states x inner rows, hundreds of MB on a big map) is kept only where rows of
+    it are read on demand (:class:`BaseRows`: chains with end components); elsewhere the
+    options' table and the start's row are all its blocks read."""
 
     x0: np.ndarray
-    W: np.ndarray
+    W: np.ndarray | None  # None where no rows are read on demand
+    w_start: np.ndarray | None  # the start's row of ``W`` (None: the start is not live)
     options: RowDeltas
     steps: float  # a proven bound on its expected steps before leaving (:func:`base_solve`)
 
@@ -87,14 +92,19 @@ class Basis(NamedTuple):
         regions: Sequence[np.ndarray],
         option_groups: Sequence[np.ndarray],
         live_node: np.ndarray,
+        start: int,
+        *,
+        keep_rows: bool,
     ) -> Basis:
         """``groups``: per live state, its group in the base; ``regions``: per inner choice,
         its live states (local indices); ``option_groups``: per inner choice, per state of its
-        region its group under each option."""
+        region its group under each option; ``start``: the start's live index (-1: not
+        live); ``keep_rows``: whether to keep ``W`` whole (rows read on demand)."""
         local = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
         x0, W, steps = base_solve(inside, to_target, groups, local, live_node)
         options = row_deltas(list(option_groups), groups[local], inside, to_target, x0, W)
-        return Basis(x0, W, options, steps)
+        w_start = W[start].copy() if start >= 0 else None
+        return Basis(x0, W if keep_rows else None, w_start, options, steps)
 
     def with_fixed(
         self,
@@ -103,14 +113,15 @@ class Basis(NamedTuple):
         start: int,
         *,
         one_entry: bool = False,
-    ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows] | None:
+    ) -> tuple[float, np.ndarray | None, RowDeltas, BaseRows | None] | None:
         """(value at the start, its row of ``W``, options' table of the ``inner`` choices, its
-        rows on demand) of the chain whose choices ``fixed`` (position, option) take those
-        options: with ``F`` their changed rows, ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``,
-        every row difference ``D`` of an inner option gets ``D W' = D W + (D W_F) Z`` (and its
-        right-hand side likewise) and the start's row ``W' = W + W_F Z``. None when that system
-        is ill-conditioned (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`): every value of
-        the block would inherit its error, so the block's base is better solved anew.
+        rows on demand where ``W`` is kept) of the chain whose choices ``fixed`` (position,
+        option) take those options: with ``F`` their changed rows,
+        ``Z = (I − D_F W_F)⁻¹ [D_F x0 + Δb_F, D_F W]``, every row difference ``D`` of an inner
+        option gets ``D W' = D W + (D W_F) Z`` (and its right-hand side likewise) and the
+        start's row ``W' = W + W_F Z``. None when that system is ill-conditioned
+        (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`): every value of the block would
+        inherit its error, so the block's base is better solved anew.
 
         ``one_entry``: every alteration of the block takes one inner option at most, so its
         system reads ``D W'`` only on that option's own rows and their columns; only those
@@ -127,11 +138,12 @@ class Basis(NamedTuple):
             changed = np.zeros(0, dtype=np.int64)
         inner = np.asarray(inner, dtype=np.int64)
         flat_start, flat_length = table.flat_start[inner], table.flat_length[inner]
-        unchanged = BaseRows(self.x0, self.W, np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
+        unchanged = self._rows(np.zeros(0, dtype=np.int64), np.zeros((0, 0)))
         if start < 0:
             trimmed = table._replace(flat_start=flat_start, flat_length=flat_length)
             return 0.0, None, trimmed, unchanged
-        x_start, w_start = float(self.x0[start]), self.W[start]
+        x_start, w_start = float(self.x0[start]), self.w_start
+        assert w_start is not None  # kept for a live start
         if not changed.size:
             trimmed = table._replace(flat_start=flat_start, flat_length=flat_length)
             return x_start, w_start, trimmed, unchanged
@@ -159,8 +171,11 @@ class Basis(NamedTuple):
                 updated_d_w,
                 table.group,
             ),
-            BaseRows(self.x0, self.W, own, z),
+            self._rows(own, z),
         )
+
+    def _rows(self, own: np.ndarray, z: np.ndarray) -> BaseRows | None:
+        return None if self.W is None else BaseRows(self.x0, self.W, own, z)
 
 
 def _own_blocks(
