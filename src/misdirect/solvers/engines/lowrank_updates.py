@@ -527,16 +527,19 @@ def _children_of(
     last = tree.first_entry[kids] + tree.depth[kids] - 1
     first = tree.entry_slot[last].astype(np.int64)
     begin = int(first.min(initial=pad))
-    # (A⁻¹ D W(P, E))ᵀ for every later slot E (a child's entry comes after its parent's, so
-    # deep parents need few), one row per slot: a child reads its wp numbers at once. Rows
-    # gathered first, then columns: one fancy index over three axes costs several times more
-    gathered = np.take(deltas.d_w[slots_p.reshape(-1)], deltas.column[begin:pad], axis=1)
-    gathered = gathered.reshape(parents.size, slots_p.shape[1], pad - begin)
+    # (A⁻¹ D W(P, c))ᵀ for every column c of a later slot (a child's entry comes after its
+    # parent's, so deep parents need few), one row per column: a child reads its wp numbers
+    # at once. Per column, not per slot: the options of one sensor share their rows' columns,
+    # and later slots' columns form one range, so the gather is a slice of each parent row
+    later = deltas.column[begin:pad]
+    low, high = int(later.min(initial=0)), int(later.max(initial=-1)) + 1
+    gathered = deltas.d_w[slots_p.reshape(-1), low:high]
+    gathered = gathered.reshape(parents.size, slots_p.shape[1], high - low)
     out = np.empty(kids.size)
     (_schur_corrections if compiled else _schur_corrections_numpy)(
         slots_p,
         np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2)),
-        begin,
+        low,
         y,
         s_p,
         local.astype(np.int64),
@@ -562,7 +565,7 @@ def _norm1(matrices: np.ndarray) -> np.ndarray:
 def _schur_corrections(
     slots_p: np.ndarray,
     reach: np.ndarray,
-    begin: int,
+    low: int,
     y: np.ndarray,
     s_p: np.ndarray,
     local: np.ndarray,
@@ -578,8 +581,8 @@ def _schur_corrections(
 ) -> None:  # pragma: no cover (compiled; its results are tested against dense solves)
     """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
     ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
-    ``reach[p]`` the rows ``(A⁻¹ D W(P, s))ᵀ`` of the slots ``s`` from ``begin`` on,
-    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][E − begin]ᵀ``, so the signs cancel:
+    ``reach[p]`` the rows ``(A⁻¹ D W(P, c))ᵀ`` of the columns ``c`` from ``low`` on,
+    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][column(E) − low]ᵀ``, so the signs cancel:
     ``S = F_EE − D W(E, P) G``. Padded parent slots have zero
     rows, columns and weights.
 
@@ -610,7 +613,7 @@ def _schur_corrections(
                 columns_p[j] = column[slots_p[p, j]]
         for e in range(w):
             for j in range(wp):
-                g[e, j] = reach[p, f + e - begin, j]
+                g[e, j] = reach[p, column[f + e] - low, j]
         for i in range(w):
             row = f + i
             r = rhs[row]
@@ -668,7 +671,7 @@ def _schur_corrections(
 def _schur_corrections_numpy(
     slots_p: np.ndarray,
     reach: np.ndarray,
-    begin: int,
+    low: int,
     y: np.ndarray,
     s_p: np.ndarray,
     local: np.ndarray,
@@ -691,7 +694,7 @@ def _schur_corrections_numpy(
         pick = np.flatnonzero(width == w)
         p = local[pick]
         rows = first[pick, None] + np.arange(w)  # an entry's slots are consecutive
-        g = reach[p[:, None], rows - begin]  # Gᵀ, (children, w, wp)
+        g = reach[p[:, None], column[rows] - low]  # Gᵀ, (children, w, wp)
         row_p = d_w[rows[:, :, None], columns_p[p][:, None, :]]  # D W(E, P)
         schur = np.eye(w) - d_w[rows[:, :, None], column[rows][:, None, :]]
         schur -= np.matmul(row_p, np.swapaxes(g, 1, 2))
