@@ -73,17 +73,21 @@ def test_components_and_bands_equal_a_dense_solve(monkeypatch):
 
     monkeypatch.setattr(reachability, "dgbsv", band)
     monkeypatch.setattr(reachability, "_lu", lu)
+    many = reachability.MANY_COLUMNS + 8  # the chunks' compiled loop over their factors
     for seed in range(8):
         a = _layered_chain(seed)
         rng = np.random.default_rng(100 + seed)
         b = rng.random(a.shape[0])
         rhs = rng.random((a.shape[0], 3))
+        wide = rng.random((a.shape[0], many))
         system = sp.identity(a.shape[0]) - a
         single = solve_topological(system, b)
         several = solve_topological(system, rhs)
-        assert single is not None and several is not None
+        all_of_them = solve_topological(system, wide)
+        assert single is not None and several is not None and all_of_them is not None
         assert np.abs(single - _dense(a, b)).max() < 1e-12
         assert np.abs(several - _dense(a, rhs)).max() < 1e-12
+        assert np.abs(all_of_them - _dense(a, wide)).max() < 1e-12
     assert routes["band"] >= 8 and routes["sparse"] >= 8  # both routes really ran
 
 

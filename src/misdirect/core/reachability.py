@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from misdirect.core import elimination, residual, tolerance
-from misdirect.core.lu_solve import solve_many
+from misdirect.core.lu_solve import MANY_COLUMNS, solve_many
 from misdirect.core.model import reachable_from
 
 
@@ -202,10 +202,13 @@ def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None
                 return None
         else:
             size = stop - start
-            block = _rows(diagonal, start, stop)
-            # The chunk's rows in CSR are its transpose in CSC: factorise that, solve transposed.
-            block_t = sp.csc_matrix((block[0], block[1] - start, block[2]), shape=(size, size))
-            solved = _lu(block_t).solve(x[start:stop], trans="T")
+            data, indices, indptr = _rows(diagonal, start, stop)
+            if x.shape[1] >= MANY_COLUMNS:  # the compiled loop over its factors, on threads
+                chunk = sp.csr_matrix((data, indices - start, indptr), shape=(size, size))
+                solved = solve_many(_lu(chunk.tocsc()), x[start:stop])
+            else:  # its rows in CSR are its transpose in CSC: factorise that, solve transposed
+                chunk_t = sp.csc_matrix((data, indices - start, indptr), shape=(size, size))
+                solved = _lu(chunk_t).solve(x[start:stop], trans="T")
         x[start:stop] = solved
     x = x[position]
     return x[:, 0] if single else x
