@@ -25,11 +25,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import SuperLU, splu
+from scipy.sparse.linalg import SuperLU
 
 from misdirect.core import residual, tolerance
 from misdirect.core.model import reachable_from
-from misdirect.core.reachability import reach_probabilities, solve_chain
+from misdirect.core.reachability import factorise, reach_probabilities, solve_chain
 from misdirect.errors import SolverError
 from misdirect.solvers.deadline import Deadline
 
@@ -863,9 +863,12 @@ class TransientPolicyIteration:
 
     def factorise(self, policy: np.ndarray) -> SuperLU:
         """LU of ``I − P`` for the chain that takes row ``policy[x]`` in ``x``: it solves
-        for any reward on it (``solve``), and for visits (``solve(·, trans="T")``)."""
+        for any reward on it (``solve``), and for visits (``solve(·, trans="T")``). A proper
+        policy's ``I − P`` is a non-singular M-matrix: no pivoting, and a symmetric ordering
+        that leaves less fill on grid-like chains (:func:`~misdirect.core.reachability.
+        factorise`)."""
         self.evaluations += 1
-        return splu((sp.identity(self.n_states, format="csc") - self.matrix[policy]).tocsc())
+        return factorise(self.matrix[policy])
 
     def updated(
         self, base: LinearSolver, base_policy: np.ndarray, policy: np.ndarray
