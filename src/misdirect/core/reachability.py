@@ -192,8 +192,8 @@ def solve_topological(system: sp.spmatrix, rhs: np.ndarray) -> np.ndarray | None
     for k in range(bounds.size - 1):
         start, stop = int(bounds[k]), int(bounds[k + 1])
         if entry_from[k + 1] > entry_from[k]:  # subtract what the chunks solved so far give
-            # one sparse product (compiled, no temporary per entry and column: a base solve
-            # of thousands of columns spent a third of its time building those)
+            # one sparse product: compiled, with no temporary per entry and column (those
+            # dominated base solves of thousands of columns)
             earlier = sp.csr_matrix(_rows(before, start, stop), shape=(stop - start, n))
             x[start:stop] -= earlier @ x
         if is_band[k]:
