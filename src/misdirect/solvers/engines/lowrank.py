@@ -405,16 +405,32 @@ class LowRankEnumeration:
     def bases_within(self, top: float) -> int:
         """How many base chains a run at ``top`` solves: one per outer block with room for an
         inner alteration (a block of one alteration is valued on its own chain)."""
-        inner = list(self.natural_inner)
-        outer = [i for i in range(len(self.observations)) if i not in set(inner)]
-        _, outer_costs = self._outer_blocks(top, {}, outer)
+        _, _, _, outer_costs, inner_space = self._layout(top, {})
+        return int((self._per_block(inner_space, top, outer_costs, 1) > 1).sum())
+
+    def _layout(
+        self, top: float, fixed: dict[int, int]
+    ) -> tuple[list[int], list[int], np.ndarray, np.ndarray, AlterationSpace]:
+        """(inner choices, outer choices, outer blocks and their costs cheapest first, the
+        inner alterations' space) of a run at ``top`` below ``fixed``."""
+        inner = [i for i in self.natural_inner if i not in fixed]  # fixed ones: outer
+        outer = [i for i in range(len(self.observations)) if i not in inner]
+        outer_table, outer_costs = self._outer_blocks(top, fixed, outer)
+        choices = self.instance.space.choices
+        inner_space = AlterationSpace(tuple(choices[i] for i in inner), self.instance.space.scale)
+        return inner, outer, outer_table, outer_costs, inner_space
+
+    def _per_block(
+        self, inner_space: AlterationSpace, top: float, outer_costs: np.ndarray, limit: int
+    ) -> np.ndarray:
+        """Per outer block, its inner alterations within the budget it leaves (``limit + 1``
+        once more than ``limit``); a block of one has no base to solve."""
         scale = self.instance.space.scale
-        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner), scale)
-        roomy = {
-            cost: inner_space.count_within(scale.remaining(top, cost), 1) > 1
-            for cost in set(outer_costs.tolist())
-        }
-        return sum(roomy[cost] for cost in outer_costs.tolist())
+        counted: dict[float, int] = {}
+        for cost in outer_costs.tolist():
+            if cost not in counted:
+                counted[cost] = inner_space.count_within(scale.remaining(top, cost), limit)
+        return np.array([counted[c] for c in outer_costs.tolist()], dtype=np.int64)
 
     def run(
         self,
@@ -433,11 +449,8 @@ class LowRankEnumeration:
         big map is a base solve of thousands of columns)."""
         fixed = fixed or {}
         deadline = deadline or Deadline()
-        inner = [i for i in self.natural_inner if i not in fixed]  # fixed ones: outer
-        outer = [i for i in range(len(self.observations)) if i not in inner]
-        outer_table, outer_costs = self._outer_blocks(top, fixed, outer)
+        inner, outer, outer_table, outer_costs, inner_space = self._layout(top, fixed)
         scale = self.instance.space.scale
-        inner_space = AlterationSpace(tuple(self.instance.space.choices[i] for i in inner), scale)
         compiled = bases is not None or (
             self.instance.space.count_within(top, COMPILED_FROM) > COMPILED_FROM
         )
@@ -451,12 +464,7 @@ class LowRankEnumeration:
         run_began = time.perf_counter()
         cut_first = False  # the deadline cut the first block while it was being listed
         if share is not None:  # per block, its inner alterations (by its budget left)
-            counted: dict[float, int] = {}
-            for cost in outer_costs.tolist():
-                if cost not in counted:
-                    left_over = scale.remaining(top, cost)
-                    counted[cost] = inner_space.count_within(left_over, self.max_evaluations)
-            per_block = np.array([counted[c] for c in outer_costs.tolist()])
+            per_block = self._per_block(inner_space, top, outer_costs, self.max_evaluations)
             after = np.cumsum(per_block[::-1])[::-1]  # alterations from each block on
             bases_after = np.cumsum((per_block > 1)[::-1])[::-1]  # blocks with a base
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
