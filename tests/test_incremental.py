@@ -364,7 +364,7 @@ def test_an_enumeration_that_hands_over_never_calls_a_budget_it_skipped_proven(m
     oracle = solve(problem, method="exhaustive", budgets=[0, 1, 2]).curve
     assert oracle[2].probability > oracle[0].probability + 1e-6  # budget 2 gains something
 
-    monkeypatch.setattr(schedule, "next_level_fits", lambda *args: False)
+    monkeypatch.setattr(schedule, "next_level_fits", lambda *args, **kwargs: False)
     monkeypatch.setattr(schedule, "STAGE_FROM", 0)  # each budget its own run, however small
     solver = IncrementalSolver(hand_over=True)
     found = solver.solve(problem, [0, 1, 2], deadline=Deadline(600))
@@ -618,9 +618,56 @@ def test_the_next_budget_is_enumerated_only_if_its_bases_fit_the_fair_share():
 
     deadline = Deadline(20.0)  # fair share: about 10 s
     assert schedule.next_level_fits(300_000, 1, None, deadline)  # 1.5 s of updates
-    assert schedule.next_level_fits(1_000, 1, (4.0, 100, 1), deadline)  # one base: 4 s
+    assert schedule.next_level_fits(1_000, 1, schedule.Measured(4.0, 100, 1), deadline)  # 4 s
     # four bases of about 4 s each: 16 s
-    assert not schedule.next_level_fits(1_000, 4, (4.0, 100, 1), deadline)
-    assert schedule.next_level_fits(1_000, 4, (0.4, 100, 1), deadline)
+    assert not schedule.next_level_fits(1_000, 4, schedule.Measured(4.0, 100, 1), deadline)
+    assert schedule.next_level_fits(1_000, 4, schedule.Measured(0.4, 100, 1), deadline)
     # a trusted rate (measured on RATE_SAMPLE alterations or more) counts too
-    assert not schedule.next_level_fits(10**6, 1, (1.0, 50_000, 1), deadline)  # 20 s
+    assert not schedule.next_level_fits(10**6, 1, schedule.Measured(1.0, 50_000, 1), deadline)
+
+
+def test_where_the_search_cannot_see_the_budget_the_enumeration_is_costed_at_its_truer_rate():
+    """A run that was mostly its base (0.8 of its 1.0 s) predicts 40 s for two million
+    alterations at its whole rate, 8.8 s at its alterations' own; where the search's bound is
+    blind to the budget (the caller says), the truer figure decides, against nine tenths of
+    the time left instead of half."""
+    from misdirect.solvers import schedule
+
+    deadline = Deadline(20.0)  # half: about 10 s; nine tenths: about 18 s
+    assert schedule.fair_share(deadline) <= 10.0
+    assert 17.0 <= schedule.fair_share(deadline, search_sees_budget=False) <= 18.0
+    mostly_base = schedule.Measured(1.0, 50_000, 1, base_seconds=0.8)
+    assert not schedule.next_level_fits(2 * 10**6, 1, mostly_base, deadline)
+    blind = {"search_sees_budget": False}
+    assert schedule.next_level_fits(2 * 10**6, 1, mostly_base, deadline, **blind)
+    # alterations that are slow on their own stay too slow: a million at 20 us is 20 s
+    slow = schedule.Measured(1.0, 50_000, 1, base_seconds=0.0)
+    assert not schedule.next_level_fits(10**6, 1, slow, deadline, **blind)
+    # so do many bases at the measured seconds per base: 5 x 4 s
+    bases = schedule.Measured(4.0, 100, 1, base_seconds=4.0)
+    assert not schedule.next_level_fits(1_000, 5, bases, deadline, **blind)
+    assert schedule.next_level_fits(1_000, 4, bases, deadline, **blind)
+
+
+@pytest.mark.parametrize("goal", ["corner", "inside"])
+def test_the_staged_enumeration_says_whether_the_search_sees_the_budget(goal, monkeypatch):
+    """Only chains with end components (the turn-back grid) are costed as if the search's
+    bound were blind, and the measured run carries the seconds of its bases."""
+    from misdirect.solvers import schedule
+
+    seen = []
+
+    def record(count, bases, measured, deadline, *, search_sees_budget=True):
+        seen.append((measured, search_sees_budget))
+        return len(seen) < 2  # budget 1 runs (after budget 0's one alteration), not 2
+
+    monkeypatch.setattr(schedule, "next_level_fits", record)
+    monkeypatch.setattr(schedule, "STAGE_FROM", 0)
+    problem = sensor_grid(8, 6, seed=1, goal=goal)
+    assert prepare(problem, 2.0).cycling.any() == (goal == "inside")
+    IncrementalSolver(hand_over=True).solve(problem, [0, 1, 2], deadline=Deadline(600))
+    assert len(seen) == 2
+    assert all(sees == (goal == "corner") for _, sees in seen)
+    measured = seen[1][0]  # budget 1's run: a base solve and its alterations
+    assert measured.base_solves >= 1
+    assert 0.0 < measured.base_seconds <= measured.seconds

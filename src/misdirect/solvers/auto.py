@@ -512,10 +512,11 @@ class AutoSolver:
         unfinished = [j for j, s in enumerate(solutions) if not _certified(s)]
         if not unfinished:
             return solutions
-        if not schedule.can_hand_over(deadline):
-            report(progress, 0, 0, note=f"auto: no time left to hand over ({why})")
-            return solutions
         listed = ", ".join(f"{budgets[j]:g}" for j in unfinished)
+        if not schedule.can_hand_over(deadline):
+            note = f"auto: budgets {listed} left at their bounds: no time left for {stage.method}"
+            report(progress, 0, 0, note=f"{note} ({why})")
+            return solutions
         report(progress, 0, len(unfinished), note=f"auto: budgets {listed}: {why}")
         earlier = [solutions[j] for j in unfinished]
         seeds = [s.alteration for s in earlier]

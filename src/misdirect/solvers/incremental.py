@@ -133,20 +133,36 @@ class IncrementalSolver:
             kept.append(len(levels) - 1)
             levels, counts = [levels[j] for j in kept], [counts[j] for j in kept]
         runs: list[tuple[float, Enumerated]] = []
-        measured: tuple[float, int, int] | None = None
+        measured: schedule.Measured | None = None
+        # with end components the search's bound stays near the largest value whatever the
+        # budget (docs/benchmarks.md, "Chains with cycles")
+        search_sees_budget = not enumeration.instance.cycling.any()
         for level, count in zip(levels, counts, strict=True):
             if (
                 hand_over
                 and runs
                 and not schedule.next_level_fits(
-                    count, enumeration.bases_within(level), measured, deadline
+                    count,
+                    enumeration.bases_within(level),
+                    measured,
+                    deadline,
+                    search_sees_budget=search_sees_budget,
                 )
             ):
                 break
             began = time.perf_counter()
-            share = schedule.fair_share(deadline) if hand_over else None
+            share = (
+                schedule.fair_share(deadline, search_sees_budget=search_sees_budget)
+                if hand_over
+                else None
+            )
             found = enumeration.run(level, deadline=deadline, progress=progress, share=share)
-            measured = (time.perf_counter() - began, found.evaluations, found.base_solves)
+            measured = schedule.Measured(
+                time.perf_counter() - began,
+                found.evaluations,
+                found.base_solves,
+                found.base_seconds,
+            )
             runs.append((level, found))
             if not found.complete_for(level):
                 break

@@ -8,6 +8,8 @@ The measurements behind the constants live in ``bench/`` (``hard_instances.py``)
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from misdirect.solvers.deadline import Deadline
 
 # -- auto: enumerate, or search first ------------------------------------------------------------
@@ -16,6 +18,8 @@ UPDATE_SECONDS = 5e-6  # about the enumeration's time per alteration, on 2 threa
 ENUMERATION_FIRST = 0.5  # enumerate first when this share of the time left covers it; else
 ENUMERATION_RESERVE = 0.9  # search first, keeping this share for enumerating what is left
 SEARCH_FIRST = 0.25  # ... but giving the search at least this share of the time left
+BLIND_SEARCH_SHARE = 0.9  # a staged enumeration's share where the search's bound cannot see
+# the budget (end components): there the search seldom proves what the enumeration would
 UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
 UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
 EVALUATION_SURE = 2.0  # seconds of one-by-one exact evaluation auto always spends enumerating
@@ -45,33 +49,69 @@ STAGE_FROM = INCREMENTAL_SURE  # a budget of a curve is enumerated on its own (b
 RATE_SAMPLE = 10_000  # alterations an enumeration must have valued to measure its own rate
 
 
+class Measured(NamedTuple):
+    """What the last budget's enumeration took: its seconds, the alterations it valued, the
+    base chains it solved and the seconds those took."""
+
+    seconds: float
+    alterations: int
+    base_solves: int
+    base_seconds: float = 0.0
+
+
 def next_level_fits(
-    count: int, bases: int, measured: tuple[float, int, int] | None, deadline: Deadline
+    count: int,
+    bases: int,
+    measured: Measured | None,
+    deadline: Deadline,
+    *,
+    search_sees_budget: bool = True,
 ) -> bool:
     """Whether a staged enumeration takes on its next budget, of ``count`` alterations and
     ``bases`` base solves, when it has a search to hand that budget to instead: when it fits
-    in the fair share of the time left. ``measured`` is the last budget's run (seconds,
-    alterations, base solves): each base costs at most what one of its bases took, whole
-    (on a big map a base solve of thousands of columns takes seconds, whatever the count),
-    and, from ``RATE_SAMPLE`` alterations on, its rate is trusted too (a small run is mostly
-    the building of its bases); never faster than ``UPDATE_SECONDS`` each."""
+    in the fair share of the time left. ``measured`` is the last budget's run: each base costs
+    at most what one of its bases took, whole (on a big map a base solve of thousands of
+    columns takes seconds, whatever the count), and, from ``RATE_SAMPLE`` alterations on, its
+    rate is trusted too (a small run is mostly the building of its bases); never faster than
+    ``UPDATE_SECONDS`` each.
+
+    Where the search's bound cannot see the budget (chains with end components: a relaxation
+    steers round a cycle for free, and its bound stays near the largest value), the search
+    rarely proves what the enumeration would, so the enumeration is costed at its truer rate,
+    its alterations' seconds apart from its bases' (on the turn-back grid the budget-2 run is
+    mostly its base, and its whole rate predicted 64 s for a budget 3 that takes 25 s, which
+    the search then failed to prove in the same time). Elsewhere the whole rate stands: the
+    truer one made auto enumerate budget 3 of ``sensor_grid(40, 128)`` (40 s) and certify one
+    budget fewer than the search, whose bound sees the budget, did."""
     if count <= INCREMENTAL_SURE and bases <= 1:
         return True
     needed = enumeration_seconds(count)
     if measured is not None:
-        seconds, alterations, solved = measured
-        needed += bases * seconds / max(solved, 1)
-        if alterations >= RATE_SAMPLE:
-            needed = max(needed, enumeration_seconds(count, seconds / alterations))
-    return needed <= fair_share(deadline)
+        solved = max(measured.base_solves, 1)
+        if search_sees_budget:
+            needed += bases * measured.seconds / solved
+            if measured.alterations >= RATE_SAMPLE:
+                rate = measured.seconds / measured.alterations
+                needed = max(needed, enumeration_seconds(count, rate))
+        else:
+            needed += bases * measured.base_seconds / solved
+            if measured.alterations >= RATE_SAMPLE:
+                rate = max(measured.seconds - measured.base_seconds, 0.0) / measured.alterations
+                needed = max(needed, bases * measured.base_seconds / solved + count * rate)
+    return needed <= fair_share(deadline, search_sees_budget=search_sees_budget)
 
 
-def fair_share(deadline: Deadline) -> float:
+def fair_share(deadline: Deadline, *, search_sees_budget: bool = True) -> float:
     """What an enumeration may take before anything else runs: ``ENUMERATION_FIRST`` of the
-    time left (with no limit: ``UNLIMITED_FIRST`` seconds); a run with a search to hand its
-    budget to stops once its blocks project past it."""
+    time left, or ``BLIND_SEARCH_SHARE`` where the search's bound cannot see the budget (with
+    no limit: ``UNLIMITED_FIRST`` seconds); a run with a search to hand its budget to stops
+    once its blocks project past it. On the turn-back grid, budget 3 (2.7 million
+    alterations) took 25 to 38 s of a 59 s half-share in runs of one session: the search it
+    was cut short for then proved nothing."""
     left = deadline.remaining()
-    return UNLIMITED_FIRST if left is None else ENUMERATION_FIRST * left
+    if left is None:
+        return UNLIMITED_FIRST
+    return (ENUMERATION_FIRST if search_sees_budget else BLIND_SEARCH_SHARE) * left
 
 
 def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:

@@ -110,6 +110,7 @@ class Enumerated:
     base_solves: int  # blocks that solved (or updated) a base chain: not those of one alteration
     scale: tolerance.CostScale  # how the costs fit a budget
     top: float  # the budget enumerated within: nothing costlier was listed
+    base_seconds: float = 0.0  # spent solving (or updating) its base chains
 
     def complete_for(self, budget: float) -> bool:
         """Whether every alteration within ``budget`` was valued."""
@@ -460,7 +461,7 @@ class LowRankEnumeration:
         unevaluated, evaluations, steps, base_solves = np.inf, 0, 0.0, 0
         # a block is not started with less time left than the last one took (later blocks
         # cost more outside, so they have fewer alterations)
-        factor_s, per_alteration, last_count, base_s = 0.0, 0.0, 0, 0.0
+        factor_s, per_alteration, last_count, base_s, bases_s = 0.0, 0.0, 0, 0.0, 0.0
         run_began = time.perf_counter()
         cut_first = False  # the deadline cut the first block while it was being listed
         if share is not None:  # per block, its inner alterations (by its budget left)
@@ -542,6 +543,7 @@ class LowRankEnumeration:
             values.append(found)
             blocks.append((outer_pick, altered))
             factor_s, last_count = factored - began, len(inner_costs)
+            bases_s += factor_s
             if len(inner_costs) > 1:
                 base_s = factor_s
             per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
@@ -568,6 +570,7 @@ class LowRankEnumeration:
             base_solves=base_solves,
             scale=scale,
             top=top,
+            base_seconds=bases_s,
         )
         return self._verified(enumerated, steps, deadline)
 
