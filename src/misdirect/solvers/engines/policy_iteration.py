@@ -115,7 +115,8 @@ class MaxReachability:
     def _stuck(self, policy: np.ndarray) -> np.ndarray:
         """Live states that cannot reach the target under ``policy``."""
         moves = self.transitions[policy]
-        return self.live & ~reachable_from(moves.T.tocsr(), np.flatnonzero(self.target))
+        reaching = reachable_from(moves.T.tocsr(), np.flatnonzero(self.target))
+        return cast(np.ndarray, self.live & ~reaching)
 
     def _switched(self, policy: np.ndarray, best: np.ndarray, switch: np.ndarray) -> np.ndarray:
         """``policy`` with the states of ``switch`` on their ``best`` choice, but for those
