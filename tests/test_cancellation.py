@@ -241,3 +241,26 @@ def _reaching(mdp, policy):
     """States that reach the MDP's target under ``policy``."""
     moves = mdp.transitions[policy]
     return reachable_from(moves.T.tocsr(), np.flatnonzero(mdp.target))
+
+
+def test_a_start_policy_is_made_proper_only_where_end_components_can_form():
+    """Without end components every policy leaves the live states, so no round can close a
+    cycle and the start is kept as given; with them, the states that cannot reach the decoy
+    under it are the ones switched."""
+    from misdirect.core.attack import prepare
+    from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+    for goal, cycles in (("corner", False), ("inside", True)):
+        problem = sensor_grid(8, 6, seed=1, goal=goal)
+        instance = prepare(problem, 2.0)
+        assert instance.cycling.any() == cycles
+        mdp = PerStateRelaxation(problem, instance.space, instance.chain).mdp
+        start = mdp.first_choices()
+        stranded = mdp.live & ~_reaching(mdp, start)
+        made = mdp.proper(start)
+        if not cycles:
+            assert made is start
+            continue
+        assert stranded.any()
+        assert not (mdp.live & ~_reaching(mdp, made)).any()
+        assert (made != start).any() and not (made != start)[~stranded].any()

@@ -4,7 +4,10 @@
   of the first target state entered) in an MDP that may have end components. Each policy is
   evaluated exactly as the *least* fixed point
   (:func:`misdirect.core.reachability.reach_probabilities`), so a policy that cycles forever
-  scores 0, and a state switches only on a strict gain. At termination the values are a fixed
+  scores 0, and a state switches only on a strict gain. It starts from a policy under which
+  every state that can reach the target does, and refuses a switch that would strand one
+  (:meth:`MaxReachability.proper`): from any other, a cycle scored 0 is left, then re-entered,
+  round after round. At termination the values are a fixed
   point of the Bellman operator attained by some policy; every fixed point lies above the least
   one, which is the optimum, and no policy lies above the optimum: so they are the optimum.
   The per-state relaxation and the defender's MDPs use it. Its values are floating-point
@@ -19,6 +22,7 @@
 
 from __future__ import annotations
 
+from functools import cached_property
 from typing import Literal, Protocol, cast, overload
 
 import numpy as np
@@ -28,6 +32,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 from scipy.sparse.linalg import SuperLU
 
 from misdirect.core import residual, tolerance
+from misdirect.core.choice_product import end_component_states
 from misdirect.core.model import reachable_from
 from misdirect.core.reachability import factorise, reach_probabilities, solve_chain
 from misdirect.errors import SolverError
@@ -106,11 +111,20 @@ class MaxReachability:
         gains). From any other policy the least fixed point scores a cycle 0, its states
         switch out of it, the cycle opens, they switch back, and the rounds never end (a
         turn-back grid of 8x8 cells did this until the deadline)."""
+        if not self._may_cycle:
+            return policy
         stuck = self._stuck(policy)
         if not stuck.any():
             return policy
         heading = self._towards_target(allowed)
         return np.where(stuck & (heading >= 0), heading, policy)
+
+    @cached_property
+    def _may_cycle(self) -> bool:
+        """Whether the MDP has an end component among its live states: without one every
+        policy leaves them, so no round can close a cycle, and neither :meth:`proper` nor
+        :meth:`_switched` has anything to check (a breadth-first search per round saved)."""
+        return bool(end_component_states(self.owner, self.transitions, self.live).any())
 
     def _stuck(self, policy: np.ndarray) -> np.ndarray:
         """Live states that cannot reach the target under ``policy``."""
@@ -124,6 +138,8 @@ class MaxReachability:
         strict improvement does (:meth:`proper`); one that does rests on a gain of rounding (on
         the 8x8 turn-back grid, 1.4e-9 on values of 0.9997 whose chain runs long, closing a
         class of 95 states, and the next round switched them back), so it is refused."""
+        if not self._may_cycle:
+            return np.where(switch, best, policy) if switch.any() else policy
         stuck_before = self._stuck(policy)  # states no allowed choice leads to the target
         while switch.any():
             moved = np.where(switch, best, policy)
