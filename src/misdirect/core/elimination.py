@@ -79,7 +79,7 @@ def _factorise(
     column ``k`` below it the multipliers ``q_ik / s_k``, the diagonal the pivots ``s_k``);
     ``l = lh + ll``: each row's mass to the known states, updated as states go. Row ``k``'s
     nonzero columns are listed once per pivot, so each row it updates costs its nonzeros,
-    not ``m`` (the factors of a drone's jump chain hold 4 % nonzeros)."""
+    not ``m`` (a chain's factors are mostly zeros)."""
     m = qh.shape[0]
     columns = np.empty(m, dtype=np.int64)
     for k in range(m):

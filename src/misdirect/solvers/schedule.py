@@ -78,11 +78,9 @@ def next_level_fits(
     Where the search's bound cannot see the budget (chains with end components: a relaxation
     steers round a cycle for free, and its bound stays near the largest value), the search
     rarely proves what the enumeration would, so the enumeration is costed at its truer rate,
-    its alterations' seconds apart from its bases' (on the turn-back grid the budget-2 run is
-    mostly its base, and its whole rate predicted 64 s for a budget 3 that takes 25 s, which
-    the search then failed to prove in the same time). Elsewhere the whole rate stands: the
-    truer one made auto enumerate budget 3 of ``sensor_grid(40, 128)`` (40 s) and certify one
-    budget fewer than the search, whose bound sees the budget, did."""
+    its alterations' seconds apart from its bases' (a small run is mostly its base). Elsewhere
+    the whole rate stands: with the truer one, auto enumerated a budget of a sensor network
+    that the search, whose bound sees the budget, proves sooner (docs/benchmarks.md)."""
     if count <= INCREMENTAL_SURE and bases <= 1:
         return True
     needed = enumeration_seconds(count)
@@ -105,9 +103,9 @@ def fair_share(deadline: Deadline, *, search_sees_budget: bool = True) -> float:
     """What an enumeration may take before anything else runs: ``ENUMERATION_FIRST`` of the
     time left, or ``BLIND_SEARCH_SHARE`` where the search's bound cannot see the budget (with
     no limit: ``UNLIMITED_FIRST`` seconds); a run with a search to hand its budget to stops
-    once its blocks project past it. On the turn-back grid, budget 3 (2.7 million
-    alterations) took 25 to 38 s of a 59 s half-share in runs of one session: the search it
-    was cut short for then proved nothing."""
+    once its blocks project past it. Where the search's bound is blind, the larger share
+    keeps a noisy machine from cutting short an enumeration for a search that would prove
+    nothing in its place (docs/benchmarks.md, "Chains with cycles")."""
     left = deadline.remaining()
     if left is None:
         return UNLIMITED_FIRST
