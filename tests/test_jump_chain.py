@@ -102,3 +102,47 @@ def test_the_value_is_the_jump_chains_and_the_models_unproven(route, monkeypatch
     assert found.value == pytest.approx(float(jump), rel=1e-13)
     # the jump chain of the rounded entries is a relative perturbation of the model's
     assert found.value == pytest.approx(float(model), rel=1e-13)
+
+
+@pytest.mark.parametrize("extended", [True, False])
+def test_the_jump_chain_in_doubles_agrees_with_the_exact_one(extended):
+    """The search ranks ill-conditioned alterations by the jump chain in doubles: the same
+    elimination without subtraction, one rounding per operation; it must still agree with the
+    exact rational value (here on the cycle above; on a random 24-state one below)."""
+    p = _chain()
+    target = np.zeros(p.shape[0], dtype=bool)
+    target[DECOY] = True
+    found = reachability.reach_probability_bounded(
+        sp.csr_matrix(p), target, 0, extended_jump=extended
+    )
+    assert found.error == np.inf
+    assert found.value == pytest.approx(float(_jump_value(p)), rel=1e-13)
+
+
+def test_a_larger_jump_chain_in_doubles_keeps_its_digits():
+    rng = np.random.default_rng(7)
+    n = 24
+    p = np.zeros((n + 2, n + 2))
+    for i in range(n):
+        succ = rng.choice(n, size=4, replace=False)
+        p[i, succ] = rng.dirichlet(np.ones(4))
+        p[i, n] = float(rng.integers(1, 9)) * 1e-18  # to the decoy
+        p[i, n + 1] = float(rng.integers(1, 9)) * 1e-18  # to a goal
+    p[n, n] = p[n + 1, n + 1] = 1.0
+    target = np.zeros(n + 2, dtype=bool)
+    target[n] = True
+    q = [[Fraction(float(p[i, j])) for j in range(n + 2)] for i in range(n)]
+    a = [
+        [
+            sum((q[i][k] for k in range(n + 2) if k != i), Fraction(0)) if i == j else -q[i][j]
+            for j in range(n)
+        ]
+        for i in range(n)
+    ]
+    exact = float(gauss_jordan(a, [q[i][n] for i in range(n)])[0])
+    for extended in (True, False):
+        found = reachability.reach_probability_bounded(
+            sp.csr_matrix(p), target, 0, extended_jump=extended
+        )
+        assert found.error == np.inf  # the premise: LU's answer cannot be proven here
+        assert found.value == pytest.approx(exact, rel=1e-12)

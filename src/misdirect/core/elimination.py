@@ -133,21 +133,90 @@ def _solve(
     return xh, xl
 
 
-class Elimination:
-    """The factors of ``I − Q`` for an absorbing chain's unknown states, in double-double."""
+@njit(cache=True, nogil=True)
+def _factorise_double(q: np.ndarray, leak: np.ndarray) -> None:  # pragma: no cover (compiled)
+    """:func:`_factorise` in doubles: the same elimination, every operation one rounding."""
+    m = q.shape[0]
+    columns = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        s = leak[k]
+        count = 0
+        for j in range(k + 1, m):
+            if q[k, j] != 0.0:
+                s += q[k, j]
+                columns[count] = j
+                count += 1
+        q[k, k] = s
+        if s == 0.0:
+            continue
+        for i in range(k + 1, m):
+            if q[i, k] == 0.0:
+                continue
+            f = q[i, k] / s
+            q[i, k] = f
+            if leak[k] != 0.0:
+                leak[i] += f * leak[k]
+            for c in range(count):
+                j = columns[c]
+                if j != i:
+                    q[i, j] += f * q[k, j]
 
-    def __init__(self, q: sp.spmatrix | np.ndarray, leak: tuple[np.ndarray, np.ndarray]):
+
+@njit(cache=True, nogil=True)
+def _solve_double(q: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover (compiled)
+    """:func:`_solve` in doubles, from :func:`_factorise_double`."""
+    m = q.shape[0]
+    y = b.copy()
+    for k in range(m):
+        if y[k] == 0.0:
+            continue
+        for i in range(k + 1, m):
+            if q[i, k] != 0.0:
+                y[i] += q[i, k] * y[k]
+    x = np.zeros(m)
+    for k in range(m - 1, -1, -1):
+        a = y[k]
+        for j in range(k + 1, m):
+            if q[k, j] != 0.0 and x[j] != 0.0:
+                a += q[k, j] * x[j]
+        x[k] = a / q[k, k]
+    return x
+
+
+class Elimination:
+    """The factors of ``I − Q`` for an absorbing chain's unknown states, in double-double
+    (``extended``) or in doubles.
+
+    Both are free of cancellation. Doubles agree with double-double to a few units of
+    roundoff on the drone chains (``tests/test_jump_chain.py``); a search that only ranks
+    alterations by them takes doubles, while what a person reads takes double-double."""
+
+    def __init__(
+        self,
+        q: sp.spmatrix | np.ndarray,
+        leak: tuple[np.ndarray, np.ndarray],
+        *,
+        extended: bool = True,
+    ):
         """``q``: transitions among the unknown states (``m x m``, nonnegative, as loaded);
         ``leak``: per state, its mass to the known states as a double-double, summed from
         those entries (not ``1 − Σ q``)."""
         dense = np.array(q, dtype=np.float64) if isinstance(q, np.ndarray) else q.toarray()
         self.high = np.ascontiguousarray(dense, dtype=np.float64)
-        self.low = np.zeros_like(self.high)
-        _factorise(self.high, self.low, leak[0].astype(np.float64), leak[1].astype(np.float64))
+        self.extended = extended
+        if extended:
+            self.low = np.zeros_like(self.high)
+            _factorise(self.high, self.low, leak[0].astype(np.float64), leak[1].astype(np.float64))
+        else:
+            _factorise_double(self.high, (leak[0] + leak[1]).astype(np.float64))
         self.proper = bool((np.diag(self.high) > 0).all())
 
     def solve(self, b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """``(I − Q)⁻¹ b`` for a nonnegative double-double ``b``, as a double-double."""
+        """``(I − Q)⁻¹ b`` for a nonnegative double-double ``b``, as a double-double (its low
+        part zero in doubles)."""
+        if not self.extended:
+            x = _solve_double(self.high, (b[0] + b[1]).astype(np.float64))
+            return x, np.zeros_like(x)
         high, low = _solve(self.high, self.low, b[0].astype(np.float64), b[1].astype(np.float64))
         return high, low
 
