@@ -149,7 +149,7 @@ class BranchAndBoundSolver:
         docstring)."""
         deadline = deadline or Deadline(self.options.time_limit)
         instance = prepare(problem, max(budgets))
-        relax = PerStateRelaxation(problem, instance.space, instance.chain)
+        relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         curve = _Curve(
             instance,
             relax,

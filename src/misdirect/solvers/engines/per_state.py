@@ -35,7 +35,15 @@ from misdirect.solvers.engines.policy_iteration import MaxReachability
 class PerStateRelaxation:
     """The choice product with the per-state MDP relaxation and exact policy evaluation."""
 
-    def __init__(self, problem: Problem, space: AlterationSpace, chain: ChoiceProduct):
+    def __init__(
+        self,
+        problem: Problem,
+        space: AlterationSpace,
+        chain: ChoiceProduct,
+        cycling: np.ndarray | None = None,
+    ):
+        """``cycling``: the chain's live states in end components, where the caller has them
+        (``AttackInstance.cycling``): policy iteration then need not find them again."""
         self.problem, self.space, self.chain = problem, space, chain
         self.live = chain.can_reach_target() & ~chain.target
         sizes = np.array([c.size for c in space.choices], dtype=np.int64)
@@ -60,6 +68,7 @@ class PerStateRelaxation:
             blocks=chain.node,
             value=chain.target_value,
             live=self.live,
+            cycling=cycling,
         )
 
     @property
@@ -158,7 +167,7 @@ def relaxation_values(
     product of ``prepare(problem, budget)`` (None if ``deadline`` passes first): the MILP
     scales each state's value column by it."""
     instance = prepare(problem, budget)
-    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
     allowed = relax.allowed_groups(relax.allowed_options((), instance.space.scale.cap(budget)))
     start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
     try:

@@ -74,7 +74,11 @@ class MaxReachability:
         blocks: np.ndarray | None = None,
         value: np.ndarray | None = None,
         live: np.ndarray | None = None,
+        cycling: np.ndarray | None = None,
     ):
+        """``live``: the states outside the target that can reach it (found here if not
+        given); ``cycling``: the live states in some end component, if the caller has them
+        (:attr:`misdirect.core.attack.AttackInstance.cycling`), else found on first need."""
         n_states = target.size
         owner = np.asarray(owner, dtype=np.int64)
         counts = np.bincount(owner, minlength=n_states)
@@ -85,6 +89,7 @@ class MaxReachability:
         # position of each state's first choice once choices are sorted by state
         self.state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.live = self._live() if live is None else live
+        self._cycling = cycling
         self.evaluations = 0
         self._by_state = np.argsort(owner, kind="stable")  # choices grouped by state
         self._row_excess: tuple[np.ndarray, np.ndarray] | None = None  # row sum less 1
@@ -124,7 +129,10 @@ class MaxReachability:
         """Whether the MDP has an end component among its live states: without one every
         policy leaves them, so no round can close a cycle, and neither :meth:`proper` nor
         :meth:`_switched` has anything to check (a breadth-first search per round saved)."""
-        return bool(end_component_states(self.owner, self.transitions, self.live).any())
+        cycling = self._cycling
+        if cycling is None:
+            cycling = end_component_states(self.owner, self.transitions, self.live)
+        return bool(cycling.any())
 
     def _stuck(self, policy: np.ndarray) -> np.ndarray:
         """Live states that cannot reach the target under ``policy``."""

@@ -663,7 +663,7 @@ def segment_relaxation(problem: Problem, budget: float) -> SegmentRelaxation | N
     """The segment relaxation of ``problem`` for budgets up to ``budget`` (on chains with end
     components too: their states get stop rows, and nothing is charged)."""
     instance = prepare(problem, budget)
-    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
     return SegmentRelaxation(instance, relax)
 
 

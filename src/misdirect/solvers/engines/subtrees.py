@@ -67,7 +67,7 @@ def _relaxation(problem: Problem, key: str, max_budget: float) -> SegmentRelaxat
         if key in _cache:
             return _cache[key]
     instance = prepare(problem, max_budget)
-    relax = PerStateRelaxation(problem, instance.space, instance.chain)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
     seg = SegmentRelaxation(instance, relax, threads=1)
     with _cache_lock:
         while len(_cache) >= CACHED:
