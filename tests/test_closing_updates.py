@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from misdirect import solve
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import drone, sensor_grid
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines import closed_classes
 from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
 
 CASES = {
@@ -295,3 +297,21 @@ def test_a_subtree_fixing_an_option_that_may_close_a_class_but_does_not_keeps_th
                 decoy_probability(problem, alpha), abs=1e-9
             ), (i, k, index)
     assert 0 < reused < len(unsafe)  # a new base solve only where the classes differ
+
+
+def test_the_trap_search_tries_the_successor_nearest_an_exit_first():
+    """Its depth-first searches pop a row's last successor first, so each row is ordered with
+    the successor fewest base steps from an exit last. Four live states, one group each:
+    0 -> {1, 2}, 1 -> {3}, 2 -> {0}, and 3 is an exit (a stop state): 1 is two steps from the
+    exit's source, 2 four, so row 0 becomes (2, 1)."""
+    inside = sp.csr_matrix(
+        (np.ones(4), np.array([1, 2, 3, 0]), np.array([0, 2, 3, 4, 4])), shape=(4, 4)
+    )
+    stop = np.array([False, False, False, True])
+    leaks = np.zeros(4, dtype=bool)
+    ordered = closed_classes._nearest_exit_last(inside, leaks, stop, np.arange(4))
+    assert ordered.tolist() == [2, 1, 3, 0]
+    # a leaking row is an exit too: with state 2's row leaking, row 0 keeps 2 last
+    leaks[2] = True
+    ordered = closed_classes._nearest_exit_last(inside, leaks, stop, np.arange(4))
+    assert ordered[:2].tolist() == [1, 2]

@@ -38,7 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, shortest_path
 
 from misdirect.core.jit import njit
 from misdirect.core.model import reachable_from
@@ -297,12 +297,43 @@ def _chain_arrays(
     stop = classes.safe | classes.closed
     arrays = (
         inside.indptr.astype(np.int64),
-        inside.indices.astype(np.int64),
+        _nearest_exit_last(inside, leaks, stop, base_groups),
         leaks,
         stop,
         base_groups.astype(np.int64),
     )
     return inside, stop, arrays
+
+
+def _nearest_exit_last(
+    inside: sp.csr_matrix, leaks: np.ndarray, stop: np.ndarray, base_groups: np.ndarray
+) -> np.ndarray:
+    """``inside``'s column indices, each row's ordered so that the successor nearest an exit
+    (a ``stop`` state or a leaking row, in steps of the base chain) comes last: the
+    depth-first searches push a row's successors in order and pop the last first, so they
+    head for an exit and most end within a few steps (the searches' answers do not depend on
+    the order, only how long they take)."""
+    n = base_groups.size
+    exits = stop | leaks[base_groups]
+    # breadth-first distances to an exit, backwards over the base chain's edges, from a
+    # super-source (index n) joined to every exit
+    rows = inside[base_groups]
+    source = np.repeat(np.arange(n), np.diff(rows.indptr))
+    edges = sp.csr_matrix(
+        (
+            np.ones(rows.indices.size + int(exits.sum())),
+            (
+                np.concatenate([rows.indices, np.full(int(exits.sum()), n)]),
+                np.concatenate([source, np.flatnonzero(exits)]),
+            ),
+        ),
+        shape=(n + 1, n + 1),
+    )
+    distance = shortest_path(edges, unweighted=True, indices=n)
+    row_of = np.repeat(np.arange(inside.shape[0]), np.diff(inside.indptr))
+    order = np.lexsort((-distance[inside.indices], row_of))
+    ordered: np.ndarray = inside.indices[order].astype(np.int64)
+    return ordered
 
 
 def _override(size: int, fixed: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
