@@ -802,15 +802,24 @@ def reachable_from(graph: sp.csr_matrix, sources: np.ndarray) -> np.ndarray:
     mask = np.zeros(n, dtype=bool)
     if sources.size == 0:
         return mask
-    graph = graph.tocsr()
-    indptr = np.concatenate([graph.indptr, [graph.indptr[-1] + sources.size]])
-    indices = np.concatenate([graph.indices, sources])
-    augmented = sp.csr_matrix(
-        (np.ones(indices.size, dtype=np.int8), indices, indptr), shape=(n + 1, n + 1)
-    )
+    augmented = with_super_source(graph, sources)
     order = breadth_first_order(augmented, n, directed=True, return_predecessors=False)
     mask[order[order < n]] = True
     return mask
+
+
+def with_super_source(graph: sp.spmatrix, sources: np.ndarray) -> sp.csr_matrix:
+    """The structure of ``graph`` (``n x n``; every stored entry an edge) with one more node,
+    ``n``, that has an edge to each of ``sources``: one breadth-first search from it is a
+    search from all of them at once (which nodes they reach, in how few steps, by which edge)."""
+    n = graph.shape[0]
+    graph = sp.csr_matrix(graph)
+    sources = np.asarray(sources)
+    indptr = np.concatenate([graph.indptr, [graph.indptr[-1] + sources.size]])
+    indices = np.concatenate([graph.indices, sources])
+    return sp.csr_matrix(
+        (np.ones(indices.size, dtype=np.int8), indices, indptr), shape=(n + 1, n + 1)
+    )
 
 
 def _preview(names: Iterable[str], limit: int = 8) -> str:

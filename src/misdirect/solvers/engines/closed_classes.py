@@ -41,7 +41,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, shortest_path
 
 from misdirect.core.jit import njit
-from misdirect.core.model import reachable_from
+from misdirect.core.model import reachable_from, with_super_source
 from misdirect.solvers.deadline import Deadline
 
 
@@ -317,19 +317,10 @@ def _nearest_exit_last(
     exits = stop | leaks[base_groups]
     # breadth-first distances to an exit, backwards over the base chain's edges, from a
     # super-source (index n) joined to every exit
-    rows = inside[base_groups]
-    source = np.repeat(np.arange(n), np.diff(rows.indptr))
-    edges = sp.csr_matrix(
-        (
-            np.ones(rows.indices.size + int(exits.sum())),
-            (
-                np.concatenate([rows.indices, np.full(int(exits.sum()), n)]),
-                np.concatenate([source, np.flatnonzero(exits)]),
-            ),
-        ),
-        shape=(n + 1, n + 1),
+    backward = sp.csr_matrix(inside[base_groups].T)
+    distance = shortest_path(
+        with_super_source(backward, np.flatnonzero(exits)), unweighted=True, indices=n
     )
-    distance = shortest_path(edges, unweighted=True, indices=n)
     row_of = np.repeat(np.arange(inside.shape[0]), np.diff(inside.indptr))
     order = np.lexsort((-distance[inside.indices], row_of))
     ordered: np.ndarray = inside.indices[order].astype(np.int64)

@@ -33,7 +33,7 @@ from scipy.sparse.linalg import SuperLU
 
 from misdirect.core import residual, tolerance
 from misdirect.core.choice_product import end_component_states
-from misdirect.core.model import reachable_from
+from misdirect.core.model import reachable_from, with_super_source
 from misdirect.core.reachability import factorise, reach_probabilities, solve_chain
 from misdirect.errors import SolverError
 from misdirect.solvers.deadline import Deadline
@@ -174,17 +174,10 @@ class MaxReachability:
         sources = np.flatnonzero(self.target)
         # edges from each state entered back to the state whose choice enters it, and from a
         # virtual source (node n) to every target state
-        backward = sp.csr_matrix(
-            (
-                np.ones(into.size + sources.size, dtype=np.int8),
-                (
-                    np.concatenate([into, np.full(sources.size, n)]),
-                    np.concatenate([state, sources]),
-                ),
-            ),
-            shape=(n + 1, n + 1),
+        backward = sp.csr_matrix((np.ones(into.size, dtype=np.int8), (into, state)), shape=(n, n))
+        order, parent = breadth_first_order(
+            with_super_source(backward, sources), n, directed=True, return_predecessors=True
         )
-        order, parent = breadth_first_order(backward, n, directed=True, return_predecessors=True)
         found = order[(order < n)]
         found = found[~self.target[found]]
         heading = np.full(n, -1, dtype=np.int64)
