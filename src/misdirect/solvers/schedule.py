@@ -85,17 +85,18 @@ def next_level_fits(
         return True
     needed = enumeration_seconds(count)
     if measured is not None:
-        solved = max(measured.base_solves, 1)
-        if search_sees_budget:
-            needed += bases * measured.seconds / solved
-            if measured.alterations >= RATE_SAMPLE:
+        # per base: the whole run's seconds, or (blind search) only its bases'
+        per_base = measured.seconds if search_sees_budget else measured.base_seconds
+        bases_cost = bases * per_base / max(measured.base_solves, 1)
+        needed += bases_cost
+        if measured.alterations >= RATE_SAMPLE:
+            if search_sees_budget:
                 rate = measured.seconds / measured.alterations
-                needed = max(needed, enumeration_seconds(count, rate))
-        else:
-            needed += bases * measured.base_seconds / solved
-            if measured.alterations >= RATE_SAMPLE:
+                projected = enumeration_seconds(count, rate)
+            else:
                 rate = max(measured.seconds - measured.base_seconds, 0.0) / measured.alterations
-                needed = max(needed, bases * measured.base_seconds / solved + count * rate)
+                projected = bases_cost + count * rate
+            needed = max(needed, projected)
     return needed <= fair_share(deadline, search_sees_budget=search_sees_budget)
 
 
