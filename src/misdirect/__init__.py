@@ -26,6 +26,7 @@ from misdirect.defence import (
     online_attack_value,
 )
 from misdirect.errors import MisdirectError, OptionError, ProblemError, SolverError
+from misdirect.io.exact_model import ExactModel, ExactValue, exact_model
 from misdirect.io.problem_file import load_problem, problem_from_dict, write_problem
 from misdirect.solvers.base import ProgressCallback
 from misdirect.solvers.deadline import CancelToken, Deadline
@@ -44,6 +45,8 @@ __all__ = [
     "CostModel",
     "Deadline",
     "Evaluation",
+    "ExactModel",
+    "ExactValue",
     "HardenResult",
     "MisdirectError",
     "OnlineAttack",
@@ -62,6 +65,7 @@ __all__ = [
     "build_product",
     "decoy_probability",
     "evaluate",
+    "exact_model",
     "harden",
     "load_problem",
     "online_attack_value",

@@ -56,6 +56,15 @@ WeightsOption = Annotated[str | None, typer.Option(help="Item weights, e.g. 1,2,
 ValuesOption = Annotated[str | None, typer.Option(help="Item values, e.g. 20,30,40 (knapsack).")]
 CapacityOption = Annotated[float | None, typer.Option(help="Knapsack capacity = budget.")]
 SeedOption = Annotated[int, typer.Option(help="Seed (random scenario).")]
+ExactOption = Annotated[
+    bool,
+    typer.Option(
+        "--exact",
+        help="Also value the answer on the model as written: Storm builds the PRISM or DRN "
+        "model in rational arithmetic and its exact engine checks the alteration "
+        "(misdirect[storm]; slow on big chains).",
+    ),
+]
 AlterOption = Annotated[
     list[str] | None,
     typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),

@@ -10,6 +10,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
+import numpy as np
 import typer
 from rich.markup import escape
 from rich.table import Table
@@ -36,6 +37,7 @@ from misdirect.cli.options import (
     MAX_SEED,
     MAX_STEPS,
     AlterOption,
+    ExactOption,
     JsonOption,
     ProblemSource,
     alteration,
@@ -61,25 +63,36 @@ from misdirect.solvers.status import Status
 
 if TYPE_CHECKING:
     from misdirect.core.simulate import Simulation
+    from misdirect.io.exact_model import ExactValue
 
 # -- evaluate -----------------------------------------------------------------------------------
 
 
 @problem_input
-def evaluate(source: ProblemSource, alter: AlterOption = None, as_json: JsonOption = False) -> None:
+def evaluate(
+    source: ProblemSource,
+    alter: AlterOption = None,
+    exact: ExactOption = False,
+    as_json: JsonOption = False,
+) -> None:
     """Exact probability of reaching the decoy under one alteration (none by default)."""
     problem = source.load()
-    result = evaluate_alteration(problem, alteration(problem, alter))
+    altered = alteration(problem, alter)
+    result = evaluate_alteration(problem, altered)
     baseline = (
         result.probability
         if not result.alteration
         else decoy_probability(problem, problem.identity())
     )
+    as_written = exact_values(problem, [altered])[0] if exact else None
+    notes = [*result.notes, *exact_notes([result.error_bound], [as_written])]
     if as_json:
-        print_json(json_output.evaluation(result, baseline))
+        payload = json_output.evaluation(result, baseline, as_written)
+        payload["notes"] = notes
+        print_json(payload)
     else:
-        _print_evaluation(result, baseline, problem)
-        _print_notes(result.notes)
+        _print_evaluation(result, baseline, problem, as_written)
+        _print_notes(notes)
     _print_warnings(result.warnings)
     if result.warnings:
         raise typer.Exit(1)
@@ -96,7 +109,52 @@ def _print_notes(notes: Iterable[str]) -> None:
         err.print(f"[bold]note:[/] {escape(one_line(text))}", highlight=False)
 
 
-def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> None:
+def exact_values(
+    problem: Problem, alterations: Sequence[AlterationArray | None]
+) -> list[ExactValue | None]:
+    """Each alteration's value on the model as written (``--exact``), Storm run once per
+    distinct alteration (None where there is no alteration to check)."""
+    from misdirect.io.exact_model import exact_model
+
+    model = exact_model(problem)
+    found: dict[bytes, ExactValue] = {}
+    for altered in alterations:
+        key = np.asarray(altered).tobytes()
+        if altered is not None and key not in found:
+            found[key] = model.value(altered)
+    return [None if a is None else found[np.asarray(a).tobytes()] for a in alterations]
+
+
+def exact_notes(
+    error_bounds: Sequence[float | None],
+    values: Sequence[ExactValue | None],
+    budgets: Sequence[float] | None = None,
+) -> list[str]:
+    """A note where the model as written moves a value by more than what it is proven to on
+    the chain as loaded (the input's rounding in doubles decides digits), once per value with
+    the budgets it is about."""
+    moved: dict[str, list[str]] = {}
+    for i, (bound, value) in enumerate(zip(error_bounds, values, strict=True)):
+        if value is None or abs(value.difference) <= max(bound or 0.0, CERTIFY):
+            continue
+        text = (
+            f"on the model as written the value is {float(value.value):.12g}, "
+            f"{value.difference:+.2e} from the chain as loaded in doubles, more than the "
+            f"{CERTIFY:g} it is proven to there: the rounding of the model's probabilities "
+            "decides these digits (docs/exactness.md)"
+        )
+        moved.setdefault(text, []).append("" if budgets is None else f"{budgets[i]:g}")
+    return [
+        text
+        if not listed[0]
+        else f"budget{'s' if len(listed) > 1 else ''} {', '.join(listed)}: {text}"
+        for text, listed in moved.items()
+    ]
+
+
+def _print_evaluation(
+    result: Evaluation, baseline: float, problem: Problem, exact: ExactValue | None = None
+) -> None:
     table = Table(title=escape(problem.title), show_header=False, box=None)
     table.add_column(no_wrap=True)
     table.add_column(overflow="fold")  # an alteration's names wrap, never cut
@@ -108,6 +166,12 @@ def _print_evaluation(result: Evaluation, baseline: float, problem: Problem) -> 
         "  proven error",
         "none proven" if result.error_bound is None else f"at most {result.error_bound:.1e}",
     )
+    if exact is not None:
+        table.add_row(
+            "  on the model as written",
+            f"{float(exact.value):.12g} (Storm, rational arithmetic; "
+            f"{exact.difference:+.1e} from the chain as loaded)",
+        )
     for name, probability in result.decoy_sets.items():
         table.add_row(f"  Pr(first decoy in {escape(name)})", f"{probability:.6f}")
     table.add_row("without alteration", f"{baseline:.6f}")
@@ -182,6 +246,7 @@ def solve(
     ] = False,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
+    exact: ExactOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Optimal alteration within the budget, with the best value for every smaller budget.
@@ -223,11 +288,17 @@ def solve(
         if pool is not None:
             given["pool"] = pool
         result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
+    as_written = None
+    notes = [implied] if implied else []
+    if exact:
+        as_written = exact_values(problem, [p.alteration_array for p in result.curve])
+        bounds = [p.error_bound for p in result.curve]
+        notes += exact_notes(bounds, as_written, [p.budget for p in result.curve])
     if as_json:
-        print_json(json_output.solve(result, notes=[implied] if implied else []))
+        print_json(json_output.solve(result, notes=notes, exact=as_written))
     else:
-        _print_solve(result, problem)
-        _print_notes([*result.notes, *_point_notes(result.curve)])
+        _print_solve(result, problem, as_written)
+        _print_notes([*result.notes, *_point_notes(result.curve), *notes])
     _finish_solve(result, received)
 
 
@@ -305,7 +376,9 @@ def _finish_solve(result: SolveResult, received: list[int]) -> None:
         raise typer.Exit(1)
 
 
-def _print_solve(result: SolveResult, problem: Problem) -> None:
+def _print_solve(
+    result: SolveResult, problem: Problem, exact: Sequence[ExactValue | None] | None = None
+) -> None:
     table = Table(title=escape(f"{problem.title} — optimal alterations ({result.method})"))
     bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
@@ -318,12 +391,15 @@ def _print_solve(result: SolveResult, problem: Problem) -> None:
     )
     table.add_column("cost", justify="right")
     table.add_column("status")
-    for point in result.curve:
+    if exact is not None:  # what the model as written gives: digits past the 6th can differ
+        table.add_column("as written (exact)", justify="right")
+    for i, point in enumerate(result.curve):
         bound = (
             []
             if not bounded
             else ["—" if point.upper_bound is None else f"{point.upper_bound:.6f}"]
         )
+        written = [] if exact is None else [_as_written(exact[i])]
         table.add_row(
             f"{point.budget:g}",
             f"{point.probability:.6f}",
@@ -331,9 +407,14 @@ def _print_solve(result: SolveResult, problem: Problem) -> None:
             fmt_alteration(point.alteration),
             f"{point.cost:g}",
             point.status,
+            *written,
         )
     out.print(table)
     out.print(escape(" · ".join(_solve_summary(result))), highlight=False)
+
+
+def _as_written(value: ExactValue | None) -> str:
+    return "—" if value is None else f"{float(value.value):.12g}"
 
 
 def _solve_summary(result: SolveResult) -> list[str]:

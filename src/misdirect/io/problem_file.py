@@ -434,6 +434,15 @@ def _location(loc: tuple[Any, ...]) -> str:
     return text
 
 
+def read_spec(path: str | Path) -> ProblemFileV1:
+    """The problem file's document, validated but not compiled (what it names, as written)."""
+    path = Path(path)
+    try:
+        return parse_spec(_read_document(path))
+    except ProblemError as error:
+        raise error.located(str(path)) from None
+
+
 def _read_document(path: Path) -> Any:
     """The parsed file: a regular file within the size limit, JSON by suffix, else YAML, with
     depth, alias and duplicate-key limits (misdirect.io.files)."""

@@ -84,7 +84,8 @@ class StormPomdp:
     paynt_view: Callable[[], PayntView] | None = field(default=None, compare=False)
 
 
-def _stormpy(field: str):
+def load_stormpy(field: str):
+    """stormpy, or an error naming the extra that installs it."""
     try:
         import stormpy
         import stormpy.pomdp  # registers the POMDP model classes
@@ -111,7 +112,7 @@ def load_storm_pomdp(
     are made terminal, as PAYNT builds its models) make those states absorbing.
     """
     field = f"pomdp.{kind}"
-    stormpy = _stormpy(field)
+    stormpy = load_stormpy(field)
     # Storm logs parse errors to stderr itself; we report them once, in our own words
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     path = (base / path) if base is not None and not Path(path).is_absolute() else Path(path)
@@ -126,7 +127,7 @@ def load_storm_pomdp(
         check_nesting(strip_comments(text), field=field, what=path.name)
     else:
         check_drn_text(text, name=path.name, field=field)
-    model, program = _build(
+    model, program = build_storm_model(
         stormpy,
         path,
         kind,
@@ -174,7 +175,7 @@ def _no_initial_state(path: Path, field: str) -> ProblemError:
 # -- building -----------------------------------------------------------------------------------
 
 
-def _build(
+def build_storm_model(
     stormpy,
     path: Path,
     kind: str,
@@ -183,8 +184,10 @@ def _build(
     constants: str | None,
     terminal: str | None,
     terminal_from: str | None,
+    exact: bool = False,
 ):
-    """Storm's model of the file, and the PRISM program it was built from (None for DRN).
+    """Storm's model of the file, and the PRISM program it was built from (None for DRN);
+    ``exact``: with rational probabilities (:mod:`misdirect.io.exact_model`).
 
     Storm reports what it cannot read as RuntimeError (or its own StormError); that becomes
     one ProblemError, located at the line and column Storm names.
@@ -193,11 +196,12 @@ def _build(
     try:
         if kind == "prism":
             program = _prism_program(stormpy, path, constants)
-            model = _build_prism(stormpy, program, terminal, terminal_from)
+            model = _build_prism(stormpy, program, terminal, terminal_from, exact)
         else:
             options = stormpy.developer.DirectEncodingParserOptions()
             options.build_choice_labeling = True
-            model = stormpy.build_model_from_drn(str(path), options=options)
+            value_type = stormpy.Rational if exact else float
+            model = stormpy.build_model_from_drn[value_type](str(path), options=options)
         if not model.is_partially_observable:
             raise ProblemError(
                 f"{path.name} is a {model.model_type.name}, not a POMDP", field=field
@@ -230,9 +234,11 @@ def _prism_program(stormpy, path: Path, constants: str | None):
     return program
 
 
-def _build_prism(stormpy, program, terminal: str | None, terminal_from: str | None):
+def _build_prism(
+    stormpy, program, terminal: str | None, terminal_from: str | None, exact: bool = False
+):
     """Storm's model of the program, with the valuations and labels that names and
-    conditions need."""
+    conditions need (Storm's builder changes the program: build each model from its own)."""
     formulas = []
     if terminal is not None:
         formulas = [prism_target(stormpy, program, terminal, "pomdp.terminal")]
@@ -244,7 +250,7 @@ def _build_prism(stormpy, program, terminal: str | None, terminal_from: str | No
     options.set_build_choice_labels()
     options.set_build_observation_valuations()
     options.set_build_all_labels()
-    return stormpy.build_model(program, options=options)
+    return stormpy.build_model[stormpy.Rational if exact else float](program, options=options)
 
 
 MAX_PRISM_STATES = 100_000_000  # default of MISDIRECT_MAX_PRISM_STATES

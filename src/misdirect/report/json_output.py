@@ -12,7 +12,7 @@ once; a document here adds the schema, the command and the files written.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from functools import cache
 from importlib import resources
@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from misdirect.core.model import Problem
     from misdirect.core.simulate import Simulation
     from misdirect.defence.results import AuditResult, HardenResult
+    from misdirect.io.exact_model import ExactValue
     from misdirect.solvers.run import SolveResult
 
 SCHEMA = "misdirect-result/1"
@@ -67,11 +68,23 @@ def error_document(command: str | None, message: str, **context: Any) -> dict[st
 # -- solve --------------------------------------------------------------------------------------
 
 
-def solve(result: SolveResult, *, notes: Iterable[str] = ()) -> dict[str, Any]:
+def solve(
+    result: SolveResult,
+    *,
+    notes: Iterable[str] = (),
+    exact: Sequence[ExactValue | None] | None = None,
+) -> dict[str, Any]:
     """``solve --json``: the result's own fields (:meth:`SolveResult.to_dict`), ``notes``
-    added to its notes."""
+    added to its notes; with ``exact`` (one per curve point, ``--exact``) each point and the
+    answer carry their value on the model as written."""
     fields = result.to_dict()
     fields["notes"] = [*fields["notes"], *notes]
+    if exact is not None:
+        for point, value in zip(fields["curve"], exact, strict=True):
+            if value is not None:
+                point["exact"] = value.to_dict()
+        if exact[-1] is not None:
+            fields["exact"] = exact[-1].to_dict()
     return document("solve", **fields)
 
 
@@ -98,10 +111,16 @@ def outcome(
     return shown
 
 
-def evaluation(result: Evaluation, baseline: float) -> dict[str, Any]:
+def evaluation(
+    result: Evaluation, baseline: float, exact: ExactValue | None = None
+) -> dict[str, Any]:
     """``evaluate --json``: the exact value of one alteration and where runs end
-    (:meth:`Evaluation.to_dict`), with the value of no alteration beside it."""
-    return document("evaluate", **replace(result, baseline_value=baseline).to_dict())
+    (:meth:`Evaluation.to_dict`), with the value of no alteration beside it, and with
+    ``exact`` (``--exact``) its value on the model as written."""
+    fields = replace(result, baseline_value=baseline).to_dict()
+    if exact is not None:
+        fields["exact"] = exact.to_dict()
+    return document("evaluate", **fields)
 
 
 def simulation(
