@@ -54,6 +54,7 @@ from misdirect.solvers.engines.closed_classes import (
     may_close,
     unsafe_options,
 )
+from misdirect.solvers.engines.entry_gain import EntryGains, entry_gains
 from misdirect.solvers.engines.lowrank_updates import (
     BaseRows,
     Basis,
@@ -78,6 +79,10 @@ INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as a
 MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
 BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
 TRAP_BATCH = 100_000  # alterations per trap search between two looks at the deadline
+# a block with a floor lists at least this many alterations, and this many per live state
+# (the gains cost about one solve of its base chain), before the gain bound filters them
+FILTER_FROM = 20_000
+FILTER_PER_STATE = 4
 OPENED_BLOCK_FROM = 16  # alterations opening a base closed class by one option: from this many
 # on they are a block of their own (that option fixed, its base solved once, the rest by low
 # rank); fewer are valued one chain each (a base solve costs several single chains)
@@ -315,6 +320,7 @@ class LowRankEnumeration:
         self.exact_evaluations = 0
         self.trap_updates = 0  # alterations that close a class, valued by low rank
         self.opened_blocks = 0  # blocks of alterations that open a base closed class
+        self.filtered = 0  # alterations a floor and the gain bound left unvalued
 
     @cached_property
     def _inside(self) -> sp.csr_matrix:
@@ -389,17 +395,28 @@ class LowRankEnumeration:
         return tuple(picks[i] for i in self.natural_outer)
 
     def best_with(
-        self, budget: float, fixed: dict[int, int], deadline: Deadline, bases: BasisCache
+        self,
+        budget: float,
+        fixed: dict[int, int],
+        deadline: Deadline,
+        bases: BasisCache,
+        floor: float | None = None,
     ) -> tuple[float, np.ndarray, bool] | None:
         """The best alteration within ``budget`` that takes option ``fixed[i]`` for choice
         ``i`` (value, choice vector, whether every such alteration was valued: ``deadline``
         may cut the run short, and the best of those valued is then no proof); None when none
         was valued. Each base chain is solved once (kept in ``bases``), and a subtree's base
-        is that one with its fixed sensors' rows updated in (low rank)."""
-        found = self.run(budget, fixed, deadline, None, bases)
+        is that one with its fixed sensors' rows updated in (low rank). With ``floor`` (a
+        value some alteration within ``budget`` reaches), alterations proven to be worth less
+        are not valued: "every alteration" then means every one that may reach it, and the
+        value is ``-inf`` when none may."""
+        found = self.run(budget, fixed, deadline, None, bases, floor=floor)
         costs = np.where(np.isnan(found.values), np.inf, found.costs)
         if not (costs <= found.scale.cap(budget)).any():
-            return None
+            if floor is None or not found.values.size:
+                return None
+            # every alteration was left out: none can reach the floor (no value to offer)
+            return -np.inf, found.picks(0), found.complete_for(budget)
         index = best_per_budget(costs, found.values, [budget], found.scale, tolerance.NEAR_TIE)[0]
         return float(found.values[index]), found.picks(index), found.complete_for(budget)
 
@@ -441,13 +458,17 @@ class LowRankEnumeration:
         progress: ProgressCallback | None = None,
         bases: BasisCache | None = None,
         share: float | None = None,
+        floor: float | None = None,
     ) -> Enumerated:
         """Every alteration within ``top`` that agrees with ``fixed``, valued at the start;
         outer blocks cheapest first, so a run cut short by ``deadline`` has still proven every
         budget below the first block it did not reach. With ``share`` (seconds), the run also
         stops before a block once the blocks left, at the last one's time, would take it past
         that: a caller with a search to hand the budget to keeps the time (each block of a
-        big map is a base solve of thousands of columns)."""
+        big map is a base solve of thousands of columns). With ``floor`` (a value some
+        alteration within ``top`` reaches), a block leaves out the alterations the first-entry
+        gain bound proves to be worth less (:meth:`_filtered`): the run then answers for
+        ``top`` only, not for the budgets below it."""
         fixed = fixed or {}
         deadline = deadline or Deadline()
         inner, outer, outer_table, outer_costs, inner_space = self._layout(top, fixed)
@@ -524,6 +545,7 @@ class LowRankEnumeration:
                         compiled,
                         outer,
                         outer_pick,
+                        floor,
                     )
                     steps = max(steps, base.steps)
                 except DeadlineExpiredError:
@@ -572,9 +594,11 @@ class LowRankEnumeration:
             top=top,
             base_seconds=bases_s,
         )
-        return self._verified(enumerated, steps, deadline)
+        return self._verified(enumerated, steps, deadline, floor)
 
-    def _verified(self, found: Enumerated, steps: float, deadline: Deadline) -> Enumerated:
+    def _verified(
+        self, found: Enumerated, steps: float, deadline: Deadline, floor: float | None = None
+    ) -> Enumerated:
         """``found`` with every alteration that may be the best within some budget valued
         exactly, when its base chains are so ill-conditioned (left after up to ``steps``
         expected steps) that low-rank values may be off by more than near-ties allow
@@ -582,8 +606,10 @@ class LowRankEnumeration:
 
         Those are the alterations within ``2M`` of the best value at their cost or less: any
         other is at least ``2M`` below one of them, so, off by at most ``M`` each way, below
-        its exact value. Those the deadline leaves are unvalued (cost ``inf``), as a block
-        cut short leaves them: their budgets are not proven."""
+        its exact value. With ``floor`` (the run answers for its top budget only, and only
+        about what may reach the floor), also not those more than ``2M`` below it. Those the
+        deadline leaves are unvalued (cost ``inf``), as a block cut short leaves them: their
+        budgets are not proven."""
         top_value = self.instance.problem.objective.max_value
         margin = update_error(steps, top_value)
         precise = margin <= tolerance.slack(top_value, rel=tolerance.NEAR_TIE) / 10
@@ -594,6 +620,9 @@ class LowRankEnumeration:
         best_so_far = np.maximum.accumulate(values[order])
         candidates = order[values[order] >= best_so_far - 2 * margin]
         candidates = candidates[np.isfinite(costs[candidates])]
+        if floor is not None:
+            least = floor - 2 * margin - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
+            candidates = candidates[values[candidates] >= least]
         unevaluated = found.unevaluated
         for index in candidates[np.argsort(-values[candidates], kind="stable")].tolist():
             if deadline.expired():
@@ -783,9 +812,11 @@ class LowRankEnumeration:
         compiled: bool,
         outer: list[int],
         outer_pick: np.ndarray,
+        floor: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
         """(costs, values, the alterations, cheapest one left unvalued) of one block's inner
         alterations within ``budget``; a cost is ``inf`` where the deadline cut it short.
+        With ``floor``, those proven to be worth less are left out first (:meth:`_filtered`).
 
         With end components, the alterations taking an option that may close a class are
         searched for a trap first (:func:`closing_alterations`). The batch then values every
@@ -807,6 +838,9 @@ class LowRankEnumeration:
         )
         if altered is None:
             raise SolverError(f"more than {self.max_evaluations:,} alterations")
+        reaches = None  # with a floor: which alterations may reach it (the rest are parents)
+        if floor is not None:
+            altered, reaches = self._filtered(altered, inner, outer, outer_pick, floor)
         trap, batch, in_batch = None, altered, np.ones(len(altered.costs), dtype=bool)
         if base.cycles is not None and base.cycles.unsafe.any():
             trap = self._trap_search(altered, base, deadline)
@@ -832,6 +866,8 @@ class LowRankEnumeration:
             found[in_batch] = part
             cut = np.flatnonzero(in_batch)[~corrected]
             ill = np.flatnonzero(in_batch)[corrected & np.isnan(part)]
+            if reaches is not None:  # kept only as parents: proven below the floor
+                ill = ill[reaches[ill]]
             if (cut.size or ill.size) and inner_costs is altered.costs:
                 inner_costs = inner_costs.copy()  # cut in place below
             if cut.size:  # cut short: those alterations were not evaluated
@@ -849,7 +885,73 @@ class LowRankEnumeration:
                     found, inner_costs, altered, trap, base, block, (budget, compiled), deadline
                 ),
             )
+        if reaches is not None and not reaches.all():
+            # the parents kept for their children are proven below the floor: not candidates
+            # (an ill-conditioned base's low-rank values of them would be re-valued exactly)
+            inner_costs = np.where(reaches, inner_costs, np.inf)
+            found = np.where(reaches, found, 0.0)
         return inner_costs, found, altered, cut_at
+
+    def _filtered(
+        self,
+        altered: AlteredEntries,
+        inner: list[int],
+        outer: list[int],
+        outer_pick: np.ndarray,
+        floor: float,
+    ) -> tuple[AlteredEntries, np.ndarray | None]:
+        """``altered`` without the alterations that cannot reach ``floor``, and which of those
+        kept may reach it. By the first-entry gain bound
+        (:mod:`~misdirect.solvers.engines.entry_gain`), from the block's base chain, each is
+        worth at most the base's value plus its altered regions' gains. Those within a
+        near-tie of ``floor`` may (the cheaper of tied ones wins); every parent of one that
+        may is kept too (the updates build each alteration from its parent), but need not be
+        valued exactly. A small block is left whole (None): the gains cost about one solve
+        of the base chain."""
+        count = len(altered.costs)
+        if count < max(FILTER_FROM, FILTER_PER_STATE * int(self.instance.live.sum())):
+            return altered, None
+        picked = np.zeros(len(self.observations), dtype=np.int64)
+        picked[outer] = outer_pick
+        gains = self._gains(picked)
+        bound = gains.bounds(altered.alteration, np.asarray(inner)[altered.choice], count)
+        reaches = bound >= floor - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
+        keep = reaches.copy()
+        keep[0] = True  # the base itself: every alteration's ancestor
+        marked = keep
+        while True:  # every ancestor of one kept (as deep as the budget allows)
+            parents = altered.parent[marked]
+            parents = parents[(parents >= 0) & ~keep[np.maximum(parents, 0)]]
+            if not parents.size:
+                break
+            keep[parents] = True
+            marked = np.zeros(count, dtype=bool)
+            marked[parents] = True
+        self.filtered += int(count - keep.sum())
+        if keep.all():
+            return altered, reaches
+        return _restricted(altered, keep), reaches[keep]
+
+    def _gains(self, picked: np.ndarray) -> EntryGains:
+        """The first-entry gains of every choice on the chain taking option ``picked[i]``
+        of each choice ``i`` (its closed classes as they are: value 0)."""
+        chain = self.instance.chain
+        policy = self._unaltered_policy.copy()
+        region = np.full(chain.n_states, -1, dtype=np.int64)
+        for i, o in enumerate(self.observations):
+            region[self.rows_of[o]] = i
+            if picked[i]:
+                rows = self.rows_of[o]
+                policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
+        return entry_gains(
+            chain.transitions[policy],
+            chain.target,
+            chain.target_value,
+            chain.initial,
+            region,
+            len(self.observations),
+            self.instance.problem.objective.max_value,
+        )
 
     def _single_block(
         self, outer: list[int], outer_pick: np.ndarray

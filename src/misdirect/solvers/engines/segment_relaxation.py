@@ -541,12 +541,17 @@ class SegmentRelaxation:
         return key is not None and key in self.bases
 
     def enumerate(
-        self, picks: dict[int, int], budget: float, deadline: Deadline
+        self,
+        picks: dict[int, int],
+        budget: float,
+        deadline: Deadline,
+        floor: float | None = None,
     ) -> tuple[float, tuple[int, ...], bool] | None:
         """The best completion of ``picks`` within ``budget`` (value, picks, whether it is
         the best of them all), enumerated with low-rank updates: when ``deadline`` cuts the
-        run short, the best of those valued (a candidate, not a proof); None when none was."""
-        found = self.enumeration.best_with(budget, picks, deadline, self.bases)
+        run short, the best of those valued (a candidate, not a proof); None when none was.
+        With ``floor`` (the incumbent's value), only completions that may reach it count."""
+        found = self.enumeration.best_with(budget, picks, deadline, self.bases, floor)
         if found is None:
             return None
         value, vector, complete = found

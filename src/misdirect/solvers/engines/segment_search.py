@@ -178,13 +178,20 @@ class SegmentSearch(IncumbentSearch):
                 self.searched.add(key)
                 if seg.completions(fixed, remaining, NEIGHBOURHOOD) > NEIGHBOURHOOD:
                     continue
-                found = seg.enumerate(fixed, self.budget, deadline)
+                found = seg.enumerate(fixed, self.budget, deadline, self._floor())
                 if found is not None and tolerance.better(
                     found[0], self.best_value, rel=tolerance.PRUNE
                 ):
                     self.incumbent.offer_exact(found[1])
                 if found is None or not found[2] or self._status is not None:
                     return  # out of time, or the search is over
+
+    def _floor(self) -> float | None:
+        """What an enumeration must beat to matter: the best value reached within the budget,
+        here or by another worker (an enumeration then leaves out what cannot reach it)."""
+        with self._lock:
+            best = max(self.incumbent.value, self.incumbent.floor)
+        return best if best >= 0 else None
 
     def open_nodes(self) -> list[Subtree]:
         """The nodes still open (none is held by a worker once ``run`` returns)."""
@@ -342,7 +349,7 @@ class SegmentSearch(IncumbentSearch):
         return free.count_within(remaining - free.cheapest(), small) <= small
 
     def _do_enumerate(self, entry: _Open, deadline: Deadline) -> None:
-        found = self.seg.enumerate(entry.picks, self.budget, deadline)
+        found = self.seg.enumerate(entry.picks, self.budget, deadline, self._floor())
         exact = None
         if found is not None and tolerance.better(found[0], self.best_value, rel=tolerance.PRUNE):
             exact = self.incumbent.value_of(found[1])  # re-evaluated exactly, outside the lock
