@@ -196,3 +196,21 @@ def test_an_enumeration_with_a_floor_keeps_every_alteration_that_reaches_it(monk
         checked += 1
     assert checked >= 5
     assert enumeration.filtered > 0
+
+
+def test_a_run_with_a_floor_answers_for_its_top_budget_only(monkeypatch):
+    """Alterations below the floor are left out, so a cheaper budget's best may be missing:
+    the run says it is complete for its own budget, not for the ones below."""
+    from misdirect.core.attack import prepare
+    from misdirect.solvers.deadline import Deadline
+    from misdirect.solvers.engines import lowrank
+
+    monkeypatch.setattr(lowrank, "FILTER_FROM", 0)
+    monkeypatch.setattr(lowrank, "FILTER_PER_STATE", 0)
+    problem = sensor_grid(8, 6, seed=1, goal="inside")
+    enumeration = lowrank.LowRankEnumeration(prepare(problem, 2.0))
+    plain = enumeration.run(2.0, deadline=Deadline(None))
+    floored = enumeration.run(2.0, deadline=Deadline(None), floor=float(plain.values.max()))
+    assert plain.complete_for(1.0) and plain.complete_for(2.0)
+    assert floored.complete_for(2.0) and not floored.complete_for(1.0)
+    assert enumeration.filtered > 0

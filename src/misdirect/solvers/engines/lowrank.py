@@ -116,12 +116,17 @@ class Enumerated:
     scale: tolerance.CostScale  # how the costs fit a budget
     top: float  # the budget enumerated within: nothing costlier was listed
     base_seconds: float = 0.0  # spent solving (or updating) its base chains
+    # the floor the run left out alterations below: it then answers for ``top`` only
+    floor: float | None = None
 
     def complete_for(self, budget: float) -> bool:
-        """Whether every alteration within ``budget`` was valued."""
+        """Whether every alteration within ``budget`` was valued (with a floor: every one
+        that may reach it, and only ``top`` is answered)."""
         cap = self.scale.cap(budget)
         if cap > self.scale.cap(self.top):
             return False  # alterations above the run's own budget were never listed
+        if self.floor is not None and cap < self.scale.cap(self.top):
+            return False  # a cheaper alteration below the floor may be the best at ``budget``
         return not self.next_outer_cost <= cap and not self.unevaluated <= cap
 
     def picks(self, index: int) -> np.ndarray:
@@ -593,6 +598,7 @@ class LowRankEnumeration:
             scale=scale,
             top=top,
             base_seconds=bases_s,
+            floor=floor,
         )
         return self._verified(enumerated, steps, deadline, floor)
 
