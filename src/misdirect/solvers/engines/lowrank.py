@@ -942,22 +942,34 @@ class LowRankEnumeration:
         """The first-entry gains of every choice on the chain taking option ``picked[i]``
         of each choice ``i`` (its closed classes as they are: value 0)."""
         chain = self.instance.chain
-        policy = self._unaltered_policy.copy()
-        region = np.full(chain.n_states, -1, dtype=np.int64)
-        for i, o in enumerate(self.observations):
-            region[self.rows_of[o]] = i
-            if picked[i]:
-                rows = self.rows_of[o]
-                policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
         return entry_gains(
-            chain.transitions[policy],
+            self._chain_of(picked),
             chain.target,
             chain.target_value,
             chain.initial,
-            region,
+            self._region,
             len(self.observations),
             self.instance.problem.objective.max_value,
         )
+
+    @cached_property
+    def _region(self) -> np.ndarray:
+        """The choice whose observation each product state reads among the live ones (-1:
+        none); the regions of the gain bound."""
+        region = np.full(self.instance.chain.n_states, -1, dtype=np.int64)
+        for i, o in enumerate(self.observations):
+            region[self.rows_of[o]] = i
+        return region
+
+    def _chain_of(self, picked: np.ndarray) -> sp.csr_matrix:
+        """The chain, within the choice product, of the alteration taking option
+        ``picked[i]`` of every choice ``i``."""
+        chain = self.instance.chain
+        policy = self._unaltered_policy.copy()
+        for i in np.flatnonzero(picked).tolist():
+            rows = self.rows_of[self.observations[i]]
+            policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
+        return cast(sp.csr_matrix, chain.transitions[policy])
 
     def _single_block(
         self, outer: list[int], outer_pick: np.ndarray
@@ -1262,12 +1274,8 @@ class LowRankEnumeration:
         (past about 10^14 steps, unproven: the jump chain's value, in doubles; the search
         only ranks by it, and what is printed is evaluated again)."""
         chain = self.instance.chain
-        policy = self._unaltered_policy.copy()
-        for i in np.flatnonzero(picked).tolist():
-            rows = self.rows_of[self.observations[i]]
-            policy[rows] = chain.group_of_option[rows, self.first_option[i] + picked[i]]
         return reach_probability_bounded(
-            chain.transitions[policy],
+            self._chain_of(picked),
             chain.target,
             chain.initial,
             blocks=chain.node,
