@@ -119,9 +119,8 @@ def exact_values(
     model = exact_model(problem)
     found: dict[bytes, ExactValue] = {}
     for altered in alterations:
-        key = np.asarray(altered).tobytes()
-        if altered is not None and key not in found:
-            found[key] = model.value(altered)
+        if altered is not None and np.asarray(altered).tobytes() not in found:
+            found[np.asarray(altered).tobytes()] = model.value(altered)
     return [None if a is None else found[np.asarray(a).tobytes()] for a in alterations]
 
 
@@ -133,7 +132,7 @@ def exact_notes(
     """A note where the model as written moves a value by more than what it is proven to on
     the chain as loaded (the input's rounding in doubles decides digits), once per value with
     the budgets it is about."""
-    moved: dict[str, list[str]] = {}
+    moved = []
     for i, (bound, value) in enumerate(zip(error_bounds, values, strict=True)):
         if value is None or abs(value.difference) <= max(bound or 0.0, CERTIFY):
             continue
@@ -143,13 +142,8 @@ def exact_notes(
             f"{CERTIFY:g} it is proven to there: the rounding of the model's probabilities "
             "decides these digits (docs/exactness.md)"
         )
-        moved.setdefault(text, []).append("" if budgets is None else f"{budgets[i]:g}")
-    return [
-        text
-        if not listed[0]
-        else f"budget{'s' if len(listed) > 1 else ''} {', '.join(listed)}: {text}"
-        for text, listed in moved.items()
-    ]
+        moved.append((text, None if budgets is None else budgets[i]))
+    return _once_per_text(moved)
 
 
 def _print_evaluation(
@@ -308,13 +302,23 @@ POINT_NOTES = ("trivial_bound", "not_certified")  # why a point is open: shown u
 def _point_notes(curve: Sequence[BudgetResult]) -> list[str]:
     """The notes that say why a budget is left open, each once with the budgets it is about
     (``--json`` has every point's under ``certification``)."""
+    return _once_per_text(
+        (point.notes[key], point.budget)
+        for point in curve
+        for key in POINT_NOTES
+        if key in point.notes
+    )
+
+
+def _once_per_text(notes: Iterable[tuple[str, float | None]]) -> list[str]:
+    """Each note's text once, prefixed with the budgets it is about (none: as it is)."""
     budgets: dict[str, list[str]] = {}
-    for point in curve:
-        for key in POINT_NOTES:
-            if key in point.notes:
-                budgets.setdefault(point.notes[key], []).append(f"{point.budget:g}")
+    for text, budget in notes:
+        budgets.setdefault(text, []).append("" if budget is None else f"{budget:g}")
     return [
-        f"budget{'s' if len(listed) > 1 else ''} {', '.join(listed)}: {text}"
+        text
+        if not listed[0]
+        else f"budget{'s' if len(listed) > 1 else ''} {', '.join(listed)}: {text}"
         for text, listed in budgets.items()
     ]
 

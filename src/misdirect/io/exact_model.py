@@ -76,20 +76,20 @@ class ExactModel:
         alteration = problem.as_alteration(alteration, source=FIELD)
         loaded = decoy_value(problem, alteration).value
         text, weights, states = self._product_drn(alteration)
-        reached = {w: f"decoy{i}" for i, w in enumerate(weights) if f" decoy{i}\n" in text}
         found = run_isolated(
             _check_exactly,
             text,
-            list(reached.values()),
+            [f"decoy{i}" for i in range(len(weights))],
             name=f"the exact product chain of {self.name}",
             field=FIELD,
         )
-        value = sum((w * Fraction(p) for w, p in zip(reached, found, strict=True)), Fraction(0))
+        value = sum((w * Fraction(p) for w, p in zip(weights, found, strict=True)), Fraction(0))
         return ExactValue(value=value, loaded=loaded, product_states=states)
 
     def _product_drn(self, alteration: np.ndarray) -> tuple[str, list[Fraction], int]:
         """The product chain under ``alteration`` as an exact DRN text (states reachable from
-        the start; a decoy state stops the run), with the weight of each decoy label."""
+        the start; a decoy state stops the run), with the weight of each decoy label (one per
+        weight among the decoy states it reaches), and its number of states."""
         problem = self.problem
         pomdp, ctrl = problem.pomdp, problem.controller
         n, m = pomdp.n_states, ctrl.n_nodes
@@ -115,12 +115,13 @@ class ExactModel:
         target = np.searchsorted(keep, matrix.indices[at].astype(np.int64) * m + next_node[entry])
         exact = self.transitions
         branch = [exact[i] * move_p[e] for i, e in zip(at.tolist(), entry.tolist(), strict=True)]
-        weights = sorted({_decimal(float(w)) for w in objective.value[objective.target]})
+        stops = np.flatnonzero(stop[keep])
+        weight_of = {k: _decimal(float(objective.value[keep[k] // m])) for k in stops.tolist()}
+        weights = sorted(set(weight_of.values()))  # those of decoy states the run may reach
         label_of = {w: f"decoy{i}" for i, w in enumerate(weights)}
         label = dict.fromkeys(range(keep.size), "")
-        stops = np.flatnonzero(stop[keep])
-        for k in stops.tolist():
-            label[k] = " " + label_of[_decimal(float(objective.value[keep[k] // m]))]
+        for k, w in weight_of.items():
+            label[k] = " " + label_of[w]
         rows_out: dict[int, dict[int, Fraction]] = {k: {} for k in range(keep.size)}
         for s, t, p in zip(source.tolist(), target.tolist(), branch, strict=True):
             row = rows_out[s]

@@ -531,8 +531,9 @@ def load_problem(path: str | Path) -> Problem:
     (25, 4.0)
     """
     path = Path(path)
+    spec = read_spec(path)
     try:
-        return compile_problem(parse_spec(_read_document(path)), source=str(path))
+        return compile_problem(spec, source=str(path))
     except ProblemError as error:
         raise error.located(str(path)) from None
 

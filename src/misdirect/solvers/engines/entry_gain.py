@@ -66,10 +66,9 @@ def entry_gains(
     is the most a run can score (the largest decoy weight, whether or not this chain reaches
     a decoy)."""
     n = transitions.shape[0]
-    matrix = sp.csr_matrix(transitions)
+    given = sp.csr_matrix(transitions)
     stops = np.flatnonzero(target)
-    matrix = sp.diags((~target).astype(np.float64)) @ matrix  # targets end the run
-    matrix = sp.csr_matrix(matrix)
+    matrix = sp.csr_matrix(sp.diags((~target).astype(np.float64)) @ given)  # targets end runs
     matrix.eliminate_zeros()
     _, component = connected_components(matrix, directed=True, connection="strong")
     edges = matrix.tocoo()
@@ -114,7 +113,7 @@ def entry_gains(
     visits_up = np.zeros(n)
     visits_up[transient] = np.maximum(visits, 0.0) + visit_error
     # entries: moves y -> x from outside x's region, each weighted by the visits to y
-    flow = (sp.diags(visits_up) @ sp.csr_matrix(transitions)).tocoo()
+    flow = (sp.diags(visits_up) @ given).tocoo()
     moving = ~closed[flow.row]
     entry = moving & (region[flow.row] != region[flow.col]) & (region[flow.col] >= 0)
     into = entry & ~closed[flow.col]
@@ -135,5 +134,5 @@ def entry_gains(
         pairs = np.unique(np.stack([component[met], region[met]], axis=1), axis=0)
         np.add.at(gains, pairs[:, 1], absorbed[pairs[:, 0]] * top)
     # the sums above round by at most (terms + 2) u, relative: the largest row counts
-    terms = int(np.diff(sp.csr_matrix(transitions).indptr).max(initial=0)) * n + 2
+    terms = int(np.diff(given.indptr).max(initial=0)) * n + 2
     return EntryGains(value_up, gains * (1 + 2.02 * terms * UNIT_ROUNDOFF))
