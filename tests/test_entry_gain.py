@@ -1,12 +1,14 @@
 """The first-entry gain bound (``solvers.engines.entry_gain``) against brute force: from a base
 alteration, every alteration that changes up to two more observations is worth at most the
 bound, on random models with self-loops and traps (end components), on the stress models whose
-probabilities go down to 1e-12, with weighted decoys, and on a turn-back grid; and a hand-made
-chain gives the gains worked out on paper."""
+probabilities go down to 1e-12, with weighted decoys, and on a turn-back grid, for the gains
+counted on every entry and on the first only; and hand-made chains give the gains worked out
+on paper."""
 
 from __future__ import annotations
 
 import itertools
+from functools import partial
 
 import numpy as np
 import pytest
@@ -15,11 +17,11 @@ import scipy.sparse as sp
 from misdirect import decoy_probability
 from misdirect.core.product import build_product
 from misdirect.scenarios import random_problem, sensor_grid
-from misdirect.solvers.engines.entry_gain import entry_gains
+from misdirect.solvers.engines.entry_gain import entry_gains, first_entry_gains
 from stress_model import stress_model
 
 
-def _gains(problem, base):
+def _gains(problem, base, gains_of=entry_gains):
     chain = build_product(problem, base)
     objective = problem.objective
     world = chain.world_state
@@ -27,7 +29,7 @@ def _gains(problem, base):
     region[problem.pomdp.absorbing[world]] = -1  # their rows never change
     region[world == problem.pomdp.initial_state] = -1  # the initial reading is never altered
     region[region == problem.pomdp.initial_observation] = -1
-    return entry_gains(
+    return gains_of(
         chain.matrix.tocsr(),
         objective.target[world],
         objective.value[world],
@@ -48,10 +50,12 @@ def _options(problem):
     }
 
 
-def _check(problem, base) -> int:
+def _check(problem, base, gains_of=entry_gains) -> int:
     """Every alteration of up to two more observations on top of ``base`` is within the
     bound; returns how many bounds were below 1 (the bound is not vacuous)."""
-    gains = _gains(problem, base)
+    gains = _gains(problem, base, gains_of)
+    if gains_of is first_entry_gains:  # never above the gains of every entry
+        assert (gains.gains <= _gains(problem, base).gains).all()
     assert gains.value >= decoy_probability(problem, base) - 1e-12
     options = {o: ts for o, ts in _options(problem).items() if base[o] == o}
     useful = 0
@@ -67,26 +71,61 @@ def _check(problem, base) -> int:
     return useful
 
 
+GAINS = [entry_gains, first_entry_gains]
+
+
+@pytest.mark.parametrize("gains_of", GAINS)
 @pytest.mark.parametrize("seed", range(12))
-def test_no_alteration_beats_the_bound_on_random_models(seed):
+def test_no_alteration_beats_the_bound_on_random_models(seed, gains_of):
     problem = random_problem(seed, states=7, observations=4, randomized=seed % 3 == 2)
-    _check(problem, problem.identity())
+    _check(problem, problem.identity(), gains_of)
     first = next(iter(_options(problem).items()), None)
     if first is not None:
         base = problem.identity()
         base[first[0]] = first[1][0]
-        _check(problem, base)
+        _check(problem, base, gains_of)
 
 
+@pytest.mark.parametrize("gains_of", GAINS)
 @pytest.mark.parametrize("seed", range(8))
-def test_no_alteration_beats_the_bound_where_rounding_bites(seed):
+def test_no_alteration_beats_the_bound_where_rounding_bites(seed, gains_of):
     problem = stress_model(seed)
-    _check(problem, problem.identity())
+    _check(problem, problem.identity(), gains_of)
 
 
-def test_the_bound_holds_and_says_something_on_a_turn_back_grid():
+@pytest.mark.parametrize("gains_of", GAINS)
+def test_the_bound_holds_and_says_something_on_a_turn_back_grid(gains_of):
     problem = sensor_grid(8, 6, goal="inside")
-    assert _check(problem, problem.identity()) > 0
+    assert _check(problem, problem.identity(), gains_of) > 0
+
+
+def test_first_entry_gains_by_hand():
+    """0 -> region r (state 1); 1 -> 2; 2 -> back to 1 w.p. 1/2, goal 3 w.p. 1/4, decoy 4
+    w.p. 1/4. V = 1/2 at 0, 1 and 2. Region r is entered twice on average, each time worth
+    at most 1 - 1/2: 1 counted on every entry; the first entry alone is worth 1/2, which
+    making 1's row go to the decoy reaches (the bound is tight)."""
+    p = np.zeros((5, 5))
+    p[0, 1] = p[1, 2] = 1.0
+    p[2, 1], p[2, 3], p[2, 4] = 0.5, 0.25, 0.25
+    p[3, 3] = p[4, 4] = 1.0
+    target = np.array([False, False, False, False, True])
+    region = np.array([-1, 0, -1, -1, -1])
+    args = (sp.csr_matrix(p), target, target.astype(float), 0, region, 1, 1.0)
+    every, first = entry_gains(*args), first_entry_gains(*args)
+    assert every.value == pytest.approx(0.5, rel=1e-12)
+    assert every.gains[0] == pytest.approx(1.0, rel=1e-12)
+    assert first.gains[0] == pytest.approx(0.5, rel=1e-12)
+    assert first.gains[0] >= 0.5  # proven from above
+    # a trap in the region, entered before any of its transient states: worth M
+    p[2, 4], p[2, 0] = 0.0, 0.25  # no decoy left: 2 -> 1, 3 or back to 0
+    p = np.pad(p, ((0, 1), (0, 1)))
+    p[0, 1], p[0, 5], p[5, 5] = 0.5, 0.5, 1.0  # 0 -> trap 5 (in region r) w.p. 1/2
+    region = np.array([-1, 0, -1, -1, -1, 0])
+    target = np.array([False, False, False, False, True, False])
+    args = (sp.csr_matrix(p), target, target.astype(float), 0, region, 1, 1.0)
+    # V = 0: every first entry gains 1; r is entered first w.p. 1 (trap or state 1)
+    assert first_entry_gains(*args).gains[0] == pytest.approx(1.0, rel=1e-12)
+    assert entry_gains(*args).gains[0] > 1.0
 
 
 def test_gains_by_hand():
@@ -214,3 +253,24 @@ def test_a_run_with_a_floor_answers_for_its_top_budget_only(monkeypatch):
     assert plain.complete_for(1.0) and plain.complete_for(2.0)
     assert floored.complete_for(2.0) and not floored.complete_for(1.0)
     assert enumeration.filtered > 0
+
+
+def test_first_entry_gains_cut_short_keep_the_gains_on_every_entry():
+    """Regions left undone when ``stop()`` says so keep their gains counted on every entry
+    (a bound still); the largest go first."""
+    problem = sensor_grid(8, 6, goal="inside")
+    every = _gains(problem, problem.identity())
+    assert (
+        _gains(
+            problem, problem.identity(), partial(first_entry_gains, stop=lambda: True)
+        ).gains.tolist()
+        == every.gains.tolist()
+    )
+    calls = iter(range(100))
+    one = _gains(
+        problem, problem.identity(), partial(first_entry_gains, stop=lambda: next(calls) >= 1)
+    )
+    largest = int(np.argmax(every.gains))
+    changed = np.flatnonzero(one.gains != every.gains)
+    assert changed.tolist() == [largest]
+    assert one.gains[largest] < every.gains[largest]

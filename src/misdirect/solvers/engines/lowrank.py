@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from typing import NamedTuple, cast
 
 import numpy as np
@@ -54,7 +54,12 @@ from misdirect.solvers.engines.closed_classes import (
     may_close,
     unsafe_options,
 )
-from misdirect.solvers.engines.entry_gain import EntryGains, entry_gains
+from misdirect.solvers.engines.entry_gain import (
+    EntryGains,
+    GainsOf,
+    entry_gains,
+    first_entry_gains,
+)
 from misdirect.solvers.engines.lowrank_updates import (
     BaseRows,
     Basis,
@@ -79,6 +84,7 @@ INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as a
 MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
 BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
 TRAP_BATCH = 100_000  # alterations per trap search between two looks at the deadline
+FIRST_ENTRY_SHARE = 0.05  # of the time left: the root chain's first-entry gains, at most
 # a block with a floor lists at least this many alterations, and this many per live state
 # (the gains cost about one solve of its base chain), before the gain bound filters them
 FILTER_FROM = 20_000
@@ -326,6 +332,8 @@ class LowRankEnumeration:
         self.trap_updates = 0  # alterations that close a class, valued by low rank
         self.opened_blocks = 0  # blocks of alterations that open a base closed class
         self.filtered = 0  # alterations a floor and the gain bound left unvalued
+        self._root_lock = threading.Lock()  # the root chain's first-entry gains, once
+        self._root_first: EntryGains | None = None
 
     @cached_property
     def _inside(self) -> sp.csr_matrix:
@@ -846,7 +854,7 @@ class LowRankEnumeration:
             raise SolverError(f"more than {self.max_evaluations:,} alterations")
         reaches = None  # with a floor: which alterations may reach it (the rest are parents)
         if floor is not None:
-            altered, reaches = self._filtered(altered, inner, outer, outer_pick, floor)
+            altered, reaches = self._filtered(altered, inner, outer, outer_pick, floor, deadline)
         trap, batch, in_batch = None, altered, np.ones(len(altered.costs), dtype=bool)
         if base.cycles is not None and base.cycles.unsafe.any():
             trap = self._trap_search(altered, base, deadline)
@@ -905,11 +913,14 @@ class LowRankEnumeration:
         outer: list[int],
         outer_pick: np.ndarray,
         floor: float,
+        deadline: Deadline,
     ) -> tuple[AlteredEntries, np.ndarray | None]:
         """``altered`` without the alterations that cannot reach ``floor``, and which of those
         kept may reach it. By the first-entry gain bound
-        (:mod:`~misdirect.solvers.engines.entry_gain`), from the block's base chain, each is
-        worth at most the base's value plus its altered regions' gains. Those within a
+        (:mod:`~misdirect.solvers.engines.entry_gain`), each is worth at most the block's
+        base chain's value plus its altered regions' gains, and at most the unaltered chain's
+        value plus the gains of every region it alters there, counted on first entries only
+        (:meth:`_root_gains`; tighter where runs circle back). Those within a
         near-tie of ``floor`` may (the cheaper of tied ones wins); every parent of one that
         may is kept too (the updates build each alteration from its parent), but need not be
         valued exactly. A small block is left whole (None): the gains cost about one solve
@@ -919,8 +930,11 @@ class LowRankEnumeration:
             return altered, None
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        gains = self._gains(picked)
-        bound = gains.bounds(altered.alteration, np.asarray(inner)[altered.choice], count)
+        regions = np.asarray(inner)[altered.choice]
+        bound = self._gains(picked).bounds(altered.alteration, regions, count)
+        # and from the root chain, whose gains count first entries only
+        root = self._root_gains(deadline).also_altering(np.flatnonzero(picked))
+        bound = np.minimum(bound, root.bounds(altered.alteration, regions, count))
         reaches = bound >= floor - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
         keep = reaches.copy()
         keep[0] = True  # the base itself: every alteration's ancestor
@@ -938,11 +952,32 @@ class LowRankEnumeration:
             return altered, reaches
         return _restricted(altered, keep), reaches[keep]
 
-    def _gains(self, picked: np.ndarray) -> EntryGains:
+    def _root_gains(self, deadline: Deadline) -> EntryGains:
+        """The gains of every choice on the unaltered chain, each on its first entry only
+        (one factorisation per choice, once per enumeration, within
+        :data:`FIRST_ENTRY_SHARE` of the time ``deadline`` leaves; the choices left undone
+        count every entry)."""
+        with self._root_lock:
+            if self._root_first is None:
+                remaining = deadline.remaining()
+                end = None if remaining is None else FIRST_ENTRY_SHARE * remaining
+                began = time.perf_counter()
+
+                def stop() -> bool:
+                    late = end is not None and time.perf_counter() - began > end
+                    return late or deadline.expired()
+
+                self._root_first = self._gains(
+                    np.zeros(len(self.observations), dtype=np.int64),
+                    partial(first_entry_gains, stop=stop),
+                )
+            return self._root_first
+
+    def _gains(self, picked: np.ndarray, gains_of: GainsOf = entry_gains) -> EntryGains:
         """The first-entry gains of every choice on the chain taking option ``picked[i]``
         of each choice ``i`` (its closed classes as they are: value 0)."""
         chain = self.instance.chain
-        return entry_gains(
+        return gains_of(
             self._chain_of(picked),
             chain.target,
             chain.target_value,
