@@ -22,11 +22,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import SuperLU
 
 from misdirect.core import residual
 from misdirect.core.reachability import factorise, steps_bound
@@ -82,7 +83,7 @@ class _Solved(NamedTuple):
     values: np.ndarray  # per transient state, its value (rounded)
     value_error: float  # a proven bound on every value's error
     steps: float  # a proven bound on the expected steps before a run leaves them
-    lu: Any  # the factorisation of I - inner
+    lu: SuperLU  # the factorisation of I - inner
 
 
 def _classes(given: sp.csr_matrix, target: np.ndarray) -> _Classes:
