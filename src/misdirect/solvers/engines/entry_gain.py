@@ -16,6 +16,10 @@ Everything here is proven, as the values are (docs/exactness.md): ``V_b`` from b
 expected entries from above, from residuals bounded in exact arithmetic
 (:func:`misdirect.core.residual.residual`) and a proven bound on the expected steps. A base
 chain too ill-conditioned for doubles gets loose gains, never wrong ones.
+
+:func:`entry_gains` counts every entry (one solve of the base chain);
+:func:`first_entry_gains` counts each region's first entry only, which is tighter where runs
+circle back and costs one factorisation per region.
 """
 
 from __future__ import annotations
@@ -72,6 +76,8 @@ class _Classes(NamedTuple):
     component: np.ndarray  # per state
     open_class: np.ndarray  # per component: whether a run can leave it
     closed: np.ndarray  # per state: in a closed class (the targets too)
+    region: np.ndarray  # per state, its region (-1 for none and for the targets)
+    traps: np.ndarray  # (closed class of no value, region it meets) pairs, distinct
 
 
 class _Solved(NamedTuple):
@@ -86,7 +92,7 @@ class _Solved(NamedTuple):
     lu: SuperLU  # the factorisation of I - inner
 
 
-def _classes(given: sp.csr_matrix, target: np.ndarray) -> _Classes:
+def _classes(given: sp.csr_matrix, target: np.ndarray, region: np.ndarray) -> _Classes:
     matrix = sp.csr_matrix(sp.diags((~target).astype(np.float64)) @ given)  # targets end runs
     matrix.eliminate_zeros()
     _, component = connected_components(matrix, directed=True, connection="strong")
@@ -96,7 +102,10 @@ def _classes(given: sp.csr_matrix, target: np.ndarray) -> _Classes:
     open_class[component[edges.row[leaving]]] = True
     closed = ~open_class[component]  # the targets too: nothing leaves them
     closed[np.flatnonzero(target)] = True
-    return _Classes(matrix, component, open_class, closed)
+    region = np.where(target, -1, region)
+    met = (closed & ~target) & (region >= 0)
+    traps = np.unique(np.stack([component[met], region[met]], axis=1), axis=0)
+    return _Classes(matrix, component, open_class, closed, region, traps)
 
 
 def _solved(classes: _Classes, target: np.ndarray, target_value: np.ndarray) -> _Solved:
@@ -148,9 +157,9 @@ def _entry_gains(
     """:func:`entry_gains`, with the classes and the solve it built (None where it needed
     none)."""
     n = given.shape[0]
-    classes = _classes(given, target)
+    classes = _classes(given, target, region)
     component, open_class, closed = classes.component, classes.open_class, classes.closed
-    region = np.where(target, -1, region)
+    region = classes.region
     nothing = EntryGains(0.0, np.zeros(n_regions))
     if closed[initial]:  # the run never moves on: only its own class may change
         if target[initial]:
@@ -196,9 +205,8 @@ def _entry_gains(
         weights=flow.data[trapped_in],
         minlength=open_class.size,
     ).astype(np.float64)
-    met = (closed & ~target) & (region >= 0)
-    if met.any():
-        pairs = np.unique(np.stack([component[met], region[met]], axis=1), axis=0)
+    pairs = classes.traps
+    if pairs.size:
         np.add.at(gains, pairs[:, 1], absorbed[pairs[:, 0]] * top)
     # the sums above round by at most (terms + 2) u, relative: the largest row counts
     terms = int(np.diff(given.indptr).max(initial=0)) * n + 2
@@ -232,17 +240,15 @@ def first_entry_gains(
     base, classes, solved = _entry_gains(
         given, target, target_value, initial, region, n_regions, top
     )
-    if classes is None or solved is None or not np.isfinite(solved.value_error):
+    if classes is None or solved is None:
         return base  # nothing proven, or the run never moves: the first bound stands
-    component, closed = classes.component, classes.closed
-    region = np.where(target, -1, region)
+    component, closed, region = classes.component, classes.closed, classes.region
     transient, rows, inner = solved.transient, solved.rows, solved.inner
     # what a run gains at most on entering a transient state: M less its proven value
     worth = np.clip(top - (solved.values - solved.value_error), 0.0, top)
     # closed classes of no value that meet a region: per transient row, the mass it sends
     # into each (a run absorbed there enters the region for sure, worth M)
-    trapped = closed & ~target & (region >= 0)
-    pairs = np.unique(np.stack([component[trapped], region[trapped]], axis=1), axis=0)
+    pairs = classes.traps
     n_classes = classes.open_class.size
     meets = sp.csr_matrix(
         (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n_classes, n_regions)

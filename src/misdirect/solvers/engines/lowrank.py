@@ -974,8 +974,9 @@ class LowRankEnumeration:
             return self._root_first
 
     def _gains(self, picked: np.ndarray, gains_of: GainsOf = entry_gains) -> EntryGains:
-        """The first-entry gains of every choice on the chain taking option ``picked[i]``
-        of each choice ``i`` (its closed classes as they are: value 0)."""
+        """The gains (``gains_of``: by default counted on every entry) of every choice on the
+        chain taking option ``picked[i]`` of each choice ``i`` (its closed classes as they
+        are: value 0)."""
         chain = self.instance.chain
         return gains_of(
             self._chain_of(picked),
