@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from misdirect.core import reachability
+from misdirect.core import elimination, reachability
 from rational import gauss_jordan
 
 UNIT = Decimal("3e-18")
@@ -55,20 +55,6 @@ def _model_value(rows: list[dict[int, Decimal]]) -> Fraction:
     return gauss_jordan(a, [Fraction(rows[i][DECOY]) for i in range(CYCLE)])[0]
 
 
-def _jump_value(p: np.ndarray) -> Fraction:
-    """Pr(decoy) from state 0 of the jump chain of the doubles ``p``, exactly: each state
-    leaves by its other entries (its self-loop is what they leave)."""
-    q = [[Fraction(float(p[i, j])) for j in range(p.shape[1])] for i in range(CYCLE)]
-    a = [
-        [
-            sum((q[i][k] for k in range(p.shape[1]) if k != i), Fraction(0)) if i == j else -q[i][j]
-            for j in range(CYCLE)
-        ]
-        for i in range(CYCLE)
-    ]
-    return gauss_jordan(a, [q[i][DECOY] for i in range(CYCLE)])[0]
-
-
 def _chain() -> np.ndarray:
     p = np.zeros((CYCLE + 2, CYCLE + 2))
     for i, row in enumerate(_rows()):
@@ -98,7 +84,7 @@ def test_the_value_is_the_jump_chains_and_the_models_unproven(route, monkeypatch
     target[DECOY] = True
     found = reachability.reach_probability_bounded(sp.csr_matrix(p), target, 0)
     assert found.error == np.inf  # nothing is proven: never `optimal`
-    jump, model = _jump_value(p), _model_value(_rows())
+    jump, model = _exact_jump_values(p, CYCLE)[0], _model_value(_rows())
     assert found.value == pytest.approx(float(jump), rel=1e-13)
     # the jump chain of the rounded entries is a relative perturbation of the model's
     assert found.value == pytest.approx(float(model), rel=1e-13)
@@ -116,33 +102,84 @@ def test_the_jump_chain_in_doubles_agrees_with_the_exact_one(extended):
         sp.csr_matrix(p), target, 0, extended_jump=extended
     )
     assert found.error == np.inf
-    assert found.value == pytest.approx(float(_jump_value(p)), rel=1e-13)
+    assert found.value == pytest.approx(float(_exact_jump_values(p, CYCLE)[0]), rel=1e-13)
 
 
-def test_a_larger_jump_chain_in_doubles_keeps_its_digits():
-    rng = np.random.default_rng(7)
-    n = 24
-    p = np.zeros((n + 2, n + 2))
-    for i in range(n):
-        succ = rng.choice(n, size=4, replace=False)
-        p[i, succ] = rng.dirichlet(np.ones(4))
-        p[i, n] = float(rng.integers(1, 9)) * 1e-18  # to the decoy
-        p[i, n + 1] = float(rng.integers(1, 9)) * 1e-18  # to a goal
-    p[n, n] = p[n + 1, n + 1] = 1.0
-    target = np.zeros(n + 2, dtype=bool)
-    target[n] = True
-    q = [[Fraction(float(p[i, j])) for j in range(n + 2)] for i in range(n)]
+def _exact_jump_values(p: np.ndarray, n: int) -> list[Fraction]:
+    """Pr(decoy, state ``n``) from each of the first ``n`` states of the jump chain of the
+    doubles ``p``, exactly."""
+    q = [[Fraction(float(p[i, j])) for j in range(p.shape[1])] for i in range(n)]
     a = [
         [
-            sum((q[i][k] for k in range(n + 2) if k != i), Fraction(0)) if i == j else -q[i][j]
+            sum((q[i][k] for k in range(p.shape[1]) if k != i), Fraction(0)) if i == j else -q[i][j]
             for j in range(n)
         ]
         for i in range(n)
     ]
-    exact = float(gauss_jordan(a, [q[i][n] for i in range(n)])[0])
+    return gauss_jordan(a, [q[i][n] for i in range(n)])
+
+
+def _random_lingering_chain(n: int, seed: int, leak: float = 1e-18) -> np.ndarray:
+    """``n`` states moving among themselves, leaking to a decoy (state ``n``) and a goal with
+    a few ``leak`` each."""
+    rng = np.random.default_rng(seed)
+    p = np.zeros((n + 2, n + 2))
+    for i in range(n):
+        succ = rng.choice(n, size=4, replace=False)
+        p[i, succ] = rng.dirichlet(np.ones(4))
+        p[i, n] = float(rng.integers(1, 9)) * leak  # to the decoy
+        p[i, n + 1] = float(rng.integers(1, 9)) * leak  # to a goal
+    p[n, n] = p[n + 1, n + 1] = 1.0
+    return p
+
+
+@pytest.mark.parametrize("route", ["dense", "lu"])
+def test_a_larger_jump_chain_in_doubles_keeps_its_digits(route, monkeypatch):
+    """Both routes: the dense one eliminates the states as numbered, the LU one in the LU's
+    fill-reducing order."""
+    if route == "lu":
+        monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
+    n = 24
+    p = _random_lingering_chain(n, 7)
+    exact = float(_exact_jump_values(p, n)[0])
+    target = np.zeros(n + 2, dtype=bool)
+    target[n] = True
     for extended in (True, False):
         found = reachability.reach_probability_bounded(
             sp.csr_matrix(p), target, 0, extended_jump=extended
         )
         assert found.error == np.inf  # the premise: LU's answer cannot be proven here
         assert found.value == pytest.approx(exact, rel=1e-12)
+
+
+def test_any_order_of_elimination_gives_the_exact_value():
+    """Every state's value, eliminating in three orders, against the exact jump chain (on a
+    chain that leaves soon, so that the states' values differ)."""
+    n = 18
+    p = _random_lingering_chain(n, 11, leak=0.02)
+    exact = np.array([float(v) for v in _exact_jump_values(p, n)])
+    leak = (p[:n, n] + p[:n, n + 1], np.zeros(n))
+    for order in (None, np.arange(n)[::-1], np.random.default_rng(3).permutation(n)):
+        solver = elimination.Elimination(p[:n, :n], leak, order=order)
+        assert solver.proper
+        high, low = solver.solve((p[:n, n], np.zeros(n)))
+        np.testing.assert_allclose(high + low, exact, rtol=1e-14)
+
+
+def test_an_elimination_that_would_fill_too_much_gives_up(monkeypatch):
+    """Past the fill cap the value is not the jump chain's (None: the caller keeps LU's)."""
+    n = 24
+    p = _random_lingering_chain(n, 7)
+    exact = float(_exact_jump_values(p, n)[0])
+    q, leak = p[:n, :n], (p[:n, n] + p[:n, n + 1], np.zeros(n))
+    assert elimination.Elimination(q, leak).proper
+    monkeypatch.setattr(elimination, "MAX_FILL", 2 * np.count_nonzero(q) // 3)
+    cut = elimination.Elimination(q, leak)
+    assert not cut.complete and not cut.proper
+    with pytest.raises(ValueError):
+        cut.solve((p[:n, n], np.zeros(n)))
+    target = np.zeros(n + 2, dtype=bool)
+    target[n] = True
+    found = reachability.reach_probability_bounded(sp.csr_matrix(p), target, 0)
+    assert found.error == np.inf
+    assert found.value != pytest.approx(exact, rel=1e-12)  # LU's digits, not the jump chain's

@@ -12,7 +12,11 @@ right-hand side keeps its digits whatever the condition number (on a drone chain
 after 2.75·10^15 steps, LU gave 1.0 and elimination 0.9633149657054454; Storm's exact answer
 on the model's rational probabilities is 0.9633149657054453).
 
-The factors are dense (two ``m x m`` arrays): :data:`MAX_STATES` bounds the chains they serve.
+The factors are sparse, computed row by row (each row gathered into a dense work row, its
+pivots taken in increasing order from a bit set), so the work is the fill's, not ``m²``. Any
+order of elimination is valid for an absorbing chain; a fill-reducing one (the symmetric
+minimum-degree order of the LU the caller already has) roughly halves the work on the drone's
+chains. :data:`MAX_STATES` and :data:`MAX_FILL` bound what one elimination may cost.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ import scipy.sparse as sp
 
 from misdirect.core.jit import njit
 
-MAX_STATES = 3_000  # unknown states: the dense factors take 16 m² bytes (144 MB here)
+MAX_STATES = 20_000  # unknown states one elimination takes on
+MAX_FILL = 5_000_000  # entries of the factors (24 bytes each in double-double): then it gives up
 _SPLITTER = 134217729.0  # 2^27 + 1 (Dekker's split)
 
 
@@ -71,116 +76,225 @@ def _div(ah: float, al: float, bh: float, bl: float) -> tuple[float, float]:  # 
     return high, low
 
 
+_DE_BRUIJN = 0x03F79D71B4CB0A89  # a de Bruijn sequence: each bit's product has its own top 6 bits
+_DE_BRUIJN_INDEX = np.zeros(64, dtype=np.int64)  # ... which name the bit
+_DE_BRUIJN_INDEX[[((1 << b) * _DE_BRUIJN % 2**64) >> 58 for b in range(64)]] = np.arange(64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mark(bits: np.ndarray, j: int) -> None:  # pragma: no cover (compiled)
+    bits[j >> 6] |= np.uint64(1) << np.uint64(j & 63)
+
+
+@njit(cache=True, nogil=True)
+def _grown(a: np.ndarray, need: int) -> np.ndarray:  # pragma: no cover (compiled)
+    if need <= a.size:
+        return a
+    bigger = np.empty(max(need, 2 * a.size), dtype=a.dtype)
+    bigger[: a.size] = a
+    return bigger
+
+
 @njit(cache=True, nogil=True)
 def _factorise(
-    qh: np.ndarray, ql: np.ndarray, lh: np.ndarray, ll: np.ndarray
-) -> None:  # pragma: no cover (compiled)
-    """In place: the elimination of ``q = qh + ql`` (row ``k`` keeps ``q_kj`` for ``j > k``,
-    column ``k`` below it the multipliers ``q_ik / s_k``, the diagonal the pivots ``s_k``);
-    ``l = lh + ll``: each row's mass to the known states, updated as states go. Row ``k``'s
-    nonzero columns are listed once per pivot, so each row it updates costs its nonzeros,
-    not ``m`` (a chain's factors are mostly zeros)."""
-    m = qh.shape[0]
-    columns = np.empty(m, dtype=np.int64)
-    for k in range(m):
-        sh, sl = lh[k], ll[k]
-        count = 0
-        for j in range(k + 1, m):
-            if qh[k, j] != 0.0:
-                sh, sl = _add(sh, sl, qh[k, j], ql[k, j])
-                columns[count] = j
-                count += 1
-        qh[k, k], ql[k, k] = sh, sl
-        if sh == 0.0:
-            continue  # a closed class: its states never leave (the caller refuses it)
-        for i in range(k + 1, m):
-            if qh[i, k] == 0.0:
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    leak_h: np.ndarray,
+    leak_l: np.ndarray,
+    extended: bool,
+    max_fill: int,
+) -> tuple[np.ndarray, ...]:  # pragma: no cover (compiled)
+    """The elimination of ``Q`` (CSR, diagonal ignored), row by row.
+
+    Row ``i`` is gathered into a dense work row; its entries below the diagonal are taken in
+    increasing column order ``k`` (a bit set, which fill joins), each becomes the multiplier
+    ``q_ik / s_k`` and adds its multiple of row ``k``'s upper part (its self-loop dropped:
+    the jump chain) and of ``k``'s mass to the known states (``leak``, updated in place).
+    The pivot ``s_i`` is then that mass plus the row's upper part, summed in increasing
+    column order. Each entry receives the same operations in the same order as the dense
+    right-looking elimination, so the factors are the same to the bit. ``extended``: in
+    double-double (``*_l`` the low parts; in doubles they stay unused). Returns the lower
+    and upper factors as CSR arrays and the pivots, or empty arrays once the factors would
+    hold more than ``max_fill`` entries."""
+    m = indptr.size - 1
+    work_h, work_l = np.zeros(m), np.zeros(m)
+    seen = np.full(m, -1, dtype=np.int64)  # the row that last touched each column
+    # the row's columns below the diagonal still to take, one bit each: taken in increasing
+    # order by scanning the words forward (fill only ever lands after the column taken)
+    pending = np.zeros((m >> 6) + 1, dtype=np.uint64)
+    above = np.zeros_like(pending)  # the row's columns above the diagonal, one bit each
+    capacity = max(16, 4 * indices.size)
+    lower_ptr = np.zeros(m + 1, dtype=np.int64)
+    lower_idx = np.empty(capacity, dtype=np.int64)
+    lower_h = np.empty(capacity)
+    lower_l = np.empty(capacity if extended else 1)
+    upper_ptr = np.zeros(m + 1, dtype=np.int64)
+    upper_idx = np.empty(capacity, dtype=np.int64)
+    upper_h = np.empty(capacity)
+    upper_l = np.empty(capacity if extended else 1)
+    pivot_h, pivot_l = np.zeros(m), np.zeros(m)
+    for i in range(m):
+        word = m  # the first word with a pending column
+        n_upper = 0
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            if j == i or data[p] == 0.0:
                 continue
-            fh, fl = _div(qh[i, k], ql[i, k], sh, sl)
-            qh[i, k], ql[i, k] = fh, fl
-            if lh[k] != 0.0:
-                th, tl = _mul(fh, fl, lh[k], ll[k])
-                lh[i], ll[i] = _add(lh[i], ll[i], th, tl)
-            for c in range(count):
-                j = columns[c]
-                if j != i:
-                    th, tl = _mul(fh, fl, qh[k, j], ql[k, j])
-                    qh[i, j], ql[i, j] = _add(qh[i, j], ql[i, j], th, tl)
+            work_h[j], work_l[j] = data[p], 0.0
+            seen[j] = i
+            if j < i:
+                _mark(pending, j)
+                word = min(word, j >> 6)
+            else:
+                _mark(above, j)
+                n_upper += 1
+        sh, sl = leak_h[i], leak_l[i]
+        n_lower = lower_ptr[i]
+        last_word = i >> 6
+        while word <= last_word:
+            bits = pending[word]
+            if bits == 0:
+                word += 1
+                continue
+            lowest = bits & (~bits + np.uint64(1))
+            pending[word] = bits ^ lowest
+            k = (word << 6) + _DE_BRUIJN_INDEX[(lowest * np.uint64(_DE_BRUIJN)) >> np.uint64(58)]
+            if work_h[k] == 0.0:
+                continue
+            if pivot_h[k] != 0.0:  # zero: a closed class (the caller refuses it)
+                if extended:
+                    fh, fl = _div(work_h[k], work_l[k], pivot_h[k], pivot_l[k])
+                else:
+                    fh, fl = work_h[k] / pivot_h[k], 0.0
+                work_h[k], work_l[k] = fh, fl
+                if leak_h[k] != 0.0:
+                    if extended:
+                        th, tl = _mul(fh, fl, leak_h[k], leak_l[k])
+                        sh, sl = _add(sh, sl, th, tl)
+                    else:
+                        sh += fh * leak_h[k]
+                for c in range(upper_ptr[k], upper_ptr[k + 1]):
+                    j = upper_idx[c]
+                    if j == i:
+                        continue
+                    if seen[j] != i:  # fill
+                        seen[j] = i
+                        work_h[j], work_l[j] = 0.0, 0.0
+                        if j < i:
+                            _mark(pending, j)
+                        else:
+                            _mark(above, j)
+                            n_upper += 1
+                    if extended:
+                        th, tl = _mul(fh, fl, upper_h[c], upper_l[c])
+                        work_h[j], work_l[j] = _add(work_h[j], work_l[j], th, tl)
+                    else:
+                        work_h[j] += fh * upper_h[c]
+            if n_lower >= lower_idx.size:
+                lower_idx = _grown(lower_idx, n_lower + 1)
+                lower_h = _grown(lower_h, n_lower + 1)
+                if extended:
+                    lower_l = _grown(lower_l, n_lower + 1)
+            lower_idx[n_lower] = k
+            lower_h[n_lower] = work_h[k]
+            if extended:
+                lower_l[n_lower] = work_l[k]
+            n_lower += 1
+        lower_ptr[i + 1] = n_lower
+        leak_h[i], leak_l[i] = sh, sl  # final: the rows below read it
+        n_up = upper_ptr[i]
+        if n_up + n_upper > upper_idx.size:
+            upper_idx = _grown(upper_idx, n_up + n_upper)
+            upper_h = _grown(upper_h, n_up + n_upper)
+            if extended:
+                upper_l = _grown(upper_l, n_up + n_upper)
+        word = (i + 1) >> 6
+        while n_upper > 0:  # in increasing column order
+            bits = above[word]
+            if bits == 0:
+                word += 1
+                continue
+            lowest = bits & (~bits + np.uint64(1))
+            above[word] = bits ^ lowest
+            n_upper -= 1
+            j = (word << 6) + _DE_BRUIJN_INDEX[(lowest * np.uint64(_DE_BRUIJN)) >> np.uint64(58)]
+            if work_h[j] == 0.0:
+                continue
+            if extended:
+                sh, sl = _add(sh, sl, work_h[j], work_l[j])
+                upper_l[n_up] = work_l[j]
+            else:
+                sh += work_h[j]
+            upper_idx[n_up] = j
+            upper_h[n_up] = work_h[j]
+            n_up += 1
+        upper_ptr[i + 1] = n_up
+        pivot_h[i], pivot_l[i] = sh, sl
+        if n_lower + n_up > max_fill:
+            none, nothing = np.empty(0, dtype=np.int64), np.empty(0)
+            return none, none, nothing, nothing, none, none, nothing, nothing, nothing, nothing
+    return (
+        lower_ptr,
+        lower_idx,
+        lower_h,
+        lower_l,
+        upper_ptr,
+        upper_idx,
+        upper_h,
+        upper_l,
+        pivot_h,
+        pivot_l,
+    )
 
 
 @njit(cache=True, nogil=True)
 def _solve(
-    qh: np.ndarray, ql: np.ndarray, bh: np.ndarray, bl: np.ndarray
+    lower_ptr: np.ndarray,
+    lower_idx: np.ndarray,
+    lower_h: np.ndarray,
+    lower_l: np.ndarray,
+    upper_ptr: np.ndarray,
+    upper_idx: np.ndarray,
+    upper_h: np.ndarray,
+    upper_l: np.ndarray,
+    pivot_h: np.ndarray,
+    pivot_l: np.ndarray,
+    bh: np.ndarray,
+    bl: np.ndarray,
+    extended: bool,
 ) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover (compiled)
-    """``(I − Q)⁻¹ b`` for a nonnegative ``b = bh + bl``, from :func:`_factorise`."""
-    m = qh.shape[0]
+    """``(I − Q)⁻¹ b`` for a nonnegative ``b = bh + bl``, from :func:`_factorise`'s factors:
+    forward through the multipliers, then back through the upper parts and the pivots."""
+    m = pivot_h.size
     yh, yl = bh.copy(), bl.copy()
-    for k in range(m):
-        if yh[k] == 0.0:
-            continue
-        for i in range(k + 1, m):
-            if qh[i, k] != 0.0:
-                th, tl = _mul(qh[i, k], ql[i, k], yh[k], yl[k])
-                yh[i], yl[i] = _add(yh[i], yl[i], th, tl)
+    for i in range(m):
+        ah, al = yh[i], yl[i]
+        for c in range(lower_ptr[i], lower_ptr[i + 1]):
+            k = lower_idx[c]
+            if yh[k] != 0.0:
+                if extended:
+                    th, tl = _mul(lower_h[c], lower_l[c], yh[k], yl[k])
+                    ah, al = _add(ah, al, th, tl)
+                else:
+                    ah += lower_h[c] * yh[k]
+        yh[i], yl[i] = ah, al
     xh, xl = np.zeros(m), np.zeros(m)
     for k in range(m - 1, -1, -1):
         ah, al = yh[k], yl[k]
-        for j in range(k + 1, m):
-            if qh[k, j] != 0.0 and xh[j] != 0.0:
-                th, tl = _mul(qh[k, j], ql[k, j], xh[j], xl[j])
-                ah, al = _add(ah, al, th, tl)
-        xh[k], xl[k] = _div(ah, al, qh[k, k], ql[k, k])
+        for c in range(upper_ptr[k], upper_ptr[k + 1]):
+            j = upper_idx[c]
+            if xh[j] != 0.0:
+                if extended:
+                    th, tl = _mul(upper_h[c], upper_l[c], xh[j], xl[j])
+                    ah, al = _add(ah, al, th, tl)
+                else:
+                    ah += upper_h[c] * xh[j]
+        if extended:
+            xh[k], xl[k] = _div(ah, al, pivot_h[k], pivot_l[k])
+        else:
+            xh[k] = ah / pivot_h[k]
     return xh, xl
-
-
-@njit(cache=True, nogil=True)
-def _factorise_double(q: np.ndarray, leak: np.ndarray) -> None:  # pragma: no cover (compiled)
-    """:func:`_factorise` in doubles: the same elimination, every operation one rounding."""
-    m = q.shape[0]
-    columns = np.empty(m, dtype=np.int64)
-    for k in range(m):
-        s = leak[k]
-        count = 0
-        for j in range(k + 1, m):
-            if q[k, j] != 0.0:
-                s += q[k, j]
-                columns[count] = j
-                count += 1
-        q[k, k] = s
-        if s == 0.0:
-            continue
-        for i in range(k + 1, m):
-            if q[i, k] == 0.0:
-                continue
-            f = q[i, k] / s
-            q[i, k] = f
-            if leak[k] != 0.0:
-                leak[i] += f * leak[k]
-            for c in range(count):
-                j = columns[c]
-                if j != i:
-                    q[i, j] += f * q[k, j]
-
-
-@njit(cache=True, nogil=True)
-def _solve_double(q: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover (compiled)
-    """:func:`_solve` in doubles, from :func:`_factorise_double`."""
-    m = q.shape[0]
-    y = b.copy()
-    for k in range(m):
-        if y[k] == 0.0:
-            continue
-        for i in range(k + 1, m):
-            if q[i, k] != 0.0:
-                y[i] += q[i, k] * y[k]
-    x = np.zeros(m)
-    for k in range(m - 1, -1, -1):
-        a = y[k]
-        for j in range(k + 1, m):
-            if q[k, j] != 0.0 and x[j] != 0.0:
-                a += q[k, j] * x[j]
-        x[k] = a / q[k, k]
-    return x
 
 
 class Elimination:
@@ -197,28 +311,53 @@ class Elimination:
         leak: tuple[np.ndarray, np.ndarray],
         *,
         extended: bool = True,
+        order: np.ndarray | None = None,
     ):
         """``q``: transitions among the unknown states (``m x m``, nonnegative, as loaded);
         ``leak``: per state, its mass to the known states as a double-double, summed from
-        those entries (not ``1 − Σ q``)."""
-        dense = np.array(q, dtype=np.float64) if isinstance(q, np.ndarray) else q.toarray()
-        self.high = np.ascontiguousarray(dense, dtype=np.float64)
+        those entries (not ``1 − Σ q``); ``order``: the states in the order to eliminate
+        them (default: as numbered). ``complete`` is False, and nothing can be solved, when
+        the factors would hold more than :data:`MAX_FILL` entries."""
+        rows = sp.csr_matrix(q, dtype=np.float64)
+        leak_h = np.array(leak[0], dtype=np.float64)
+        leak_l = np.array(leak[1], dtype=np.float64)
+        if not extended:  # one double each
+            leak_h, leak_l = leak_h + leak_l, np.zeros_like(leak_h)
+        if order is not None:
+            order = np.asarray(order, dtype=np.int64)
+            rows = rows[order][:, order].tocsr()
+            leak_h, leak_l = leak_h[order], leak_l[order]
+        self.order = order
         self.extended = extended
-        if extended:
-            self.low = np.zeros_like(self.high)
-            _factorise(self.high, self.low, leak[0].astype(np.float64), leak[1].astype(np.float64))
-        else:
-            _factorise_double(self.high, (leak[0] + leak[1]).astype(np.float64))
-        self.proper = bool((np.diag(self.high) > 0).all())
+        self._factors = _factorise(
+            rows.indptr.astype(np.int64),
+            rows.indices.astype(np.int64),
+            rows.data,
+            leak_h,
+            leak_l,
+            extended,
+            MAX_FILL,
+        )
+        pivots = self._factors[-2]
+        self.complete = pivots.size == rows.shape[0]
+        self.proper = self.complete and bool((pivots > 0).all())
 
     def solve(self, b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """``(I − Q)⁻¹ b`` for a nonnegative double-double ``b``, as a double-double (its low
         part zero in doubles)."""
+        if not self.proper:
+            raise ValueError("the chain has a closed class or its factors were cut short")
+        high, low = np.asarray(b[0], dtype=np.float64), np.asarray(b[1], dtype=np.float64)
         if not self.extended:
-            x = _solve_double(self.high, (b[0] + b[1]).astype(np.float64))
-            return x, np.zeros_like(x)
-        high, low = _solve(self.high, self.low, b[0].astype(np.float64), b[1].astype(np.float64))
-        return high, low
+            high, low = high + low, np.zeros_like(high)
+        if self.order is not None:
+            high, low = high[self.order], low[self.order]
+        xh, xl = _solve(*self._factors, high, low, self.extended)
+        if self.order is None:
+            return xh, xl
+        out_h, out_l = np.empty_like(xh), np.empty_like(xl)
+        out_h[self.order], out_l[self.order] = xh, xl
+        return out_h, out_l
 
 
 @njit(cache=True, nogil=True)
