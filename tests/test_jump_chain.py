@@ -126,9 +126,10 @@ def _random_lingering_chain(n: int, seed: int, leak: float = 1e-18) -> np.ndarra
     p = np.zeros((n + 2, n + 2))
     for i in range(n):
         succ = rng.choice(n, size=4, replace=False)
-        p[i, succ] = rng.dirichlet(np.ones(4))
         p[i, n] = float(rng.integers(1, 9)) * leak  # to the decoy
         p[i, n + 1] = float(rng.integers(1, 9)) * leak  # to a goal
+        # what the leaks leave (all of it, in doubles, when they are below the rounding)
+        p[i, succ] = rng.dirichlet(np.ones(4)) * (1 - p[i, n] - p[i, n + 1])
     p[n, n] = p[n + 1, n + 1] = 1.0
     return p
 
@@ -183,3 +184,41 @@ def test_an_elimination_that_would_fill_too_much_gives_up(monkeypatch):
     found = reachability.reach_probability_bounded(sp.csr_matrix(p), target, 0)
     assert found.error == np.inf
     assert found.value != pytest.approx(exact, rel=1e-12)  # LU's digits, not the jump chain's
+
+
+def test_given_an_order_a_chain_too_long_for_a_proof_gets_no_lu(monkeypatch):
+    """Runs that last about 10^18 steps: with an elimination order, the jump chain's value comes
+    straight from the elimination (an LU is never tried); without one, after the LU failed."""
+    monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
+    n = 24
+    p = _random_lingering_chain(n, 5, leak=1e-19)
+    exact = float(_exact_jump_values(p, n)[0])
+    target = np.zeros(n + 2, dtype=bool)
+    target[n] = True
+    chain = sp.csr_matrix(p)
+    rank = elimination.fill_reducing_rank(chain)
+    assert sorted(rank.tolist()) == list(range(n + 2))
+    without = reachability.reach_probability_bounded(chain, target, 0)
+
+    def no_lu(a: sp.spmatrix) -> None:
+        raise AssertionError("an LU was tried")
+
+    monkeypatch.setattr(reachability, "factorise", no_lu)
+    found = reachability.reach_probability_bounded(chain, target, 0, elimination_rank=rank)
+    assert found.error == without.error == np.inf
+    assert found.value == pytest.approx(exact, rel=1e-13)
+    assert without.value == pytest.approx(exact, rel=1e-13)
+
+
+def test_given_an_order_a_chain_that_can_be_proven_still_is(monkeypatch):
+    monkeypatch.setattr(reachability, "DENSE_MAX_STATES", 0)
+    n = 24
+    for leak in (0.02, 1e-14):  # the second lasts about 10^13 steps: proven after refinement
+        p = _random_lingering_chain(n, 5, leak=leak)
+        target = np.zeros(n + 2, dtype=bool)
+        target[n] = True
+        chain = sp.csr_matrix(p)
+        rank = elimination.fill_reducing_rank(chain)
+        found = reachability.reach_probability_bounded(chain, target, 0, elimination_rank=rank)
+        assert found == reachability.reach_probability_bounded(chain, target, 0)
+        assert np.isfinite(found.error)

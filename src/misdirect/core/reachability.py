@@ -74,6 +74,11 @@ UNIT_ROUNDOFF = residual.UNIT_ROUNDOFF
 # A value's proven error must be this small relative to it (core.tolerance) ...
 EXACT_TOL = tolerance.EXACT
 EXACT_ROUNDS = 8  # ... after at most this many rounds of refinement in extended precision
+# From a state whose runs last this many steps, a correction solved with double-precision
+# factors is off by more than itself, so refinement cannot converge and no proof comes of an
+# LU (on the drone's chains none was proven past 10^14 steps): given an elimination order, the
+# jump chain's value is then returned, unproven, without one.
+NO_PROOF_STEPS = 1e17
 
 
 def factorise(a: sp.spmatrix) -> SuperLU:
@@ -569,6 +574,7 @@ def reach_probability_bounded(
     value: np.ndarray | None = None,
     *,
     extended_jump: bool = True,
+    elimination_rank: np.ndarray | None = None,
 ) -> Bounded:
     """:func:`reach_probability` and a proven bound on its error, on the chain as given.
 
@@ -583,6 +589,10 @@ def reach_probability_bounded(
     Where nothing can be proven, the jump chain's value is computed in double-double
     (``extended_jump``) or, for a search that only ranks alterations by it, in doubles: the
     same elimination without subtraction, several times faster (:func:`_jump_chain_value`).
+    With ``elimination_rank`` (each state's place in a fill-reducing order, from
+    :func:`~misdirect.core.elimination.fill_reducing_rank`, for a caller that expects such
+    chains), the jump chain is eliminated first, and where its runs last at least
+    :data:`NO_PROOF_STEPS` steps its value is returned at once, unproven: no LU is tried.
     """
     scale, scaled = _scores(target, value)
     if scale == 0.0:
@@ -603,7 +613,9 @@ def reach_probability_bounded(
     k = int(np.searchsorted(unknown, initial))
     if k < unknown.size and unknown[k] == initial:
         labels = None if blocks is None else blocks[unknown]
-        found = _unknown_value(matrix, dense, unknown, known, k, labels, extended_jump)
+        found = _unknown_value(
+            matrix, dense, unknown, known, k, labels, extended_jump, elimination_rank
+        )
     else:
         found = Bounded(float(known[initial]), 0.0)
     result = scale * min(max(found.value, 0.0), 1.0)
@@ -630,6 +642,7 @@ def _unknown_value(
     k: int,
     labels: np.ndarray | None,
     extended_jump: bool = True,
+    elimination_rank: np.ndarray | None = None,
 ) -> Bounded:
     """Value of unknown state ``unknown[k]``: ``x = Q x + R known`` on the unknown states.
 
@@ -656,6 +669,13 @@ def _unknown_value(
         )
     rows = matrix[unknown]
     a = rows[:, unknown]
+    if elimination_rank is not None and rows.data.min(initial=0.0) >= 0:
+        ranked = np.argsort(elimination_rank[unknown], kind="stable")
+        lingering = _jump_chain_value(
+            a, rows, unknown, known, k, extended_jump, ranked, min_steps=NO_PROOF_STEPS
+        )
+        if lingering is not None:
+            return Bounded(lingering, np.inf)
     rhs = np.ones((m, 2), order="F")  # SuperLU's layout: no copy
     rhs[:, 0] = rows @ known
     solved: np.ndarray | None = None
@@ -675,7 +695,7 @@ def _unknown_value(
                 error = certified.functional_error() + (m + longest) * UNIT_ROUNDOFF
                 if tolerance.exact_enough(error, value):  # relative: a 1e-10 value too
                     return Bounded(value, error)
-    order = None
+    order: np.ndarray | None = None
     if solved is None or solve is None:
         lu = factorise(a)
         solved = lu.solve(rhs)
@@ -766,6 +786,8 @@ def _jump_chain_value(
     k: int,
     extended: bool = True,
     order: np.ndarray | None = None,
+    *,
+    min_steps: float = 0.0,
 ) -> float | None:
     """``x[k]`` where nothing can be proven (a chain absorbed after more than about 10^14
     steps: LU's answer may be off in its first digit), by elimination without subtraction
@@ -777,7 +799,9 @@ def _jump_chain_value(
     the model whose probabilities the doubles round (on a drone, Storm's exact answer to all
     16 digits where LU said 1.0). Not proven: the caller keeps the error bound infinite. None
     where the chain is too large for the elimination or has a closed class. ``order``: the
-    states in the order to eliminate them (a fill-reducing one saves work). In doubles
+    states in the order to eliminate them (a fill-reducing one saves work); ``min_steps``:
+    None also where the jump chain's runs from ``unknown[k]`` take fewer steps on average
+    (its expected time, from the same factors, without cancellation either). In doubles
     (``extended`` False) the same elimination rounds once per operation instead of about
     10^-32: it agrees to a few units of roundoff and runs several times faster."""
     m = unknown.size
@@ -790,6 +814,10 @@ def _jump_chain_value(
     solver = elimination.Elimination(q, leak, extended=extended, order=order)
     if not solver.proper:
         return None
+    if min_steps > 0:
+        steps, steps_low = solver.solve((np.ones(m), np.zeros(m)))
+        if not steps[k] + steps_low[k] >= min_steps:
+            return None
     high, low = solver.solve(elimination.row_products(csr, known * outside))
     value = float(high[k] + low[k])
     return value if np.isfinite(value) else None
