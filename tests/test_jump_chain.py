@@ -167,14 +167,16 @@ def test_any_order_of_elimination_gives_the_exact_value():
         np.testing.assert_allclose(high + low, exact, rtol=1e-14)
 
 
-def test_an_elimination_that_would_fill_too_much_gives_up(monkeypatch):
-    """Past the fill cap the value is not the jump chain's (None: the caller keeps LU's)."""
+@pytest.mark.parametrize("cap", ["MAX_FILL", "MAX_UPDATES"])
+def test_an_elimination_that_would_cost_too_much_gives_up(cap, monkeypatch):
+    """Past the cap on fill, or on work, the value is not the jump chain's (the caller keeps
+    LU's)."""
     n = 24
     p = _random_lingering_chain(n, 7)
     exact = float(_exact_jump_values(p, n)[0])
     q, leak = p[:n, :n], (p[:n, n] + p[:n, n + 1], np.zeros(n))
     assert elimination.Elimination(q, leak).proper
-    monkeypatch.setattr(elimination, "MAX_FILL", 2 * np.count_nonzero(q) // 3)
+    monkeypatch.setattr(elimination, cap, 2 * np.count_nonzero(q) // 3)
     cut = elimination.Elimination(q, leak)
     assert not cut.complete and not cut.proper
     with pytest.raises(ValueError):

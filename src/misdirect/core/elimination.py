@@ -16,7 +16,8 @@ The factors are sparse, computed row by row (each row gathered into a dense work
 pivots taken in increasing order from a bit set), so the work is the fill's, not ``m²``. Any
 order of elimination is valid for an absorbing chain; a fill-reducing one (the symmetric
 minimum-degree order of the LU the caller already has) roughly halves the work on the drone's
-chains. :data:`MAX_STATES` and :data:`MAX_FILL` bound what one elimination may cost.
+chains. :data:`MAX_STATES`, :data:`MAX_FILL` and :data:`MAX_UPDATES` bound what one
+elimination may cost.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from misdirect.core.jit import njit
 
 MAX_STATES = 20_000  # unknown states one elimination takes on
 MAX_FILL = 5_000_000  # entries of the factors (24 bytes each in double-double): then it gives up
+MAX_UPDATES = 100_000_000  # ... and after this many updates of an entry (about a second)
 _SPLITTER = 134217729.0  # 2^27 + 1 (Dekker's split)
 
 
@@ -105,6 +107,7 @@ def _factorise(
     leak_l: np.ndarray,
     extended: bool,
     max_fill: int,
+    max_updates: int,
 ) -> tuple[np.ndarray, ...]:  # pragma: no cover (compiled)
     """The elimination of ``Q`` (CSR, diagonal ignored), row by row.
 
@@ -117,7 +120,7 @@ def _factorise(
     right-looking elimination, so the factors are the same to the bit. ``extended``: in
     double-double (``*_l`` the low parts; in doubles they stay unused). Returns the lower
     and upper factors as CSR arrays and the pivots, or empty arrays once the factors would
-    hold more than ``max_fill`` entries."""
+    hold more than ``max_fill`` entries or take more than ``max_updates`` updates."""
     m = indptr.size - 1
     work_h, work_l = np.zeros(m), np.zeros(m)
     seen = np.full(m, -1, dtype=np.int64)  # the row that last touched each column
@@ -135,6 +138,7 @@ def _factorise(
     upper_h = np.empty(capacity)
     upper_l = np.empty(capacity if extended else 1)
     pivot_h, pivot_l = np.zeros(m), np.zeros(m)
+    updates = 0
     for i in range(m):
         word = m  # the first word with a pending column
         n_upper = 0
@@ -175,6 +179,7 @@ def _factorise(
                         sh, sl = _add(sh, sl, th, tl)
                     else:
                         sh += fh * leak_h[k]
+                updates += upper_ptr[k + 1] - upper_ptr[k]
                 for c in range(upper_ptr[k], upper_ptr[k + 1]):
                     j = upper_idx[c]
                     if j == i:
@@ -232,7 +237,7 @@ def _factorise(
             n_up += 1
         upper_ptr[i + 1] = n_up
         pivot_h[i], pivot_l[i] = sh, sl
-        if n_lower + n_up > max_fill:
+        if n_lower + n_up > max_fill or updates > max_updates:
             none, nothing = np.empty(0, dtype=np.int64), np.empty(0)
             return none, none, nothing, nothing, none, none, nothing, nothing, nothing, nothing
     return (
@@ -318,7 +323,8 @@ class Elimination:
         ``leak``: per state, its mass to the known states as a double-double, summed from
         those entries (not ``1 − Σ q``); ``order``: the states in the order to eliminate
         them (default: as numbered). ``complete`` is False, and nothing can be solved, when
-        the factors would hold more than :data:`MAX_FILL` entries."""
+        the factors would hold more than :data:`MAX_FILL` entries or take more than
+        :data:`MAX_UPDATES` updates."""
         rows = sp.csr_matrix(q, dtype=np.float64)
         leak_h = np.array(leak[0], dtype=np.float64)
         leak_l = np.array(leak[1], dtype=np.float64)
@@ -338,6 +344,7 @@ class Elimination:
             leak_l,
             extended,
             MAX_FILL,
+            MAX_UPDATES,
         )
         pivots = self._factors[-2]
         self.complete = pivots.size == rows.shape[0]
