@@ -216,7 +216,9 @@ def _factorise(
             if extended:
                 upper_l = _grown(upper_l, n_up + n_upper)
         word = (i + 1) >> 6
-        while n_upper > 0:  # in increasing column order
+        # in increasing column order; the same scan as the pivots' above, written out again:
+        # as one helper returning a pair it compiles to a slower loop
+        while n_upper > 0:
             bits = above[word]
             if bits == 0:
                 word += 1
