@@ -76,8 +76,8 @@ EXACT_TOL = tolerance.EXACT
 EXACT_ROUNDS = 8  # ... after at most this many rounds of refinement in extended precision
 # From a state whose runs last this many steps, a correction solved with double-precision
 # factors is off by more than itself, so refinement cannot converge and no proof comes of an
-# LU (on the drone's chains none was proven past 10^14 steps): given an elimination order, the
-# jump chain's value is then returned, unproven, without one.
+# LU (docs/benchmarks.md counts where proofs stop on the drone's chains): given an elimination
+# order, the jump chain's value is then returned, unproven, without one.
 NO_PROOF_STEPS = 1e17
 
 
@@ -707,7 +707,7 @@ def _unknown_value(
 def _elimination_order(lu: SuperLU) -> np.ndarray | None:
     """The states in the order the LU eliminated them, where it kept to one symmetric
     fill-reducing order (:func:`factorise`'s first choice): elimination without subtraction
-    then fills about as little (half the work of the states' own order on the drone)."""
+    then fills about as little, far less than in the states' own order (docs/benchmarks.md)."""
     if not np.array_equal(lu.perm_r, lu.perm_c):
         return None
     return np.argsort(lu.perm_c)
