@@ -256,6 +256,32 @@ def _factorise(
     )
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _add_row_product(
+    ptr: np.ndarray,
+    idx: np.ndarray,
+    vh: np.ndarray,
+    vl: np.ndarray,
+    row: int,
+    xh: np.ndarray,
+    xl: np.ndarray,
+    ah: float,
+    al: float,
+    extended: bool,
+) -> tuple[float, float]:  # pragma: no cover (compiled)
+    """``a + Σ v_c x_j`` over the entries ``c`` of row ``row`` of a CSR factor (``j`` their
+    columns; zeros of ``x`` skipped), in double-double or, without ``extended``, doubles."""
+    for c in range(ptr[row], ptr[row + 1]):
+        j = idx[c]
+        if xh[j] != 0.0:
+            if extended:
+                th, tl = _mul(vh[c], vl[c], xh[j], xl[j])
+                ah, al = _add(ah, al, th, tl)
+            else:
+                ah += vh[c] * xh[j]
+    return ah, al
+
+
 @njit(cache=True, nogil=True)
 def _solve(
     lower_ptr: np.ndarray,
@@ -277,27 +303,14 @@ def _solve(
     m = pivot_h.size
     yh, yl = bh.copy(), bl.copy()
     for i in range(m):
-        ah, al = yh[i], yl[i]
-        for c in range(lower_ptr[i], lower_ptr[i + 1]):
-            k = lower_idx[c]
-            if yh[k] != 0.0:
-                if extended:
-                    th, tl = _mul(lower_h[c], lower_l[c], yh[k], yl[k])
-                    ah, al = _add(ah, al, th, tl)
-                else:
-                    ah += lower_h[c] * yh[k]
-        yh[i], yl[i] = ah, al
+        yh[i], yl[i] = _add_row_product(
+            lower_ptr, lower_idx, lower_h, lower_l, i, yh, yl, yh[i], yl[i], extended
+        )
     xh, xl = np.zeros(m), np.zeros(m)
     for k in range(m - 1, -1, -1):
-        ah, al = yh[k], yl[k]
-        for c in range(upper_ptr[k], upper_ptr[k + 1]):
-            j = upper_idx[c]
-            if xh[j] != 0.0:
-                if extended:
-                    th, tl = _mul(upper_h[c], upper_l[c], xh[j], xl[j])
-                    ah, al = _add(ah, al, th, tl)
-                else:
-                    ah += upper_h[c] * xh[j]
+        ah, al = _add_row_product(
+            upper_ptr, upper_idx, upper_h, upper_l, k, xh, xl, yh[k], yl[k], extended
+        )
         if extended:
             xh[k], xl[k] = _div(ah, al, pivot_h[k], pivot_l[k])
         else:
