@@ -669,7 +669,7 @@ def _unknown_value(
         )
     rows = matrix[unknown]
     a = rows[:, unknown]
-    if elimination_rank is not None and rows.data.min(initial=0.0) >= 0:
+    if elimination_rank is not None:
         ranked = np.argsort(elimination_rank[unknown], kind="stable")
         lingering = _jump_chain_value(
             a, rows, unknown, known, k, extended_jump, ranked, min_steps=NO_PROOF_STEPS
@@ -748,9 +748,7 @@ def _prove_forward(
     # for a dot product of the row's length, in any order, plus one); Q's rows are shorter
     steps = np.inf if lowest < 0 else _time_bound_at(q, t, gamma, k)
     if not np.isfinite(steps):
-        jump = None
-        if lowest >= 0:
-            jump = _jump_chain_value(q, rows, unknown, known, k, extended_jump, order)
+        jump = _jump_chain_value(q, rows, unknown, known, k, extended_jump, order)
         return Bounded(float(x[k]) if jump is None else jump, np.inf)
     z = known.copy()
     z[unknown] = x
@@ -798,16 +796,19 @@ def _jump_chain_value(
     moves by a few units of roundoff per state when its entries do, so this is the value of
     the model whose probabilities the doubles round (on a drone, Storm's exact answer to all
     16 digits where LU said 1.0). Not proven: the caller keeps the error bound infinite. None
-    where the chain is too large for the elimination or has a closed class. ``order``: the
-    states in the order to eliminate them (a fill-reducing one saves work); ``min_steps``:
-    None also where the jump chain's runs from ``unknown[k]`` take fewer steps on average
-    (its expected time, from the same factors, without cancellation either). In doubles
+    where the chain is too large for the elimination, has a closed class or a negative
+    entry. ``order``: the states in the order to eliminate them (a fill-reducing one saves
+    work); ``min_steps``: None also where the jump chain's runs from ``unknown[k]`` take
+    fewer steps on average (its expected time, from the same factors, without cancellation
+    either). In doubles
     (``extended`` False) the same elimination rounds once per operation instead of about
     10^-32: it agrees to a few units of roundoff and runs several times faster."""
     m = unknown.size
     if not 0 < m <= elimination.MAX_STATES:
         return None
     csr = sp.csr_matrix(rows)
+    if csr.data.min(initial=0.0) < 0:  # not a chain: no jump chain either
+        return None
     outside = np.ones(csr.shape[1])
     outside[unknown] = 0.0
     leak = elimination.row_products(csr, outside)
