@@ -23,13 +23,15 @@ docs: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[docs]'
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
-# NB: overwrites the committed results in bench/results/ (compare with git diff)
+# results go to $(BENCH_OUT), results/bench by default (ignored by git); the committed ones
+# in bench/results are refreshed with `make bench BENCH_OUT=bench/results` (then git diff)
+BENCH_OUT ?= results/bench
 bench: $(STAMP)
-	$(BIN)/python bench/speed.py --out bench/results
-	$(BIN)/python bench/real_chains.py --out bench/results
-	$(BIN)/python bench/milp_scaling.py --out bench/results
-	$(BIN)/python bench/hard_instances.py --out bench/results
-	$(BIN)/python bench/defence.py --out bench/results
+	$(BIN)/python bench/speed.py --out $(BENCH_OUT)
+	$(BIN)/python bench/real_chains.py --out $(BENCH_OUT)
+	$(BIN)/python bench/milp_scaling.py --out $(BENCH_OUT)
+	$(BIN)/python bench/hard_instances.py --out $(BENCH_OUT)
+	$(BIN)/python bench/defence.py --out $(BENCH_OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

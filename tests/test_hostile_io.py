@@ -383,6 +383,41 @@ def test_knapsack_sums_that_overflow_are_refused(tmp_path, weights, values, opti
     assert not output.exists()
 
 
+@pytest.mark.parametrize("command", [["solve"], ["audit"], ["harden", "--protect-budget", "1"]])
+def test_costs_whose_complete_alteration_overflows_are_refused(tmp_path, command):
+    """o1 and o2 alterable at 1e308 each: a complete alteration costs 2e308, past the largest
+    float (an OverflowError inside every command before)."""
+    document = _tiny()
+    document["deception"]["cost"] = {"default": 1.0e308, "forbidden": [["o2", "o0"]]}
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(document))
+    result = runner.invoke(app, [command[0], str(path), *command[1:]])
+    one_line_error(result, 2, str(path), "deception.cost", "largest number")
+    with pytest.raises(ProblemError, match="largest number"):
+        misdirect.problem_from_dict(document)
+    # one sensor alterable at 1e308 sums to 1e308: a valid model
+    document["deception"]["cost"]["protected"] = ["g", "o1"]
+    assert misdirect.problem_from_dict(document).cost.default == 1e308
+
+
+def test_a_problem_built_in_code_with_overflowing_costs_is_refused_by_solve():
+    import dataclasses
+
+    from misdirect.core.alterations import max_alteration_cost
+    from misdirect.core.model import CostModel
+
+    problem = misdirect.load_problem(TINY)
+    huge = CostModel(
+        problem.pomdp.n_observations, default=1.0e308, protected=problem.cost.protected
+    )
+    built = dataclasses.replace(problem, cost=huge)
+    with pytest.raises(ProblemError, match="largest number") as raised:
+        max_alteration_cost(built)
+    assert raised.value.field == "deception.cost"
+    with pytest.raises(ProblemError, match="largest number"):
+        misdirect.solve(built)
+
+
 def test_mip_gap_must_be_finite():
     result = runner.invoke(app, ["solve", str(TINY), "--method", "milp", "--mip-gap", "1e999"])
     one_line_error(result, 2, "--mip-gap", "finite")

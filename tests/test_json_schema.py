@@ -255,6 +255,30 @@ def test_library_to_dict_follows_the_result_schema():
         assert document["value"] == ours["value"] and document["alteration"] == ours["alteration"]
 
 
+def test_defence_results_read_by_the_json_names():
+    """HardenResult, its curve points and AuditResult also answer to the JSON's names
+    (`value`, `alteration`, ...): read-only aliases of the old fields, equal to to_dict()'s."""
+    problem = paper_grid(5)
+    hardened = misdirect.harden(problem, protect_budget=2, budget=2)
+    document = hardened.to_dict()
+    aliases = {
+        "value": "value_after",
+        "alteration": "best_reply",
+        "upper_bound": "value_after_upper",
+        "value_unprotected": "value_before",
+    }
+    for alias, old in aliases.items():
+        assert getattr(hardened, alias) == getattr(hardened, old) == document[alias], alias
+    assert hardened.value < hardened.value_unprotected
+    for point, written in zip(hardened.curve, document["curve"], strict=True):
+        assert point.value == point.probability == written["value"]
+        assert point.alteration == point.attack == written["alteration"]
+    with pytest.raises(AttributeError):  # read-only
+        hardened.value = 0.0  # type: ignore[misc]
+    audited = misdirect.audit(problem, budget=1)
+    assert audited.value == audited.probability == audited.to_dict()["value"]
+
+
 def test_errors_name_their_command(tmp_path):
     missing = run("solve", str(tmp_path / "nothing.yaml"), code=2)
     assert missing["command"] == "solve" and "not found" in missing["error"]["message"]
@@ -295,11 +319,47 @@ def test_every_command_is_covered():
 def test_milp_flags_imply_the_milp(flag):
     document = run("solve", "--scenario", "paper-grid", "--budget", "1", *flag)
     assert document["method"] == "milp"
-    assert any("implies --method milp" in note for note in document["notes"])
+    assert sum("implies --method milp" in note for note in document["notes"]) == 1
     assert document["value"] == pytest.approx(GRID[1], abs=5e-7)
     assert document["stats"]["formulation"] == "compact"
     plain = run("solve", "--scenario", "paper-grid", "--budget", "1")
     assert plain["method"] == "auto" and plain["notes"] == []
+    shown = runner.invoke(app, ["solve", "--scenario", "paper-grid", "--budget", "1", *flag])
+    assert shown.exit_code == 0, shown.output
+    assert shown.stderr.count("implies --method milp") == 1  # the note once, not twice
+
+
+def test_milp_options_imply_the_milp_in_the_library():
+    """The library applies the CLI's rule: under method="auto" (the default) a MILP-only
+    option runs the MILP, and the result says so in a note (it ran auto's exact search,
+    certified by incremental, with no word)."""
+    problem = paper_grid(5)
+    result = misdirect.solve(problem, budgets=[1], formulation="paper", time_limit=5)
+    assert result.method == "milp"
+    assert result.final.stats.formulation == "paper"  # type: ignore[attr-defined]
+    assert any("formulation implies method milp" in note for note in result.notes)
+    plain = misdirect.solve(problem, budgets=[1])
+    assert plain.method == "auto" and not any("implies" in note for note in plain.notes)
+    named = misdirect.solve(problem, budgets=[1], method="milp", formulation="compact")
+    assert named.method == "milp" and not any("implies" in note for note in named.notes)
+
+
+def test_scip_without_a_method_runs_the_milp():
+    pytest.importorskip("pyscipopt")
+    result = misdirect.solve(paper_grid(5), budgets=[1], solver="scip")
+    assert result.method == "milp" and result.final.certified_by == "milp"
+    assert result.final.stats.solver == "scip"  # type: ignore[attr-defined]
+    assert result.probability == pytest.approx(GRID[1], abs=5e-7)
+
+
+def test_implied_method_is_the_one_rule():
+    from misdirect.solvers.options import MILP_OPTIONS, implied_method
+
+    for name in MILP_OPTIONS:
+        assert implied_method("auto", ["time_limit", name]) == ("milp", [name])
+        assert implied_method("exhaustive", [name]) == ("exhaustive", [])  # then refused
+    assert implied_method("auto", ["time_limit", "threads", "pool"]) == ("auto", [])
+    assert implied_method("milp", ["solver"]) == ("milp", [])
 
 
 def test_paper_formulation_is_run_when_asked():

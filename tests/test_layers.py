@@ -7,6 +7,8 @@ function is still a dependency), so the rules hold for every module, imported or
 from __future__ import annotations
 
 import ast
+import re
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -203,3 +205,126 @@ def test_a_private_module_is_imported_by_its_own_package_only():
         and name != target.rpartition(".")[0]
     ]
     assert wrong == []
+
+
+# -- only the CLI names flags; only core/tolerance.py writes a tolerance ----------------------
+
+FLAG = re.compile(r"(?<![\w-])--[a-z]")
+
+# library strings that name a flag on purpose (module, text), each with why
+NAMES_A_FLAG = {
+    # the limit's one library handle is the environment variable, which --memory-limit sets:
+    # the message names both, so either kind of user knows what to change
+    ("misdirect.core.memory", "--memory-limit"),
+    # a command that writes the file PAYNT needs, not a parameter of any call
+    ("misdirect.io.paynt", "misdirect convert --to drn"),
+    # a cell of the report of `misdirect reproduce`, which says how to get the row it lacks
+    ("misdirect.report.reproduce", "--full only"),
+}
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    """The ids of the docstring nodes of ``tree`` (a module's, a class's, a function's)."""
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            first = node.body[0] if node.body else None
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                found.add(id(first.value))
+    return found
+
+
+def test_only_the_cli_names_flags():
+    """A library error names the parameter (``method="milp"``, ``field="path"``); the CLI
+    shows it as its flag (misdirect.cli.common: ``flag``, ``field_flag``)."""
+    wrong = []
+    for name, path in MODULES.items():
+        if _within(name, "misdirect.cli"):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        docstrings = _docstrings(tree)
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.Constant) and isinstance(node.value, str)):
+                continue
+            text = node.value
+            if id(node) in docstrings or not (FLAG.search(text) or text == "-o"):
+                continue
+            if not any(name == module and part in text for module, part in NAMES_A_FLAG):
+                wrong.append(f"{name}:{node.lineno}: {text!r}")
+    assert wrong == []
+
+
+def test_the_cli_shows_library_parameters_as_flags():
+    from misdirect.cli.common import as_flags, assignments_as_flags, shown_lines
+    from misdirect.errors import OptionError, ProblemError
+
+    assert shown_lines(ProblemError("cannot write x", field="path")) == ["-o: cannot write x"]
+    assert shown_lines(ProblemError("bad", field="prop")) == ["--props: bad"]
+    assert shown_lines(ProblemError("bad", field="pomdp.states")) == ["pomdp.states: bad"]
+    both = OptionError("give cluster or workers, not both", parameter="cluster")
+    assert shown_lines(both) == ["--cluster: give --cluster or --workers, not both"]
+    suggested = assignments_as_flags('too long (try method="milp"); or solver="scip"')
+    assert suggested == "too long (try --method milp); or --solver scip"
+    assert as_flags('threads: at most 4; try solver="highs"') == (
+        "--threads: at most 4; try --solver highs"
+    )
+
+
+EXPONENT = re.compile(r"[eE]([+-]?\d+)$")
+TOLERANCES = "misdirect.core.tolerance"
+
+# small numbers that are not tolerances, named in their module (module, name), each with why
+NOT_TOLERANCES = {
+    # a scenario's definition: the decoys it generates (a new number changes every seed's problem)
+    ("misdirect.scenarios.sensor_grid", "MIN_DECOY_PROBABILITY"),
+    # Gurobi's own threshold for a coefficient it reads as 0 (its documentation), not ours
+    ("misdirect.solvers.milp.backends", "GUROBI_TINY"),
+    # seconds (the enumeration's time per alteration), a time policy's estimate
+    ("misdirect.solvers.schedule", "UPDATE_SECONDS"),
+    # how a report prints a value (six decimals, or three figures below this)
+    ("misdirect.report.reproduce", "SHOWN_FIXED"),
+}
+
+
+def _small_literals(path: Path) -> list[tuple[int, str, str | None]]:
+    """(line, literal, name or None) of each float literal in code (not in comments or
+    strings) whose exponent is -6 or less; the name when the line is a module's constant
+    ``NAME = literal`` alone."""
+    found = []
+    with path.open("rb") as handle:
+        for token in tokenize.tokenize(handle.readline):
+            if token.type != tokenize.NUMBER:
+                continue
+            exponent = EXPONENT.search(token.string.rstrip("jJ"))
+            if token.string.lower().startswith("0x") or not exponent:
+                continue
+            if int(exponent[1]) <= -6:
+                # a module's constant: ``NAME = literal`` (with a comment, perhaps), nothing more
+                whole = rf"(\w+)\s*(?::[^=]*)?=\s*{re.escape(token.string)}\s*(?:#.*)?"
+                assigned = re.fullmatch(whole, token.line.rstrip("\n"))
+                found.append((token.start[0], token.string, assigned and assigned[1]))
+    return found
+
+
+def test_no_literal_tolerance_outside_the_policy():
+    """Every tolerance is named, with its why, in core/tolerance.py (docs/architecture.md)."""
+    wrong, used = [], set()
+    for name, path in MODULES.items():
+        if name == TOLERANCES:
+            continue
+        for line, literal, assigned in _small_literals(path):
+            if (name, assigned) in NOT_TOLERANCES:
+                used.add((name, assigned))
+            else:
+                wrong.append(f"{name}:{line}: {literal}")
+    assert wrong == []
+    assert used == NOT_TOLERANCES, "a named exception no longer needed: drop it"
+
+
+def test_the_literal_finder_sees_code_not_comments(tmp_path):
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        '"""1e-9 in a docstring."""\nLIMIT = 2.5e-10  # 1e-12 in a comment\nx = 1e-5 + 1E-7\n'
+    )
+    found = [(literal, assigned) for _, literal, assigned in _small_literals(sample)]
+    assert found == [("2.5e-10", "LIMIT"), ("1E-7", None)]

@@ -75,6 +75,71 @@ def test_library_audit_and_harden_report_the_clamp():
     assert hardened.protect_budget_clamped_to == TINY_PROTECT_ALL
 
 
+# tiny with every cost times 10^9: its costs' unit is 10^9, so the budgets that matter are
+# tiny's whole budgets times 10^9 (10^10 whole budgets listed one by one ran out of memory)
+GIGA = 1e9
+
+
+def _tiny_in_billions(tmp_path: Path) -> Path:
+    text = TINY.read_text().replace("default: 1 ", f"default: {GIGA:.1e} ")
+    text = text.replace("pairs: {o1: {o2: 3}}", f"pairs: {{o1: {{o2: {3 * GIGA:.1e}}}}}")
+    path = tmp_path / "billions.yaml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("method", ["exhaustive", "incremental"])
+def test_solve_lists_huge_cost_budgets_in_the_costs_unit(tmp_path, method):
+    path = _tiny_in_billions(tmp_path)
+    payload = invoke_json("solve", str(path), "--method", method, "--budget", "1e10")
+    unit = invoke_json("solve", str(TINY), "--method", method, "--budget", "10")
+    assert [p["budget"] for p in payload["curve"]] == [b * GIGA for b in (0, 1, 2, 3, 4, 10)]
+    assert [p["value"] for p in payload["curve"]] == [p["value"] for p in unit["curve"]]
+
+
+def test_audit_and_harden_list_huge_cost_budgets_in_the_costs_unit(tmp_path):
+    path = _tiny_in_billions(tmp_path)
+    payload = invoke_json("audit", str(path), "--budget", "1e10")
+    assert [p["budget"] for p in payload["curve"]] == [b * GIGA for b in (0, 1, 2, 3, 4, 10)]
+    assert payload["value"] == invoke_json("audit", str(TINY), "--budget", "4")["value"]
+    hardened = invoke_json(
+        "harden", str(path), "--budget", "1e9", "--protect-budget", "1e10",
+        "--protect-cost", f"default={GIGA:.0e}",
+    )  # fmt: skip
+    # protecting o1 and o2 (each 10^9) protects every sensor alterable within 10^9
+    assert [p["protect_budget"] for p in hardened["curve"]] == [0, GIGA, 2 * GIGA, 1e10]
+
+
+def test_default_budgets_unchanged_for_unit_costs_and_thinned_with_a_note():
+    from misdirect.core.tolerance import CostScale
+    from misdirect.solvers.run import default_budgets
+
+    unit = CostScale.of([1.0], 5)
+    assert default_budgets(999.0, unit) == [float(b) for b in range(1000)]
+    assert default_budgets(4.5, unit) == [0.0, 1.0, 2.0, 3.0, 4.0, 4.5]
+    # costs 3 and 2: a step of 1, past 1000 budgets every k-th whole one, said so
+    notes: list[str] = []
+    listed = default_budgets(10_000.0, CostScale.of([3.0, 2.0], 5000), most=1000, notes=notes)
+    assert listed == [float(b) for b in range(0, 10_001, 11)] + [10_000.0]
+    assert len(notes) == 1 and "every 11 of budget" in notes[0]
+    # costs 2.5e9: every alteration costs a multiple of it, none is lost, nothing to say
+    notes.clear()
+    billions = default_budgets(1e10, CostScale.of([2.5e9], 4), notes=notes)
+    assert billions == [0.0, 2.5e9, 5e9, 7.5e9, 1e10] and notes == []
+
+
+@pytest.mark.parametrize("cost", ["1e308", "inf"])
+def test_harden_refuses_protection_costs_past_the_largest_number(cost):
+    result = runner.invoke(
+        app, ["harden", str(TINY), "--protect-budget", "1", "--protect-cost", f"default={cost}"]
+    )
+    assert result.exit_code == 2, result.output
+    assert "--protect-cost" in result.stderr and "Traceback" not in result.output
+    with pytest.raises(ProblemError) as raised:
+        misdirect.harden(load_problem(TINY), protect_budget=1, protect_costs={"default": 1e308})
+    assert raised.value.field == "protect_costs"
+
+
 # -- memory estimated before building -----------------------------------------------------------
 
 
@@ -544,3 +609,93 @@ def test_a_staged_runs_first_block_stops_where_its_share_ends():
     assert cut.complete_for(0.0) and not cut.complete_for(1.0)
     assert np.isfinite(cut.costs).sum() == 1  # the unaltered alteration
     assert enumeration.run(3.0, share=60.0).complete_for(3.0)
+
+
+def test_a_deadline_inside_the_exact_revaluation_keeps_the_unaltered_answer(monkeypatch):
+    """`solve --scenario paper-grid --size 300 --budget 0..3 --time-limit 10` crashed (a max
+    over no candidate): ill-conditioned bases are re-valued exactly, and a deadline passing
+    there dropped every candidate, the unaltered one of cost 0 too."""
+    from misdirect.solvers.engines import lowrank
+
+    original = lowrank.LowRankEnumeration._verified
+
+    def cut(self, found, steps, deadline, floor=None):  # the clock runs out right there
+        return original(self, found, steps, ExpiresAtLook(0), floor)
+
+    # every low-rank value counted as possibly off by 1: each may be the best, re-valued
+    monkeypatch.setattr(lowrank, "update_error", lambda steps, scale: 1.0)
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "_verified", cut)
+    problem = paper_grid(5)
+    result = misdirect.solve(problem, method="incremental", budgets=[0, 1, 2])
+    baseline = misdirect.evaluate(problem, problem.identity()).probability
+    assert result.baseline_probability == pytest.approx(baseline)
+    # budget 0 affords only the unaltered alteration: proven without any ranking
+    assert result.curve[0].alteration == {} and result.curve[0].status == "optimal"
+    # the others are left open with the unaltered alteration, not a guess
+    for point in result.curve:
+        assert point.alteration == {}
+        assert point.probability == pytest.approx(baseline)
+    assert [p.status for p in result.curve[1:]] == ["time_limit", "time_limit"]
+
+
+def test_an_enumeration_with_nothing_valued_falls_back_to_the_unaltered_alteration(monkeypatch):
+    """Should a run come back with no alteration valued within a budget, incremental answers
+    it with the unaltered alteration, left open, instead of a max over nothing."""
+    import dataclasses
+
+    from misdirect.solvers.engines import lowrank
+
+    def none_valued(self, found, steps, deadline, floor=None):
+        return dataclasses.replace(found, costs=np.full_like(found.costs, np.inf), unevaluated=0.0)
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "_verified", none_valued)
+    problem = paper_grid(5)
+    result = misdirect.solve(problem, method="incremental", budgets=[0, 2])
+    baseline = misdirect.evaluate(problem, problem.identity()).probability
+    for point in result.curve:
+        assert point.alteration == {} and point.probability == pytest.approx(baseline)
+    assert [p.status for p in result.curve] == ["time_limit", "time_limit"]
+
+
+class ExpiresOnCue(Deadline):
+    """A deadline without a clock that expires once told to (and stays expired)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.over = False
+
+    def expired(self) -> bool:
+        return self.over or super().expired()
+
+
+def test_the_first_blocks_own_value_is_not_started_past_the_deadline(monkeypatch):
+    """`solve --scenario paper-grid --size 600 --time-limit 5` reported 11.3 s: the first
+    block's base solve ended past the deadline, and the unaltered chain was then solved again
+    on its own (as long again). Started past the deadline, that value is now left undone, and
+    the unaltered alteration is answered unvalued."""
+    from misdirect.core.attack import prepare
+    from misdirect.core.checkpoint import interruptible
+    from misdirect.solvers.engines import lowrank
+
+    deadline = ExpiresOnCue()
+    original = lowrank.LowRankEnumeration._block_base
+
+    def base_then_expire(self, *args, **kwargs):  # the clock runs out during the base solve
+        base = original(self, *args, **kwargs)
+        deadline.over = True
+        return base
+
+    monkeypatch.setattr(lowrank.LowRankEnumeration, "_block_base", base_then_expire)
+    problem = paper_grid(5)
+    enumeration = lowrank.LowRankEnumeration(prepare(problem, 2))
+    # as under solve: listing the block's alterations stops at the deadline's check
+    with interruptible(deadline.check):
+        found = enumeration.run(2.0, deadline=deadline)
+    assert enumeration.exact_evaluations == 0  # no chain solved after the deadline
+    assert not np.isfinite(found.costs).any() and not found.complete_for(0.0)
+    deadline.over = False
+    result = misdirect.solve(problem, method="incremental", budgets=[0, 2], deadline=deadline)
+    baseline = misdirect.evaluate(problem, problem.identity()).probability
+    for point in result.curve:
+        assert point.alteration == {} and point.probability == pytest.approx(baseline)
+        assert point.status == "time_limit"

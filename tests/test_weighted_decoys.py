@@ -197,7 +197,7 @@ def test_solvers_agree_with_brute_force(seed, method):
 
 
 def test_paper_formulation_refuses_weights(two_branches):
-    with pytest.raises(SolverError, match="weighted decoy sets need --formulation compact"):
+    with pytest.raises(SolverError, match=r'weighted decoy sets need formulation="compact"'):
         build_formulation(two_branches, "paper")
 
 

@@ -65,12 +65,25 @@ def check_budget(value: float | None, option: str) -> None:
 
 # -- library parameters as flags ---------------------------------------------------------------
 
-# solve options the library names by parameter (misdirect.solvers.options.SolveOptions)
-FLAGS = ("time_limit", "threads", "solver", "formulation", "mip_gap", "verbose", "max_nodes")
+# solve options the library names by parameter (misdirect.solvers.options.SolveOptions), and
+# the pool's (misdirect.distributed.connect)
+FLAGS = (
+    *("time_limit", "threads", "solver", "formulation", "mip_gap", "verbose", "max_nodes"),
+    *("cluster", "workers"),
+)
 
 
-# library parameters whose flag is not their name: a scenario's grid size ``n`` is --size
-RENAMED_FLAGS = {"n": "--size"}
+# library parameters whose flag is not their name: a scenario's grid size ``n`` is --size, the
+# file a function writes (``path``, ``output``) is -o, PAYNT's property ``prop`` is --props
+RENAMED_FLAGS = {"n": "--size", "path": "-o", "output": "-o", "prop": "--props"}
+
+# the fields of library errors that name a parameter, not a place in a file (pomdp.states):
+# the file written, reproduce's and sweep's folder, the pool, PAYNT's constants and property
+PARAMETER_FIELDS = frozenset({"path", "output", "out", "cluster", "workers", "constants", "prop"})
+
+# parameters a library message sets to a value to suggest it (try method="milp")
+ASSIGNED = ("method", "solver", "formulation", "output")
+_ASSIGNMENT = re.compile(r"\b(" + "|".join(ASSIGNED) + r')="([^"]*)"')
 
 
 def flag(parameter: str) -> str:
@@ -80,8 +93,33 @@ def flag(parameter: str) -> str:
 
 def as_flags(text: str) -> str:
     """A library message about solve options, with each option named as its flag."""
-    pattern = r"\b(" + "|".join(FLAGS) + r")\b"
-    return re.sub(pattern, lambda match: flag(match.group(1)), text)
+    pattern = r"(?<![\w-])(" + "|".join(FLAGS) + r")\b"  # not a flag already (--solver)
+    return re.sub(pattern, lambda match: flag(match.group(1)), assignments_as_flags(text))
+
+
+def assignments_as_flags(text: str) -> str:
+    """A library message with each suggested setting as its flag: ``method="milp"`` →
+    ``--method milp``."""
+    return _ASSIGNMENT.sub(lambda match: f"{flag(match[1])} {match[2]}", text)
+
+
+def field_flag(field: str | None) -> str | None:
+    """The field of a library error as the command line shows it: a parameter as its flag,
+    anything else (a place in a file) as it is."""
+    return flag(field) if field is not None and field in PARAMETER_FIELDS else field
+
+
+def shown_lines(error: ProblemError) -> list[str]:
+    """A library error's lines (one per problem) as the command line shows them: the
+    parameters it names as their flags."""
+    if isinstance(error, ProblemsError):
+        problems = [line for problem in error.problems for line in shown_lines(problem)]
+        return problems + error.lines[len(error.problems) :]  # and the count of the rest
+    if isinstance(error, OptionError):
+        return [f"{flag(error.parameter)}: {as_flags(error.reason)}"]
+    where = ": ".join(part for part in (error.source, field_flag(error.field)) if part)
+    reason = assignments_as_flags(error.reason)
+    return [f"{where}: {reason}" if where else reason]
 
 
 # -- output -------------------------------------------------------------------------------------
@@ -298,20 +336,21 @@ def handle_errors(command: Callable[..., None], name: str | None = None) -> Call
             field, reason = flag(error.parameter), as_flags(error.reason)
             fail(f"{field}: {reason}", INPUT_ERROR, as_json, field=field)
         except ProblemsError as error:  # one line each, so every problem shows at once
-            first, *more = error.lines
+            first, *more = lines = shown_lines(error)
             fail(
                 first,
                 INPUT_ERROR,
                 as_json,
                 more=more,
-                field=error.field,
+                field=field_flag(error.field),
                 source=error.source,
-                problems=[one_line(line) for line in error.lines],
+                problems=[one_line(line) for line in lines],
             )
-        except ProblemError as error:
-            fail(error.message, INPUT_ERROR, as_json, field=error.field, source=error.source)
+        except ProblemError as error:  # a parameter it names is shown as its flag
+            (message,) = shown_lines(error)
+            fail(message, INPUT_ERROR, as_json, field=field_flag(error.field), source=error.source)
         except MisdirectError as error:
-            fail(str(error), 1, as_json)
+            fail(assignments_as_flags(str(error)), 1, as_json)
         except (typer.Exit, typer.Abort):
             raise
         except Terminated:

@@ -55,7 +55,7 @@ from misdirect.report import json_output
 from misdirect.solvers import SOLVERS
 from misdirect.solvers.milp.backends import BACKENDS
 from misdirect.solvers.milp.solver import FORMULATIONS
-from misdirect.solvers.options import MILP_OPTIONS
+from misdirect.solvers.options import MILP_OPTIONS, implied_method
 from misdirect.solvers.run import BudgetResult, SolveResult
 from misdirect.solvers.run import solve as solve_problem
 from misdirect.solvers.stats import AutoStats, MethodStats, MilpStats
@@ -268,8 +268,6 @@ def solve(
         )
     given: dict[str, Any] = {k: v for k, v in milp_options.items() if v is not None}
     method, implied = milp_method(method, given)
-    if implied and not (quiet or as_json):
-        _print_notes([implied])
     check_workers(workers)
     if (cluster is not None or workers is not None) and method not in ("auto", "branch-and-bound"):
         field = "--cluster" if cluster is not None else "--workers"
@@ -326,21 +324,20 @@ def _once_per_text(notes: Iterable[tuple[str, float | None]]) -> list[str]:
 def milp_method(method: str | None, given: dict[str, Any]) -> tuple[str, str | None]:
     """The method to run, and the note saying so when a MILP option chose it.
 
-    A MILP-only flag means what it says: without ``--method`` it selects the MILP (auto
-    would often not run one, and the flag would silently do nothing); with another method
-    named, it is refused in one line."""
+    A MILP-only flag means what it says: without ``--method`` it selects the MILP, by the
+    library's rule for ``method="auto"`` (:func:`~misdirect.solvers.options.implied_method`);
+    with another method named, even ``--method auto``, it is refused in one line."""
     flags = [flag(name) for name in MILP_OPTIONS if name in given]
-    if not flags:
-        return method or "auto", None
-    if method is None:
-        return "milp", f"{', '.join(flags)} implies --method milp"
-    if method != "milp":
+    if flags and method not in (None, "milp"):
         raise ProblemError(
             f"is a MILP option: it applies to --method milp only, not --method {method} "
             "(leave out --method to run the MILP)",
             field=flags[0],
         )
-    return method, None
+    resolved, implying = implied_method(method or "auto", given)
+    if method is None and implying:
+        return resolved, f"{', '.join(map(flag, implying))} implies --method milp"
+    return resolved, None
 
 
 def _run_solve(

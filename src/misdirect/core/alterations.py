@@ -20,6 +20,7 @@ from misdirect.core import tolerance
 from misdirect.core.checkpoint import checkpoint
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
+from misdirect.errors import ProblemError
 
 GROW_CHUNK = 8_000_000  # candidate extensions listed at once by altered_within (64 MB each)
 READBACK_CHUNK = 1_000_000  # alterations it reads back at once (a check of the deadline each)
@@ -302,7 +303,7 @@ def options_bound(problem: Problem) -> np.ndarray:
     bound = np.zeros(n, dtype=np.int64)
     cap = cost.scale.cap(problem.budget)  # one cost fits the budget exactly when <= cap
     default_fits = math.isfinite(cost.default) and cost.default <= cap
-    overrides = cost._pairs_by_source
+    overrides = cost.pairs_by_source
     for o in problem.relevant_observations.tolist():
         if o in cost.protected:
             continue
@@ -353,10 +354,11 @@ def max_alteration_cost(problem: Problem) -> float:
     so it is "no limit" and solvers never need to look beyond it (budgets are clamped to it).
 
     Read off the cost model's default and overrides, without a dense ``|Ω|`` row per
-    observation."""
+    observation. A sum past the largest float is refused (:class:`ProblemError`): no budget
+    could be compared with it."""
     cost = problem.cost
     n = cost.n_observations
-    overrides = cost._pairs_by_source
+    overrides = cost.pairs_by_source
     mosts = []
     for o in problem.relevant_observations.tolist():
         if o in cost.protected:
@@ -369,4 +371,11 @@ def max_alteration_cost(problem: Problem) -> float:
         if uncovered > 0 and math.isfinite(cost.default):
             most = max(most, float(cost.default))
         mosts.append(most)
-    return float(cost.scale.exact(mosts))  # the exact sum: a float sum may fall short of it
+    try:
+        return float(cost.scale.exact(mosts))  # the exact sum: a float sum may fall short of it
+    except OverflowError:
+        raise ProblemError(
+            "the costs of a complete alteration sum to more than the largest number "
+            f"({np.finfo(float).max:.3g}); scale them down",
+            field="deception.cost",
+        ) from None

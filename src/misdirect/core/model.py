@@ -485,7 +485,9 @@ class CostModel:
     protected: frozenset[int] = frozenset()
 
     @cached_property
-    def _pairs_by_source(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def pairs_by_source(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """:attr:`pairs` grouped by source: its targets and their costs, as arrays (read by
+        :mod:`misdirect.core.alterations` to enumerate and bound without a row per source)."""
         grouped: dict[int, tuple[list[int], list[float]]] = {}
         for (source, target), cost in self.pairs.items():
             targets, costs = grouped.setdefault(source, ([], []))
@@ -496,8 +498,8 @@ class CostModel:
     def row(self, source: int) -> np.ndarray:
         """Costs of altering ``source`` to every observation (``inf`` where forbidden)."""
         costs = np.full(self.n_observations, np.inf if source in self.protected else self.default)
-        if source not in self.protected and source in self._pairs_by_source:
-            targets, values = self._pairs_by_source[source]
+        if source not in self.protected and source in self.pairs_by_source:
+            targets, values = self.pairs_by_source[source]
             costs[targets] = values
         costs[source] = 0.0
         return costs

@@ -64,11 +64,10 @@ WIDE_LEVEL = 1_000  # a breadth-first level this wide: LU fronts of about that s
 # the iterative route's answer is accepted with a proven error of at most tolerance.EXACT
 # relative to it, and, on expected visits, tolerance.CERTIFY relative to max(1, visits) (a
 # count of steps: one visit is its natural unit, so fewer than one visit counts as one)
-# Refinement stops once the proven error is this small (absolute: an absorption probability,
-# of scale 1; the values a person reads are refined further relative to themselves, EXACT) ...
-REFINE_TARGET = 1e-13
+# Refinement stops once the proven error is this small (core.tolerance) ...
+REFINE_TARGET = tolerance.REFINE_TARGET
 REFINE_ROUNDS = 5  # ... after this many rounds, or when the residual stops falling
-KRYLOV_RTOL = 1e-13  # the first round's inner solve shrinks the residual this much
+KRYLOV_RTOL = tolerance.KRYLOV_RTOL  # the first round's inner solve shrinks the residual this much
 KRYLOV_MAX_ITER = 2_000
 UNIT_ROUNDOFF = residual.UNIT_ROUNDOFF
 # A value's proven error must be this small relative to it (core.tolerance) ...
@@ -429,14 +428,14 @@ def _time_bound(system: sp.csr_matrix) -> np.ndarray | None:
     magnitude = abs(system)
     gamma = _rounding(system)
     # Krylov's relative residuals, then a relative margin on the scaling: both scale-free
-    for rtol in (1e-2, 1e-5, 1e-9):
+    for rtol in tolerance.TIME_BOUND_RTOLS:
         t = _bicgstab(system, np.ones(n), rtol, KRYLOV_MAX_ITER)
         if t is None:
             return None
         low = (system @ t - gamma * (magnitude @ np.abs(t))).min()
         if low <= 0:
             continue
-        y = t * ((1 + 1e-9) / low)
+        y = t * ((1 + tolerance.BOUND_MARGIN) / low)
         if (y >= 0).all() and (system @ y - gamma * (magnitude @ y)).min() >= 1.0:
             return cast(np.ndarray, y)
     return None
@@ -512,7 +511,7 @@ def solve_certified(
         if size <= REFINE_TARGET or round_ == REFINE_ROUNDS or np.abs(r).sum() <= floor.sum():
             break  # proven small enough, or at the rounding floor: another round cannot help
         # aim at the rounding floor: shrinking the residual further proves nothing more
-        ratio = np.sqrt(_dot(floor, floor) / max(_dot(r, r), 1e-300))
+        ratio = np.sqrt(_dot(floor, floor) / max(_dot(r, r), tolerance.DENOMINATOR_FLOOR))
         rtol = max(KRYLOV_RTOL, min(0.1, 0.3 * ratio))
         correction = _bicgstab(op, r, rtol, KRYLOV_MAX_ITER)
         if correction is None:
@@ -656,7 +655,7 @@ def _unknown_value(
         system = np.eye(m) - q_dense
         rhs = np.column_stack([rows_dense @ known, np.ones(m)])
         # LAPACK's gesv again for each correction: tiny, and scipy's lu_solve stalls on BLAS
-        # threads (10 ms for a 40 x 2 solve on a busy machine)
+        # threads on a busy machine, however small the solve
         return _prove_forward(
             q_dense,
             rows_dense,
@@ -873,7 +872,7 @@ def _time_bound_at(
     low = float((t - qt - gamma * (t + qt)).min(initial=np.inf))
     if not low > 0 or not np.isfinite(low):
         return np.inf
-    return float(t[k] / low * (1 + 1e-9))  # a relative margin: scale-free
+    return float(t[k] / low * (1 + tolerance.BOUND_MARGIN))  # a relative margin: scale-free
 
 
 def reach_probabilities(

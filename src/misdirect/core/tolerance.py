@@ -61,6 +61,12 @@ FEASIBILITY = 1e-9
 """A MILP point further than this from feasible (in the scaled model, values about 1) gets its
 claim recomputed with rounded binaries."""
 
+INTEGRALITY = FEASIBILITY
+"""How far Gurobi and SCIP may leave a binary from 0 or 1 (SCIP: a row from feasible too). At
+their defaults a binary off by 1e-6 loosens a Bellman row by as much and the claim overshoots
+the exact value; a point looser than :data:`FEASIBILITY` is recomputed anyway. HiGHS keeps its
+own (:mod:`misdirect.solvers.milp.backends` says why)."""
+
 EXACT = CERTIFY / 10
 """A value's proven error must be this small relative to the value (a tenth of what
 certification allows, so a method's own gap keeps its room): reachability refines until it is."""
@@ -77,6 +83,33 @@ estimate exceeds this may be off by about ``u · 1e6 ≈ 1e-10`` of the values' 
 :data:`NEAR_TIE` lets pass, and far more above it (an alteration that almost traps the robot
 reads 1e11 and is 4e-7 off): its alteration is valued exactly instead, one chain each. On
 chains without near-traps the systems read at most about 1e5."""
+
+BOUND_MARGIN = 1e-9
+"""A bound computed in floats (expected steps from a scaled Krylov solution, an error from a
+residual times those steps) is raised by this, relative to itself: room for the rounding of
+its last few operations, scale-free, far below what certification reads."""
+
+TIME_BOUND_RTOLS = (1e-2, 1e-5, 1e-9)
+"""Krylov's relative residuals tried in turn for the rough solution a proven bound on the
+expected steps is scaled from: a loose solve usually proves one, a tighter one is paid for
+only when it does not."""
+
+REFINE_TARGET = 1e-13
+"""Reachability's refinement stops once a proven error is this small (absolute: an absorption
+probability, of scale 1; the values a person reads are refined further relative to themselves,
+:data:`EXACT`)."""
+
+KRYLOV_RTOL = 1e-13
+"""The first refinement round's inner Krylov solve shrinks the residual this much (relative):
+later rounds aim only at the rounding floor, which is all a proof can use."""
+
+PAYNT_STOCHASTIC = 1e-6
+"""A distribution read from PAYNT's output sums to 1 within this: its probabilities are floats
+from model checking, not numbers as written, so :data:`STOCHASTIC` is too tight for them."""
+
+DENOMINATOR_FLOOR = 1e-300
+"""Not a tolerance: a denominator is raised to at least this so that a ratio stays finite
+where it may be 0 (far below any value compared)."""
 
 UNIT_ROUNDOFF = 2.0**-53
 SMALLEST = 2.0**-1074  # the smallest subnormal: every float is a multiple of it

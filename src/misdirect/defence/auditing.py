@@ -112,8 +112,9 @@ def audit(
     # past the most expensive complete alteration every budget affords the same: work at it
     budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)
+    listing: list[str] = []  # how the curve's budgets were thinned, if they were
     with shared_preparation():
-        curve_result = _optimum_curve(problem, budget, clock, method, asked)
+        curve_result = _optimum_curve(problem, budget, clock, method, asked, listing)
         cheapest = _cheapest_alterations(problem, budget)
         # the re-solves at B the optimum is likely to need share the time with the singles
         likely = sum(o in attack_of(curve_result.curve[-1], problem).changed for o in cheapest)
@@ -123,7 +124,7 @@ def audit(
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
         rows = _sensor_rows(problem, budget, optimum, singles, clock, method, baseline, pool)
-    notes = _not_certified(optimum, curve_result, budget)
+    notes = _not_certified(optimum, curve_result, budget) + listing
     online, note = _online_value(problem, asked, optimum, clock)
     if online is None:
         notes.append("the online attacker's value is not computed: the time limit was reached")
@@ -152,14 +153,22 @@ def audit(
 
 
 def _optimum_curve(
-    problem: Problem, budget: float, clock: Deadline, method: str, asked: float
+    problem: Problem,
+    budget: float,
+    clock: Deadline,
+    method: str,
+    asked: float,
+    notes: list[str] | None = None,
 ) -> SolveResult:
-    """The attacker's optimum at every budget up to ``budget``, and at ``asked`` (solve answers
-    a budget above the cap with the cap's answer), within half the time left."""
+    """The attacker's optimum at every budget up to ``budget`` (in the costs' unit when whole
+    budgets would be too many: :func:`default_budgets`, which says in ``notes`` if it thins
+    them), and at ``asked`` (solve answers a budget above the cap with the cap's answer),
+    within half the time left."""
+    listed = default_budgets(budget, problem.cost.scale, notes=notes)
     return solve(
         problem,
         method=method,
-        budgets=sorted({*default_budgets(budget), asked}),
+        budgets=sorted({*listed, asked}),
         deadline=clock.within(clock.share(2)),
     )
 

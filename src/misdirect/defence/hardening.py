@@ -63,6 +63,13 @@ def protection_costs(
             )
         if name != "default":
             table[index[name]] = value
+    # protection budgets are compared with sums of these: one past the largest float is none
+    if not math.isfinite(sum(table.tolist(), 0.0)):
+        raise ProblemError(
+            f"the protection costs sum to more than the largest number "
+            f"({np.finfo(float).max:.3g}); scale them down",
+            field=field,
+        )
     return table
 
 
@@ -219,14 +226,15 @@ def harden(
     search = _Search(problem, budget, costs, clock, method, pool)
     curve: list[HardenPoint] = []
     best: frozenset[int] = frozenset()
-    for d in (float(d) for d in default_budgets(d_cap)):
+    listing: list[str] = []  # how the protection budgets were thinned, if they were
+    for d in (float(d) for d in default_budgets(d_cap, search.scale, notes=listing)):
         best = search.best_within(d, best)
         curve.append(search.point(d, best))
     if d_clamped_from is not None:  # the answer at the cap stands for the budget asked
         curve.append(replace(curve[-1], protect_budget=d_clamped_from))
     final = curve[-1]
     before = search.attack(frozenset())
-    notes = search.notes()
+    notes = search.notes() + listing
     names = problem.pomdp.observations
     listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
     return HardenResult(

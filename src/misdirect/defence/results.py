@@ -130,6 +130,8 @@ class AuditResult:
         What is not proven, and the solver's warnings.
     time_s : float
         Wall time of the audit.
+    value : float
+        Read-only alias of ``probability``, the name ``to_dict()`` and the JSON use.
     """
 
     problem: str  # the problem's name
@@ -156,6 +158,11 @@ class AuditResult:
     @property
     def objective_label(self) -> str:
         return LABELS[self.objective]
+
+    @property
+    def value(self) -> float:
+        """``probability``, by the name of ``to_dict()`` and the JSON output."""
+        return self.probability
 
     def __repr__(self) -> str:
         return (
@@ -223,7 +230,12 @@ EDGES = ("from", "to")
 
 @dataclass(frozen=True)
 class HardenPoint:
-    """The best protection within one protection budget ``d``."""
+    """The best protection within one protection budget ``d``.
+
+    The attacker's best reply is ``probability`` and ``attack``; ``value`` and
+    ``alteration`` are read-only aliases of them, by the names of :meth:`to_dict` and the
+    JSON output (as in :class:`~misdirect.SolveResult`).
+    """
 
     protect_budget: float
     protection: list[str]  # the sensors to protect, in the problem's order
@@ -233,6 +245,16 @@ class HardenPoint:
     lower_bound: float  # proven: no protection within d holds the attacker below this
     attack: dict[str, str]  # the attacker's best reply found under ``protection``
     status: Status  # optimal when the min–max is proven, else time_limit / feasible
+
+    @property
+    def value(self) -> float:
+        """``probability``: the exact value of the attacker's best reply (the JSON's name)."""
+        return self.probability
+
+    @property
+    def alteration(self) -> dict[str, str]:
+        """``attack``: the attacker's best reply under ``protection`` (the JSON's name)."""
+        return self.attack
 
     def to_dict(self) -> dict[str, Any]:
         """As a point of the harden JSON's ``curve``: the attacker's best reply is
@@ -292,6 +314,10 @@ class HardenResult:
         Wall time of the search.
     notes : list of str
         What is not proven, and why.
+    value, alteration, upper_bound, value_unprotected
+        Read-only aliases of ``value_after``, ``best_reply``, ``value_after_upper`` and
+        ``value_before``, by the names of :meth:`to_dict` and the JSON output (as in
+        :class:`~misdirect.SolveResult`).
     """
 
     problem: str  # the problem's name
@@ -319,6 +345,27 @@ class HardenResult:
     protect_budget_clamped_from: float | None = None
     protect_budget_clamped_to: float | None = None
     objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
+
+    @property
+    def value(self) -> float:
+        """``value_after``: the exact value of the attacker's best reply under ``protection``."""
+        return self.value_after
+
+    @property
+    def alteration(self) -> dict[str, str]:
+        """``best_reply``: the attacker's best reply under ``protection``."""
+        return self.best_reply
+
+    @property
+    def upper_bound(self) -> float:
+        """``value_after_upper``: a proven bound on the attacker's optimum under
+        ``protection``."""
+        return self.value_after_upper
+
+    @property
+    def value_unprotected(self) -> float:
+        """``value_before``: the attacker's optimum with nothing protected."""
+        return self.value_before
 
     def __repr__(self) -> str:
         return (

@@ -14,7 +14,7 @@ import uuid
 from collections.abc import Callable, Hashable, Iterator
 from typing import Any
 
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError, ProblemError
 from misdirect.solvers.pool import LocalPool, SharedBest, TaskPool
 
 INSTALL = "needs the cluster extra: pip install 'misdirect[cluster]'"
@@ -90,11 +90,11 @@ def connect(
     if cluster is None and workers is None:
         yield None
         return
-    field = "--cluster" if cluster is not None else "--workers"
+    field = "cluster" if cluster is not None else "workers"
     if cluster is not None and workers is not None:
-        raise ProblemError("give --cluster or --workers, not both", field=field)
+        raise OptionError("give cluster or workers, not both", parameter=field)
     if workers is not None and workers < 1:
-        raise ProblemError(f"must be at least 1, got {workers}", field="--workers")
+        raise OptionError(f"must be at least 1, got {workers}", parameter="workers")
     try:
         from distributed import Client, LocalCluster
     except ImportError:

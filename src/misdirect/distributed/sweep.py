@@ -327,7 +327,7 @@ def write_parquet(rows: Sequence[dict[str, Any]], path: Path) -> bool:
     table = pa.Table.from_pylist(
         [{name: row.get(name) for name, _ in COLUMNS} for row in rows], schema=schema
     )
-    write_output(path, lambda staged: pq.write_table(table, staged), field="--out")
+    write_output(path, lambda staged: pq.write_table(table, staged), field="out")
     return True
 
 
@@ -380,7 +380,7 @@ def run_sweep(
             computed += 1
             failed += result["status"] == ERROR
             count += 1
-            write_output(csv_path, table_csv(table()), field="--out")
+            write_output(csv_path, table_csv(table()), field="out")
             if time.monotonic() - last_parquet > PARQUET_EVERY_S:
                 write_parquet(table(), parquet_path)
                 last_parquet = time.monotonic()
@@ -389,7 +389,7 @@ def run_sweep(
     finally:
         if computed or not parquet_path.exists():
             if not csv_path.exists():
-                write_output(csv_path, table_csv(table()), field="--out")
+                write_output(csv_path, table_csv(table()), field="out")
             if not write_parquet(table(), parquet_path):
                 notes.append("pyarrow is not installed: wrote the CSV table only")
     return SweepReport(

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.core import tolerance
 from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem, reachable_from
 from misdirect.core.product import full_product_matrix
@@ -36,7 +37,7 @@ from misdirect.io.storm_names import NO_LABEL
 FIELD = "exact"
 # a double and Storm's rational of the same entry may differ by the rounding of the
 # expression that computed the double (Storm evaluates PRISM expressions in doubles)
-AGREEMENT = 1e-12
+AGREEMENT = tolerance.TIE
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from typing import Any, cast
 import numpy as np
 import scipy.sparse as sp
 
+from misdirect.core import tolerance
 from misdirect.core.model import (
     Controller,
     CostModel,
@@ -39,7 +40,7 @@ from misdirect.io.paynt_model import PAYNT_NO_LABEL, PayntView
 from misdirect.io.storm_names import NO_LABEL, valuation_name
 
 FIELD = "controller.paynt"
-SUM_TOLERANCE = 1e-6  # PAYNT's probabilities are floats from model checking
+SUM_TOLERANCE = tolerance.PAYNT_STOCHASTIC  # PAYNT's probabilities: floats from model checking
 _GENERATED = re.compile(r"^\w+_cmd_\d+$")  # PAYNT's name for an unlabelled PRISM command
 MAX_LABELS_TRIED = 32  # labels tried as PAYNT's terminal targets when a file does not fit
 _PAIR = re.compile(r"^\s*[(\[]?\s*(\d+)\s*,\s*(\d+)\s*[)\]]?\s*$")

@@ -68,7 +68,7 @@ def _with_constants(text: str, constants: str | None) -> str:
         if match is None:
             raise ProblemError(
                 f"cannot read {part.strip()!r}: expected NAME=VALUE (a number, true or false)",
-                field="--constants",
+                field="constants",
             )
         name, value = match[1], match[2]
         declaration = re.compile(
@@ -78,7 +78,7 @@ def _with_constants(text: str, constants: str | None) -> str:
         if count != 1:
             raise ProblemError(
                 f"the program has no undefined constant {name!r} (const ... {name};)",
-                field="--constants",
+                field="constants",
             )
     return text
 
@@ -134,7 +134,7 @@ def synthesize(
     text = read_text_file(model, field="MODEL")
     drn = is_drn(text)
     if drn and constants:
-        raise ProblemError("a DRN model has no constants to set", field="--constants")
+        raise ProblemError("a DRN model has no constants to set", field="constants")
     if not drn:
         text = _with_constants(paynt_prism_text(text), constants)
     # what Storm would crash, hang or allocate without bound on is refused before it reads
@@ -142,7 +142,7 @@ def synthesize(
         check_drn_text(text, name=str(model), field="MODEL")
     else:
         check_nesting(strip_comments(text), field="MODEL", what=str(model))
-    check_nesting(prop, field="--props", what="the property")
+    check_nesting(prop, field="prop", what="the property")
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         sketch, props = Path(folder) / model.name, Path(folder) / "sketch.props"
@@ -310,12 +310,12 @@ def _check_property(stormpy, program, prop: str) -> None:
         properties = stormpy.parse_properties(prop, program)
     except Exception as error:
         message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))
-        raise ProblemError(f"Storm cannot parse it: {message}", field="--props") from None
+        raise ProblemError(f"Storm cannot parse it: {message}", field="prop") from None
     if len(properties) != 1:
-        raise ProblemError(f"expected one property, got {len(properties)}", field="--props")
+        raise ProblemError(f"expected one property, got {len(properties)}", field="prop")
     formula = properties[0].get_raw_formula()
     if not getattr(formula, "has_optimality_type", False) or formula.has_bound:
         raise ProblemError(
             'expected an optimizing property without a bound, e.g. Pmax=? [F "goal"]',
-            field="--props",
+            field="prop",
         )

@@ -33,6 +33,7 @@ from pydantic import (
 )
 
 from misdirect.core import tolerance
+from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.objective import DecoySet
@@ -905,6 +906,8 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
         source=source,
         decoy_sets=decoy_sets,
     )
+    # checked once here, so the file is named: every solve, audit and harden adds them up
+    max_alteration_cost(problem)
     if paynt is not None:
         terminal_given = isinstance(spec.pomdp, StormPomdpSpec) and (
             spec.pomdp.terminal is not None or spec.pomdp.terminal_from is not None

@@ -22,13 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.evaluate import decoy_probability, evaluate, evaluation_time
 from misdirect.core.model import format_alteration
 from misdirect.io.files import write_output
 from misdirect.report import figures
 from misdirect.scenarios import knapsack, paper_grid
 from misdirect.scenarios.grid import OBSERVATIONS, hazard_cell, sensor_cells
-from misdirect.solvers.run import solve
+from misdirect.solvers.run import SolveResult, solve
+from misdirect.solvers.stats import MilpStats
 
 # What the paper prints (Section VII). Budgets above 4 "remained the same".
 PAPER_GRID = {0: 0.085, 1: 0.720, 2: 0.861, 3: 0.862, 4: 0.864, 5: 0.864, 6: 0.864, 7: 0.864}
@@ -49,6 +51,7 @@ QUICK_SIZES, FULL_SIZES = [5, 15, 25], [5, 15, 25, 35, 45]
 SCALABILITY_BUDGET = 1  # the paper does not say which budget its Fig. 4 used
 ATTACK_BUDGETS = [0, 1, 2, 4]
 GRID_BUDGETS = list(range(8))
+SHOWN_FIXED = 1e-6  # a value at least this is shown with six decimals, a smaller one in 3 figures
 EXPERIMENTS = ("reduction example", "grid case study", "scalability study", "attack figures")
 CONTROLLER_NOTE = (
     "The robot heads East after reading o0, o1, o4 or o6 and North after o2, o3 or o5, and keeps "
@@ -76,8 +79,8 @@ class Table:
         writer.writeheader()
         writer.writerows(self.rows)
         # atomic: a full disk leaves an earlier run's file as it was
-        write_output(csv_path, buffer.getvalue(), field="--out")
-        write_output(md_path, self.markdown(), field="--out")
+        write_output(csv_path, buffer.getvalue(), field="out")
+        write_output(md_path, self.markdown(), field="out")
         return [csv_path, md_path]
 
     def markdown(self) -> str:
@@ -158,6 +161,14 @@ def reproduce(
 # -- 1. the reduction example ----------------------------------------------------------------
 
 
+def _milp_stats(result: SolveResult) -> MilpStats:
+    """The record of a solve by method milp: its model's size and how the backend stopped."""
+    stats = result.final.stats
+    if not isinstance(stats, MilpStats):
+        raise TypeError(f"expected a MILP's stats, got {type(stats).__name__}")
+    return stats
+
+
 def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progress) -> None:
     problem = knapsack(**KNAPSACK)
     rows = []
@@ -165,15 +176,15 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
         result = solve(
             problem, method="milp", solver=solver, formulation=formulation, time_limit=limit
         )
-        stats = result.stats
+        stats = _milp_stats(result)
         rows.append(
             {
                 "formulation": formulation,
-                "variables": stats["variables"],
-                "rows": stats["rows"],
-                "build_time_s": stats["build_time_s"],
-                "solve_time_s": stats["solve_time_s"],
-                "solver_status": stats["status"],
+                "variables": stats.variables,
+                "rows": stats.rows,
+                "build_time_s": stats.build_time_s,
+                "solve_time_s": stats.solve_time_s,
+                "solver_status": stats.status,
                 "status": result.status,
                 "probability": result.probability,
                 "solver_probability": result.curve[-1].solver_probability,
@@ -222,7 +233,7 @@ def _reduction(report: ReproduceReport, solver: str, limit: float, tick: Progres
             "experiment": "reduction example",
             "ours": f"{compact['probability']:.6f} with {compact['alteration']}",
             "paper": "0.25 with o4, o2, o1 → o♣",
-            "agrees": _yes(abs(compact["probability"] - 0.25) < 1e-9),
+            "agrees": _yes(abs(compact["probability"] - 0.25) < tolerance.CERTIFY),
             "notes": [
                 f"MILP sizes: compact {compact['variables']:,} vars / {compact['rows']:,} rows; "
                 f"paper {paper['variables']:,} / {paper['rows']:,} (successor filter); "
@@ -336,18 +347,18 @@ def _scalability(
                 budgets=[SCALABILITY_BUDGET],
                 time_limit=limit,
             )
-            stats = result.stats
+            stats = _milp_stats(result)
             rows.append(
                 {
                     "n": n,
                     "formulation": formulation,
-                    "variables": stats["variables"],
-                    "rows": stats["rows"],
-                    "nonzeros": stats["nonzeros"],
-                    "build_time_s": stats["build_time_s"],
-                    "solve_time_s": stats["solve_time_s"],
+                    "variables": stats.variables,
+                    "rows": stats.rows,
+                    "nonzeros": stats.nonzeros,
+                    "build_time_s": stats.build_time_s,
+                    "solve_time_s": stats.solve_time_s,
                     "status": result.status,
-                    "solver_status": stats["status"],
+                    "solver_status": stats.status,
                     "probability": result.probability,
                     "solver_probability": result.curve[-1].solver_probability,
                     "evaluation_time_s": floor,
@@ -480,7 +491,7 @@ def _write_report(report: ReproduceReport, solver: str, limit: float, sizes: lis
         "",
         "Heat-map data: [attack_visits.csv](attack_visits.csv). SVG versions sit beside each PNG.",
     ]
-    write_output(report.out / "report.md", "\n".join(lines) + "\n", field="--out")
+    write_output(report.out / "report.md", "\n".join(lines) + "\n", field="out")
 
 
 def _label(row: dict[str, Any]) -> str:
@@ -539,7 +550,7 @@ def _flags(rows: Sequence[dict[str, Any]], limit_text: str) -> str:
 def _value(x: float | None) -> str:
     if x is None:
         return "nothing (no incumbent)"
-    return f"{x:.6f}".rstrip("0").rstrip(".") if x >= 1e-6 or x == 0 else f"{x:.3g}"
+    return f"{x:.6f}".rstrip("0").rstrip(".") if x >= SHOWN_FIXED or x == 0 else f"{x:.3g}"
 
 
 def _parse(text: str) -> dict[str, str]:

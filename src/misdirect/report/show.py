@@ -29,13 +29,13 @@ def draw(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
         raise ProblemError(
             f"cannot draw {suffix or 'a file without suffix'}: use "
             f"{', '.join(PICTURE_SUFFIXES)} or .dot",
-            field="-o",
+            field="output",
         )
     if cells is None:
         raise ProblemError(
             "only grid worlds (states named '(x,y)') are drawn as pictures; "
-            "write the product chain with -o chain.dot instead",
-            field="-o",
+            'write the product chain with output="chain.dot" instead',
+            field="output",
         )
     return draw_grid(problem, alteration, cells, output)
 
@@ -46,7 +46,7 @@ def _write_dot(problem: Problem, alteration: AlterationArray, output: Path) -> P
         raise ProblemError(
             f"the product chain has {chain.n_states:,} states; a drawing stops being readable "
             f"well before that (limit {MAX_DOT_STATES})",
-            field="-o",
+            field="output",
         )
     pomdp, nodes = problem.pomdp, problem.controller.nodes
     lines = ["digraph product {", "  rankdir=LR;", "  node [shape=box, fontsize=10];"]

@@ -108,8 +108,9 @@ class _Facts:
     def evaluation_s(self) -> float:
         """Seconds for one exact evaluation as the exhaustive enumeration makes it: the mean
         over the unaltered chain and single-sensor alterations spread over the space (an
-        altered chain may cycle and cost several times the unaltered one: on a 9x9 trap grid,
-        1.2 ms unaltered, 0.3 to 9 ms altered), sampled within about ``SAMPLE_SECONDS``.
+        altered chain that cycles may cost several times the unaltered one, another a fraction
+        of it: docs/benchmarks.md, "Chains with cycles"), sampled within about
+        ``SAMPLE_SECONDS``.
         Evaluated afresh, not from the solve's table."""
         problem, choices = self.problem, self.instance.space.choices
         spread = np.linspace(0, len(choices) - 1, schedule.SAMPLE_EVALUATIONS - 1)

@@ -107,11 +107,14 @@ def best_per_budget(
     highest value, then lowest cost; values within ``tie`` (relative) of the best are tied.
 
     Preferring the cheaper of two equally good alterations means the answer never spends more of
-    the budget than it needs.
+    the budget than it needs. Every budget needs a candidate (callers keep the unaltered
+    alteration, which fits any): a budget with none is a caller's bug, named as such.
     """
     picks = []
     for budget in budgets:
         within = np.flatnonzero(costs <= scale.cap(budget))
+        if not within.size:
+            raise ValueError(f"no candidate alteration fits budget {budget:g}")
         best = values[within].max()
         tied = within[values[within] >= best - tolerance.slack(best, rel=tie)]
         picks.append(int(tied[np.argmin(costs[tied])]))

@@ -54,7 +54,7 @@ class ExhaustiveSolver:
         if enumerated is None:
             raise SolverError(
                 f"more than {self.max_evaluations:,} alterations fit the budget; "
-                "exhaustive search would take too long (try --method milp)"
+                'exhaustive search would take too long (try method="milp")'
             )
         table, costs = enumerated
         # cheapest first ("alter nothing" leads): cut short, every budget up to the last cost

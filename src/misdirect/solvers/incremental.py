@@ -95,8 +95,20 @@ class IncrementalSolver:
         )
         solutions = []
         for budget, found, finished in zip(budgets, chosen, complete, strict=True):
-            index = found.best_within([budget])[0]
             within = found.values[found.costs <= problem.cost.scale.cap(budget)]
+            if not within.size:  # the deadline left nothing valued within it: alter nothing
+                solutions.append(
+                    Solution(
+                        budget=budget,
+                        alteration=problem.identity(),
+                        solver_probability=None,
+                        status=Status.TIME_LIMIT,
+                        upper_bound=problem.objective.max_value if relaxed is None else relaxed,
+                        stats=stats,
+                    )
+                )
+                continue
+            index = found.best_within([budget])[0]
             bound = float(within.max())  # every alteration within the budget was enumerated
             if relaxed is not None and not finished:
                 bound = max(bound, relaxed)

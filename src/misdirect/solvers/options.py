@@ -18,6 +18,45 @@ from misdirect.solvers.pool import TaskPool
 MILP_OPTIONS = ("solver", "formulation", "mip_gap", "verbose")
 
 
+def implied_method(method: str, given: Iterable[str]) -> tuple[str, list[str]]:
+    """The method that runs, and the MILP-only options (:data:`MILP_OPTIONS`) that chose it.
+
+    A MILP-only option means what it says: with ``method="auto"`` it selects the MILP (auto
+    would often not run one, and the option would silently do nothing). Any other method is
+    kept as it is, and an option it does not take is refused
+    (:meth:`SolveOptions.check_taken_by`).
+
+    Parameters
+    ----------
+    method : str
+        The method asked for.
+    given : iterable of str
+        The names of the options given (:meth:`SolveOptions.given`).
+
+    Returns
+    -------
+    tuple of (str, list of str)
+        The method to run, and the options that made it ``milp`` (empty: ``method`` as asked).
+
+    Examples
+    --------
+    >>> implied_method("auto", ["time_limit", "formulation"])
+    ('milp', ['formulation'])
+    >>> implied_method("auto", ["time_limit"])
+    ('auto', [])
+    """
+    names = set(given)
+    implying = [name for name in MILP_OPTIONS if name in names]
+    if method == "auto" and implying:
+        return "milp", implying
+    return method, []
+
+
+def implied_note(implying: Iterable[str]) -> str:
+    """The note a result carries when ``implying`` options made ``auto`` the MILP."""
+    return f"{', '.join(implying)} implies method milp (a MILP option: auto might not run the MILP)"
+
+
 def check_time_limit(seconds: float | None) -> None:
     """A time limit is a positive, finite number of seconds (or None: no limit)."""
     if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
@@ -61,6 +100,7 @@ class SolveOptions:
                 takes = f"takes only {', '.join(accepted)}" if accepted else "takes no options"
                 raise OptionError(
                     f"does not apply to method {method} ({method} {takes}; solver, mip_gap "
-                    "and formulation are MILP options, for method milp or auto)",
+                    "and formulation are MILP options, for method milp: with method auto they "
+                    "run the MILP)",
                     parameter=name,
                 )

@@ -35,7 +35,7 @@ from misdirect.solvers.certification import (
     take_evidence,
 )
 from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
-from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
 from misdirect.solvers.status import Status
@@ -280,10 +280,33 @@ def _table_row(point: BudgetResult) -> dict[str, Any]:
     return row
 
 
-def default_budgets(budget: float) -> list[float]:
-    """Every whole budget from 0 up to ``budget``, and ``budget`` itself."""
-    whole = [float(b) for b in range(math.floor(budget) + 1)]
-    return whole if whole[-1] == budget else [*whole, float(budget)]
+def default_budgets(
+    budget: float,
+    scale: tolerance.CostScale | None = None,
+    *,
+    most: int = 1000,
+    notes: list[str] | None = None,
+) -> list[float]:
+    """Every whole budget from 0 up to ``budget``, and ``budget`` itself.
+
+    Past ``most`` whole budgets (costs of 10^9 and a budget of 10^10 would list ten billion),
+    the multiples of the costs' step instead when ``scale`` has one above 1 (no alteration
+    costs anything between two, so none is lost), and every k-th of those (or of the whole
+    budgets) when still more than ``most``, said in ``notes``."""
+    whole = math.floor(budget)
+    if whole < most:
+        listed = [float(b) for b in range(whole + 1)]
+        return listed if listed[-1] == budget else [*listed, float(budget)]
+    unit = scale.step if scale is not None and scale.kind != "rounded" and scale.step > 1 else 1
+    count = tolerance.whole_units(budget, float(unit)) + 1  # multiples of unit from 0
+    every = -(-count // most)
+    listed = [float(k * unit) for k in range(0, count, every)]
+    if every > 1 and notes is not None:
+        notes.append(
+            f"the curve lists every {float(every * unit):g} of budget up to {budget:g} "
+            f"({len(listed)} of {count} budgets); ask for others by name"
+        )
+    return listed if listed[-1] == budget else [*listed, float(budget)]
 
 
 @checked_keywords
@@ -402,16 +425,15 @@ def solve(
     }
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)
+    method, implying = implied_method(method, options.given())  # auto + a MILP option: milp
     method_solver = get_solver(method, options)
-    budgets, cap, clamped_from = _budgets(problem, budgets, method_solver.curve_is_free)
+    notes = [implied_note(implying)] if implying else []
+    budgets, cap, clamped_from = _budgets(problem, budgets, method_solver.curve_is_free, notes)
     if problem.budget > cap:
         problem = problem.with_budget(cap)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
-    if deadline is None:
-        deadline = Deadline(options.time_limit, cancel=cancel)
-    elif options.time_limit is not None or cancel is not None:
-        deadline = Deadline(options.time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
+    deadline = _call_deadline(deadline, options.time_limit, cancel)
     started = time.perf_counter()
     exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
     # the stages of this call share each prepared instance, and the exact values; building
@@ -419,28 +441,8 @@ def solve(
     try:
         with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
             solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
-    except DeadlineExpiredError:  # cut before the method had anything: the unaltered chain,
-        # proven where no alteration fits the budget (then it is all there is)
-        cheapest = problem.cheapest_alteration_cost()
-        unaltered_value = exact_value(problem.identity())
-        solutions = [
-            Solution(
-                budget=b,
-                alteration=problem.identity(),
-                solver_probability=unaltered_value,
-                status=Status.OPTIMAL,
-                upper_bound=unaltered_value,
-            )
-            if not problem.cost.scale.fits(cheapest, b)
-            else Solution(
-                budget=b,
-                alteration=problem.identity(),
-                solver_probability=None,
-                status=Status.TIME_LIMIT,
-                upper_bound=problem.objective.max_value,  # nothing proven: the trivial bound
-            )
-            for b in clamped
-        ]
+    except DeadlineExpiredError:  # cut before the method had anything
+        solutions = _unaltered_solutions(problem, clamped, exact_value)
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started
     if clamped_from is not None:
@@ -448,13 +450,79 @@ def solve(
         solutions = [
             replace(by_budget[min(b, cap)], budget=b) if b > cap else by_budget[b] for b in budgets
         ]
-    curve, warnings = [], list(problem.warnings)
+    curve, warnings = _exact_curve(problem, solutions, method_solver.name, exact_value)
     identity = problem.identity()
+    unaltered = (identity, exact_value(identity), exact_value.error(identity))
+    certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))
+    for point in curve:  # a single method that proved its own point names itself
+        if point.status == Status.OPTIMAL and point.certified_by is None:
+            point.certified_by = method_solver.name
+    return SolveResult(
+        problem=problem.name,
+        method=method_solver.name,
+        baseline_probability=_clean(exact_value(identity)),
+        time_s=elapsed,
+        curve=[_result(point, problem) for point in curve],
+        warnings=[*problem.warnings, *warnings],
+        notes=[*notes, *problem.notes],
+        budget_clamped_from=clamped_from,
+        budget_clamped_to=None if clamped_from is None else cap,
+        interrupted=interrupted,
+        objective=problem.objective.kind,
+    )
+
+
+def _call_deadline(
+    deadline: Deadline | None, time_limit: float | None, cancel: CancelToken | None
+) -> Deadline:
+    """The deadline of one :func:`solve` call: a caller's shared one, limited further by the
+    call's own time limit or cancel token, or a new one from them."""
+    if deadline is None:
+        return Deadline(time_limit, cancel=cancel)
+    if time_limit is not None or cancel is not None:
+        return Deadline(time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
+    return deadline
+
+
+def _unaltered_solutions(
+    problem: Problem, budgets: Sequence[float], exact_value: ExactValues
+) -> list[Solution]:
+    """Answers for a call cut before its method had any: the unaltered chain, proven where no
+    alteration fits the budget (then it is all there is), else open at the trivial bound."""
+    cheapest = problem.cheapest_alteration_cost()
+    unaltered_value = exact_value(problem.identity())
+    return [
+        Solution(
+            budget=b,
+            alteration=problem.identity(),
+            solver_probability=unaltered_value,
+            status=Status.OPTIMAL,
+            upper_bound=unaltered_value,
+        )
+        if not problem.cost.scale.fits(cheapest, b)
+        else Solution(
+            budget=b,
+            alteration=problem.identity(),
+            solver_probability=None,
+            status=Status.TIME_LIMIT,
+            upper_bound=problem.objective.max_value,  # nothing proven: the trivial bound
+        )
+        for b in budgets
+    ]
+
+
+def _exact_curve(
+    problem: Problem, solutions: Sequence[Solution], method: str, exact_value: ExactValues
+) -> tuple[list[CurvePoint], list[str]]:
+    """The method's answers as curve points valued exactly on their own chains (the one place
+    where answers are re-evaluated), and a warning per claim the exact value contradicts."""
     alterations = [np.asarray(s.alteration, dtype=np.int64) for s in solutions]
     for alpha in alterations:
-        problem.check_alteration(alpha, source=f"{method_solver.name} solver")
+        problem.check_alteration(alpha, source=f"{method} solver")
     # the problem's scale, which a claim is compared relative to: the largest exact value
-    scale = max([exact_value(identity), *map(exact_value, alterations)])
+    scale = max([exact_value(problem.identity()), *map(exact_value, alterations)])
+    curve: list[CurvePoint] = []
+    warnings: list[str] = []
     for solution, alpha in zip(solutions, alterations, strict=True):
         point = CurvePoint(
             budget=solution.budget,
@@ -470,26 +538,9 @@ def solve(
             certified_by=solution.certified_by,
             notes=dict(solution.notes),
         )
-        warnings += check_claims(point, method_solver.name, scale, _floor(problem))
+        warnings += check_claims(point, method, scale, _floor(problem))
         curve.append(point)
-    unaltered = (identity, exact_value(identity), exact_value.error(identity))
-    certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))
-    for point in curve:  # a single method that proved its own point names itself
-        if point.status == Status.OPTIMAL and point.certified_by is None:
-            point.certified_by = method_solver.name
-    return SolveResult(
-        problem=problem.name,
-        method=method_solver.name,
-        baseline_probability=_clean(exact_value(identity)),
-        time_s=elapsed,
-        curve=[_result(point, problem) for point in curve],
-        warnings=warnings,
-        notes=list(problem.notes),
-        budget_clamped_from=clamped_from,
-        budget_clamped_to=None if clamped_from is None else cap,
-        interrupted=interrupted,
-        objective=problem.objective.kind,
-    )
+    return curve, warnings
 
 
 def recertify(result: SolveResult, problem: Problem, evidence: Sequence[Evidence]) -> SolveResult:
@@ -529,15 +580,23 @@ def _point(answer: BudgetResult) -> CurvePoint:
 
 
 def _budgets(
-    problem: Problem, budgets: Sequence[float] | None, curve_is_free: bool
+    problem: Problem,
+    budgets: Sequence[float] | None,
+    curve_is_free: bool,
+    notes: list[str] | None = None,
 ) -> tuple[list[float], float, float | None]:
     """The budgets to answer (sorted, checked), the cap (the most expensive complete
-    alteration's cost) and the largest budget asked for when it exceeds the cap."""
+    alteration's cost) and the largest budget asked for when it exceeds the cap; a default
+    curve too long to list whole is thinned, said in ``notes``."""
     cap = max_alteration_cost(problem)
     asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
     _, clamped_from = clamp_budget(asked, cap)
     if budgets is None:
-        whole = default_budgets(min(problem.budget, cap)) if curve_is_free else []
+        whole = (
+            default_budgets(min(problem.budget, cap), problem.cost.scale, notes=notes)
+            if curve_is_free
+            else []
+        )
         budgets = [*whole, problem.budget]
     ordered = sorted({float(b) for b in budgets})
     for b in ordered:

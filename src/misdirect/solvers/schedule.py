@@ -30,8 +30,8 @@ SAMPLE_SECONDS = 0.2  # ... stopping once this long is spent (after the first)
 CLIMB_SHARE = 0.25  # of a budget's even share: the hill climb before its search
 SEGMENT_MIN_SECONDS = 1.0  # the segment search backs a budget up with at least this much left
 HANDOVER_MIN_SECONDS = 1.0  # a later stage of auto starts only with at least this much left: a
-# MILP handed half a second built its model, solved, checked its claim and proved a bound past
-# a 10 s limit by 1.2 s, and answered nothing new
+# MILP handed less still builds its model, solves, checks its claim and proves a bound, so it
+# overruns the limit and answers nothing new
 SEGMENT_SHARE = 0.95  # ... and takes this share of a budget's time (its bound is the tighter)
 SEGMENT_FIRST_SECONDS = 5.0  # ... with no time limit, the per-state search gets this long first
 
@@ -138,6 +138,18 @@ def search_before_enumerating(
     return max(left - needed / ENUMERATION_RESERVE, SEARCH_FIRST * left)
 
 
+# -- the MILP: its values' scale, then each budget ------------------------------------------------
+MILP_SCALE_PARTS = 10  # the relaxation that scales the MILP's values takes a tenth of the time
+
+
+def milp_scale(deadline: Deadline) -> Deadline:
+    """The per-state relaxation that gives the MILP its values' scale (its bound on every
+    state's value at the largest budget): a tenth of the time left at most; without a limit,
+    the grace of a closing bound. Cut short, it gives the trivial bound: scale 1."""
+    share = deadline.share(MILP_SCALE_PARTS)
+    return closing_bound(deadline) if share is None else Deadline(share, cancel=deadline.cancel)
+
+
 def milp_budget(deadline: Deadline, budgets_left: int) -> float | None:
     """Seconds for the MILP's next budget: an even share of what is left (what a budget does
     not use rolls over to the next); None without a limit."""
@@ -183,8 +195,8 @@ CLOSING_BOUND_SECONDS = 1.0  # a method cut short proves its bound within this m
 def closing_bound(deadline: Deadline) -> Deadline:
     """The deadline of the bound a method proves once it is cut short (its own time is up):
     ``CLOSING_BOUND_SECONDS`` past ``deadline``, one grace shared by every such bound of the
-    run (a curve cut short proves one per budget: each its own second overran a 10 s limit by
-    2 s), and a cancellation still ends it at once. Without a time limit, that much from
+    run (a curve cut short proves one per budget: a grace each would add up past the limit),
+    and a cancellation still ends it at once. Without a time limit, that much from
     now."""
     if deadline.end is None:
         return Deadline(CLOSING_BOUND_SECONDS, cancel=deadline.cancel)

@@ -13,6 +13,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from misdirect.solvers.status import Status
+
 
 @dataclass(frozen=True)
 class MethodStats(Mapping[str, Any]):
@@ -88,7 +90,7 @@ class MilpStats(MethodStats):
     model: Mapping[str, Any]
     solver: str
     solve_time_s: float
-    status: str  # how the backend stopped; the point's status may be lower
+    status: Status  # how the backend stopped; the point's status may be lower
     objective: float | None
     bound: float | None
     nodes: int | None
@@ -99,6 +101,22 @@ class MilpStats(MethodStats):
     @property
     def formulation(self) -> str:
         return str(self.model["formulation"])
+
+    @property
+    def variables(self) -> int:
+        return int(self.model["variables"])
+
+    @property
+    def rows(self) -> int:
+        return int(self.model["rows"])
+
+    @property
+    def nonzeros(self) -> int:
+        return int(self.model["nonzeros"])
+
+    @property
+    def build_time_s(self) -> float:
+        return float(self.model["build_time_s"])
 
     def to_dict(self) -> dict[str, Any]:
         own = {f.name: getattr(self, f.name) for f in fields(self)}

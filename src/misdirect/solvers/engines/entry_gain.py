@@ -33,7 +33,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU
 
-from misdirect.core import residual
+from misdirect.core import residual, tolerance
 from misdirect.core.reachability import factorise, steps_bound
 
 UNIT_ROUNDOFF = residual.UNIT_ROUNDOFF
@@ -122,7 +122,7 @@ def _solved(classes: _Classes, target: np.ndarray, target_value: np.ndarray) -> 
     own = np.arange(transient.size)
     _, value_residual = residual.residual(inner, values, np.zeros_like(values), own, reward)
     # errors (I - Q)^-1 r: at most max|r| times the steps
-    value_error = float(value_residual.max(initial=0.0)) * steps * (1 + 1e-9)
+    value_error = float(value_residual.max(initial=0.0)) * steps * (1 + tolerance.BOUND_MARGIN)
     return _Solved(transient, rows, inner, values, value_error, steps, lu)
 
 
@@ -180,7 +180,7 @@ def _entry_gains(
     # transposed: at most sum|r| steps per state (visits to x from anywhere are at most
     # those from x, at most its steps)
     value_error = solved.value_error
-    visit_error = float(visit_residual.sum()) * solved.steps * (1 + 1e-9)
+    visit_error = float(visit_residual.sum()) * solved.steps * (1 + tolerance.BOUND_MARGIN)
     if not (np.isfinite(value_error) and np.isfinite(visit_error)):
         return EntryGains(top, np.full(n_regions, np.inf)), classes, None
     value_up = min(float(values[position]) + value_error, top)
@@ -282,7 +282,7 @@ def first_entry_gains(
         local = np.arange(outside.size)
         _, gain_residual = residual.residual(stay, gain, np.zeros_like(gain), local, reward)
         # runs that stop on entering s take at most as many steps as the base chain's
-        error = float(gain_residual.max(initial=0.0)) * solved.steps * (1 + 1e-9)
+        error = float(gain_residual.max(initial=0.0)) * solved.steps * (1 + tolerance.BOUND_MARGIN)
         proven = float(gain[int(np.searchsorted(outside, position))]) + error
         if np.isfinite(proven):
             gains[s] = min(gains[s], max(proven, 0.0) * (1 + 4 * UNIT_ROUNDOFF))

@@ -242,6 +242,78 @@ class _BlockBase(NamedTuple):
     steps: float = np.inf  # proven bound on the base chain's expected steps (its conditioning)
 
 
+# one block's (inner costs, values, alterations, the cost from which budgets stay open)
+_Block = tuple[np.ndarray, np.ndarray, AlteredEntries, float]
+
+
+class _BlockRun(NamedTuple):
+    """What one outer block of :meth:`LowRankEnumeration.run` enumerates."""
+
+    outer: list[int]
+    outer_pick: np.ndarray
+    inner: list[int]
+    fixed: dict[int, int]
+    remaining: float  # the budget left for inner alterations
+    floor: float | None
+    compiled: bool
+
+
+class _BlockOutcome(NamedTuple):
+    """How one outer block ran: its block (None: the deadline cut a block after the first
+    while it was being listed), when its base was factored, the base's proven steps, whether
+    the deadline cut the first block (it then holds its outer alteration alone), and whether
+    a base was solved."""
+
+    block: _Block | None
+    factored: float
+    steps: float = 0.0
+    cut_first: bool = False
+    base_solved: bool = False
+
+
+class _BlockPace:
+    """The time the blocks of one :meth:`LowRankEnumeration.run` take, measured as they run:
+    whether the next block still fits ``share`` (seconds; the blocks left that solve a base,
+    each as long as the last base, and their alterations at the last block's rate) and the
+    deadline a block gets within it."""
+
+    def __init__(self, per_block: np.ndarray | None, share: float | None):
+        self.share = share
+        self.began = time.perf_counter()
+        self.factor_s = self.per_alteration = self.base_s = self.bases_s = 0.0
+        self.last_count = self.blocks_done = 0
+        if per_block is not None:  # per block, its inner alterations (by its budget left)
+            self.after = np.cumsum(per_block[::-1])[::-1]  # alterations from each block on
+            self.bases_after = np.cumsum((per_block > 1)[::-1])[::-1]  # blocks with a base
+
+    def share_spent(self, done: int) -> bool:
+        """Whether the blocks from the ``done``-th on would take the run past its share."""
+        if self.share is None:
+            return False
+        projected = (
+            time.perf_counter()
+            - self.began
+            + float(self.bases_after[done]) * self.base_s
+            + self.per_alteration * float(self.after[done])
+        )
+        return projected > self.share
+
+    def block_deadline(self, deadline: Deadline, began: float) -> Deadline:
+        """``deadline``, or within it where the share ends."""
+        if self.share is None:
+            return deadline
+        return deadline.within(max(self.share - (began - self.began), 0.0))
+
+    def record(self, began: float, factored: float, count: int) -> None:
+        """A block began at ``began``, had its base at ``factored`` and valued ``count``."""
+        self.blocks_done += 1
+        self.factor_s, self.last_count = factored - began, count
+        self.bases_s += self.factor_s
+        if count > 1:  # a block of one alteration solves no base
+            self.base_s = self.factor_s
+        self.per_alteration = (time.perf_counter() - factored) / max(count, 1)
+
+
 class BasisCache:
     """Base chains kept between the enumerations of one search, at most ``kept`` of them
     (each ``W`` may take hundreds of MB), safe to share between its worker threads.
@@ -497,97 +569,43 @@ class LowRankEnumeration:
         costs: list[np.ndarray] = []
         values: list[np.ndarray] = []
         unevaluated, evaluations, steps, base_solves = np.inf, 0, 0.0, 0
-        # a block is not started with less time left than the last one took (later blocks
-        # cost more outside, so they have fewer alterations)
-        factor_s, per_alteration, last_count, base_s, bases_s = 0.0, 0.0, 0, 0.0, 0.0
-        run_began = time.perf_counter()
-        cut_first = False  # the deadline cut the first block while it was being listed
-        if share is not None:  # per block, its inner alterations (by its budget left)
-            per_block = self._per_block(inner_space, top, outer_costs, self.max_evaluations)
-            after = np.cumsum(per_block[::-1])[::-1]  # alterations from each block on
-            bases_after = np.cumsum((per_block > 1)[::-1])[::-1]  # blocks with a base
+        pace = _BlockPace(
+            None
+            if share is None
+            else self._per_block(inner_space, top, outer_costs, self.max_evaluations),
+            share,
+        )
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
-            if blocks and share is not None:
-                # the blocks left that solve a base, each as long as the last base, and
-                # their alterations at the last block's rate (a block of one alteration
-                # solves no base)
-                done = len(blocks)
-                projected = (
-                    time.perf_counter()
-                    - run_began
-                    + float(bases_after[done]) * base_s
-                    + per_alteration * float(after[done])
+            remaining = scale.remaining(top, outer_cost)
+            if blocks and (
+                pace.share_spent(len(blocks))
+                or not self._block_fits(
+                    deadline,
+                    pace.factor_s,
+                    pace.per_alteration,
+                    pace.last_count,
+                    inner_space,
+                    remaining,
                 )
-                if projected > share:
-                    break
-            if blocks and not self._block_fits(
-                deadline,
-                factor_s,
-                per_alteration,
-                last_count,
-                inner_space,
-                scale.remaining(top, outer_cost),
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
-            remaining = scale.remaining(top, outer_cost)
-            # with a share, a block stops where the share ends too (its smaller alterations
-            # first): the first block always starts, and one of a million deep alterations
-            # took 39 s of a 28 s share on sensor_grid(40, 16), leaving the search nothing
-            block_deadline = (
-                deadline
-                if share is None
-                else deadline.within(max(share - (began - run_began), 0.0))
-            )
-            if inner_space.count_within(remaining, 1) <= 1:
-                # no inner alteration fits: the block is one alteration, valued on its own
-                # chain (a base solve would solve for every inner row, thousands on a big map)
-                factored = began
-                block = self._single_block(outer, outer_pick)
-            else:
-                try:
-                    cheapest = inner_space.cheapest()
-                    one_entry = not scale.fits(cheapest + cheapest, remaining)
-                    base = self._block_base(
-                        outer, outer_pick, inner, fixed, bases, block_deadline, one_entry
-                    )
-                    base_solves += 1
-                    factored = time.perf_counter()
-                    block = self._block(
-                        remaining,
-                        inner,
-                        base,
-                        block_deadline,
-                        evaluations,
-                        compiled,
-                        outer,
-                        outer_pick,
-                        floor,
-                    )
-                    steps = max(steps, base.steps)
-                except DeadlineExpiredError:
-                    # cut while listing the block's alterations (core.checkpoint: ten million
-                    # take seconds): the budgets from its cost are open. The first block keeps
-                    # its alteration without inner ones, valued on its own chain (budget 0)
-                    if blocks:
-                        break
-                    cut_first = True
-                    factored = time.perf_counter()
-                    costs_0, found_0, altered_0, _ = self._single_block(outer, outer_pick)
-                    block = (costs_0, found_0, altered_0, inner_space.cheapest())
-            inner_costs, found, altered, cut_at = block
+            single = inner_space.count_within(remaining, 1) <= 1
+            run = _BlockRun(outer, outer_pick, inner, fixed, remaining, floor, compiled)
+            outcome = self._run_block(run, single, pace, deadline, bases, inner_space, evaluations)
+            base_solves += outcome.base_solved
+            if outcome.block is None:
+                break  # the deadline cut a later block while it was being listed
+            steps = max(steps, outcome.steps)
+            inner_costs, found, altered, cut_at = outcome.block
             evaluations += int(np.isfinite(inner_costs).sum())
             unevaluated = min(unevaluated, cut_at + outer_cost)
             costs.append(outer_cost + inner_costs)
             values.append(found)
             blocks.append((outer_pick, altered))
-            factor_s, last_count = factored - began, len(inner_costs)
-            bases_s += factor_s
-            if len(inner_costs) > 1:
-                base_s = factor_s
-            per_alteration = (time.perf_counter() - factored) / max(last_count, 1)
+            pace.record(began, outcome.factored, len(inner_costs))
             report(progress, len(blocks), len(outer_costs), stage="incremental")
-            if cut_first:
+            if outcome.cut_first:
                 break
         done = len(blocks)
         enumerated = Enumerated(
@@ -609,10 +627,65 @@ class LowRankEnumeration:
             base_solves=base_solves,
             scale=scale,
             top=top,
-            base_seconds=bases_s,
+            base_seconds=pace.bases_s,
             floor=floor,
         )
         return self._verified(enumerated, steps, deadline, floor)
+
+    def _run_block(
+        self,
+        run: _BlockRun,
+        single: bool,
+        pace: _BlockPace,
+        deadline: Deadline,
+        bases: BasisCache | None,
+        inner_space: AlterationSpace,
+        evaluations: int,
+    ) -> _BlockOutcome:
+        """One outer block of :meth:`run`: a single alteration on its own chain, or a base
+        solve and its inner alterations by low-rank updates."""
+        began = time.perf_counter()
+        if single:
+            # no inner alteration fits: the block is one alteration, valued on its own chain
+            # (a base solve would solve for every inner row, thousands on a big map)
+            return _BlockOutcome(self._single_block(run.outer, run.outer_pick, deadline), began)
+        # with a share, a block stops where the share ends too (its smaller alterations
+        # first): the first block always starts, and one of a million deep alterations could
+        # otherwise take the search's whole time (docs/benchmarks.md)
+        block_deadline = pace.block_deadline(deadline, began)
+        base_solved = False
+        try:
+            cheapest = inner_space.cheapest()
+            one_entry = not self.instance.space.scale.fits(cheapest + cheapest, run.remaining)
+            base = self._block_base(
+                run.outer, run.outer_pick, run.inner, run.fixed, bases, block_deadline, one_entry
+            )
+            base_solved = True
+            factored = time.perf_counter()
+            block = self._block(
+                run.remaining,
+                run.inner,
+                base,
+                block_deadline,
+                evaluations,
+                run.compiled,
+                run.outer,
+                run.outer_pick,
+                run.floor,
+            )
+            return _BlockOutcome(block, factored, base.steps, base_solved=True)
+        except DeadlineExpiredError:
+            # cut while listing the block's alterations (core.checkpoint: ten million take
+            # seconds): the budgets from its cost are open. The first block keeps its
+            # alteration without inner ones, valued on its own chain (budget 0)
+            if pace.blocks_done:
+                return _BlockOutcome(None, began, base_solved=base_solved)
+            factored = time.perf_counter()
+            costs_0, found_0, altered_0, cut_0 = self._single_block(
+                run.outer, run.outer_pick, deadline
+            )
+            first = (costs_0, found_0, altered_0, min(cut_0, inner_space.cheapest()))
+            return _BlockOutcome(first, factored, cut_first=True, base_solved=base_solved)
 
     def _verified(
         self, found: Enumerated, steps: float, deadline: Deadline, floor: float | None = None
@@ -627,7 +700,9 @@ class LowRankEnumeration:
         its exact value. With ``floor`` (the run answers for its top budget only, and only
         about what may reach the floor), also not those more than ``2M`` below it. Those the
         deadline leaves are unvalued (cost ``inf``), as a block cut short leaves them: their
-        budgets are not proven."""
+        budgets are not proven. One of cost 0 is kept, unverified, whatever the deadline: it
+        fits every budget, so budget 0 always has an answer (the unaltered alteration is
+        re-valued exactly by the front door); alone at cost 0 it proves budget 0 unranked."""
         top_value = self.instance.problem.objective.max_value
         margin = update_error(steps, top_value)
         precise = margin <= tolerance.slack(top_value, rel=tolerance.NEAR_TIE) / 10
@@ -642,8 +717,14 @@ class LowRankEnumeration:
             least = floor - 2 * margin - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
             candidates = candidates[values[candidates] >= least]
         unevaluated = found.unevaluated
+        free = costs <= found.scale.cap(0.0)
+        # an unverified free alteration competes at every budget; alone, not at budget 0
+        free_open = float(costs[~free].min(initial=np.inf)) if free.sum() == 1 else 0.0
         for index in candidates[np.argsort(-values[candidates], kind="stable")].tolist():
             if deadline.expired():
+                if free[index]:
+                    unevaluated = min(unevaluated, free_open)
+                    continue
                 unevaluated = min(unevaluated, float(costs[index]))
                 costs[index] = np.inf
                 continue
@@ -1012,16 +1093,20 @@ class LowRankEnumeration:
         return cast(sp.csr_matrix, chain.transitions[policy])
 
     def _single_block(
-        self, outer: list[int], outer_pick: np.ndarray
+        self, outer: list[int], outer_pick: np.ndarray, deadline: Deadline | None = None
     ) -> tuple[np.ndarray, np.ndarray, AlteredEntries, float]:
         """:meth:`_block` for a block whose only alteration leaves every inner choice
-        unaltered: its value exactly, from its own chain."""
+        unaltered: its value exactly, from its own chain. Once ``deadline`` has passed it is
+        left unvalued (cost ``inf``, the block cut at inner cost 0): a chain solve of a big map
+        takes as long as the base solve before it, and the caller answers without it."""
+        none = np.zeros(0, dtype=np.int64)
+        altered = AlteredEntries(none, none, none, np.zeros(1), np.full(1, -1, dtype=np.int64))
+        if deadline is not None and deadline.expired():
+            return np.full(1, np.inf), np.zeros(1), altered, 0.0
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
         value = self._exact_value(picked)
         self.exact_evaluations += 1
-        none = np.zeros(0, dtype=np.int64)
-        altered = AlteredEntries(none, none, none, np.zeros(1), np.full(1, -1, dtype=np.int64))
         return altered.costs, np.array([value]), altered, np.inf
 
     def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> _Trap:
@@ -1190,10 +1275,11 @@ class LowRankEnumeration:
         class, by blocks of their own: those whose first such entry is option ``k`` of inner
         choice ``j`` are that option fixed and the other inner choices enumerated, so one
         base solve (with its own closed classes) and low-rank updates value them all, instead
-        of one chain each (on a drone among patrolling agents, 11,184 chains took 44 s of a
-        search's minute). Groups under :data:`OPENED_BLOCK_FROM` are left to the caller, and
-        so is a block whose base is too ill-conditioned for low-rank values. Returns (cheapest
-        alteration cut short by ``deadline``, ``inf``: none; the alterations valued or cut)."""
+        of one chain each (on a drone among patrolling agents those chains took most of a
+        search's time: docs/benchmarks.md). Groups under :data:`OPENED_BLOCK_FROM` are left
+        to the caller, and so is a block whose base is too ill-conditioned for low-rank
+        values. Returns (cheapest alteration cut short by ``deadline``, ``inf``: none; the
+        alterations valued or cut)."""
         cycles, table = base.cycles, base.deltas
         assert cycles is not None
         indices = indices[np.isfinite(inner_costs[indices])]

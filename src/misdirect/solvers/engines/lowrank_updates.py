@@ -379,7 +379,7 @@ def _direct_corrections(
     bordered on its parent's; NaN where that system is ill-conditioned
     (:data:`~misdirect.core.tolerance.ILL_CONDITIONED`: the caller values those exactly).
     A chunk at a time, between looks at ``deadline``: on a map of tiny probabilities most
-    deep alterations come here (175,000 of 1.2 million took 30 s on sensor_grid(40, 16));
+    deep alterations come here, a large part of a run's time (docs/benchmarks.md);
     ``done`` says which the deadline left."""
     pad = deltas.rhs.size - 1
     out = np.full(alterations.size, np.nan)
@@ -435,7 +435,8 @@ class _Tree(NamedTuple):
         altered: AlteredEntries, deltas: RowDeltas, expired: Callable[[], bool] | None = None
     ) -> _Tree | None:
         """The tree of ``altered``, a chunk of :data:`TREE_CHUNK` entries at a time with a
-        look at ``expired`` between two (None once it says so: 28 million entries took 2 s)."""
+        look at ``expired`` between two (None once it says so: tens of millions of entries take
+        seconds)."""
         n, n_entries = altered.costs.size, altered.alteration.size
         depth = np.zeros(n, dtype=np.int64)
         width = np.zeros(n, dtype=np.int64)

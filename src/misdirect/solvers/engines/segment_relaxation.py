@@ -163,7 +163,7 @@ class SegmentLagrangian:
         best_policy = best_lu = best_values = None
         lam = 0.0
         positive = mdp.charge[mdp.charge > 0]
-        high = 1.0 / max(float(positive.min(initial=1.0)), 1e-300)
+        high = 1.0 / max(float(positive.min(initial=1.0)), tolerance.DENOMINATOR_FLOOR)
         if not positive.size:
             max_multipliers = 1  # nothing is charged: λ changes nothing
         lo_line = hi_line = None

@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Protocol, cast
 
@@ -40,7 +41,7 @@ from misdirect.solvers.milp.model import MilpModel
 # rows that depend on them off by up to 1e-6 (0.400001 for 0.4 on random_problem(5380)). So,
 # whatever the backend, a claim made at a point that is not feasible to 1e-9 is recomputed as
 # the LP with the binaries rounded (``violation``, ``value_with_rounded_binaries``).
-INTEGRALITY_TOLERANCE = 1e-9
+INTEGRALITY_TOLERANCE = tolerance.INTEGRALITY
 # HiGHS 1.14.0's MIP presolve has reported bugs that return a wrong point as "optimal"
 # (ERGO-Code/HiGHS#3073, #3094; fixed in 1.15, which this package cannot use yet). On these
 # models it hits random_problem(5561) at budget 1 (0.5 where the optimum is 0.513430) through
@@ -103,9 +104,20 @@ def _highs_option(highs: Any, name: str) -> float:
     return float(value[1] if isinstance(value, tuple) else value)
 
 
+class BackendStatus(StrEnum):
+    """How a backend stopped, its own codes normalised at the boundary (each backend's table
+    below; the code itself stays in :attr:`BackendResult.detail`). A ``str``: the same words
+    as before in JSON and messages."""
+
+    OPTIMAL = "optimal"  # proven, or stopped at its gap (MilpSolver tells which by the bound)
+    TIME_LIMIT = "time_limit"  # out of time, or stopped on request
+    INFEASIBLE = "infeasible"
+    ERROR = "error"  # anything else
+
+
 @dataclass
 class BackendResult:
-    status: str  # "optimal" | "time_limit" | "infeasible" | "error" (gap stops: "optimal")
+    status: BackendStatus
     values: np.ndarray | None  # incumbent column values, None if there is none
     objective: float | None
     bound: float | None  # proven upper bound on the objective
@@ -218,7 +230,7 @@ class HighsBackend:
                 if not self._answered(grace, cancel):
                     self._stop_worker(kill=True)
                     return BackendResult(
-                        "time_limit",
+                        BackendStatus.TIME_LIMIT,
                         None,
                         None,
                         None,
@@ -241,7 +253,7 @@ class HighsBackend:
             return cast(BackendResult, payload)
         raise SolverError(
             f"HiGHS crashed {self.retries} times on this model (worker exit code {code}); "
-            "try another backend: --solver scip or --solver gurobi"
+            'try another backend: solver="scip" or solver="gurobi"'
         )
 
     def close(self) -> None:
@@ -403,18 +415,18 @@ def run_highs(
     model_status = highs.getModelStatus()
     if model_status == hs.HighsModelStatus.kModelEmpty:  # nothing to choose: the offset
         offset = arrays["offset"]
-        return BackendResult("optimal", np.zeros(0), offset, offset, 0, elapsed)
+        return BackendResult(BackendStatus.OPTIMAL, np.zeros(0), offset, offset, 0, elapsed)
     info = highs.getInfo()
     has_incumbent = info.primal_solution_status == 2  # kSolutionStatusFeasible
     values = np.asarray(highs.getSolution().col_value) if has_incumbent else None
     status = {
-        hs.HighsModelStatus.kOptimal: "optimal",
-        hs.HighsModelStatus.kTimeLimit: "time_limit",
-        hs.HighsModelStatus.kInterrupt: "time_limit",
-        hs.HighsModelStatus.kInfeasible: "infeasible",
-    }.get(model_status, "error")
+        hs.HighsModelStatus.kOptimal: BackendStatus.OPTIMAL,
+        hs.HighsModelStatus.kTimeLimit: BackendStatus.TIME_LIMIT,
+        hs.HighsModelStatus.kInterrupt: BackendStatus.TIME_LIMIT,
+        hs.HighsModelStatus.kInfeasible: BackendStatus.INFEASIBLE,
+    }.get(model_status, BackendStatus.ERROR)
     if not arrays["integer"].any():  # a pure LP: its optimum is its bound
-        bound = info.objective_function_value if status == "optimal" else None
+        bound = info.objective_function_value if status == BackendStatus.OPTIMAL else None
     else:
         bound = info.mip_dual_bound if math.isfinite(info.mip_dual_bound) else None
     return BackendResult(
@@ -576,17 +588,19 @@ class GurobiBackend:
         if m.Status == gp.GRB.INTERRUPTED:  # Gurobi caught Ctrl-C itself: pass it on
             raise KeyboardInterrupt
         status = {
-            gp.GRB.OPTIMAL: "optimal",
-            gp.GRB.TIME_LIMIT: "time_limit",
-            gp.GRB.INTERRUPTED: "time_limit",
-            gp.GRB.INFEASIBLE: "infeasible",
-        }.get(m.Status, "error")
+            gp.GRB.OPTIMAL: BackendStatus.OPTIMAL,
+            gp.GRB.TIME_LIMIT: BackendStatus.TIME_LIMIT,
+            gp.GRB.INTERRUPTED: BackendStatus.TIME_LIMIT,
+            gp.GRB.INFEASIBLE: BackendStatus.INFEASIBLE,
+        }.get(m.Status, BackendStatus.ERROR)
         has = m.SolCount > 0
         return BackendResult(
             status=status,
             values=np.asarray(self.vars.X) if has else None,
             objective=m.ObjVal if has else None,
-            bound=m.ObjBound if status in ("optimal", "time_limit") else None,
+            bound=m.ObjBound
+            if status in (BackendStatus.OPTIMAL, BackendStatus.TIME_LIMIT)
+            else None,
             nodes=int(m.NodeCount),
             solve_time_s=elapsed,
             detail={"gurobi_status": int(m.Status)},
@@ -665,14 +679,14 @@ class ScipBackend:
             if left is not None and left <= 0:
                 raise SolverError(
                     "SCIP failed: its LP solver met numerical trouble; try another backend: "
-                    "--solver highs"
+                    'solver="highs"'
                 ) from None
         try:
             return self._solve_once(start, left, cancel, careful=True)
         except _NumericalTroubleError as error:
             raise SolverError(
                 f"SCIP failed: {error} (also with its numerics emphasis); try another "
-                "backend: --solver highs"
+                'backend: solver="highs"'
             ) from None
 
     def _solve_once(
@@ -739,12 +753,12 @@ class ScipBackend:
         if raw == "userinterrupt" and not (cancel is not None and cancel.cancelled):
             raise KeyboardInterrupt  # not ours: pass it on, do not answer
         status = {
-            "optimal": "optimal",
-            "timelimit": "time_limit",
-            "userinterrupt": "time_limit",
-            "infeasible": "infeasible",
-            "gaplimit": "optimal",  # MilpSolver tells a gap stop from a proof by the bound
-        }.get(raw, "error")
+            "optimal": BackendStatus.OPTIMAL,
+            "timelimit": BackendStatus.TIME_LIMIT,
+            "userinterrupt": BackendStatus.TIME_LIMIT,
+            "infeasible": BackendStatus.INFEASIBLE,
+            "gaplimit": BackendStatus.OPTIMAL,  # MilpSolver tells a gap stop by the bound
+        }.get(raw, BackendStatus.ERROR)
         has = scip.getNSols() > 0
         best = scip.getBestSol() if has else None
         values = np.array([scip.getSolVal(best, v) for v in variables]) if has else None
@@ -843,7 +857,7 @@ def value_with_rounded_binaries(
         result = backend.solve(None, time_limit=time_limit)
     finally:
         backend.close()
-    return result.objective if result.status == "optimal" else None
+    return result.objective if result.status == BackendStatus.OPTIMAL else None
 
 
 def unscaled(model: MilpModel) -> MilpModel:
@@ -867,7 +881,7 @@ def write_model(model: MilpModel, path: Path) -> None:
     suffix = Path(path).suffix.lower()
     if suffix not in (".mps", ".lp"):
         raise ProblemError(
-            f"cannot write {suffix or 'a file without suffix'}: use .mps or .lp", field="-o"
+            f"cannot write {suffix or 'a file without suffix'}: use .mps or .lp", field="path"
         )
     from misdirect.io.files import write_output
 

@@ -54,7 +54,7 @@ def build_paper(
     if not problem.objective.is_probability:
         raise SolverError(
             "the paper's formulation maximises a probability; weighted decoy sets need "
-            "--formulation compact (the default)"
+            'formulation="compact" (the default)'
         )
     started = time.perf_counter()
     check_paper_fits(problem)

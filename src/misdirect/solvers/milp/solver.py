@@ -57,6 +57,7 @@ from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_val
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.backends import (
     BackendResult,
+    BackendStatus,
     SolverOptions,
     Tolerances,
     make_backend,
@@ -126,7 +127,7 @@ def _status(result: BackendResult, value: float | None) -> Status:
     than the gap tolerance above ``value`` (its incumbent's: the better of its objective and
     the claim) is ``gap_limit``, a stop because the gap fell under ``mip_gap``."""
     if (
-        result.status == "optimal"
+        result.status == BackendStatus.OPTIMAL
         and result.bound is not None
         and value is not None
         and result.bound - value
@@ -172,14 +173,8 @@ class MilpSolver:
         deadline = deadline or Deadline(self.options.time_limit)
         # the values' scale: the relaxation's bound on the optimum, and on every state's value,
         # at the largest budget (a decoy behind a branch of 1e-10 has values of 1e-10, below
-        # HiGHS's tolerances) (a tenth of the time left at most: cut short, it is the trivial
-        # bound, scale 1)
-        share = deadline.share(10)
-        quick = (
-            schedule.closing_bound(deadline)
-            if share is None
-            else Deadline(share, cancel=deadline.cancel)
-        )
+        # HiGHS's tolerances), in the time the schedule gives it
+        quick = schedule.milp_scale(deadline)
         model = scaled_formulation(problem, self.formulation, max(budgets), quick)
         backend = make_backend(self.backend_name, self.options)
         try:
@@ -218,7 +213,7 @@ class MilpSolver:
             stage = f"milp ({backend.name}), budget {budget:g}"
             report(progress, done - 1, len(budgets), stage=stage)
             if deadline.cancelled:  # stopped: the budgets left are not handed to the backend
-                result = BackendResult("time_limit", None, None, None, None, 0.0)
+                result = BackendResult(BackendStatus.TIME_LIMIT, None, None, None, None, 0.0)
             else:
                 result = backend.solve(
                     curve.start,
@@ -243,11 +238,15 @@ class MilpSolver:
             objective=None if result.objective is None else result.objective * unit + 0.0,
             bound=None if result.bound is None else result.bound * unit + 0.0,
         )
-        if result.status not in ("optimal", "time_limit", "infeasible"):
+        if result.status not in (
+            BackendStatus.OPTIMAL,
+            BackendStatus.TIME_LIMIT,
+            BackendStatus.INFEASIBLE,
+        ):
             raise SolverError(f"{backend} stopped with status {result.detail} at budget {budget:g}")
         violation = 0.0
         if result.values is None:
-            if result.status == "infeasible":
+            if result.status == BackendStatus.INFEASIBLE:
                 raise SolverError(
                     f"the {self.formulation} MILP is infeasible at budget {budget:g}, "
                     "which cannot happen for a valid problem; please report it"
