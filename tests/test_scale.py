@@ -23,6 +23,8 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from misdirect import evaluate, load_problem, solve
 from misdirect.core import tolerance
@@ -212,6 +214,44 @@ def test_scaled_model_has_the_same_answer(tmp_path, scale, what):
         factor = scale if what == "weight" else 1.0
         assert top[method][2] == pytest.approx(0.4 * factor, rel=1e-12)
         assert short[method][2] == pytest.approx(0.1 * factor, rel=1e-12)
+
+
+@settings(
+    max_examples=10,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+    derandomize=True,  # the same examples in every run: CI stays reproducible
+)
+@given(
+    cost_exponent=st.integers(-12, 12),
+    weight_exponent=st.integers(-12, 12),
+    branch_exponent=st.integers(0, 12),
+)
+def test_every_scale_at_once_has_the_same_answer(
+    tmp_path, cost_exponent, weight_exponent, branch_exponent
+):
+    """The fuzz campaign's scaled numbers: costs and budget by 10^a, the decoy's weight by
+    10^b and its branch's probability by 10^-c, all at once. Every method still returns
+    o1 -> o0 at a budget of one cost and nothing just short of it, both ``optimal``, worth
+    ``0.8 p w`` and ``0.2 p w`` (the module docstring's hand calculation)."""
+    cost, weight = 10.0**cost_exponent, 10.0**weight_exponent
+    p = 0.5 * 10.0**-branch_exponent
+    problem = _model(tmp_path, p=p, weight=weight, cost=cost, budget=cost)
+    top, short = _answers(problem, cost), _answers(problem, 0.999 * cost)
+    for method in METHODS:
+        assert top[method][:2] == ("optimal", {"o1": "o0"}), method
+        assert short[method][:2] == ("optimal", {}), method
+        assert top[method][2] == pytest.approx(0.8 * p * weight, rel=1e-9), method
+        assert short[method][2] == pytest.approx(0.2 * p * weight, rel=1e-9), method
+
+
+def test_milp_certifies_a_decoy_worth_100(tmp_path):
+    """Found by the campaign above: a decoy of weight 100 (o1 -> o0 worth 0.8 * 0.5 * 100 =
+    40 by hand) left the MILP at ``gap_limit``, HiGHS's bound 1e-6 above 40 (it prunes within
+    its own absolute tolerance); the per-state relaxation at the budget proves it."""
+    point = solve(_model(tmp_path, weight=100.0), method="milp", budgets=[1.0]).curve[-1]
+    assert (point.status.value, point.alteration) == ("optimal", {"o1": "o0"})
+    assert point.probability == pytest.approx(40.0, rel=1e-12)
 
 
 @pytest.mark.parametrize("p", [1e-6, 1e-12])
