@@ -548,6 +548,51 @@ def test_a_read_only_install_and_home_still_run(tmp_path):
     assert 0 <= payload["value"] <= 1
 
 
+READ_ONLY_HOME_COMMANDS = [
+    ["evaluate", "--scenario", "paper-grid", "--size", "5", "--json"],
+    ["solve", "--scenario", "paper-grid", "--size", "6", "--budget", "0..2", "--json"],
+    ["audit", "--scenario", "paper-grid", "--size", "5", "--budget", "1", "--json"],
+    ["scenario", "random", "--seed", "3", "-o", "-"],
+]
+
+
+@settings(
+    max_examples=4,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    argv=st.sampled_from(READ_ONLY_HOME_COMMANDS),
+    cache_dir_set=st.booleans(),
+)
+def test_commands_under_a_read_only_home(tmp_path, argv, cache_dir_set):
+    """The campaign's read-only HOME: any command, with or without XDG_CACHE_HOME pointing
+    into it, runs to its normal end (numba's cache falls back), with no traceback."""
+    wrapper = _read_only_runner()
+    if not wrapper:  # as root only a read-only mount stops writes
+        pytest.skip("cannot mount a folder read-only here")
+    home = tmp_path / "home"
+    home.mkdir(exist_ok=True)
+    env = dict(os.environ, HOME=str(home), PYTHONPATH=str(ROOT / "src"))
+    env.pop("NUMBA_CACHE_DIR", None)
+    env.pop("XDG_CACHE_HOME", None)
+    if cache_dir_set:
+        env["XDG_CACHE_HOME"] = str(home / ".cache")
+    program = [sys.executable, "-c", "from misdirect.cli import main; main()", *argv]
+    script = f'mount --bind -o ro {home} {home} && exec "$@"'
+    done = subprocess.run(
+        [*wrapper, "sh", "-c", script, "sh", *program],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert not any(home.iterdir())  # nothing could be written there
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 @pytest.mark.parametrize(
     "sig, code, words", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "SIGTERM")]
