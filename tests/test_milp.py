@@ -101,7 +101,7 @@ def _check_against_oracle(problem, result, oracle, context):
         assert mine.probability == pytest.approx(best.probability, abs=1e-7), where
         assert mine.solver_probability == pytest.approx(best.probability, abs=1e-7), where
         assert mine.stats["bound"] >= best.probability - 1e-7, where
-        assert mine.cost <= mine.budget + 1e-9, where
+        assert mine.cost <= mine.budget, where
         assert problem.alteration_cost(problem.alteration(mine.alteration)) == mine.cost
     return downgraded
 
