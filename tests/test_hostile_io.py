@@ -552,7 +552,7 @@ READ_ONLY_HOME_COMMANDS = [
     ["evaluate", "--scenario", "paper-grid", "--size", "5", "--json"],
     ["solve", "--scenario", "paper-grid", "--size", "6", "--budget", "0..2", "--json"],
     ["audit", "--scenario", "paper-grid", "--size", "5", "--budget", "1", "--json"],
-    ["scenario", "random", "--seed", "3", "-o", "-"],
+    ["scenario", "random", "--seed", "3", "-o", "random.yaml"],
 ]
 
 
@@ -572,8 +572,9 @@ def test_commands_under_a_read_only_home(tmp_path, argv, cache_dir_set):
     wrapper = _read_only_runner()
     if not wrapper:  # as root only a read-only mount stops writes
         pytest.skip("cannot mount a folder read-only here")
-    home = tmp_path / "home"
+    home, work = tmp_path / "home", tmp_path / "work"  # files are written in work
     home.mkdir(exist_ok=True)
+    work.mkdir(exist_ok=True)
     env = dict(os.environ, HOME=str(home), PYTHONPATH=str(ROOT / "src"))
     env.pop("NUMBA_CACHE_DIR", None)
     env.pop("XDG_CACHE_HOME", None)
@@ -587,6 +588,7 @@ def test_commands_under_a_read_only_home(tmp_path, argv, cache_dir_set):
         text=True,
         env=env,
         timeout=300,
+        cwd=work,
     )
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr, done.stderr

@@ -699,3 +699,32 @@ def test_the_first_blocks_own_value_is_not_started_past_the_deadline(monkeypatch
     for point in result.curve:
         assert point.alteration == {} and point.probability == pytest.approx(baseline)
         assert point.status == "time_limit"
+
+
+def test_time_s_of_a_search_cut_before_any_answer_leaves_out_the_exact_values(monkeypatch):
+    """The 1000x1000 grid at a 5 s limit reported time_s 20.9: its method was cut before any
+    answer, and the unaltered chain's exact value (the printed baseline: 14 s on a million
+    states) was counted as search time. Exact values come on top of the limit, as after any
+    other search. A clock that jumps 100 s on each exact value shows which side it is on."""
+    from misdirect.solvers import run as run_module
+    from misdirect.solvers.auto import AutoSolver
+    from misdirect.solvers.certification import ExactValues
+
+    clock = {"now": 0.0}
+    monkeypatch.setattr(run_module.time, "perf_counter", lambda: clock["now"])
+    valued = ExactValues.__call__
+
+    def slow_exact(self, alteration):
+        clock["now"] += 100.0
+        return valued(self, alteration)
+
+    def cut(self, problem, budgets, *, progress=None, deadline=None):
+        clock["now"] += 3.0  # the search's own time
+        raise DeadlineExpiredError
+
+    monkeypatch.setattr(ExactValues, "__call__", slow_exact)
+    monkeypatch.setattr(AutoSolver, "solve", cut)
+    result = misdirect.solve(paper_grid(5), budgets=[1.0], time_limit=5)
+    assert result.time_s == 3.0
+    assert result.final.status.value == "time_limit"
+    assert result.final.alteration == {}  # the unaltered chain, valued exactly

@@ -438,13 +438,16 @@ def solve(
     exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
     # the stages of this call share each prepared instance, and the exact values; building
     # the choice product stops at the deadline too (core.checkpoint)
+    solutions: list[Solution] | None = None
     try:
         with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
             solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
     except DeadlineExpiredError:  # cut before the method had anything
-        solutions = _unaltered_solutions(problem, clamped, exact_value)
+        pass
     interrupted = deadline.cancelled
-    elapsed = time.perf_counter() - started
+    elapsed = time.perf_counter() - started  # the search's time: exact values come on top
+    if solutions is None:
+        solutions = _unaltered_solutions(problem, clamped, exact_value)
     if clamped_from is not None:
         by_budget = {solution.budget: solution for solution in solutions}
         solutions = [
