@@ -605,23 +605,10 @@ def test_a_signal_while_importing_is_one_line(sig, code, words, launcher, moment
     """0.15 to 0.3 s after start the command is importing its modules (numpy, scipy, numba,
     ...). ``python -m misdirect`` printed a traceback at any such moment: its ``__main__`` is
     not yet the package's while the package imports."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
     command = [COMMAND] if launcher == "script" else [sys.executable, "-m", "misdirect"]
-    process = subprocess.Popen(
-        [*command, "solve", "--scenario", "paper-grid", "--size", "25", "--budget", "0..7", "-q"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    try:
-        time.sleep(moment)
-        process.send_signal(sig)
-        _, stderr = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == code, stderr
+    solve = ["solve", "--scenario", "paper-grid", "--size", "25", "--budget", "0..7", "-q"]
+    returncode, stderr = _signalled([*command, *solve], sig, moment)
+    assert returncode == code, stderr
     assert "Traceback" not in stderr and stderr.count("\n") == 1 and words in stderr, stderr
 
 
@@ -637,13 +624,21 @@ def test_a_signal_at_any_moment_is_one_line(moment, case):
     already finished (exit 0); never a traceback. Found by it: a signal during the
     interpreter's shutdown ends the process by that signal (the answer already printed)."""
     sig, code, words = case
+    solve = ["solve", "--scenario", "paper-grid", "--size", "12", "--budget", "0..5", "-q"]
+    returncode, stderr = _signalled([COMMAND, *solve], sig, moment)
+    # -sig: the signal came as the interpreter shut down, after the answer was printed and
+    # the handlers were gone; a shell shows it as the same code (128 + sig)
+    assert returncode in (0, code, -sig), stderr
+    assert "Traceback" not in stderr, stderr
+    if returncode == code:
+        assert words in stderr, stderr
+
+
+def _signalled(argv: list[str], sig: int, moment: float) -> tuple[int, str]:
+    """(exit code, standard error) of ``argv`` sent ``sig`` ``moment`` seconds after start."""
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
     process = subprocess.Popen(
-        [COMMAND, "solve", "--scenario", "paper-grid", "--size", "12", "--budget", "0..5", "-q"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
     )
     try:
         time.sleep(moment)
@@ -652,12 +647,7 @@ def test_a_signal_at_any_moment_is_one_line(moment, case):
     finally:
         if process.poll() is None:
             process.kill()
-    # -sig: the signal came as the interpreter shut down, after the answer was printed and
-    # the handlers were gone; a shell shows it as the same code (128 + sig)
-    assert process.returncode in (0, code, -sig), stderr
-    assert "Traceback" not in stderr, stderr
-    if process.returncode == code:
-        assert words in stderr, stderr
+    return process.returncode, stderr
 
 
 @pytest.mark.parametrize(
