@@ -10,6 +10,7 @@ import dataclasses
 import fnmatch
 import json
 import re
+import textwrap
 import tomllib
 from pathlib import Path
 
@@ -398,3 +399,44 @@ def test_every_problem_of_a_file_is_in_the_error_document(tmp_path):
     problems = document["error"]["problems"]
     assert len(problems) == 2 and any("nonsense" in p for p in problems)
     assert any("also" in p for p in problems)
+
+
+def test_an_unknown_initial_state_does_not_hide_the_other_problems(tmp_path):
+    """An unknown initial state was reported alone; the file's other wrong names (a
+    transition's state, a decoy, a rule's action) came out only once it was fixed. Now all
+    four are in one error."""
+    bad = tmp_path / "names.yaml"
+    bad.write_text(
+        textwrap.dedent(
+            """\
+            format: misdirect/v1
+            pomdp:
+              states: [s0, s1, goal]
+              actions: [a]
+              initial: s9
+              observe: {s0: o0, s1: o1, goal: g}
+              transitions:
+                - [s0, a, s1, 1.0]
+                - [s1, a, goal, 1.0]
+                - [s7, a, goal, 1.0]
+              absorbing: [goal]
+            controller:
+              nodes: [n]
+              initial: n
+              rules:
+                - {node: "*", obs: "*", action: b, next: n}
+            deception:
+              decoy: [goal, nowhere]
+              budget: 1
+            """
+        )
+    )
+    problems = run("evaluate", str(bad), code=2)["error"]["problems"]
+    assert len(problems) == 4, problems
+    for where, name in [
+        ("pomdp.initial", "s9"),
+        ("pomdp.transitions[2]", "s7"),
+        ("deception.decoy[1]", "nowhere"),
+        ("controller.rules[0].action", "b"),
+    ]:
+        assert any(where in p and repr(name) in p for p in problems), (where, problems)

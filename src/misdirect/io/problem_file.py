@@ -928,8 +928,6 @@ def _pomdp_names(spec: PomdpSpec) -> tuple[_Names, np.ndarray]:
     with found.check():
         _index(spec.actions, "pomdp.actions")
     states = {name: i for i, name in enumerate(spec.states)}
-    with found.check():
-        _lookup(states, spec.initial, "state", "pomdp.initial")
     for name in spec.observe:
         with found.check():
             _lookup(states, name, "state", f"pomdp.observe.{name}")
@@ -962,6 +960,9 @@ def _compile_pomdp(spec: PomdpSpec, names: _Names, observation_of: np.ndarray) -
     found = _Found()
     states = {name: i for i, name in enumerate(names.states)}
     actions = {name: i for i, name in enumerate(names.actions)}
+    initial = 0
+    with found.check():  # reported with the transitions' problems, not before them
+        initial = _lookup(states, spec.initial, "state", "pomdp.initial")
     absorbing = np.zeros(len(states), dtype=bool)
     for i, name in enumerate(spec.absorbing):
         with found.check():
@@ -1022,7 +1023,7 @@ def _compile_pomdp(spec: PomdpSpec, names: _Names, observation_of: np.ndarray) -
         states=names.states,
         actions=names.actions,
         observations=names.observations,
-        initial_state=states[spec.initial],
+        initial_state=initial,
         observation_of=observation_of,
         action=action,
         source=source,
