@@ -590,9 +590,8 @@ class LowRankEnumeration:
             ):
                 break  # the first (unaltered outer) block always runs
             began = time.perf_counter()
-            single = inner_space.count_within(remaining, 1) <= 1
-            run = _BlockRun(outer, outer_pick, inner, fixed, remaining, floor, compiled)
-            outcome = self._run_block(run, single, pace, deadline, bases, inner_space, evaluations)
+            job = _BlockRun(outer, outer_pick, inner, fixed, remaining, floor, compiled)
+            outcome = self._run_block(job, pace, deadline, bases, inner_space, evaluations)
             base_solves += outcome.base_solved
             if outcome.block is None:
                 break  # the deadline cut a later block while it was being listed
@@ -634,8 +633,7 @@ class LowRankEnumeration:
 
     def _run_block(
         self,
-        run: _BlockRun,
-        single: bool,
+        job: _BlockRun,
         pace: _BlockPace,
         deadline: Deadline,
         bases: BasisCache | None,
@@ -645,10 +643,10 @@ class LowRankEnumeration:
         """One outer block of :meth:`run`: a single alteration on its own chain, or a base
         solve and its inner alterations by low-rank updates."""
         began = time.perf_counter()
-        if single:
+        if inner_space.count_within(job.remaining, 1) <= 1:
             # no inner alteration fits: the block is one alteration, valued on its own chain
             # (a base solve would solve for every inner row, thousands on a big map)
-            return _BlockOutcome(self._single_block(run.outer, run.outer_pick, deadline), began)
+            return _BlockOutcome(self._single_block(job.outer, job.outer_pick, deadline), began)
         # with a share, a block stops where the share ends too (its smaller alterations
         # first): the first block always starts, and one of a million deep alterations could
         # otherwise take the search's whole time (docs/benchmarks.md)
@@ -656,22 +654,22 @@ class LowRankEnumeration:
         base_solved = False
         try:
             cheapest = inner_space.cheapest()
-            one_entry = not self.instance.space.scale.fits(cheapest + cheapest, run.remaining)
+            one_entry = not self.instance.space.scale.fits(cheapest + cheapest, job.remaining)
             base = self._block_base(
-                run.outer, run.outer_pick, run.inner, run.fixed, bases, block_deadline, one_entry
+                job.outer, job.outer_pick, job.inner, job.fixed, bases, block_deadline, one_entry
             )
             base_solved = True
             factored = time.perf_counter()
             block = self._block(
-                run.remaining,
-                run.inner,
+                job.remaining,
+                job.inner,
                 base,
                 block_deadline,
                 evaluations,
-                run.compiled,
-                run.outer,
-                run.outer_pick,
-                run.floor,
+                job.compiled,
+                job.outer,
+                job.outer_pick,
+                job.floor,
             )
             return _BlockOutcome(block, factored, base.steps, base_solved=True)
         except DeadlineExpiredError:
@@ -682,7 +680,7 @@ class LowRankEnumeration:
                 return _BlockOutcome(None, began, base_solved=base_solved)
             factored = time.perf_counter()
             costs_0, found_0, altered_0, cut_0 = self._single_block(
-                run.outer, run.outer_pick, deadline
+                job.outer, job.outer_pick, deadline
             )
             first = (costs_0, found_0, altered_0, min(cut_0, inner_space.cheapest()))
             return _BlockOutcome(first, factored, cut_first=True, base_solved=base_solved)
