@@ -158,10 +158,8 @@ def test_policy_iterations_raise_once_their_deadline_has_passed():
     import scipy.sparse as sp
 
     from misdirect.solvers.deadline import DeadlineExpiredError
-    from misdirect.solvers.engines.policy_iteration import (
-        MaxReachability,
-        TransientPolicyIteration,
-    )
+    from misdirect.solvers.engines.policy_iteration import MaxReachability
+    from misdirect.solvers.engines.transient import TransientPolicyIteration
 
     cancelled = Deadline()
     cancelled.cancel.cancel()

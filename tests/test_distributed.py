@@ -5,6 +5,7 @@ finished row when stopped or when a worker dies."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -35,6 +36,7 @@ budgets: [1, 2]
 methods: [exhaustive, branch-and-bound]
 time_limit: 60
 """
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 WHERE = {"time_s", "host", "worker", "pid"}  # where and how long: the rest must agree
 
 
@@ -259,3 +261,92 @@ def test_tasks_take_subtrees_in_batches_largest_bound_first():
     assert search._batch(2) == [] and not search.queue
     search.queue = [({}, 1.0, v + 1, False, None)] * (3 * BATCH)
     assert len(search._batch(1)) == BATCH
+
+
+PROBLEMS_SPEC = """
+problems: [trap.yaml, scale.yaml]
+budgets: [0, 1]
+methods: [exhaustive, auto]
+time_limit: 60
+"""
+
+
+def test_a_sweep_of_problem_files_on_the_cluster_equals_the_local_one(tmp_path, pool):
+    """Issue 51, item 3: file rows reached the workers with their problem still a handle of
+    the cluster's and every one failed; now they agree with a local run, row for row, and
+    none failed (the trap corridor at budget 1 is 0.4, by hand: examples/trap.yaml)."""
+    from scale_model import scale_model_text
+
+    shutil.copy(EXAMPLES / "trap.yaml", tmp_path / "trap.yaml")
+    (tmp_path / "scale.yaml").write_text(scale_model_text())
+    spec, folder = _spec(tmp_path, PROBLEMS_SPEC)
+    local = run_sweep(spec, folder, tmp_path / "local")
+    remote = run_sweep(spec, folder, tmp_path / "remote", pool=pool)
+    assert local.failed == 0 and remote.failed == 0, [r["error"] for r in remote.rows]
+    assert len(remote.rows) == 2 * 2 * 2
+    assert _what(remote.rows) == _what(local.rows)
+    trap = [r for r in remote.rows if r["instance"] == "trap.yaml" and r["budget"] == 1]
+    assert [r["probability"] for r in trap] == pytest.approx([0.4, 0.4])
+
+
+def _sweep_text(seeds: list[int]) -> str:
+    return (
+        "scenarios:\n  - scenario: random\n    parameters: {states: 6, observations: 4}\n"
+        f"    seeds: {seeds}\nbudgets: [0, 1, 2]\nmethods: [exhaustive]\n"
+    )
+
+
+def test_two_sweeps_into_one_folder_lose_no_row(tmp_path):
+    """Issue 51, item 2: two `misdirect sweep` processes with the same -o, started together,
+    each with rows of its own: the table ends with every row of both (it kept one run's)."""
+    out = tmp_path / "out"
+    commands = []
+    for name, seeds in (("a", list(range(0, 8))), ("b", list(range(8, 16)))):
+        spec = tmp_path / f"{name}.yaml"
+        spec.write_text(_sweep_text(seeds))
+        commands.append([sys.executable, "-m", "misdirect", "sweep", str(spec), "-o", str(out)])
+    running = [
+        subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE) for c in commands
+    ]
+    for process in running:
+        _, err = process.communicate(timeout=300)
+        assert process.returncode == 0, err.decode()
+    from misdirect.distributed.sweep import read_table
+
+    rows = read_table(out / "results.csv")
+    assert len(rows) == 2 * 8 * 3
+    assert len({r["row_id"] for r in rows}) == len(rows)
+    assert {r["seed"] for r in rows} == set(range(16))
+
+
+@pytest.mark.parametrize("kind", ["device", "fifo", "binary", "other csv", "bad cell"])
+def test_a_results_table_that_is_no_table_is_refused_naming_it(tmp_path, kind):
+    """Issue 51, item 5: results.csv a link to /dev/zero (memory), a FIFO (a hang), bytes, a
+    CSV of something else, a row whose number is no number: one line naming the file, exit 2,
+    within seconds, and the file left as it was."""
+    from typer.testing import CliRunner
+
+    from misdirect.cli import app
+
+    spec = tmp_path / "sweep.yaml"
+    spec.write_text(_sweep_text([0]))
+    out = tmp_path / "out"
+    out.mkdir()
+    table = out / "results.csv"
+    if kind == "device":
+        table.symlink_to("/dev/zero")
+    elif kind == "fifo":
+        os.mkfifo(table)
+    elif kind == "binary":
+        table.write_bytes(b"\xff\xfe\x00garbage\x80\x81")
+    elif kind == "other csv":
+        table.write_text("name,value\na,1\n")
+    else:
+        header = "row_id,instance,seed,budget,method,status,probability,upper_bound,gap,cost,"
+        header += "alteration,time_s,host,worker,pid,error\n"
+        table.write_text(header + "x,i,lots,1.0,auto,optimal,,,,,,,,,,\n")
+    before = table.lstat()
+    result = CliRunner().invoke(app, ["sweep", str(spec), "-o", str(out)])
+    assert result.exit_code == 2, result.output
+    assert "results.csv" in result.output and "Traceback" not in result.output
+    assert table.lstat().st_mtime_ns == before.st_mtime_ns

@@ -19,8 +19,8 @@ import scipy.sparse as sp
 from misdirect import solve
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.scenarios import sensor_grid
-from misdirect.solvers.engines.policy_iteration import STEP_MARGIN, TransientPolicyIteration
 from misdirect.solvers.engines.segment_relaxation import SegmentMdp, segment_relaxation
+from misdirect.solvers.engines.transient import STEP_MARGIN, TransientPolicyIteration
 from stress_model import stress_model
 
 

@@ -293,10 +293,16 @@ def test_cost_scale_is_exact():
     sub = tolerance.CostScale.of([5e-324], 2)
     assert sub.kind == "binary"
     assert sub.fits(5e-324, 5e-324) and not sub.fits(5e-324 + 5e-324, 5e-324)
-    # costs 1e16 and 1: a float sum drops the 1; a rounded scale refuses what it cannot prove
+    # costs 1e16 and 1: a float sum drops the 1, so it proves nothing within its rounding of
+    # the budget; that sum is ambiguous and its terms decide
     wide = tolerance.CostScale.of([1e16, 1.0, 0.3], 2)
+    assert wide.kind == "rounded"
     assert wide.fits_exactly([1e16], 1e16) and not wide.fits_exactly([1e16, 1.0], 1e16)
-    assert not wide.fits(1e16 + 1.0, 1e16) or wide.kind != "rounded"
+    assert wide.fits(1e16 + 1.0, 1e16)  # may fit: what searches bound with
+    assert wide.ambiguous(np.array([1e16 + 1.0]), 1e16).all()
+    assert not wide.fits_terms(1e16 + 1.0, lambda: [1e16, 1.0], 1e16)
+    assert wide.fits_terms(1e16, lambda: [1e16], 1e16)
+    assert not wide.ambiguous(np.array([0.3, 2e16]), 1e16).any()  # surely in, surely out
     # the remaining budget after a spend decides as the sum does
     assert decimal.fits(0.2, decimal.remaining(0.3, 0.1))
     assert not decimal.fits(0.3, decimal.remaining(0.3, 0.1))

@@ -11,9 +11,9 @@ from misdirect.core.evaluate import decoy_probability
 from misdirect.scenarios import random_problem, sensor_grid
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.policy_iteration import LOW_RANK, TransientPolicyIteration
 from misdirect.solvers.engines.segment_relaxation import segment_bound, segment_relaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
+from misdirect.solvers.engines.transient import LOW_RANK, TransientPolicyIteration
 from misdirect.solvers.exhaustive import ExhaustiveSolver
 from misdirect.solvers.options import SolveOptions
 

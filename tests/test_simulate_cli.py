@@ -124,3 +124,20 @@ def test_simulate_library_counts_add_up():
     assert result.decoy_hits == 0 and sum(result.absorbed.values()) == 0
     assert result.trapped + result.unfinished == 5000
     assert 0 < result.trapped < 5000  # the loop runs are trapped at step 1, exit runs unfinished
+
+
+def test_a_mean_over_no_finished_run_is_null_in_strict_json():
+    """Issue 51, item 8: with --max-steps 1 no run of the trap corridor finishes (each takes
+    two steps, by hand), so the mean over finished runs is undefined: null, and the document
+    is strict JSON (it held a bare NaN, which JSON has not)."""
+    result = runner.invoke(
+        app, ["simulate", str(EXAMPLES / "trap.yaml"), "--runs", "50", "--max-steps", "1", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+
+    def refuse(constant):
+        raise AssertionError(f"not JSON: {constant}")
+
+    payload = json.loads(result.stdout, parse_constant=refuse)
+    assert payload["mean_steps_finished"] is None
+    assert payload["totals"]["decoy"]["runs"] + payload["totals"]["goal"]["runs"] == 0

@@ -125,12 +125,29 @@ def shown_lines(error: ProblemError) -> list[str]:
 # -- output -------------------------------------------------------------------------------------
 
 
+def finite_json(value: Any) -> Any:
+    """``value`` with every float that JSON cannot hold (NaN, ±inf) as ``null``: a mean over
+    no finished run, an objective the backend left undefined. JSON has no NaN, and a reader
+    that meets one fails on the whole document; each such field's schema says when it is
+    null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    if hasattr(value, "dtype") and getattr(value, "shape", None) == ():  # a numpy scalar
+        return finite_json(value.item())
+    return value
+
+
 def print_json(payload: dict[str, Any]) -> None:
     """The one JSON object of ``--json`` on stdout: a document of
     :mod:`misdirect.report.json_output`, which names its schema. A stdout that cannot take it
     (a full disk, ``> /dev/full``) is a WriteError, and what is left unwritten is dropped."""
     assert payload.get("schema") == json_output.SCHEMA, "built by report.json_output"
-    text = json.dumps(payload, indent=2, default=_json_default) + "\n"
+    safe = finite_json(payload)
+    text = json.dumps(safe, indent=2, default=_json_default, allow_nan=False) + "\n"
     try:
         sys.stdout.write(text)
         sys.stdout.flush()

@@ -13,12 +13,14 @@ from typing import Any
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.product import ProductChain, build_product
 from misdirect.core.reachability import (
     UNIT_ROUNDOFF,
     Bounded,
+    Occupation,
     occupation,
     reach_probability_bounded,
 )
@@ -167,6 +169,43 @@ class Evaluation:
         }
 
 
+OUTCOME_ERROR = tolerance.CERTIFY
+"""The proven error the first-entry probabilities may have to be shown (they are printed to six
+digits; the value itself is held to :data:`~misdirect.core.tolerance.EXACT`)."""
+
+
+def _unproven_outcomes(
+    occ: Occupation | None,
+    terminal: np.ndarray,
+    decoy: np.ndarray,
+    worth: np.ndarray,
+    probability: float,
+    error: float,
+) -> str | None:
+    """Why the first-entry distribution cannot be shown, or None when it can: its proven
+    error is within :data:`OUTCOME_ERROR`, it is a distribution (each entry in [0, 1], all of
+    them summing to 1, trapped runs included), and its decoy mass agrees with the proven
+    value. A chain that lingers 10^15 steps, or rows whose doubles sum to 1 + 5e-11 (accepted
+    as distributions), can make a solve that passes its residual check read 1.5 or 0.9."""
+    if occ is None:
+        return "the chain's occupation system is singular in double precision"
+    slack = occ.error_bound + OUTCOME_ERROR
+    if not math.isfinite(occ.error_bound) or occ.error_bound > OUTCOME_ERROR:
+        return f"their error could not be proven below {OUTCOME_ERROR:g}"
+    entered = occ.entered[terminal | occ.trapped]
+    total = float(entered.sum())
+    if not (np.isfinite(entered).all() and entered.min(initial=0.0) >= -slack):
+        return "the solve gave probabilities outside [0, 1]"
+    if entered.max(initial=0.0) > 1 + slack or abs(total - 1.0) > slack * max(entered.size, 1):
+        return f"the first entries sum to {total:.9g}, not 1"
+    decoy_mass = float(occ.entered[decoy] @ worth)
+    if abs(decoy_mass - probability) > slack + error + tolerance.CERTIFY * probability:
+        return (
+            f"their decoy mass {decoy_mass:.9g} disagrees with the proven value {probability:.9g}"
+        )
+    return None
+
+
 @checked_keywords
 def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Evaluation:
     """The exact value of one alteration, with every outcome and the expected visits.
@@ -218,15 +257,32 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
     pomdp, objective = problem.pomdp, problem.objective
     decoy = objective.target[chain.world_state]
     terminal = decoy | pomdp.absorbing[chain.world_state]
-    occ = occupation(chain.matrix, terminal, chain.initial, blocks=chain.node)
-    if occ.iterative:  # a run scores iff the first terminal state is a decoy
-        worth = objective.value[chain.world_state[decoy]]
+    occ: Occupation | None
+    try:
+        occ = occupation(chain.matrix, terminal, chain.initial, blocks=chain.node)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError):  # I - Q singular in doubles
+        occ = None
+    worth = objective.value[chain.world_state[decoy]]
+    if occ is not None and occ.iterative:  # a run scores iff the first terminal state is a decoy
         probability = float(np.clip(occ.entered[decoy] @ worth, 0.0, objective.max_value))
         # the error of a sum of entries weighted by at most max_value, and its rounding
         error = occ.error_bound * objective.max_value + decoy.sum() * UNIT_ROUNDOFF * probability
+        error = max(error, occ.error_bound)
     else:
         probability, error = _decoy_value(problem, chain)
-    error = max(error, occ.error_bound)
+    unproven = _unproven_outcomes(occ, terminal, decoy, worth, probability, error)
+    notes = problem.notes
+    if unproven is not None:
+        notes = (*notes, f"outcomes and expected visits left out: {unproven}")
+        occ = Occupation(
+            np.zeros(chain.n_states),
+            np.zeros(chain.n_states),
+            np.zeros(chain.n_states, dtype=bool),
+            np.zeros(chain.n_states, dtype=bool),
+        )
+    else:
+        assert occ is not None
+        error = max(error, occ.error_bound)
     first_entry = np.bincount(
         chain.world_state, weights=np.where(terminal, occ.entered, 0.0), minlength=pomdp.n_states
     )
@@ -254,7 +310,7 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
         decoy_sets={d.name: float(first_entry[d.states].sum()) for d in objective.sets},
         objective=objective.kind,
         warnings=problem.warnings,
-        notes=problem.notes,
+        notes=notes,
         problem=problem.name,
         budget=problem.budget,
         decoy_states=frozenset(names[s] for s in np.flatnonzero(objective.target)),

@@ -33,6 +33,7 @@ from scipy.sparse.linalg import SuperLU, splu
 from misdirect.core import elimination, residual, tolerance
 from misdirect.core.lu_solve import MANY_COLUMNS, solve_many
 from misdirect.core.model import reachable_from
+from misdirect.errors import SolverError
 
 
 def _without_rows(matrix: sp.csr_matrix, rows: np.ndarray) -> sp.csr_matrix:
@@ -656,12 +657,16 @@ def _unknown_value(
         rhs = np.column_stack([rows_dense @ known, np.ones(m)])
         # LAPACK's gesv again for each correction: tiny, and scipy's lu_solve stalls on BLAS
         # threads on a busy machine, however small the solve
+        try:
+            first = np.linalg.solve(system, rhs)
+        except np.linalg.LinAlgError:
+            return _singular_value(q_dense, rows_dense, unknown, known, k, extended_jump)
         return _prove_forward(
             q_dense,
             rows_dense,
             unknown,
             known,
-            np.linalg.solve(system, rhs),
+            first,
             lambda r: np.linalg.solve(system, r),
             k,
             extended_jump,
@@ -696,11 +701,36 @@ def _unknown_value(
                     return Bounded(value, error)
     order: np.ndarray | None = None
     if solved is None or solve is None:
-        lu = factorise(a)
+        try:
+            lu = factorise(a)
+        except RuntimeError:  # exactly singular in doubles
+            return _singular_value(a, rows, unknown, known, k, extended_jump)
         solved = lu.solve(rhs)
         solve = lu.solve
         order = _elimination_order(lu)
     return _prove_forward(a, rows, unknown, known, solved, solve, k, extended_jump, order)
+
+
+def _singular_value(
+    q: sp.spmatrix | np.ndarray,
+    rows: sp.spmatrix | np.ndarray,
+    unknown: np.ndarray,
+    known: np.ndarray,
+    k: int,
+    extended: bool,
+) -> Bounded:
+    """``x[k]`` where ``I - Q`` is singular in doubles although every unknown state reaches
+    the known ones: a row whose way out is below the doubles' resolution next to 1 (a
+    self-loop of 1 - 5e-324 reads 1.0). The jump chain's value, unproven
+    (:func:`_jump_chain_value`); a clear error where even that is not defined."""
+    value = _jump_chain_value(sp.csr_matrix(q), rows, unknown, known, k, extended)
+    if value is None:
+        raise SolverError(
+            "the chain's system is singular in double precision (a state leaves its "
+            "cycle with a probability below the doubles' resolution next to 1); "
+            "scale the model's probabilities"
+        )
+    return Bounded(value, np.inf)
 
 
 def _elimination_order(lu: SuperLU) -> np.ndarray | None:

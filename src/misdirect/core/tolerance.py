@@ -19,7 +19,7 @@ weights of 1e-12, a decoy reached through a 1e-10 branch):
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -189,9 +189,13 @@ class CostScale:
     * ``binary``: otherwise, every cost is a multiple of the power of two ``step`` and sums stay
       below ``2^53`` steps: float sums are exact, costs are their float values, the cap is the
       budget (5e-324 + 5e-324 does not fit 5e-324).
-    * ``rounded``: neither (costs of very different magnitudes). The cap lies below the budget
-      by the largest rounding error of a sum, so what fits surely fits; a sum within that
-      rounding of the budget is refused.
+    * ``rounded``: neither (costs of very different magnitudes, 1 beside 1e-300, or a third
+      beside 1). Float sums are then no proof either way within their rounding of the budget,
+      so there are two caps: :meth:`cap` lies above the budget by the largest rounding error
+      of a sum (every sum that fits passes: what searches prune and bound with) and
+      :meth:`sure_cap` below it (every sum that passes fits). A sum between the two is
+      *ambiguous* (:meth:`ambiguous`) and decided on its terms, exactly
+      (:meth:`fits_terms`), wherever an alteration is taken as an answer.
 
     The cap also absorbs ``cap - spent`` (a remaining budget) for sums of costs ``spent``.
     """
@@ -200,7 +204,7 @@ class CostScale:
     step: Fraction
     terms: int  # most costs ever added up (one per observation)
     largest: float  # largest finite cost
-    _caps: dict[float, float] = field(default_factory=dict, compare=False, repr=False)
+    _caps: dict[tuple[float, bool], float] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of(cls, costs: Iterable[float], terms: int) -> CostScale:
@@ -234,18 +238,34 @@ class CostScale:
             return cls("decimal", step, terms, largest)
         low = min(_lowest_bit(v) for v in values)
         binary = Fraction(2) ** low
-        if math.ldexp(total, -low) < 2.0**52:
+        if math.log2(total) - low < 52:  # ldexp would overflow for 1 beside 1e-300
             return cls("binary", binary, terms, largest)
         return cls("rounded", binary, terms, largest)
 
+    @property
+    def decisive(self) -> bool:
+        """Whether ``<=`` against :meth:`cap` decides every budget alone (no ambiguous sums)."""
+        return self.kind != "rounded"
+
     def cap(self, budget: float) -> float:
         """The float a float sum of costs (or a cost, against ``cap - spent``) is compared with
-        by ``<=``: exactly when the exact sum fits ``budget`` (``rounded``: only then)."""
-        budget = float(budget)
-        if budget in self._caps:
-            return self._caps[budget]
+        by ``<=``: every sum whose exact value fits ``budget`` passes, and (but for the
+        ``rounded`` kind, see :meth:`ambiguous`) no other."""
+        return self._cap(float(budget), upper=True)
+
+    def sure_cap(self, budget: float) -> float:
+        """:meth:`cap` from below: every float sum ``<=`` it fits ``budget`` exactly (the
+        same as :meth:`cap` but for the ``rounded`` kind)."""
+        return self._cap(float(budget), upper=False)
+
+    def _cap(self, budget: float, upper: bool) -> float:
+        key = (budget, upper)
+        if key in self._caps:
+            return self._caps[key]
         if math.isnan(budget) or budget < 0:
             cap = -math.inf
+        elif budget == 0:
+            cap = 0.0  # a float sum of positive costs is positive: exact in every kind
         elif budget == math.inf or budget >= 2 * self.terms * self.largest:
             cap = math.inf  # every sum fits (the factor 2 is room for rounding)
         elif self.kind == "decimal":
@@ -254,14 +274,40 @@ class CostScale:
         elif self.kind == "binary":
             cap = budget
         else:
-            error = 4 * (self.terms + 2) * UNIT_ROUNDOFF
-            cap = max(budget * (1 - error) - 2 * self.terms * SMALLEST, 0.0)
-        self._caps[budget] = cap
+            cap = self._rounded(budget, upper)
+        self._caps[key] = cap
         return cap
+
+    def _rounded(self, budget: float, upper: bool) -> float:
+        """A budget moved by the largest rounding error of a float sum of ``terms`` costs (and
+        of as many subtractions from it, for ``cap - spent``): up, so that every sum that fits
+        passes, or down, so that only such sums pass."""
+        error = 4 * (self.terms + 2) * UNIT_ROUNDOFF
+        if upper:
+            return budget * (1 + error) + 2 * self.terms * SMALLEST
+        return max(budget * (1 - error) - 2 * self.terms * SMALLEST, 0.0)
+
+    def ambiguous(self, costs: np.ndarray, budget: float) -> np.ndarray:
+        """Which float sums ``costs`` neither surely fit ``budget`` nor surely exceed it: their
+        terms decide (:meth:`fits_terms`). None but in the ``rounded`` kind."""
+        costs = np.asarray(costs, dtype=np.float64)
+        if self.decisive:
+            return np.zeros(costs.shape, dtype=bool)
+        return (costs > self.sure_cap(budget)) & (costs <= self.cap(budget))
+
+    def fits_terms(self, total: float, terms: Callable[[], Iterable[float]], budget: float) -> bool:
+        """Whether a sum of costs fits ``budget`` exactly: its float sum ``total`` decides
+        unless ambiguous, and then the exact sum of its ``terms`` (called only then)."""
+        if not total <= self.cap(budget):
+            return False
+        if total <= self.sure_cap(budget):
+            return True
+        return self.fits_exactly(terms(), budget)
 
     def remaining(self, budget: float, spent: float) -> float:
         """A budget for what is left of ``budget`` once ``spent`` (a float sum of costs) is
-        paid: a sum ``c`` fits it (:meth:`cap`) exactly when ``spent + c`` fits ``budget``."""
+        paid: a sum ``c`` fits it (:meth:`cap`) exactly when ``spent + c`` fits ``budget``
+        (``rounded``: every such ``c`` passes, and perhaps a few more by rounding)."""
         if math.isinf(self.cap(budget)) and budget > 0:
             return math.inf
         if self.kind == "decimal":
@@ -270,7 +316,7 @@ class CostScale:
         if self.kind == "binary":
             return budget - spent  # exact: both are multiples of a step the budget's ulp divides
         error = 4 * (self.terms + 2) * UNIT_ROUNDOFF * abs(budget)
-        return budget - spent - error
+        return budget - spent + error
 
     def snap(self, cap: float) -> float:
         """The largest sum of costs a ``cap`` admits, about (``decimal``: the last step below
@@ -281,12 +327,15 @@ class CostScale:
         return math.floor(cap / step) * step
 
     def fits(self, cost: float | np.ndarray, budget: float) -> bool | np.ndarray:
-        """Whether the float sum ``cost`` of some costs fits ``budget`` (element-wise)."""
+        """Whether the float sum ``cost`` of some costs may fit ``budget`` (element-wise): every
+        sum that fits does; exact but for :meth:`ambiguous` sums (decide those by their terms
+        with :meth:`fits_terms` before taking one as an answer)."""
         return cost <= self.cap(budget)
 
     def value(self, cost: float) -> Fraction:
-        """One cost as a number: as written (``decimal``), else its float value."""
-        return _written(cost) if self.kind == "decimal" else Fraction(float(cost))
+        """One cost as a number: as written (the shortest decimal that reads back as it), but
+        in the ``binary`` kind, whose float sums are exact: its float value."""
+        return Fraction(float(cost)) if self.kind == "binary" else _written(cost)
 
     def exact(self, costs: Iterable[float]) -> Fraction:
         """The exact sum of ``costs``."""
@@ -346,6 +395,23 @@ PROOF_EXTENDED = CERTIFY / 100
 """A proven bound further than this (relative) above policy iteration's value is sought again
 with the values and the check in double-double: certification needs the bound within
 :data:`CERTIFY`, and a chain absorbed after 10^8 steps adds up the check's rounding to more."""
+
+PROOF_COLLAPSE = CERTIFY / 10
+"""A proven bound further than this (relative) above policy iteration's value after both
+checks is proven once more on the MDP with its end components collapsed
+(:mod:`misdirect.solvers.engines.end_components`): a proof that costs a policy iteration, for
+a bound certification could not use."""
+
+PROOF_COLLAPSED_GAIN = 2.0**-100
+"""In the proof on the collapsed MDP, a gain (relative to the values' scale) that policy
+iteration in double-double still switches for: a defect left behind is collected along every
+tied run, and a region a scheduler lingers in for 10^15 steps turns 2^-100 into 10^-15; the
+residuals' own rounding (about 2^-104) lies below it."""
+
+PROOF_COLLAPSED_FALL = 2.0**-60
+"""A value that falls by more than this (relative to the values' scale) after a policy
+improvement in double-double means the solve went wrong (an improvement only raises values):
+the proof on the collapsed MDP gives up rather than prove near a wrong fixed point."""
 
 PROOF_EXTENDED_OFFSET = 2.0**-90
 """:data:`PROOF_OFFSET` for the double-double check: above the rounding of its residuals

@@ -253,7 +253,7 @@ def _single_sensor_evidence(
             continue
         fits = [singles[o] for o, cost in cheapest.items() if scale.fits(cost, b)]
         upper = max([a.upper for a in fits], default=curve_result.baseline_probability)
-        best = _best_within([a for a in fits if scale.fits(a.cost, b)])
+        best = _best_within([a for a in fits if scale.fits_exactly([a.cost], b)])
         evidence.append(
             Evidence(
                 budget=b,

@@ -354,7 +354,9 @@ class _Search:
                 self.pruned += 1
                 continue
             here = self.attack(node)
-            if _better(here, self.cost_of(node), self.attack(best), self.cost_of(best)):
+            if self.scale.fits_exactly([self.costs[o] for o in node], d) and _better(
+                here, self.cost_of(node), self.attack(best), self.cost_of(best)
+            ):
                 best = node
             children = [
                 node | {o}

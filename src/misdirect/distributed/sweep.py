@@ -10,16 +10,23 @@ every row already there with a result (rows that failed with an error are run ag
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import inspect
 import io
 import json
+import stat
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks; concurrent sweeps need their own folders
+    fcntl = None  # type: ignore[assignment]
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
@@ -113,7 +120,8 @@ class Row:
     budget: float
     method: str
     time_limit: float | None
-    problem: Any = None  # a Problem (or the pool's handle of one), for a file
+    # which of the sweep's problem files (its index in the list :func:`expand` returns)
+    problem: int | None = None
     scenario: str | None = None
     parameters: dict[str, Any] = field(default_factory=dict)
     seed: int | None = None
@@ -186,10 +194,16 @@ def row_id(instance: dict[str, Any], budget: float, method: str) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
-def expand(spec: SweepSpec, folder: Path, pool: TaskPool | None = None) -> list[Row]:
-    """Every row of the sweep, in the file's order: instances × budgets × methods. Problem
-    files are read (and checked) here, once, and handed to the pool once each."""
+def expand(
+    spec: SweepSpec, folder: Path, pool: TaskPool | None = None
+) -> tuple[list[Row], list[Any]]:
+    """Every row of the sweep, in the file's order: instances × budgets × methods; and the
+    problem files' problems (as the pool shares them) that rows name by index. Problem files
+    are read (and checked) here, once, and handed to the pool once each: a row passes its
+    problem to its task as an argument of its own, which a cluster resolves (a handle inside
+    the row object would reach the worker unresolved)."""
     rows: list[Row] = []
+    problems: list[Any] = []
     for k, name in enumerate(spec.problems):
         path = folder / name
         try:
@@ -197,11 +211,11 @@ def expand(spec: SweepSpec, folder: Path, pool: TaskPool | None = None) -> list[
         except ProblemError as error:
             error.field = error.field or f"problems[{k}]"
             raise
-        handle = pool.share(problem) if pool is not None else problem
+        problems.append(pool.share(problem) if pool is not None else problem)
         for b in spec.budgets:
             for m in spec.methods:
                 rid = row_id({"file": name}, b, m)
-                rows.append(Row(rid, name, float(b), m, spec.time_limit, problem=handle))
+                rows.append(Row(rid, name, float(b), m, spec.time_limit, problem=k))
     for item in spec.scenarios:
         accepted = inspect.signature(GENERATORS[item.scenario]).parameters
         seeds: Sequence[int | None] = item.seeds if item.seeds is not None else [None]
@@ -229,12 +243,12 @@ def expand(spec: SweepSpec, folder: Path, pool: TaskPool | None = None) -> list[
                             seed,
                         )
                     )
-    return rows
+    return rows, problems
 
 
-def run_row(row: Row) -> dict[str, Any]:
-    """Compute one row where it runs; an error becomes the row's ``error`` (it never takes the
-    sweep down)."""
+def run_row(row: Row, problem: Problem | None = None) -> dict[str, Any]:
+    """Compute one row where it runs (``problem``: its problem file's, for a file's row); an
+    error becomes the row's ``error`` (it never takes the sweep down)."""
     from misdirect.distributed.pool import where_am_i
 
     started = time.perf_counter()
@@ -247,7 +261,6 @@ def run_row(row: Row) -> dict[str, Any]:
         **where_am_i(),
     }
     try:
-        problem = row.problem
         if problem is None:
             generate = GENERATORS[row.scenario or ""]
             extra = {} if row.seed is None else {"seed": row.seed}
@@ -294,13 +307,81 @@ def _cell(value: str, kind: type) -> Any:
     return kind(value)
 
 
+TABLE_LIMIT = 1 << 30  # a results table larger than this (bytes) is no table of ours
+
+
 def read_table(path: Path) -> list[dict[str, Any]]:
-    """The rows of a results CSV written by :func:`write_csv` (types restored)."""
-    with open(path, newline="", encoding="utf-8") as handle:
-        reader = csv.DictReader(handle)
-        return [
-            {name: _cell(line.get(name) or "", kind) for name, kind in COLUMNS} for line in reader
-        ]
+    """The rows of a results CSV written by :func:`table_csv` (types restored). A path that
+    is no regular file (a FIFO, a device such as ``/dev/zero``), or a file that is no such
+    table, is refused naming the file: resuming from it would lose or invent rows."""
+    try:
+        info = path.stat()
+    except OSError as error:
+        raise ProblemError(f"cannot read it: {error.strerror}", source=str(path)) from None
+    if not stat.S_ISREG(info.st_mode):
+        raise ProblemError(
+            "is not a regular file; name another output folder", source=str(path), field="out"
+        )
+    if info.st_size > TABLE_LIMIT:
+        raise ProblemError(
+            f"is larger than {TABLE_LIMIT >> 20} MB: not a results table", source=str(path)
+        )
+    try:
+        with open(path, newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            if reader.fieldnames is None:
+                return []
+            missing = [name for name, _ in COLUMNS if name not in reader.fieldnames]
+            if missing:
+                raise ProblemError(
+                    f"is not a sweep's results table (no column {missing[0]!r}); remove it or "
+                    "name another output folder",
+                    source=str(path),
+                )
+            rows = []
+            for number, line in enumerate(reader, start=2):
+                try:
+                    rows.append({name: _cell(line.get(name) or "", kind) for name, kind in COLUMNS})
+                except ValueError as error:
+                    raise ProblemError(
+                        f"line {number}: not a results row ({error}); remove the line or the file",
+                        source=str(path),
+                    ) from None
+            return rows
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise ProblemError(
+            f"is not a sweep's results table ({error}); remove it or name another folder",
+            source=str(path),
+        ) from None
+
+
+@contextlib.contextmanager
+def _table_lock(out: Path) -> Iterator[None]:
+    """Hold the results folder's lock: two sweeps writing one table take turns, and each
+    merges what the other wrote (no row of either is lost). Advisory (``flock``) where the
+    system has it."""
+    lock = out / ".results.lock"
+    with open(lock, "a", encoding="utf-8") as handle:
+        if fcntl is not None:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            if fcntl is not None:
+                fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+
+
+def _merged(
+    path: Path, ours: Sequence[dict[str, Any]], order: Sequence[str]
+) -> list[dict[str, Any]]:
+    """The table on disk with ``ours`` written over it by row id: this sweep's rows in its
+    ``order`` first, then every other row found there (another sweep's, or one this sweep
+    has not reached), as they were."""
+    on_disk = read_table(path) if path.exists() else []
+    mine = {r["row_id"]: r for r in ours}
+    theirs = {r["row_id"]: r for r in on_disk if r["row_id"] not in mine}
+    first = [mine.get(rid) or theirs.pop(rid) for rid in order if rid in mine or rid in theirs]
+    return first + list(theirs.values())
 
 
 def table_csv(rows: Sequence[dict[str, Any]]) -> str:
@@ -345,23 +426,28 @@ def run_sweep(
     rows run here, one after another."""
     out.mkdir(parents=True, exist_ok=True)
     csv_path, parquet_path = out / "results.csv", out / "results.parquet"
-    rows = expand(spec, folder, pool)
-    wanted = {row.row_id for row in rows}
-    previous = read_table(csv_path) if csv_path.exists() else []
-    # rows of other sweeps written to the same table are kept, after this sweep's
+    rows, problems = expand(spec, folder, pool)
+    order = [row.row_id for row in rows]
+    with _table_lock(out):
+        previous = read_table(csv_path) if csv_path.exists() else []
     done = {r["row_id"]: r for r in previous if r["status"] != ERROR}
-    others = [r for r in previous if r["row_id"] not in wanted]
     todo = [row for row in rows if row.row_id not in done]
     pool = pool if pool is not None else LocalPool()
     by_ticket: dict[Any, Row] = {}
-    finished: dict[str, dict[str, Any]] = dict(done)
+    finished: dict[str, dict[str, Any]] = {}  # rows this run computed
     computed = failed = 0
     notes: list[str] = []
     last_parquet = time.monotonic()
     window = 2 * pool.size - 1  # a local pool runs a row when it is submitted: one at a time
+    written: list[dict[str, Any]] = previous
 
-    def table() -> list[dict[str, Any]]:
-        return [finished[r.row_id] for r in rows if r.row_id in finished] + others
+    def write() -> list[dict[str, Any]]:
+        """The table on disk merged with this run's rows, written back; held under the
+        folder's lock so that a sweep writing the same folder loses none of its rows."""
+        with _table_lock(out):
+            table = _merged(csv_path, list(finished.values()), order)
+            write_output(csv_path, table_csv(table), field="out")
+            return table
 
     queue = list(reversed(todo))
     total, count = len(rows), len(done)
@@ -369,7 +455,8 @@ def run_sweep(
         while queue or pool.pending():
             while queue and pool.pending() < window and not (cancel and cancel.cancelled):
                 row = queue.pop()
-                by_ticket[pool.submit(run_row, row)] = row
+                problem = None if row.problem is None else problems[row.problem]
+                by_ticket[pool.submit(run_row, row, problem)] = row
             if not pool.pending():
                 break  # cancelled
             ticket, result, error = pool.next_done()
@@ -380,20 +467,24 @@ def run_sweep(
             computed += 1
             failed += result["status"] == ERROR
             count += 1
-            write_output(csv_path, table_csv(table()), field="out")
+            written = write()
             if time.monotonic() - last_parquet > PARQUET_EVERY_S:
-                write_parquet(table(), parquet_path)
+                write_parquet(written, parquet_path)
                 last_parquet = time.monotonic()
             if on_row is not None:
                 on_row(result, count, total)
     finally:
         if computed or not parquet_path.exists():
             if not csv_path.exists():
-                write_output(csv_path, table_csv(table()), field="out")
-            if not write_parquet(table(), parquet_path):
+                written = write()
+            if not write_parquet(written, parquet_path):
                 notes.append("pyarrow is not installed: wrote the CSV table only")
+    mine = set(order)
+    table = [r for r in written if r["row_id"] in mine] + [
+        r for r in written if r["row_id"] not in mine
+    ]
     return SweepReport(
-        rows=table(),
+        rows=table,
         computed=computed,
         skipped=sum(r.row_id in done for r in rows),
         failed=failed,

@@ -6,7 +6,7 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Protocol
 
@@ -102,20 +102,48 @@ def best_per_budget(
     budgets: Sequence[float],
     scale: tolerance.CostScale,
     tie: float = tolerance.TIE,
+    terms: Callable[[int], Iterable[float]] | None = None,
 ) -> list[int]:
     """Index of the best candidate within each budget (``scale`` says which fit exactly):
     highest value, then lowest cost; values within ``tie`` (relative) of the best are tied.
 
     Preferring the cheaper of two equally good alterations means the answer never spends more of
     the budget than it needs. Every budget needs a candidate (callers keep the unaltered
-    alteration, which fits any): a budget with none is a caller's bug, named as such.
+    alteration, which fits any): a budget with none is a caller's bug, named as such. A cost
+    the float sum cannot place (:meth:`~misdirect.core.tolerance.CostScale.ambiguous`) is
+    decided by its candidate's ``terms`` (the costs it adds up), and only for candidates that
+    would be picked: without ``terms`` such a candidate is left out (never an answer over its
+    budget).
     """
     picks = []
     for budget in budgets:
-        within = np.flatnonzero(costs <= scale.cap(budget))
-        if not within.size:
+        best = best_fitting(costs, values, budget, scale, tie, terms)
+        if best is None:
             raise ValueError(f"no candidate alteration fits budget {budget:g}")
+        picks.append(best)
+    return picks
+
+
+def best_fitting(
+    costs: np.ndarray,
+    values: np.ndarray,
+    budget: float,
+    scale: tolerance.CostScale,
+    tie: float = tolerance.TIE,
+    terms: Callable[[int], Iterable[float]] | None = None,
+) -> int | None:
+    """:func:`best_per_budget` for one budget; None where no candidate fits it."""
+    within = np.flatnonzero(costs <= scale.cap(budget))
+    unsure = set(within[scale.ambiguous(costs[within], budget)].tolist())
+    while within.size:
         best = values[within].max()
         tied = within[values[within] >= best - tolerance.slack(best, rel=tie)]
-        picks.append(int(tied[np.argmin(costs[tied])]))
-    return picks
+        over = []
+        for i in unsure.intersection(tied.tolist()):
+            unsure.discard(i)
+            if terms is None or not scale.fits_exactly(terms(i), budget):
+                over.append(i)
+        if not over:
+            return int(tied[np.argmin(costs[tied])])
+        within = np.setdiff1d(within, over, assume_unique=True)
+    return None

@@ -217,7 +217,7 @@ class BranchAndBoundSolver:
         nodes = 1 if self.options.pool is not None else self.max_nodes
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
         picks = None if step.seed is None else relax.picks_of(step.seed)
-        if picks is not None and relax.cost(picks) <= relax.space.scale.cap(budget):
+        if picks is not None and relax.fits(picks, budget):
             search.incumbent.offer_exact(picks)
         # a good incumbent before the search: the previous budget's, improved locally
         if search.best_value < 0:
@@ -396,7 +396,7 @@ class _Search(IncumbentSearch):
         policy: np.ndarray,
     ):
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        self.incumbent = Incumbent(relax, (0,) * len(relax.order))
+        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget)
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy

@@ -81,7 +81,13 @@ class ExhaustiveSolver:
             relevant_observations=len(space.choices),
             candidates_per_observation=[c.size for c in space.choices],
         )
-        picks = best_per_budget(costs[:done], values[:done], budgets, problem.cost.scale)
+        picks = best_per_budget(
+            costs[:done],
+            values[:done],
+            budgets,
+            problem.cost.scale,
+            terms=lambda i: problem.cost.terms(alterations[i]),
+        )
         # a budget is proven when every alteration it affords was evaluated
         complete = [finished or costs[done] > problem.cost.scale.cap(b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too

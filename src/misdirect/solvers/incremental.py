@@ -22,6 +22,8 @@ import time
 from collections.abc import Sequence
 from typing import ClassVar
 
+import numpy as np
+
 from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
@@ -109,7 +111,7 @@ class IncrementalSolver:
                 )
                 continue
             index = found.best_within([budget])[0]
-            bound = float(within.max())  # every alteration within the budget was enumerated
+            bound = _best_fitting_value(found, budget, float(found.values[index]))
             if relaxed is not None and not finished:
                 bound = max(bound, relaxed)
             solutions.append(
@@ -179,6 +181,20 @@ class IncrementalSolver:
             if not found.complete_for(level):
                 break
         return runs
+
+
+def _best_fitting_value(found: Enumerated, budget: float, answer: float) -> float:
+    """The best value of an alteration within ``budget`` (every one was enumerated): the
+    answer's, or that of one its tie let pass; a cost the scale calls ambiguous counts only
+    if its terms fit."""
+    scale = found.scale
+    surely = found.values[found.costs <= scale.sure_cap(budget)]
+    best = max(answer, float(surely.max(initial=-np.inf)))
+    unsure = np.flatnonzero(scale.ambiguous(found.costs, budget) & (found.values > best))
+    for i in unsure[np.argsort(-found.values[unsure])].tolist():
+        if scale.fits_exactly(found.terms(i), budget):
+            return float(found.values[i])
+    return best
 
 
 def _covering(runs: list[tuple[float, Enumerated]], budget: float) -> Enumerated:

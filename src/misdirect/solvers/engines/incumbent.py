@@ -32,11 +32,13 @@ class Incumbent:
         self,
         relax: PerStateRelaxation,
         picks: Picks,
+        budget: float,
         *,
         order_ties: bool = False,
         lock: threading.RLock | threading.Condition | None = None,
     ):
         self.relax = relax
+        self.budget = budget  # offers over it are refused: searches may reach them by rounding
         self.order_ties = order_ties
         self._lock = lock if lock is not None else contextlib.nullcontext()
         self.picks: Picks = picks
@@ -58,7 +60,10 @@ class Incumbent:
         return self._values[picks]
 
     def offer(self, picks: Picks, value: float) -> None:
-        """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper."""
+        """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper (and
+        only if it fits the budget exactly: a search's float sums may admit a few more)."""
+        if not self.relax.fits(picks, self.budget):
+            return
         cost = self.relax.cost(picks)
         with self._lock:
             room = tolerance.slack(value, self.value, rel=tolerance.PRUNE)

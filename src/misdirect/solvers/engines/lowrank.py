@@ -45,7 +45,13 @@ from misdirect.core.elimination import fill_reducing_rank
 from misdirect.core.memory import memory_limit
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import SolverError
-from misdirect.solvers.base import DEFAULT_THREADS, ProgressCallback, best_per_budget, report
+from misdirect.solvers.base import (
+    DEFAULT_THREADS,
+    ProgressCallback,
+    best_fitting,
+    best_per_budget,
+    report,
+)
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.closed_classes import (
     ClosedClasses,
@@ -125,6 +131,8 @@ class Enumerated:
     base_seconds: float = 0.0  # spent solving (or updating) its base chains
     # the floor the run left out alterations below: it then answers for ``top`` only
     floor: float | None = None
+    # per choice, its options' costs: the terms that decide a cost the scale calls ambiguous
+    choice_costs: tuple[np.ndarray, ...] = ()
 
     def complete_for(self, budget: float) -> bool:
         """Whether every alteration within ``budget`` was valued (with a floor: every one
@@ -145,9 +153,21 @@ class Enumerated:
         picked[self.inner] = altered.picks(index - self.offsets[block], len(self.inner))
         return picked
 
+    def terms(self, index: int) -> list[float]:
+        """The costs alteration ``index`` adds up, one per altered choice."""
+        picked = self.picks(index)
+        return [float(self.choice_costs[i][k]) for i, k in enumerate(picked.tolist()) if k]
+
     def best_within(self, budgets: Sequence[float]) -> list[int]:
         """Index of the best alteration within each budget (near-ties: the cheapest)."""
-        return best_per_budget(self.costs, self.values, budgets, self.scale, tie=tolerance.NEAR_TIE)
+        return best_per_budget(
+            self.costs,
+            self.values,
+            budgets,
+            self.scale,
+            tie=tolerance.NEAR_TIE,
+            terms=self.terms,
+        )
 
 
 class _Cycles(NamedTuple):
@@ -501,12 +521,14 @@ class LowRankEnumeration:
         value is ``-inf`` when none may."""
         found = self.run(budget, fixed, deadline, None, bases, floor=floor)
         costs = np.where(np.isnan(found.values), np.inf, found.costs)
-        if not (costs <= found.scale.cap(budget)).any():
+        index = best_fitting(
+            costs, found.values, budget, found.scale, tolerance.NEAR_TIE, found.terms
+        )
+        if index is None:
             if floor is None or not found.values.size:
                 return None
             # every alteration was left out: none can reach the floor (no value to offer)
             return -np.inf, found.picks(0), found.complete_for(budget)
-        index = best_per_budget(costs, found.values, [budget], found.scale, tolerance.NEAR_TIE)[0]
         return float(found.values[index]), found.picks(index), found.complete_for(budget)
 
     def bases_within(self, top: float) -> int:
@@ -628,6 +650,7 @@ class LowRankEnumeration:
             top=top,
             base_seconds=pace.bases_s,
             floor=floor,
+            choice_costs=tuple(np.asarray(c.costs) for c in self.instance.space.choices),
         )
         return self._verified(enumerated, steps, deadline, floor)
 

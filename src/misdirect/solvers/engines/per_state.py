@@ -150,8 +150,16 @@ class PerStateRelaxation:
         return tuple(picks)
 
     def cost(self, picks: Sequence[int]) -> float:
-        pairs = zip(self.order, picks, strict=False)  # ``picks`` may be a prefix
-        return float(sum(self.option_cost[self.first_option[i] + k] for i, k in pairs))
+        return float(sum(self.terms(picks)))
+
+    def terms(self, picks: Sequence[int]) -> list[float]:
+        """The costs ``picks`` adds up, one per observation (``picks`` may be a prefix)."""
+        pairs = zip(self.order, picks, strict=False)
+        return [float(self.option_cost[self.first_option[i] + k]) for i, k in pairs]
+
+    def fits(self, picks: Sequence[int], budget: float) -> bool:
+        """Whether ``picks`` fits ``budget`` exactly (its terms decide an ambiguous sum)."""
+        return self.space.scale.fits_terms(self.cost(picks), lambda: self.terms(picks), budget)
 
 
 def relaxation_bound(problem: Problem, budget: float, deadline: Deadline | None = None) -> float:

@@ -61,11 +61,8 @@ from misdirect.solvers.base import thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import BasisCache, LowRankEnumeration
 from misdirect.solvers.engines.per_state import PerStateRelaxation
-from misdirect.solvers.engines.policy_iteration import (
-    LinearSolver,
-    MaxReachability,
-    TransientPolicyIteration,
-)
+from misdirect.solvers.engines.policy_iteration import MaxReachability
+from misdirect.solvers.engines.transient import LinearSolver, TransientPolicyIteration
 
 Layer = tuple[int, int, np.ndarray]  # (choice index, option, group per product state)
 

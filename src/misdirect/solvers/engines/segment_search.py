@@ -104,7 +104,9 @@ class SegmentSearch(IncumbentSearch):
         self.enumerated = 0  # nodes
         self.enumerated_alterations = 0
         self._lock = threading.Condition(threading.RLock())  # the heap and the incumbent
-        self.incumbent = Incumbent(seg.relax, seg.complete({}), order_ties=True, lock=self._lock)
+        self.incumbent = Incumbent(
+            seg.relax, seg.complete({}), budget, order_ties=True, lock=self._lock
+        )
         self._error: BaseException | None = None
         self._in_flight: dict[int, float] = {}  # bound of every node a worker holds
         self._status: Status | None = None  # set when the search is over: why

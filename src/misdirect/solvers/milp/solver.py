@@ -220,9 +220,41 @@ class MilpSolver:
                     time_limit=schedule.milp_budget(deadline, len(budgets) - done + 1),
                     cancel=deadline.cancel,
                 )
+                result = self._within_budget(
+                    problem, model, backend, curve, budget, result, deadline
+                )
             solutions.append(self._solution(curve, backend.name, budget, result, deadline))
             report(progress, done, len(budgets), stage=f"milp ({backend.name})")
         return solutions
+
+    @staticmethod
+    def _within_budget(
+        problem: Problem,
+        model: MilpModel,
+        backend: Any,
+        curve: _Curve,
+        budget: float,
+        result: BackendResult,
+        deadline: Deadline,
+    ) -> BackendResult:
+        """``result``, or where the budget row admitted an alteration over the budget (costs
+        whose float sums are no proof, :meth:`~misdirect.core.tolerance.CostScale.ambiguous`:
+        the row lets every sum that fits pass, and a few more), the answer of a solve with the
+        row at the sums that surely fit, with the first solve's bound (over the larger set)."""
+        scale = problem.cost.scale
+        if scale.decisive or result.values is None:
+            return result
+        if problem.cost.fits(model.decode(result.values), budget):
+            return result  # the best of a larger set, and within the budget: the best
+        sure = scale.snap(scale.sure_cap(budget)) / model.cost_unit
+        backend.set_row_upper(model.budget_row, sure)
+        inner: BackendResult = backend.solve(
+            curve.start, time_limit=schedule.milp_budget(deadline, 1), cancel=deadline.cancel
+        )
+        backend.set_row_upper(model.budget_row, _budget_row(problem, model, budget))
+        if inner.values is None:
+            return replace(result, values=None, objective=None, status=BackendStatus.TIME_LIMIT)
+        return replace(inner, bound=result.bound)
 
     def _solution(
         self, curve: _Curve, backend: str, budget: float, result: BackendResult, deadline: Deadline

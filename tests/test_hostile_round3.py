@@ -1,0 +1,96 @@
+"""Hostile input, third round (issue 51): regressions for what evaluate printed beside a proven
+value, and for chains singular in double precision."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+from typer.testing import CliRunner
+
+from misdirect import evaluate, load_problem, solve
+from misdirect.cli import app
+
+runner = CliRunner()
+
+
+def _leaking_loop(tmp_path, stay: str, leak: str, goal: str | None = None):
+    """start -> loop; loop stays with ``stay`` and leaks into the decoy ``trap`` with ``leak``
+    (and into ``goal`` with ``goal``). With nothing else, every run ends in the trap: value 1
+    by hand, whatever the leak's size."""
+    extra = f"\n    - [loop, a, goal, {goal}]" if goal else ""
+    path = tmp_path / "leak.yaml"
+    path.write_text(
+        textwrap.dedent(
+            f"""\
+            format: misdirect/v1
+            name: leaking loop
+            pomdp:
+              states: [start, loop, trap, goal]
+              actions: [a]
+              initial: start
+              observe: {{start: o0, loop: o1, trap: g, goal: g}}
+              transitions:
+                - [start, a, loop, 1.0]
+                - [loop, a, loop, {stay}]
+                - [loop, a, trap, {leak}]"""
+        )
+        + extra
+        + textwrap.dedent(
+            """
+            absorbing: [trap, goal]
+            controller:
+              nodes: [m]
+              initial: m
+              rules:
+                - {node: "*", obs: "*", action: a, next: m}
+            deception:
+              decoy: [trap]
+              budget: 0
+            """
+        ).replace("\nabsorbing", "\n  absorbing")
+    )
+    return path
+
+
+def test_a_subnormal_way_out_is_valued_not_an_internal_error(tmp_path):
+    """Item 9: {loop: 1 - 5e-324, trap: 5e-324} reads 1.0 and 5e-324 in doubles, and I - Q
+    was exactly singular (an internal RuntimeError). The run leaves the loop surely: 1."""
+    path = _leaking_loop(tmp_path, "1.0", "5.0e-324")
+    report = evaluate(load_problem(path))
+    assert report.probability == pytest.approx(1.0, rel=1e-12)
+    assert report.outcomes == {}  # left out, and said so
+    assert any("left out" in note for note in report.notes)
+    point = solve(load_problem(path)).curve[0]
+    assert point.probability == pytest.approx(1.0, rel=1e-12)
+    result = runner.invoke(app, ["evaluate", str(path)])
+    assert result.exit_code == 0 and "internal error" not in result.output
+
+
+def test_outcomes_that_contradict_the_proven_value_are_left_out(tmp_path):
+    """Item 4: a loop that leaks 1e-16 a step ends in the trap surely (value 1, by hand), but
+    its first-entry solve read 0.9007 for the trap: printed beside Pr 1.0. Now every
+    outcome shown is a distribution that agrees with the value, or none is shown, with a
+    note."""
+    path = _leaking_loop(tmp_path, "0.9999999999999999", "1.0e-16")
+    report = evaluate(load_problem(path))
+    assert report.probability == pytest.approx(1.0, rel=1e-9)
+    if report.outcomes:
+        assert report.outcomes.get("trap", 0.0) == pytest.approx(report.probability, rel=1e-9)
+    else:
+        assert any("left out" in note for note in report.notes)
+
+
+def test_rows_a_little_over_one_never_print_an_outcome_over_one(tmp_path):
+    """Item 4: rows whose doubles sum to 1 + 5e-11 are accepted as distributions (within
+    1e-9); whatever is shown is within [0, 1] and sums to 1 with the trapped runs. By hand:
+    the loop leaks to the trap with 0.3 and to the goal with 0.1 of each step's way out, so
+    the trap takes 3/4."""
+    path = _leaking_loop(tmp_path, "0.60000000005", "0.3", goal="0.1")
+    report = evaluate(load_problem(path))
+    assert report.probability == pytest.approx(0.75, rel=1e-9)
+    shown = list(report.outcomes.values())
+    assert all(0.0 <= p <= 1.0 for p in shown)
+    if shown:
+        assert sum(shown) + report.never_absorbed == pytest.approx(1.0, abs=1e-9)
+        assert report.outcomes["trap"] == pytest.approx(0.75, rel=1e-9)
