@@ -200,6 +200,13 @@ def test_audit_and_harden_on_the_cluster_answer_as_locally(pool):
         ("budgets: [-1]\nproblems: [a.yaml]\n", "budgets"),
         ("budgets: [1]\nscenarios: [{scenario: random, parameters: {size: 3}}]\n", "size"),
         ("budgets: [1]\n", "problems"),
+        # issue 51, item 5: no silent coercion, no error in every row
+        ("budgets: [true]\nproblems: [a.yaml]\n", "budgets"),
+        ("budgets: [1]\nscenarios: [{scenario: random, seeds: ['7']}]\n", "seeds"),
+        ("budgets: [1]\nscenarios: [{scenario: random, seeds: [9223372036854775808]}]\n", "seed"),
+        ("budgets: [1]\ntime_limit: .inf\nproblems: [a.yaml]\n", "time_limit"),
+        ("budgets: [1]\nscenarios: [{scenario: random, parameters: {states: many}}]\n", "states"),
+        ("budgets: [1]\nscenarios: [{scenario: drone, parameters: {slip: [1]}}]\n", "slip"),
     ],
 )
 def test_a_bad_sweep_file_names_the_file_and_the_field(tmp_path, text, field):
@@ -350,3 +357,61 @@ def test_a_results_table_that_is_no_table_is_refused_naming_it(tmp_path, kind):
     assert result.exit_code == 2, result.output
     assert "results.csv" in result.output and "Traceback" not in result.output
     assert table.lstat().st_mtime_ns == before.st_mtime_ns
+
+
+def test_a_sweep_file_of_the_right_types_is_accepted(tmp_path):
+    """Whole numbers where numbers are asked for, lists where sequences are: accepted as they
+    are (strict types refuse only what would be coerced)."""
+    text = (
+        "budgets: [0, 1.5]\ntime_limit: 30\nscenarios:\n"
+        "  - {scenario: knapsack, parameters: {weights: [1, 2.5], values: [1, 1], capacity: 2}}\n"
+        "  - {scenario: drone, parameters: {n: 5, slip: 0, budget: 1}}\n"
+    )
+    spec, _ = _spec(tmp_path, text)
+    assert spec.budgets == [0.0, 1.5] and spec.time_limit == 30
+
+
+@pytest.mark.parametrize(
+    "address", ["ucx://127.0.0.1:8786", "tls://127.0.0.1:8786", "127.0.0.1:0", "h:99999", "h:-1"]
+)
+def test_a_cluster_address_misdirect_cannot_use_is_refused_at_once(address):
+    """Issue 51, item 6: ucx:// and tls:// gave an internal TypeError; ports 0, 99999 and -1
+    waited 10 s for a connection that cannot be made. Now one line naming the address."""
+    import time
+
+    from misdirect.distributed.pool import connect
+
+    began = time.monotonic()
+    with pytest.raises(ProblemError) as raised, connect(address):
+        pass
+    assert time.monotonic() - began < 1.0
+    assert address in str(raised.value)
+
+
+def test_a_server_that_never_answers_or_speaks_http_is_refused_in_time():
+    """Issue 51, item 6: a port that accepts and never answers hung `solve` past 45 s; an
+    HTTP server read as "out of memory". Both are one line naming the address, within the
+    connection timeout and a little more."""
+    import http.server
+    import socket
+    import threading
+    import time
+
+    from misdirect.distributed.pool import CONNECT_TIMEOUT_S, connect
+
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(8)  # accepts (the kernel does) and never answers
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        for port in (silent.getsockname()[1], httpd.server_address[1]):
+            began = time.monotonic()
+            with pytest.raises(ProblemError) as raised, connect(f"tcp://127.0.0.1:{port}"):
+                pass
+            assert time.monotonic() - began < CONNECT_TIMEOUT_S + 5
+            assert f"127.0.0.1:{port}" in str(raised.value)
+            assert "memory" not in str(raised.value)
+    finally:
+        httpd.shutdown()
+        silent.close()

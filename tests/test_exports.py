@@ -256,3 +256,32 @@ def test_exported_model_of_tiny_values_is_scaled_and_decodes(tmp_path):
     payload = checked(result.stdout)
     assert payload["alteration"] == {"o1": "o0"}
     assert payload["value"] == pytest.approx(8e-13, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (lambda m: m["alteration_columns"].__setitem__(0, 7), "alteration_columns[0]"),
+        (lambda m: m["alteration_columns"][0].pop("column"), "column"),
+        (lambda m: m.__setitem__("budget", "lots"), "budget"),
+        (lambda m: m.__setitem__("budget", -1.0), "budget"),
+        (lambda m: m.__setitem__("alteration_columns", {"c0": 1}), "alteration_columns"),
+        (lambda m: m["alteration_columns"][0].__setitem__("target", 3), "target"),
+    ],
+)
+def test_a_malformed_column_map_is_one_line_naming_its_field(tmp_path, change, field):
+    """Issue 51, item 7: integer entries, a missing column, a budget of "lots" or -1, a
+    mapping for the list: exit 2, the map's file and the field named (internal TypeError,
+    KeyError or ValueError before; the negative budget was accepted)."""
+    model = tmp_path / "p.lp"
+    _run("export-milp", TINY, "-o", model, "--formulation", "paper", "--budget", "4")
+    path = tmp_path / "p.columns.json"
+    mapping = json.loads(path.read_text())
+    change(mapping)
+    path.write_text(json.dumps(mapping))
+    solution = tmp_path / "p.sol"
+    solution.write_text("c0 1\n")
+    result = _run("decode", model, solution)
+    assert result.exit_code == 2, result.output
+    assert str(path) in result.stderr and field in result.stderr
+    assert "internal error" not in result.stderr and len(result.stderr.strip().splitlines()) == 1

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from rich.markup import escape
 
 from misdirect.cli.common import fmt_alteration, note, out, print_json
@@ -135,6 +136,47 @@ def decode(
         raise typer.Exit(1)
 
 
+class _MapEntry(BaseModel):
+    """One alteration column of a column map: the fields decode reads, strictly typed."""
+
+    model_config = ConfigDict(strict=True, extra="allow")
+    column: str
+    observation: str
+    target: str
+
+
+class _ColumnMap(BaseModel):
+    model_config = ConfigDict(strict=True, extra="allow")
+    alteration_columns: list[_MapEntry]
+    budget: float | None = None
+    problem_file: str | None = None
+
+    @field_validator("budget")
+    @classmethod
+    def _budget(cls, budget: float | None) -> float | None:
+        if budget is not None and not (math.isfinite(budget) and budget >= 0):
+            raise ValueError(f"a budget must be a non-negative number, got {budget}")
+        return budget
+
+
+def _checked_map(document: Any, source: str) -> dict[str, Any]:
+    """A column map as export-milp writes it, or one line naming the file and the field."""
+    if not isinstance(document, dict):
+        raise ProblemError("not a column map of misdirect export-milp", source=source)
+    try:
+        _ColumnMap.model_validate(document)
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = "".join(
+            f"[{part}]" if isinstance(part, int) else f".{part}" for part in first["loc"]
+        ).removeprefix(".")
+        reason = first["msg"].removeprefix("Value error, ")
+        raise ProblemError(
+            f"not a column map of misdirect export-milp: {reason}", source=source, field=where
+        ) from None
+    return document
+
+
 def _problem_and_map(
     model: Path, problem_file: Path | None, formulation: str, budget: float | None
 ) -> tuple[Problem, dict[str, Any]]:
@@ -151,9 +193,9 @@ def _problem_and_map(
                 "misdirect export-milp, or give the problem file instead",
                 field="MODEL",
             )
-        mapping = parse_json(read_text_file(map_path), source=str(map_path))
-        if not isinstance(mapping, dict) or not isinstance(mapping.get("alteration_columns"), list):
-            raise ProblemError("not a column map of misdirect export-milp", source=str(map_path))
+        mapping = _checked_map(
+            parse_json(read_text_file(map_path), source=str(map_path)), str(map_path)
+        )
         named = mapping.get("problem_file")
         if problem_file is None and not named:
             raise ProblemError(

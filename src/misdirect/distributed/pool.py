@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import socket
+import threading
 import uuid
 from collections.abc import Callable, Hashable, Iterator
 from typing import Any
@@ -102,10 +103,7 @@ def connect(
     logging.getLogger("distributed").setLevel(logging.ERROR)
     with contextlib.ExitStack() as stack:
         if cluster is not None:
-            try:
-                client = stack.enter_context(Client(cluster, timeout="10s"))
-            except (OSError, TimeoutError, ValueError) as error:
-                raise ProblemError(f"cannot reach the scheduler: {error}", field=field) from None
+            client = stack.enter_context(_reach(Client, scheduler_address(cluster)))
         else:
             local = stack.enter_context(
                 LocalCluster(
@@ -117,6 +115,70 @@ def connect(
             )
             client = stack.enter_context(Client(local))
         yield DaskPool(client)
+
+
+CONNECT_TIMEOUT_S = 10.0  # a scheduler that does not answer within this is refused
+SCHEMES = ("tcp",)  # tls:// needs certificates, ucx:// a UCX build: neither is configured here
+
+
+def scheduler_address(address: str) -> str:
+    """``address`` as Dask's client takes it (``tcp://host:port``), checked first: a scheme
+    misdirect cannot speak or a port outside 1..65535 is refused at once, naming it."""
+    scheme, sep, rest = address.partition("://")
+    if not sep:
+        scheme, rest = "tcp", address
+    if scheme not in SCHEMES:
+        raise ProblemError(
+            f"{address!r}: misdirect connects to Dask schedulers over tcp:// only "
+            f"({scheme}:// would need a security or UCX configuration it does not take)",
+            field="cluster",
+        )
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ProblemError(
+            f"{address!r}: expected tcp://HOST:PORT with a port from 1 to 65535",
+            field="cluster",
+        )
+    return f"tcp://{host}:{int(port)}"
+
+
+@contextlib.contextmanager
+def _reach(client_class: Any, address: str) -> Iterator[Any]:
+    """A client of the scheduler at ``address``, or a one-line error within
+    :data:`CONNECT_TIMEOUT_S`: Dask's own timeout does not cover a server that accepts and
+    never answers (its handshake waits forever), and one that is no scheduler (an HTTP
+    server) fails in ways of its own, a frame of some gigabytes among them. The client is
+    made in a thread of its own so that the wait can be cut."""
+    made: list[Any] = []
+    failed: list[BaseException] = []
+
+    def make() -> None:
+        try:
+            made.append(client_class(address, timeout=f"{CONNECT_TIMEOUT_S:g}s"))
+        except BaseException as error:  # anything: reported below as the address's fault
+            failed.append(error)
+
+    worker = threading.Thread(target=make, name="misdirect-connect", daemon=True)
+    worker.start()
+    worker.join(CONNECT_TIMEOUT_S + 2.0)
+    if worker.is_alive():
+        raise ProblemError(
+            f"{address}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:g} s",
+            field="cluster",
+        )
+    if failed or not made:
+        error = failed[0] if failed else RuntimeError("no client")
+        reason = str(error) or type(error).__name__
+        if isinstance(error, MemoryError):
+            reason = "it sent something that is not Dask's protocol"
+        raise ProblemError(
+            f"{address}: cannot reach a Dask scheduler there ({reason})", field="cluster"
+        )
+    client = made[0]
+    try:
+        yield client
+    finally:
+        client.close()
 
 
 def pool_or_local(pool: TaskPool | None) -> TaskPool:

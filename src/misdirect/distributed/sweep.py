@@ -10,14 +10,17 @@ every row already there with a result (rows that failed with an error are run ag
 
 from __future__ import annotations
 
+import collections.abc
 import contextlib
 import csv
 import hashlib
 import inspect
 import io
 import json
+import math
 import stat
 import time
+import typing
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +31,14 @@ try:
 except ImportError:  # Windows: no advisory locks; concurrent sweeps need their own folders
     fcntl = None  # type: ignore[assignment]
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+)
 
 from misdirect.core.model import Problem, format_alteration
 from misdirect.errors import MisdirectError, ProblemError
@@ -73,19 +83,31 @@ COLUMNS: tuple[tuple[str, type], ...] = (
 ERROR = "error"  # the status of a row that raised: run again on resume
 
 
+SEED_LIMIT = 2**63  # seeds are stored as int64 (the Parquet table's column)
+
+
 class ScenarioSpec(BaseModel):
     """Generated instances: one per seed (or one, for generators without a seed)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: `seeds: ["7"]` and `budgets: [true]` are refused, not read as 7 and 1.0
+    model_config = ConfigDict(extra="forbid", strict=True)
     scenario: Literal["random", "sensor-grid", "paper-grid", "knapsack", "drone"]
     parameters: dict[str, Any] = Field(default_factory=dict)
     seeds: list[int] | None = None
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, seeds: list[int] | None) -> list[int] | None:
+        for seed in seeds or []:
+            if not 0 <= seed < SEED_LIMIT:
+                raise ValueError(f"a seed must be a whole number in [0, 2^63), got {seed}")
+        return seeds
 
 
 class SweepSpec(BaseModel):
     """A sweep file (``format: misdirect-sweep/v1``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
     format: Literal["misdirect-sweep/v1"] = FORMAT
     problems: list[str] = Field(default_factory=list)  # files, relative to the sweep file
     scenarios: list[ScenarioSpec] = Field(default_factory=list)
@@ -100,6 +122,13 @@ class SweepSpec(BaseModel):
             if not b >= 0 or b == float("inf"):
                 raise ValueError(f"a budget must be a non-negative number, got {b}")
         return budgets
+
+    @field_validator("time_limit")
+    @classmethod
+    def _time_limit(cls, limit: float | None) -> float | None:
+        if limit is not None and not math.isfinite(limit):
+            raise ValueError(f"a time limit must be a finite number of seconds, got {limit}")
+        return limit
 
     @field_validator("methods")
     @classmethod
@@ -157,7 +186,9 @@ def load_sweep(path: Path) -> tuple[SweepSpec, Path]:
         spec = SweepSpec.model_validate(document)
     except ValidationError as error:
         first = error.errors()[0]
-        where = ".".join(str(part) for part in first["loc"])
+        where = "".join(
+            f"[{part}]" if isinstance(part, int) else f".{part}" for part in first["loc"]
+        ).removeprefix(".")
         reason = (
             "unknown field (check the spelling)"
             if first["type"] == "extra_forbidden"
@@ -172,9 +203,12 @@ def load_sweep(path: Path) -> tuple[SweepSpec, Path]:
 
 
 def _check_parameters(item: ScenarioSpec, source: str, where: str) -> None:
-    """The generator takes every parameter given (and a seed, when seeds are given)."""
-    accepted = inspect.signature(GENERATORS[item.scenario]).parameters
-    for name in item.parameters:
+    """The generator takes every parameter given, of its type (and a seed, when seeds are
+    given): a wrong type is the file's error, named here, not every row's TypeError."""
+    generate = GENERATORS[item.scenario]
+    accepted = inspect.signature(generate).parameters
+    hints = typing.get_type_hints(generate)
+    for name, value in item.parameters.items():
         if name not in accepted or name == "seed":
             known = ", ".join(p for p in accepted if p != "seed")
             raise ProblemError(
@@ -182,8 +216,30 @@ def _check_parameters(item: ScenarioSpec, source: str, where: str) -> None:
                 source=source,
                 field=f"{where}.parameters.{name}",
             )
+        if name in hints:
+            try:
+                TypeAdapter(hints[name]).validate_python(value, strict=True)
+            except ValidationError:
+                raise ProblemError(
+                    f"{item.scenario}'s {name} must be {_type_name(hints[name])}, got {value!r}",
+                    source=source,
+                    field=f"{where}.parameters.{name}",
+                ) from None
     if item.seeds is not None and "seed" not in accepted:
         raise ProblemError(f"{item.scenario} takes no seed", source=source, field=f"{where}.seeds")
+
+
+def _type_name(hint: Any) -> str:
+    """A type as a sentence says it: ``int`` a whole number, ``float`` a number, ..."""
+    names = {int: "a whole number", float: "a number", str: "a string", bool: "true or false"}
+    if hint in names:
+        return names[hint]
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if typing.get_origin(hint) in (list, collections.abc.Sequence) and args:
+        return f"a list of {_type_name(args[0]).removeprefix('a ')}s"
+    if len(args) == 1:  # X | None
+        return _type_name(args[0])
+    return str(hint)
 
 
 def row_id(instance: dict[str, Any], budget: float, method: str) -> str:
