@@ -94,3 +94,57 @@ def test_rows_a_little_over_one_never_print_an_outcome_over_one(tmp_path):
     if shown:
         assert sum(shown) + report.never_absorbed == pytest.approx(1.0, abs=1e-9)
         assert report.outcomes["trap"] == pytest.approx(0.75, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("args", "flag"),
+    [
+        (["scenario", "paper-grid", "--size", "2000"], "--size"),
+        (["scenario", "sensor-grid", "--size", "1000"], "--size"),
+        (["scenario", "drone", "--agents", "3", "--size", "8"], "--size"),
+        (["scenario", "random", "--observations", "10000", "--states", "2"], "--observations"),
+    ],
+)
+def test_scenarios_too_big_for_the_memory_limit_are_refused_before_building(
+    tmp_path, args, flag
+):
+    """Item 10: these passed 6 to 10 GB (and up to 284 s) under --memory-limit 3G; each is
+    estimated first and refused in one line naming its flag, exit 2, nothing written."""
+    import time
+
+    out = tmp_path / "x.yaml"
+    began = time.monotonic()
+    result = runner.invoke(app, ["--memory-limit", "1G", *args, "-o", str(out)])
+    assert result.exit_code == 2, result.output
+    assert time.monotonic() - began < 10
+    assert flag in result.output and "memory" in result.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("budget", ["nan", "inf", "-1"])
+def test_sensor_grid_refuses_a_budget_that_is_no_budget(tmp_path, budget):
+    """Item 12: NaN, inf and -1 were written into the file."""
+    out = tmp_path / "x.yaml"
+    result = runner.invoke(app, ["scenario", "sensor-grid", f"--budget={budget}", "-o", str(out)])
+    assert result.exit_code == 2 and "--budget" in result.output
+    assert not out.exists()
+
+
+def test_sensor_grid_checks_its_output_before_building(tmp_path):
+    """Item 12: -o in a missing folder was found only after the grid was built (85 s)."""
+    import time
+
+    began = time.monotonic()
+    target = tmp_path / "missing" / "x.yaml"
+    result = runner.invoke(app, ["scenario", "sensor-grid", "--size", "1000", "-o", str(target)])
+    assert result.exit_code == 2 and "-o" in result.output
+    assert time.monotonic() - began < 10
+
+
+def test_solve_with_no_budget_is_an_option_error():
+    """Item 12: solve(problem, budgets=[]) raised a bare ValueError."""
+    from misdirect import OptionError
+    from misdirect.scenarios import paper_grid
+
+    with pytest.raises(OptionError, match="budget"):
+        solve(paper_grid(5), budgets=[])

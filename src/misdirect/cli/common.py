@@ -79,7 +79,9 @@ RENAMED_FLAGS = {"n": "--size", "path": "-o", "output": "-o", "prop": "--props"}
 
 # the fields of library errors that name a parameter, not a place in a file (pomdp.states):
 # the file written, reproduce's and sweep's folder, the pool, PAYNT's constants and property
-PARAMETER_FIELDS = frozenset({"path", "output", "out", "cluster", "workers", "constants", "prop"})
+PARAMETER_FIELDS = frozenset(
+    {"path", "output", "out", "cluster", "workers", "constants", "prop", "n", "observations"}
+)
 
 # parameters a library message sets to a value to suggest it (try method="milp")
 ASSIGNED = ("method", "solver", "formulation", "output")

@@ -109,6 +109,9 @@ def scenario_sensor_grid(
     as_json: JsonOption = False,
 ) -> None:
     """A sensor network on the paper's slippery grid (docs/sensor-grid.md)."""
+    check_output_path(output)  # before building: a big grid takes minutes
+    if not (math.isfinite(budget) and budget >= 0):
+        raise ProblemError(f"must be a non-negative number, got {budget}", field="--budget")
     problem = sensor_grid(
         size, sensors, seed=seed, memory=memory, costs=costs, budget=budget, goal=goal
     )

@@ -1322,9 +1322,18 @@ _FlowListDumper.add_representer(list, _represent_list)
 _FlowListDumper.add_representer(dict, _represent_dict)
 
 
+WRITE_BYTES_PER_ENTRY = 2048  # the YAML writer's peak, per transition (paper_grid(300): 1.8 KiB)
+
+
 def write_problem(problem: Problem, path: str | Path) -> None:
     """Write ``problem`` as YAML, or JSON when the file name ends in ``.json``."""
     path = Path(path)
+    entries = problem.pomdp.transitions.nnz + len(problem.cost.pairs)
+    check_memory(
+        entries * WRITE_BYTES_PER_ENTRY,
+        f"writing {problem.name} ({entries:,} transitions and cost pairs) as text",
+        field="output",
+    )
     write_output(path, problem_text(problem, as_json=path.suffix.lower() == ".json"))
 
 

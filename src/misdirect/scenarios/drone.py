@@ -35,6 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import OptionError
 
@@ -43,6 +44,7 @@ MOVES = np.array([(0, 1), (1, 0), (0, -1), (-1, 0), (0, 0)])  # (dx, dy), same o
 SECTORS = 8  # compass sectors of the nearest visible agent
 READINGS = 1 + 2 * SECTORS  # none, or (sector, one or two agents visible)
 MAX_SIZE = 40
+DRONE_BYTES_PER_STATE = 4096  # building it, per world state (drone(8, agents=3): 3.6 KiB)
 MAX_STATES = 2_000_000  # world states the generator builds (drone(8, agents=3, rows=2): 339,362)
 
 
@@ -121,6 +123,11 @@ def drone(
             f"{MAX_STATES:,}): take a smaller grid, fewer agents or fewer rows",
             parameter="n",
         )
+    check_memory(
+        2 * n_cells * n_configs * DRONE_BYTES_PER_STATE,
+        f"the drone model ({2 * n_cells * n_configs:,} states)",
+        field="n",
+    )
     # config index -> cell of each agent (mixed radix over the bands)
     config_cells = np.stack(
         [

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import OptionError
 
@@ -17,6 +18,9 @@ OBSERVATIONS = ("o0", "o1", "o2", "o3", "o4", "o5", "o6", "b")
 BLANK = 7
 E_TYPE = (0, 1, 4, 6)  # sensors after which the controller heads East
 N_TYPE = (2, 3, 5)  # sensors after which it heads North
+
+
+GRID_BYTES_PER_CELL = 4096  # building a grid world, per cell (bench: paper_grid(300), 2.2 KiB)
 
 
 def scaled(k: int, n: int) -> int:
@@ -96,6 +100,7 @@ def paper_grid(n: int = 5, *, budget: float = 4) -> Problem:
     """The ``n x n`` grid case study with the hazard as decoy and unit alteration costs."""
     if n < 5:
         raise OptionError(f"the grid needs size ≥ 5, got {n}", parameter="n")
+    check_memory(n * n * GRID_BYTES_PER_CELL, f"the {n}x{n} grid", field="n")
     observation_of = np.full(n * n, BLANK, dtype=np.int64)
     for sensor, cells in sensor_cells(n).items():
         for cx, cy in cells:

@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
+
+# its cost table, per pair of observations (a dict entry for 45 % of them, and their writing)
+RANDOM_BYTES_PER_PAIR = 256
 
 
 def random_problem(
@@ -73,6 +77,11 @@ def random_problem(
         controller = random_moves(
             np.random.default_rng([seed, 1]), controller.nodes, n_obs, actions
         )
+    check_memory(
+        n_obs * n_obs * RANDOM_BYTES_PER_PAIR,
+        f"the random model's cost table ({n_obs:,} observations, every pair drawn)",
+        field="observations",
+    )
     pairs: dict[tuple[int, int], float] = {}
     for o in range(n_obs):
         for t in range(n_obs):

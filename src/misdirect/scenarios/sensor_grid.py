@@ -50,9 +50,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
 from misdirect.errors import OptionError
-from misdirect.scenarios.grid import ACTIONS, MOVES, grid_transitions
+from misdirect.scenarios.grid import ACTIONS, GRID_BYTES_PER_CELL, MOVES, grid_transitions
 
 MAX_COVERED = 0.6  # share of the cells that sensors may cover
 MAX_SIZE = 1_000  # the grid side the generator accepts
@@ -82,6 +83,7 @@ def sensor_grid(
     if memory is None:
         memory = 4 if goal == "inside" else 3
     _check(n, sensors, memory, costs, goal)
+    check_memory(n * n * GRID_BYTES_PER_CELL, f"the {n}x{n} sensor grid", field="n")
     rng = np.random.default_rng(seed)
     cells = n * n
     x, y = np.arange(cells) % n, np.arange(cells) // n

@@ -22,7 +22,7 @@ from misdirect.core.checkpoint import interruptible
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
 from misdirect.core.tables import dataframe, short_float
-from misdirect.errors import ProblemError
+from misdirect.errors import OptionError, ProblemError
 from misdirect.solvers import get_solver
 from misdirect.solvers.base import ProgressCallback, Solution
 from misdirect.solvers.certification import (
@@ -591,6 +591,10 @@ def _budgets(
     """The budgets to answer (sorted, checked), the cap (the most expensive complete
     alteration's cost) and the largest budget asked for when it exceeds the cap; a default
     curve too long to list whole is thinned, said in ``notes``."""
+    if budgets is not None and not len(budgets):
+        raise OptionError(
+            "no budget to answer: give at least one, or none for the problem's", parameter="budgets"
+        )
     cap = max_alteration_cost(problem)
     asked = problem.budget if budgets is None else max(map(float, budgets), default=0.0)
     _, clamped_from = clamp_budget(asked, cap)
