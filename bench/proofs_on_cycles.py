@@ -102,7 +102,55 @@ def run_case(label, build, budget, sizes, samples, seed=50) -> dict:
     }
 
 
-def markdown(cases: list[dict]) -> str:
+SEARCHES = [  # (label, builder, budgets, time limit): the search's own nodes
+    ("turn-back n=40 k=64", lambda: sensor_grid(40, 64, goal="inside"), [2, 3, 4], 30.0),
+    ("turn-back n=20 k=32", lambda: sensor_grid(20, 32, goal="inside"), [2, 3, 4], 30.0),
+]
+QUICK_SEARCHES = [("turn-back n=12 k=16", lambda: sensor_grid(12, 16, goal="inside"), [2], 5.0)]
+
+
+def search_case(label, build, budgets, limit) -> list[dict]:
+    """Branch-and-bound at each budget, its node bounds counted: proven, left at the trivial
+    bound, and the collapsed proofs tried and successful; once without the collapsed proof
+    and once with it."""
+    from misdirect import solve
+
+    problem = build()
+    rows = []
+    for collapse in (False, True):
+        saved = policy_iteration.collapsed_bound
+        if not collapse:
+            policy_iteration.collapsed_bound = lambda *args, **kwargs: CollapsedProof(None, "off")
+        try:
+            result = solve(problem, method="branch-and-bound", budgets=budgets, time_limit=limit)
+        finally:
+            policy_iteration.collapsed_bound = saved
+        for point in result.curve:
+            stats = point.stats.to_dict()
+            rows.append(
+                {
+                    "label": label,
+                    "collapse": collapse,
+                    "budget": point.budget,
+                    "status": str(point.status),
+                    "value": point.probability,
+                    "upper_bound": point.upper_bound,
+                    **{
+                        k: stats.get(k)
+                        for k in (
+                            "nodes",
+                            "proofs",
+                            "trivial_bounds",
+                            "collapsed_proofs",
+                            "collapsed_proven",
+                        )
+                    },
+                }
+            )
+    return rows
+
+
+def markdown(cases: list[dict], searches: list[dict] | None = None) -> str:
     lines = [
         "# Proofs where policy iteration converged (issue 50)",
         "",
@@ -127,6 +175,22 @@ def markdown(cases: list[dict]) -> str:
                     f"- {c['label']}: {r['value']:.6f} proven only to {r['new_bound']:.6f} "
                     f"({len(r['free'])} sensors free): {r['why'] or 'collapsed proof not tried'}"
                 )
+    if searches:
+        lines += [
+            "",
+            "## At the search's nodes (branch-and-bound, per budget)",
+            "",
+            "| chain | collapsed proof | budget | status | value | bound | nodes | proofs "
+            "| trivial | collapsed tried | collapsed proven |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in searches:
+            bound = "none" if r["upper_bound"] is None else f"{r['upper_bound']:.6f}"
+            lines.append(
+                f"| {r['label']} | {'on' if r['collapse'] else 'off'} | {r['budget']:g} "
+                f"| {r['status']} | {r['value']:.6f} | {bound} | {r['nodes']} | {r['proofs']} "
+                f"| {r['trivial_bounds']} | {r['collapsed_proofs']} | {r['collapsed_proven']} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -134,12 +198,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("results/bench"))
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--only", choices=("samples", "search"), default=None)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    cases = [run_case(*case) for case in (QUICK if args.quick else CASES)]
-    (args.out / "proofs_on_cycles.json").write_text(json.dumps(cases, indent=1))
-    (args.out / "proofs_on_cycles.md").write_text(markdown(cases))
-    print(markdown(cases))
+    cases = (
+        [] if args.only == "search" else [run_case(*c) for c in (QUICK if args.quick else CASES)]
+    )
+    searches = (
+        []
+        if args.only == "samples"
+        else [r for c in (QUICK_SEARCHES if args.quick else SEARCHES) for r in search_case(*c)]
+    )
+    document = {"samples": cases, "searches": searches}
+    (args.out / "proofs_on_cycles.json").write_text(json.dumps(document, indent=1))
+    (args.out / "proofs_on_cycles.md").write_text(markdown(cases, searches))
+    print(markdown(cases, searches))
 
 
 if __name__ == "__main__":

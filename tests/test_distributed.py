@@ -415,3 +415,41 @@ def test_a_server_that_never_answers_or_speaks_http_is_refused_in_time():
     finally:
         httpd.shutdown()
         silent.close()
+
+
+def test_a_sweep_output_that_is_a_file_is_a_usage_error(tmp_path):
+    """Issue 51 (questionable, decided): -o naming a file is exit 2 (it was 1), the file
+    untouched."""
+    from typer.testing import CliRunner
+
+    from misdirect.cli import app
+
+    spec = tmp_path / "sweep.yaml"
+    spec.write_text(_sweep_text([0]))
+    target = tmp_path / "afile"
+    target.write_text("mine")
+    result = CliRunner().invoke(app, ["sweep", str(spec), "-o", str(target)])
+    assert result.exit_code == 2 and "afile" in result.output
+    assert target.read_text() == "mine"
+
+
+@pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signalled_sweep_exits_with_the_signals_code_and_keeps_its_rows(tmp_path, sig, code):
+    """Issue 51 (questionable, decided): SIGTERM during a sweep exited 130, as Ctrl-C does;
+    now 143, as every other command. Rows finished before the signal stay in the table."""
+    import time
+
+    spec = tmp_path / "sweep.yaml"
+    spec.write_text(_sweep_text(list(range(400))))
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "misdirect", "sweep", str(spec), "-o", str(out)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while not (out / "results.csv").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    process.send_signal(sig)
+    process.communicate(timeout=120)
+    assert process.returncode == code
+    from misdirect.distributed.sweep import read_table
+
+    assert len(read_table(out / "results.csv")) >= 1

@@ -285,3 +285,25 @@ def test_a_malformed_column_map_is_one_line_naming_its_field(tmp_path, change, f
     assert result.exit_code == 2, result.output
     assert str(path) in result.stderr and field in result.stderr
     assert "internal error" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_export_milp_writes_both_files_or_neither(tmp_path, monkeypatch):
+    """Issue 51 (questionable, decided): the model was replaced and then its column map
+    failed to be written, a mismatched pair. Now a map that cannot be written leaves the
+    earlier pair as it was, and no staged file behind."""
+    from misdirect.errors import WriteError
+
+    model = tmp_path / "m.mps"
+    assert _run("export-milp", TINY, "-o", model, "--budget", "1").exit_code == 0
+    before = model.read_bytes(), (tmp_path / "m.columns.json").read_text()
+
+    import misdirect.cli.models as models
+
+    def full_disk(path, *args, **kwargs):
+        raise WriteError(f"cannot write {path}: No space left on device")
+
+    monkeypatch.setattr(models, "write_output", full_disk)
+    result = _run("export-milp", TINY, "-o", model, "--budget", "2")
+    assert result.exit_code != 0
+    assert (model.read_bytes(), (tmp_path / "m.columns.json").read_text()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.columns.json", "m.mps"]

@@ -148,3 +148,13 @@ def test_solve_with_no_budget_is_an_option_error():
 
     with pytest.raises(OptionError, match="budget"):
         solve(paper_grid(5), budgets=[])
+
+
+@pytest.mark.parametrize("command", ["audit", "harden"])
+def test_a_report_folder_is_not_created_for_an_input_that_does_not_load(tmp_path, command):
+    """Issue 51 (questionable, decided): `audit -o DIR` created DIR before reading its input;
+    an input that does not load now leaves nothing behind."""
+    folder = tmp_path / "report"
+    result = runner.invoke(app, [command, str(tmp_path / "missing.yaml"), "-o", str(folder)])
+    assert result.exit_code == 2
+    assert not folder.exists()

@@ -3,12 +3,21 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
-from misdirect.cli.common import ProgressBars, check_range, note, print_json, stop_gracefully
+from misdirect.cli.common import (
+    INTERRUPTED,
+    TERMINATED,
+    ProgressBars,
+    check_range,
+    note,
+    print_json,
+    stop_gracefully,
+)
 from misdirect.cli.options import JsonOption
 from misdirect.report import json_output
 
@@ -90,7 +99,7 @@ def sweep(
         )
         for text in report.notes:
             note(f"note: {text}")
-    if stop.received:
-        raise typer.Exit(130)
+    if stop.received:  # 130 after Ctrl-C, 143 after SIGTERM, as every other command
+        raise typer.Exit(TERMINATED if stop.received[0] == signal.SIGTERM else INTERRUPTED)
     if report.failed:
         raise typer.Exit(1)

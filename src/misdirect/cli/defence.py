@@ -60,9 +60,9 @@ def audit(
     check_workers(workers)
     check_budget(budget, "--budget")
     check_seconds(time_limit)
+    problem = source.load()  # first: a file that does not load leaves no folder behind
     if output is not None:
-        prepare_output_dir(output, field="-o")
-    problem = source.load()
+        prepare_output_dir(output, field="-o")  # before the audit's minutes
     with connect(cluster, workers) as pool:
         result = run_audit(problem, budget=budget, time_limit=time_limit, pool=pool)
     written: list[str] = []
@@ -188,9 +188,9 @@ def harden(
     check_budget(budget, "--budget")
     check_seconds(time_limit)
     costs = parse_protect_costs(protect_cost)
+    problem = source.load()  # first: a file that does not load leaves no folder behind
     if output is not None:
-        prepare_output_dir(output, field="-o")
-    problem = source.load()
+        prepare_output_dir(output, field="-o")  # before the search's minutes
     try:
         with connect(cluster, workers) as pool:
             result = run_harden(

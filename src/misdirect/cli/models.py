@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
@@ -316,8 +317,15 @@ def export_milp(
     mapping["problem_file"] = str(source.file.resolve()) if source.file is not None else None
     map_path = column_map_path(output)
     check_output_path(map_path)
-    write_model(model, output)
-    write_output(map_path, column_map_text(mapping))
+    # both files or neither: the model is staged beside its place, the map written, and only
+    # then the model put in place (a map that cannot be written leaves the old pair as it was)
+    staged = output.with_name(f".{output.stem}.partial{output.suffix}")
+    try:
+        write_model(model, staged)
+        write_output(map_path, column_map_text(mapping))
+        os.replace(staged, output)
+    finally:
+        staged.unlink(missing_ok=True)
     if as_json:
         print_json(
             json_output.written_files(

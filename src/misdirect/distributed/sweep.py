@@ -480,9 +480,13 @@ def run_sweep(
     """Run every row of ``spec`` not already in ``out``/results.csv, writing the table after
     each; ``on_row(row, done, total)`` after each row (the progress bar). Without ``pool`` the
     rows run here, one after another."""
+    if out.exists() and not out.is_dir():
+        raise ProblemError(
+            "is a file: the sweep writes a folder of results; name a folder", source=str(out)
+        )
+    rows, problems = expand(spec, folder, pool)  # every problem file read before writing
     out.mkdir(parents=True, exist_ok=True)
     csv_path, parquet_path = out / "results.csv", out / "results.parquet"
-    rows, problems = expand(spec, folder, pool)
     order = [row.row_id for row in rows]
     with _table_lock(out):
         previous = read_table(csv_path) if csv_path.exists() else []

@@ -405,6 +405,13 @@ class _Search(IncumbentSearch):
         self.nodes = 0
         self.root_bound: float | None = None
         self.evaluations_before = relax.evaluations
+        mdp = relax.mdp
+        self.proofs_before = (
+            mdp.proofs,
+            mdp.trivial_proofs,
+            mdp.collapsed_proofs,
+            mdp.collapsed_proven,
+        )
 
     def describe(self) -> str:
         bound = self.open_bound()
@@ -477,12 +484,25 @@ class _Search(IncumbentSearch):
         return tuple(completed)
 
     def _solution(self, status: Status) -> Solution:
+        mdp = self.relax.mdp
+        proofs = [
+            now - then
+            for now, then in zip(
+                (mdp.proofs, mdp.trivial_proofs, mdp.collapsed_proofs, mdp.collapsed_proven),
+                self.proofs_before,
+                strict=True,
+            )
+        ]
         stats = BranchAndBoundStats(
             nodes=self.nodes,
             pruned=self.incumbent.pruned,
             policy_evaluations=self.relax.evaluations - self.evaluations_before,
             root_bound=self.root_bound,
             relevant_observations=len(self.relax.order),
+            proofs=proofs[0],
+            trivial_bounds=proofs[1],
+            collapsed_proofs=proofs[2],
+            collapsed_proven=proofs[3],
         )
         return Solution(
             budget=self.budget,

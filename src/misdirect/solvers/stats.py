@@ -72,6 +72,13 @@ class BranchAndBoundStats(MethodStats):
     root_bound: float | None
     relevant_observations: int
     segment: SegmentStats | None = None
+    # node bounds proven, those left at the trivial bound although policy iteration's value
+    # lay below it (no proof verified: "no proof yet", not "no bound known"), and the proofs
+    # on the MDP with its end components collapsed, tried and successful
+    proofs: int = 0
+    trivial_bounds: int = 0
+    collapsed_proofs: int = 0
+    collapsed_proven: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "segment"}

@@ -77,6 +77,8 @@ class MaxReachability:
         self._cycling = cycling
         self.evaluations = 0
         # proofs that needed the end components collapsed, and those that it improved
+        self.proofs = 0  # proven bounds asked for
+        self.trivial_proofs = 0  # ... that stayed at the largest value, far above the values
         self.collapsed_proofs = 0
         self.collapsed_proven = 0
         self.last_unproven = ""  # why the last collapsed proof found no bound ("": it did)
@@ -300,6 +302,9 @@ class MaxReachability:
             if collapsed.bound is not None and collapsed.bound < bound:
                 bound = collapsed.bound
                 self.collapsed_proven += 1
+        self.proofs += 1
+        if bound >= top and values[state] < top * (1 - tolerance.PROOF_COLLAPSE):
+            self.trivial_proofs += 1
         return float(bound)
 
     def _proven_double(
