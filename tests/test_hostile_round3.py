@@ -158,3 +158,24 @@ def test_a_report_folder_is_not_created_for_an_input_that_does_not_load(tmp_path
     result = runner.invoke(app, [command, str(tmp_path / "missing.yaml"), "-o", str(folder)])
     assert result.exit_code == 2
     assert not folder.exists()
+
+
+@pytest.mark.parametrize("columns", ["0", "abc"])
+def test_a_terminal_width_that_is_no_width_still_prints(columns):
+    """Item 12: COLUMNS=0 printed nothing at all (rich's width 0)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    trap = Path(__file__).resolve().parent.parent / "examples" / "trap.yaml"
+    env = {**os.environ, "COLUMNS": columns}
+    done = subprocess.run(
+        [sys.executable, "-m", "misdirect", "evaluate", str(trap)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "0.100000" in done.stdout  # the corridor unaltered: 0.4 x 0.25, by hand

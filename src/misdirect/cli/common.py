@@ -35,8 +35,20 @@ from misdirect.io.files import one_line, write_output
 from misdirect.report import json_output
 from misdirect.solvers.deadline import CancelToken
 
-out = Console()
-err = Console(stderr=True)
+MIN_COLUMNS = 40  # a terminal narrower than this (COLUMNS=0, say) is read as this wide
+
+
+def _width() -> int | None:
+    """The consoles' width: COLUMNS when it is a usable width, else rich's own guess (which
+    prints nothing at COLUMNS=0); never below :data:`MIN_COLUMNS`."""
+    text = os.environ.get("COLUMNS", "")
+    if not text:
+        return None
+    return max(int(text), MIN_COLUMNS) if text.strip().isdigit() else MIN_COLUMNS * 2
+
+
+out = Console(width=_width())
+err = Console(stderr=True, width=_width())
 INPUT_ERROR = 2
 INTERRUPTED = 130  # 128 + SIGINT, as a shell reports it
 TERMINATED = 143  # 128 + SIGTERM
