@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/milp_scaling.py --out $(BENCH_OUT)
 	$(BIN)/python bench/hard_instances.py --out $(BENCH_OUT)
 	$(BIN)/python bench/defence.py --out $(BENCH_OUT)
+	$(BIN)/python bench/proofs_on_cycles.py --out $(BENCH_OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -13,6 +13,8 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from misdirect import scenarios, solve
 from misdirect.core.attack import prepare
@@ -453,3 +455,60 @@ def test_a_signalled_sweep_exits_with_the_signals_code_and_keeps_its_rows(tmp_pa
     from misdirect.distributed.sweep import read_table
 
     assert len(read_table(out / "results.csv")) >= 1
+
+
+_ANY = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**70), 2**70)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=8),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3)
+    ),
+    max_leaves=6,
+)
+_SCENARIO = st.fixed_dictionaries(
+    {"scenario": st.sampled_from(["random", "drone", "knapsack", "nope", 3])},
+    optional={
+        "parameters": st.dictionaries(
+            st.sampled_from(["states", "n", "slip", "weights", "size", "seed"]), _ANY, max_size=3
+        ),
+        "seeds": _ANY | st.lists(st.integers(-5, 2**64), max_size=3),
+    },
+)
+
+
+@settings(max_examples=150, deadline=None, derandomize=True)
+@given(
+    document=st.fixed_dictionaries(
+        {},
+        optional={
+            "budgets": _ANY | st.lists(st.floats(allow_nan=True) | st.booleans(), max_size=3),
+            "methods": _ANY | st.lists(st.sampled_from(["auto", "milp", "nope"]), max_size=2),
+            "problems": _ANY,
+            "scenarios": _ANY | st.lists(_SCENARIO, max_size=2),
+            "time_limit": _ANY,
+            "format": _ANY,
+            "extra": _ANY,
+        },
+    )
+)
+def test_any_sweep_file_loads_or_is_one_named_error(document):
+    """Issue 51, item 5, as a campaign: a sweep file of any shape and types either loads as
+    a spec whose every field is of its type, or is a ProblemError naming the file (never a
+    TypeError, a coercion, or an error in every row later)."""
+    import json as json_module
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "sweep.json"
+        path.write_text(json_module.dumps(document, allow_nan=True))
+        try:
+            spec, _ = load_sweep(path)
+        except ProblemError as error:
+            assert str(path) in str(error)
+            return
+    assert all(type(b) in (int, float) and b >= 0 and b != float("inf") for b in spec.budgets)
+    for item in spec.scenarios:
+        assert all(type(s) is int and 0 <= s < 2**63 for s in item.seeds or [])

@@ -307,3 +307,19 @@ def test_export_milp_writes_both_files_or_neither(tmp_path, monkeypatch):
     assert result.exit_code != 0
     assert (model.read_bytes(), (tmp_path / "m.columns.json").read_text()) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.columns.json", "m.mps"]
+
+
+def test_a_solution_claiming_nan_decodes_to_strict_json(tmp_path):
+    """Issue 51, item 8: a solution file whose objective reads "nan" made `decode --json`
+    write a bare NaN; JSON has none: the claim is null."""
+    model = tmp_path / "p.lp"
+    _run("export-milp", TINY, "-o", model, "--formulation", "paper", "--budget", "4")
+    solution = tmp_path / "p.sol"
+    solution.write_text("# Objective value = nan\nc0 0\n")
+    result = _run("decode", model, solution, "--json")
+
+    def refuse(constant):
+        raise AssertionError(f"not JSON: {constant}")
+
+    payload = json.loads(result.stdout, parse_constant=refuse)
+    assert payload["claimed"] is None
