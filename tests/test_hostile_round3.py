@@ -105,9 +105,7 @@ def test_rows_a_little_over_one_never_print_an_outcome_over_one(tmp_path):
         (["scenario", "random", "--observations", "10000", "--states", "2"], "--observations"),
     ],
 )
-def test_scenarios_too_big_for_the_memory_limit_are_refused_before_building(
-    tmp_path, args, flag
-):
+def test_scenarios_too_big_for_the_memory_limit_are_refused_before_building(tmp_path, args, flag):
     """Item 10: these passed 6 to 10 GB (and up to 284 s) under --memory-limit 3G; each is
     estimated first and refused in one line naming its flag, exit 2, nothing written."""
     import time
