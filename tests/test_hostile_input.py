@@ -319,10 +319,11 @@ def test_budget_within_reach_is_not_clamped():
 
 
 def test_product_that_cannot_fit_is_refused_with_its_size(monkeypatch):
+    grid = paper_grid(5)  # built first: building it is checked against the memory too
     monkeypatch.setattr(memory, "MEMORY_CHECK_FLOOR", 0)
     monkeypatch.setattr(memory, "available_memory", lambda: 1000)
     with pytest.raises(ProblemError) as caught:
-        check_product_fits(paper_grid(5))
+        check_product_fits(grid)
     assert "75 states" in str(caught.value) and "GiB" in str(caught.value)
 
 

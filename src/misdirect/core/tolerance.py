@@ -396,11 +396,12 @@ PROOF_EXTENDED = CERTIFY / 100
 with the values and the check in double-double: certification needs the bound within
 :data:`CERTIFY`, and a chain absorbed after 10^8 steps adds up the check's rounding to more."""
 
-PROOF_COLLAPSE = CERTIFY / 10
+PROOF_COLLAPSE = 1e-6
 """A proven bound further than this (relative) above policy iteration's value after both
 checks is proven once more on the MDP with its end components collapsed
-(:mod:`misdirect.solvers.engines.end_components`): a proof that costs a policy iteration, for
-a bound certification could not use."""
+(:mod:`misdirect.solvers.engines.end_components`): a proof that costs a policy iteration in
+double-double, spent where the direct check failed outright (a bound of 1.0 over 0.46), not
+where it is a little loose (a search's nodes prune with it as well)."""
 
 PROOF_COLLAPSED_GAIN = 2.0**-100
 """In the proof on the collapsed MDP, a gain (relative to the values' scale) that policy
