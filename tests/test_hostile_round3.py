@@ -177,3 +177,28 @@ def test_a_terminal_width_that_is_no_width_still_prints(columns):
     )
     assert done.returncode == 0, done.stderr
     assert "0.100000" in done.stdout  # the corridor unaltered: 0.4 x 0.25, by hand
+
+
+def test_too_little_address_space_is_one_line_not_an_import_traceback(tmp_path):
+    """Item 12: under a 400 MB address-space limit, numba's compiler (llvmlite) cannot load
+    while the command imports: a traceback from deep in an import. Now one line and exit 1
+    (or, where the libraries fit, the command runs)."""
+    import resource
+    import subprocess
+    import sys
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (400 * 1024**2, 400 * 1024**2))
+
+    done = subprocess.run(
+        [sys.executable, "-m", "misdirect", "scenario", "random", "-o", str(tmp_path / "r.yaml")],
+        capture_output=True,
+        text=True,
+        preexec_fn=limit,
+        timeout=120,
+    )
+    assert "Traceback" not in done.stderr
+    if done.returncode != 0:
+        assert done.returncode == 1
+        assert done.stderr.startswith("error: misdirect could not start")
+        assert len(done.stderr.strip().splitlines()) == 1

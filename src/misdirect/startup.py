@@ -56,15 +56,36 @@ def _quit(signum: int, frame: object) -> None:
         os._exit(code)
 
 
+def _cannot_start(kind: type[BaseException], value: BaseException, tb: object) -> None:
+    """An import that fails for want of resources (numba's compiler, llvmlite, under an
+    address-space limit of 400 MB; a library missing): one line, not the import's traceback;
+    anything else as Python shows it."""
+    if issubclass(kind, (OSError, MemoryError, ImportError)):
+        reason = str(value).splitlines()[0] if str(value) else kind.__name__
+        os.write(
+            2,
+            (
+                f"error: misdirect could not start: {kind.__name__}: {reason} (too little "
+                "memory or address space for its libraries? check `ulimit -v`)\n"
+            ).encode(),
+        )
+        os._exit(1)
+    sys.__excepthook__(kind, value, tb)  # type: ignore[arg-type]
+
+
 def release() -> None:
-    """Give SIGINT and SIGTERM back (Python's defaults) once the command line is imported."""
+    """Give SIGINT and SIGTERM back (Python's defaults) once the command line is imported,
+    and failures after the imports back to the command line's own handling."""
     for signum, previous in _installed.items():
         if _signal.getsignal(signum) is _quit:
             _signal.signal(signum, previous)
     _installed.clear()
+    if sys.excepthook is _cannot_start:
+        sys.excepthook = sys.__excepthook__
 
 
 if _is_command_line():
+    sys.excepthook = _cannot_start
     try:
         for _signum in _CODES:
             _installed[_signum] = _signal.signal(_signum, _quit)
