@@ -184,3 +184,26 @@ def test_proofs_benchmark_reduced_mode(tmp_path):
         r["upper_bound"] is None or r["upper_bound"] >= r["value"] - 1e-12
         for r in document["searches"]
     )
+
+
+def test_covering_benchmark_reduced_mode(tmp_path):
+    """bench/covering_bound.py --quick: on the 12x12 turn-back grid the root's covering bound
+    lies between the budget-1 optimum (the strongest single alteration, with unit costs) and
+    the relaxation with every sensor free, at every budget."""
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "covering_bound.py"),
+            "--quick",
+            "--out",
+            str(tmp_path),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    rows = json.loads((tmp_path / "covering_bound.json").read_text())
+    assert [r["budget"] for r in rows] == [1, 2]
+    for row in rows:
+        assert row["covering_bound"] <= row["all_free_bound"] + 1e-12
+    assert rows[0]["covering_bound"] >= rows[0]["optimum"] * (1 - 1e-9)
+    assert rows[1]["covering_bound"] >= rows[0]["covering_bound"] * (1 - 1e-9)  # more budget

@@ -1,0 +1,112 @@
+"""The covering bound at the root of a turn-back grid (issue 50): a bound below 1.0 where the
+relaxation with every sensor free reads 1.0.
+
+Sensors are dealt into stratified groups by their single-alteration strength (the best exact
+value of altering that sensor alone), and the root's covering bound at each budget is the
+largest of the unions' relaxations (:mod:`misdirect.solvers.engines.covering`).
+
+    .venv/bin/python bench/covering_bound.py --out results/bench [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from misdirect import decoy_probability
+from misdirect.core.attack import prepare
+from misdirect.scenarios.sensor_grid import sensor_grid
+from misdirect.solvers.engines.covering import covering_bound, stratified_groups
+from misdirect.solvers.engines.per_state import PerStateRelaxation, relaxation_bound
+
+# (label, grid, budgets, groups, the optimum at each budget where known: bench/results/cycles)
+# (budget 1's optimum is the strongest single alteration: with unit costs each fits it)
+CASES = [("turn-back n=40 k=64", (40, 64), [1, 2, 3], 16, {2: 0.682159, 3: 0.792177})]
+QUICK = [("turn-back n=12 k=16", (12, 16), [1, 2], 4, {})]
+
+
+def strengths(problem, space) -> np.ndarray:
+    """Per choice: the best exact value of altering it alone (its strongest option)."""
+    best = np.zeros(len(space.choices))
+    for i, choice in enumerate(space.choices):
+        for k in range(1, choice.size):
+            picked = np.zeros(len(space.choices), dtype=np.int64)
+            picked[i] = k
+            best[i] = max(best[i], decoy_probability(problem, space.alteration(problem, picked)))
+    return best
+
+
+def run_case(label, grid, budgets, n_groups, optimum) -> list[dict]:
+    problem = sensor_grid(*grid, goal="inside")
+    top = max(budgets)
+    instance = prepare(problem, top)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    began = time.perf_counter()
+    strength = strengths(problem, instance.space)
+    strength_s = time.perf_counter() - began
+    groups = stratified_groups(range(len(instance.space.choices)), n_groups, strength)
+    optimum = {1: float(strength.max()), **optimum}
+    rows = []
+    for budget in budgets:
+        began = time.perf_counter()
+        all_free = relaxation_bound(problem, budget)
+        all_free_s = time.perf_counter() - began
+        began = time.perf_counter()
+        found = covering_bound(relax, groups, instance.space.scale.cap(budget))
+        assert found is not None
+        rows.append(
+            {
+                "label": label,
+                "budget": budget,
+                "groups": n_groups,
+                "unions": len(found.unions),
+                "covering_bound": found.bound,
+                "all_free_bound": all_free,
+                "optimum": optimum.get(budget),
+                "unions_above_optimum": sum(
+                    b > optimum.get(budget, np.inf) for _, b in found.unions
+                ),
+                "covering_s": time.perf_counter() - began,
+                "all_free_s": all_free_s,
+                "strengths_s": strength_s,
+            }
+        )
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = [
+        "# The covering bound at the root (issue 50)",
+        "",
+        "| chain | budget | groups | unions | covering bound | every sensor free | optimum "
+        "| unions above it | seconds |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        optimum = "" if r["optimum"] is None else f"{r['optimum']:.6f}"
+        lines.append(
+            f"| {r['label']} | {r['budget']} | {r['groups']} | {r['unions']} "
+            f"| {r['covering_bound']:.6f} | {r['all_free_bound']:.6f} | {optimum} "
+            f"| {r['unions_above_optimum']} | {r['covering_s']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("results/bench"))
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = [r for case in (QUICK if args.quick else CASES) for r in run_case(*case)]
+    (args.out / "covering_bound.json").write_text(json.dumps(rows, indent=1))
+    (args.out / "covering_bound.md").write_text(markdown(rows))
+    print(markdown(rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""The covering bound (issue 50): sound against exhaustive enumeration on random problems with
+cycles (their controllers loop) and unequal costs, and never above the relaxation with every
+sensor free, of which it is a refinement."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from misdirect import decoy_probability
+from misdirect.core.attack import prepare
+from misdirect.scenarios import random_problem
+from misdirect.solvers.engines.covering import (
+    covering_bound,
+    maximal_group_sets,
+    stratified_groups,
+)
+from misdirect.solvers.engines.per_state import PerStateRelaxation, relaxation_bound
+
+
+def brute_force(problem, budget: float, fixed: dict[int, int] | None = None, space=None) -> float:
+    """The best exact value over every alteration function within ``budget`` (Fractions
+    decide the budget: CostModel.fits), with ``fixed`` choices (of ``space``) as given."""
+    n = problem.pomdp.n_observations
+    init = problem.pomdp.initial_observation  # never altered
+    options = [
+        [o] if o == init else list(np.flatnonzero(np.isfinite(problem.cost.row(o))))
+        for o in range(n)
+    ]
+    for i, k in (fixed or {}).items():
+        choice = space.choices[i]
+        options[choice.observation] = [int(choice.targets[k])]
+    best = 0.0
+    for combo in itertools.product(*options):
+        alpha = np.array(combo, dtype=np.int64)
+        if problem.cost.fits(alpha, budget):
+            best = max(best, decoy_probability(problem, alpha))
+    return best
+
+
+def test_maximal_group_sets_by_hand():
+    """Groups costing 1, 1, 2 and 5 within 3: {0, 1} (2), {0, 2} (3), {1, 2} (3); the group of
+    5 never fits. Every set that fits lies inside one of them."""
+    sets = maximal_group_sets([1.0, 1.0, 2.0, 5.0], lambda total: total <= 3.0)
+    assert sorted(sets) == [(0, 1), (0, 2), (1, 2)]
+    assert maximal_group_sets([1.0, 1.0], lambda total: total <= 5.0) == [(0, 1)]
+    assert maximal_group_sets([4.0], lambda total: total <= 3.0) == [()]
+
+
+@pytest.mark.parametrize("case", range(24))
+def test_the_covering_bound_holds_against_enumeration(case):
+    rng = np.random.default_rng(case)
+    budget = float(rng.choice([1.0, 1.5, 2.0, 3.0]))
+    for seed in range(100 * case, 100 * case + 100):  # the first with a choice to make
+        problem = random_problem(seed, states=8, actions=3, observations=5, nodes=3, budget=3.0)
+        instance = prepare(problem, budget)
+        if instance.space.choices:
+            break
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    scale = instance.space.scale
+    choices = list(range(len(instance.space.choices)))
+    groups = stratified_groups(choices, int(rng.integers(1, len(choices) + 1)))
+    found = covering_bound(relax, groups, scale.cap(budget))
+    assert found is not None
+    truth = brute_force(problem, budget)
+    assert found.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, found.bound, truth)
+    # a refinement of the relaxation with every sensor free (one union: every group)
+    assert found.bound <= relaxation_bound(problem, budget) + 1e-12
+    # a node: the first choice fixed to its first alteration, the budget left for the rest
+    first = instance.space.choices[0]
+    if first.size > 1 and first.costs[1] <= scale.cap(budget):
+        left = scale.remaining(budget, float(first.costs[1]))
+        rest = stratified_groups(choices[1:], 2)
+        node = covering_bound(relax, rest, scale.cap(left), fixed={0: 1})
+        assert node is not None
+        truth = brute_force(problem, budget, {0: 1}, instance.space)
+        assert node.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, node.bound, truth)
+
+
+def test_a_choice_left_out_of_every_group_is_refused():
+    """Left out, it would count as unaltered and the bound would not hold."""
+    for seed in range(50):  # the first problem with two choices to make
+        problem = random_problem(seed, states=8, actions=3, observations=5, nodes=3, budget=2.0)
+        instance = prepare(problem, 2.0)
+        if len(instance.space.choices) >= 2:
+            break
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    with pytest.raises(ValueError, match="in no group"):
+        covering_bound(relax, [[0]], instance.space.scale.cap(2.0))
