@@ -27,7 +27,7 @@ from misdirect.core.evaluate import evaluate as evaluate_alteration
 from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, parse_json, read_text_file, write_output
-from misdirect.io.problem_file import load_problem
+from misdirect.io.problem_file import error_field, error_reason, load_problem
 from misdirect.report import json_output
 
 MAP_SUFFIX = ".columns.json"
@@ -167,12 +167,10 @@ def _checked_map(document: Any, source: str) -> dict[str, Any]:
         _ColumnMap.model_validate(document)
     except ValidationError as error:
         first = error.errors()[0]
-        where = "".join(
-            f"[{part}]" if isinstance(part, int) else f".{part}" for part in first["loc"]
-        ).removeprefix(".")
-        reason = first["msg"].removeprefix("Value error, ")
         raise ProblemError(
-            f"not a column map of misdirect export-milp: {reason}", source=source, field=where
+            f"not a column map of misdirect export-milp: {error_reason(first)}",
+            source=source,
+            field=error_field(first["loc"]),
         ) from None
     return document
 

@@ -43,7 +43,7 @@ from pydantic import (
 from misdirect.core.model import Problem, format_alteration
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import parse_json, parse_yaml, read_text_file, write_output
-from misdirect.io.problem_file import load_problem
+from misdirect.io.problem_file import error_field, error_reason, load_problem
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers import SOLVERS
 from misdirect.solvers.deadline import CancelToken
@@ -186,15 +186,8 @@ def load_sweep(path: Path) -> tuple[SweepSpec, Path]:
         spec = SweepSpec.model_validate(document)
     except ValidationError as error:
         first = error.errors()[0]
-        where = "".join(
-            f"[{part}]" if isinstance(part, int) else f".{part}" for part in first["loc"]
-        ).removeprefix(".")
-        reason = (
-            "unknown field (check the spelling)"
-            if first["type"] == "extra_forbidden"
-            else (first["msg"].removeprefix("Value error, "))
-        )
-        raise ProblemError(reason, source=source, field=where or None) from None
+        where = error_field(first["loc"])
+        raise ProblemError(error_reason(first), source=source, field=where or None) from None
     if not spec.problems and not spec.scenarios:
         raise ProblemError("lists no problems and no scenarios", source=source, field="problems")
     for k, item in enumerate(spec.scenarios):

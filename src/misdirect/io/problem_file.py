@@ -418,7 +418,8 @@ _UNION_TAGS = {
 _ANYWHERE_TAGS = {"<weight>", "<set>"}  # tags of unions inside user-named maps
 
 
-def _location(loc: tuple[Any, ...]) -> str:
+def error_field(loc: tuple[Any, ...]) -> str:
+    """A pydantic error's location as a field path: ``budgets[0]``, ``pomdp.states``."""
     text = ""
     previous = None
     for part in loc:
@@ -453,7 +454,8 @@ def _read_document(path: Path) -> Any:
     return parse_yaml(text, source=str(path))
 
 
-def _reason(item: Any) -> str:
+def error_reason(item: Any) -> str:
+    """A pydantic error's message in our words (our validators' own, unknown fields named)."""
     if item["type"] == "extra_forbidden":
         return "unknown field (check the spelling)"
     message = str(item["msg"])
@@ -474,7 +476,8 @@ def parse_spec(document: Any) -> ProblemFileV1:
         return ProblemFileV1.model_validate(document)
     except ValidationError as error:
         found = [
-            ProblemError(_reason(item), field=_location(item["loc"])) for item in error.errors()
+            ProblemError(error_reason(item), field=error_field(item["loc"]))
+            for item in error.errors()
         ]
         raise ProblemsError.of(found) from None
 

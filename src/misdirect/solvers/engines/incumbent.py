@@ -62,14 +62,14 @@ class Incumbent:
     def offer(self, picks: Picks, value: float) -> None:
         """Keep ``picks`` if clearly better, or tied within the tolerance and cheaper (and
         only if it fits the budget exactly: a search's float sums may admit a few more)."""
-        if not self.relax.fits(picks, self.budget):
-            return
         cost = self.relax.cost(picks)
+        scale = self.relax.space.scale
+        if not scale.fits_terms(cost, lambda: self.relax.terms(picks), self.budget):
+            return
         with self._lock:
             room = tolerance.slack(value, self.value, rel=tolerance.PRUNE)
             better = value > self.value + room
             tied = value >= self.value - room
-            scale = self.relax.space.scale
             cheaper = scale.cheaper(cost, self.cost)
             same_cost = scale.same(cost, self.cost)
             ordered = self.order_ties and same_cost and picks < self.picks
