@@ -189,7 +189,8 @@ def test_proofs_benchmark_reduced_mode(tmp_path):
 def test_covering_benchmark_reduced_mode(tmp_path):
     """bench/covering_bound.py --quick: on the 12x12 turn-back grid the root's covering bound
     lies between the budget-1 optimum (the strongest single alteration, with unit costs) and
-    the relaxation with every sensor free, at every budget."""
+    the relaxation with every sensor free, at every budget; its search rows, with covers and
+    without, agree where both certify, and each bound lies above its value."""
     subprocess.run(
         [
             sys.executable,
@@ -201,8 +202,16 @@ def test_covering_benchmark_reduced_mode(tmp_path):
         check=True,
         capture_output=True,
     )
-    rows = json.loads((tmp_path / "covering_bound.json").read_text())
+    document = json.loads((tmp_path / "covering_bound.json").read_text())
+    rows = document["root"]
     assert [r["budget"] for r in rows] == [1, 2]
+    on, off = document["search"]
+    assert (on["covers"], off["covers"]) == (True, False)
+    assert off["covered_nodes"] == 0
+    for row in (on, off):
+        assert row["bound"] >= row["value"] * (1 - 1e-9)
+    if on["status"] == off["status"] == "optimal":
+        assert on["value"] == pytest.approx(off["value"], rel=1e-9)
     for row in rows:
         assert row["covering_bound"] <= row["all_free_bound"] + 1e-12
     assert rows[0]["covering_bound"] >= rows[0]["optimum"] * (1 - 1e-9)

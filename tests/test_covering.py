@@ -9,15 +9,20 @@ import itertools
 import numpy as np
 import pytest
 
-from misdirect import decoy_probability
+from misdirect import decoy_probability, solve
 from misdirect.core.attack import prepare
 from misdirect.scenarios import random_problem
+from misdirect.scenarios.sensor_grid import sensor_grid
+from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.engines.covering import (
+    CoverRule,
     covering_bound,
     maximal_group_sets,
     stratified_groups,
 )
 from misdirect.solvers.engines.per_state import PerStateRelaxation, relaxation_bound
+from misdirect.solvers.options import SolveOptions
+from misdirect.solvers.status import Status
 
 
 def brute_force(problem, budget: float, fixed: dict[int, int] | None = None, space=None) -> float:
@@ -89,3 +94,51 @@ def test_a_choice_left_out_of_every_group_is_refused():
     relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
     with pytest.raises(ValueError, match="in no group"):
         covering_bound(relax, [[0]], instance.space.scale.cap(2.0))
+
+
+covered: dict[int, int] = {}  # per case below: nodes its search covered
+
+
+@pytest.fixture
+def covers_everywhere(monkeypatch):
+    """Branch-and-bound covers every node the rule finds groups for, chains with end
+    components or not (the rule's own test is the turn-back grid's below)."""
+    monkeypatch.setattr(CoverRule, "applies", staticmethod(lambda cycling: True))
+
+
+@pytest.mark.parametrize("case", range(16))
+def test_branch_and_bound_with_covers_finds_the_optimum(case, covers_everywhere):
+    """Every answer of a search that prunes by covers is the brute force's optimum, and its
+    bound lies above it, on random problems whose controllers loop, with unequal costs."""
+    rng = np.random.default_rng(1000 + case)
+    budgets = sorted({float(rng.choice([1.0, 1.5, 2.0])), 3.0})
+    problem = random_problem(2000 + case, states=8, actions=3, observations=5, nodes=3, budget=3.0)
+    answers = BranchAndBoundSolver(SolveOptions()).solve(problem, budgets)
+    for answer in answers:
+        truth = brute_force(problem, answer.budget)
+        assert answer.status == Status.OPTIMAL
+        assert answer.solver_probability == pytest.approx(truth, rel=1e-9, abs=1e-12)
+        assert answer.upper_bound >= truth - 1e-9 * max(truth, 1e-300)
+    covered[case] = sum(a.stats.covers for a in answers)
+
+
+def test_some_of_those_searches_covered_a_node():
+    """The test above is not vacuous: covers ran in some of its searches."""
+    if len(covered) < 16:
+        pytest.skip("runs after the searches above")
+    assert sum(covered.values()) > 0
+
+
+def test_the_root_of_a_turn_back_grid_is_covered():
+    """On a grid where robots turn back (end components), the per-state bound at budget 2 reads
+    about 1.0; branch-and-bound covers its root (the rule applies on its own) and reports a
+    bound far below, still above the optimum of the low-rank enumeration (another engine)."""
+    problem = sensor_grid(10, 12, goal="inside")
+    answer = BranchAndBoundSolver(SolveOptions(), max_nodes=1).solve(problem, [2.0])[0]
+    optimum = solve(problem, method="incremental", budgets=[2.0]).curve[0]
+    assert optimum.status == "optimal"
+    stats = answer.stats
+    assert stats.root_bound > 0.99
+    assert stats.covers == 1 and stats.root_cover_bound is not None
+    assert optimum.probability <= stats.root_cover_bound < 0.9
+    assert optimum.probability <= answer.upper_bound <= stats.root_cover_bound

@@ -26,6 +26,7 @@ search of its own; a larger budget's tree is often no bigger than a smaller one'
 
 from __future__ import annotations
 
+import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -43,6 +44,7 @@ from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
 from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
+from misdirect.solvers.engines.covering import CoverRule, covering_bound
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
@@ -216,6 +218,8 @@ class BranchAndBoundSolver:
         # with a pool, the per-state search bounds its root only: the pool takes the rest
         nodes = 1 if self.options.pool is not None else self.max_nodes
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
+        if CoverRule.applies(bool(curve.instance.cycling.any())):
+            search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
         if picks is not None and relax.fits(picks, budget):
             search.incumbent.offer_exact(picks)
@@ -382,6 +386,7 @@ class _Node:
     remaining: float
     parent_bound: float
     policy: np.ndarray  # warm start: one group per product state
+    covered_at: float = np.inf  # the budget left at the last cover on its path (inf: none)
 
 
 class _Search(IncumbentSearch):
@@ -404,6 +409,11 @@ class _Search(IncumbentSearch):
         self.stack = [_Node((), relax.space.scale.cap(budget), np.inf, policy)]
         self.nodes = 0
         self.root_bound: float | None = None
+        self.cover_rule: CoverRule | None = None  # covering bounds (cover_with)
+        self.strength: np.ndarray | None = None
+        self.node_seconds = 0.0  # the last node bound's time: what a union costs, about
+        self.covers = self.cover_unions = self.cover_pruned = 0
+        self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
         mdp = relax.mdp
         self.proofs_before = (
@@ -412,6 +422,12 @@ class _Search(IncumbentSearch):
             mdp.collapsed_proofs,
             mdp.collapsed_proven,
         )
+
+    def cover_with(self, rule: CoverRule, strength: np.ndarray) -> None:
+        """Bound the nodes ``rule`` picks by the covering bound as well
+        (:mod:`misdirect.solvers.engines.covering`), the undecided sensors dealt into groups
+        by ``strength`` (per choice of the alteration space)."""
+        self.cover_rule, self.strength = rule, strength
 
     def describe(self) -> str:
         bound = self.open_bound()
@@ -454,7 +470,9 @@ class _Search(IncumbentSearch):
         relax = self.relax
         self.nodes += 1
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
+        began = time.perf_counter()
         bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)
+        self.node_seconds = time.perf_counter() - began
         if self.root_bound is None:
             self.root_bound, self.root_policy = bound, policy
         level = len(node.picks)
@@ -466,12 +484,58 @@ class _Search(IncumbentSearch):
         self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))
         if self.incumbent.prune(bound):
             return
+        covered_at = node.covered_at
+        rule = self.cover_rule
+        if rule is not None and rule.due(node.remaining, node.covered_at):
+            cover = self._cover(node, rule, deadline)
+            if cover is not None:
+                covered_at = node.remaining
+                bound = min(bound, cover)
+                if self.incumbent.prune(bound):
+                    self.cover_pruned += 1
+                    return
         i = relax.order[level]
         costs = relax.option_cost[relax.first_option[i] : relax.first_option[i + 1]]
         preferred = relax.ranked(i, node.remaining, usage)
         for k in preferred[::-1]:  # the stack pops the preferred candidate first
-            child = _Node((*node.picks, int(k)), node.remaining - float(costs[k]), bound, policy)
+            remaining = node.remaining - float(costs[k])
+            child = _Node((*node.picks, int(k)), remaining, bound, policy, covered_at)
             self.stack.append(child)
+
+    def _cover(self, node: _Node, rule: CoverRule, deadline: Deadline | None) -> float | None:
+        """``node``'s covering bound, where ``rule`` finds groups the time left pays for."""
+        relax = self.relax
+        assert self.strength is not None
+        level = len(node.picks)
+        fixed = {i: 0 for i in range(len(relax.space.choices))}  # owning no live state: as is
+        fixed.update({relax.order[j]: k for j, k in enumerate(node.picks)})
+        cheapest: dict[int, float] = {}
+        for i in relax.order[level:]:
+            del fixed[i]
+            options = relax.option_cost[relax.first_option[i] + 1 : relax.first_option[i + 1]]
+            affordable = options[options <= node.remaining]
+            if affordable.size:
+                cheapest[i] = float(affordable.min())
+        scale = relax.space.scale
+        seconds_left = None if deadline is None else deadline.remaining()
+        allowed = rule.unions_allowed(seconds_left, self.node_seconds)
+        groups = rule.groups(
+            list(cheapest),
+            self.strength,
+            cheapest,
+            lambda total: bool(scale.fits(total, node.remaining)),
+            allowed,
+        )
+        if groups is None:
+            return None
+        found = covering_bound(relax, groups, node.remaining, fixed, deadline)
+        if found is None:
+            return None
+        self.covers += 1
+        self.cover_unions += len(found.unions)
+        if self.root_cover_bound is None and level == 0:
+            self.root_cover_bound = found.bound
+        return found.bound
 
     def _round(self, picks: Picks, remaining: float, usage: np.ndarray) -> Picks:
         """Complete ``picks`` greedily: each free observation's most used affordable candidate."""
@@ -503,6 +567,10 @@ class _Search(IncumbentSearch):
             trivial_bounds=proofs[1],
             collapsed_proofs=proofs[2],
             collapsed_proven=proofs[3],
+            covers=self.covers,
+            cover_unions=self.cover_unions,
+            cover_pruned=self.cover_pruned,
+            root_cover_bound=self.root_cover_bound,
         )
         return Solution(
             budget=self.budget,
@@ -512,6 +580,43 @@ class _Search(IncumbentSearch):
             upper_bound=self.open_bound(),
             stats=stats,
         )
+
+
+def _strengths(curve: _Curve) -> np.ndarray:
+    """Per choice of the alteration space: the first-order gain of its best single alteration
+    from the unaltered chain (what the covering bound deals its groups by)."""
+    relax = curve.relax
+    strength = np.zeros(len(relax.space.choices))
+    moves = _first_order_moves(relax, (0,) * len(relax.order), curve.max_budget)
+    for gain, position, _ in moves or []:
+        i = relax.order[position]
+        strength[i] = max(strength[i], gain)
+    return strength
+
+
+def _first_order_moves(
+    relax: PerStateRelaxation, picks: tuple[int, ...], budget: float
+) -> list[tuple[float, int, int]] | None:
+    """:func:`_ranked_moves` from ``picks`` (their chain solved for values and visits); None
+    where the start cannot leave the live states under it (nothing to rank by)."""
+    chain, live = relax.chain, relax.live
+    policy = relax.policy_of(picks)
+    values = relax.evaluate(policy)
+    moved = chain.transitions[policy]
+    # the live states that can still leave the live set: the rest sit in closed classes
+    # of this chain (it cycles there forever), where expected visits are infinite
+    leaving = reachable_from(moved.T.tocsr(), np.flatnonzero(~live)) & live
+    inner = np.flatnonzero(leaving)
+    if not leaving[chain.initial]:
+        return None
+    position = np.full(chain.n_states, -1)
+    position[inner] = np.arange(inner.size)
+    block = moved[inner][:, inner].tocsc()
+    system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
+    start = np.zeros(inner.size)
+    start[position[chain.initial]] = 1.0
+    visits = spla.splu(system).solve(start)
+    return _ranked_moves(relax, picks, values, visits, inner, position, budget)
 
 
 def _hill_climb(
@@ -533,23 +638,9 @@ def _hill_climb(
     if not live.any() or not relax.order or not live[chain.initial]:
         return picks, value
     while deadline is None or not deadline.expired():
-        policy = relax.policy_of(picks)
-        values = relax.evaluate(policy)
-        moved = chain.transitions[policy]
-        # the live states that can still leave the live set: the rest sit in closed classes
-        # of this chain (it cycles there forever), where expected visits are infinite
-        leaving = reachable_from(moved.T.tocsr(), np.flatnonzero(~live)) & live
-        inner = np.flatnonzero(leaving)
-        if not leaving[chain.initial]:
+        moves = _first_order_moves(relax, picks, budget)
+        if moves is None:
             return picks, value
-        position = np.full(chain.n_states, -1)
-        position[inner] = np.arange(inner.size)
-        block = moved[inner][:, inner].tocsc()
-        system = (sp.identity(inner.size, format="csc") - block).T.tocsc()
-        start = np.zeros(inner.size)
-        start[position[chain.initial]] = 1.0
-        visits = spla.splu(system).solve(start)
-        moves = _ranked_moves(relax, picks, values, visits, inner, position, budget)
         best = (value, picks)
         for gain, j, k in moves[:tries]:
             if gain <= 0 or (deadline is not None and deadline.expired()):

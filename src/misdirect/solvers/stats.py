@@ -79,6 +79,12 @@ class BranchAndBoundStats(MethodStats):
     trivial_bounds: int = 0
     collapsed_proofs: int = 0
     collapsed_proven: int = 0
+    # covering bounds (solvers/engines/covering.py): nodes covered, the unions' relaxations
+    # solved for them, nodes the cover pruned where the per-state bound did not, and the root's
+    covers: int = 0
+    cover_unions: int = 0
+    cover_pruned: int = 0
+    root_cover_bound: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "segment"}

@@ -17,9 +17,13 @@ proven bounds bounds every completion. Each relaxation only grows with its free 
 partition is sound; stratified groups (each with strong and weak sensors) keep the unions' bounds
 low.
 
-This module computes the bound for one node; when a search should use it (small budget left,
-many undecided sensors) and how it refines the unions that stay above the incumbent are the
-search's.
+This module computes the bound for one node, and says when a search should (:class:`CoverRule`,
+the one place that decides it): on chains with end components, where the per-state bound did
+not prune, once per budget level along a path (a node whose budget left is what it was at the
+last cover above it frees one sensor fewer: its cover would hardly change), with the finest
+groups whose unions the time left pays for. A union that stays above the incumbent is refined by
+the search's branching: each child fixes one more sensor, and a child that alters it has less
+budget left, so fewer, smaller unions.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_UNIONS = 5_000  # a cover of more unions than this is not tried (each is a relaxation solve)
+MAX_GROUPS = 24  # groups a cover splits the undecided sensors into, at most
+COVER_SHARE = 0.25  # a node's cover may take this share of the search's time left
+UNLIMITED_UNIONS = 200  # ... and without a time limit, this many unions
 
 
 @dataclass(frozen=True)
@@ -42,6 +49,54 @@ class CoverBound:
 
     bound: float
     unions: list[tuple[tuple[int, ...], float]]
+
+
+@dataclass(frozen=True)
+class CoverRule:
+    """When a search covers a node, and with which groups: see the module docstring."""
+
+    share: float = COVER_SHARE
+    unlimited_unions: int = UNLIMITED_UNIONS
+
+    @staticmethod
+    def applies(cycling: bool) -> bool:
+        """Covers pay on chains with end components, where the per-state bound does not see
+        the budget; elsewhere that bound is tight enough, and a cover costs many of its
+        solves."""
+        return cycling
+
+    @staticmethod
+    def due(remaining: float, covered_at: float) -> bool:
+        """Whether a node with ``remaining`` budget left is covered, ``covered_at`` being the
+        budget left at the last cover on its path (inf: none)."""
+        return remaining < covered_at
+
+    def unions_allowed(self, seconds_left: float | None, seconds_per_union: float) -> int:
+        """How many unions a cover may solve: its share of the time left, at about
+        ``seconds_per_union`` each (a node bound's time)."""
+        if seconds_left is None:
+            return self.unlimited_unions
+        per_union = max(seconds_per_union, 1e-3)
+        return min(MAX_UNIONS, int(self.share * max(seconds_left, 0.0) / per_union))
+
+    @staticmethod
+    def groups(
+        free: Sequence[int],
+        strength: np.ndarray,
+        cheapest: Mapping[int, float],
+        fits: Callable[[float], bool],
+        allowed: int,
+    ) -> list[list[int]] | None:
+        """The finest stratified groups of the ``free`` choices (``cheapest``: each one's
+        cheapest affordable option) whose cover takes at most ``allowed`` unions and frees
+        less than all of them in each; None where no grouping does."""
+        for n_groups in range(min(len(free), MAX_GROUPS), 1, -1):
+            groups = stratified_groups(free, n_groups, strength)
+            costs = [min(cheapest[i] for i in group) for group in groups]
+            sets = maximal_group_sets(costs, fits)
+            if len(sets) <= allowed and all(len(chosen) < n_groups for chosen in sets):
+                return groups
+        return None
 
 
 def stratified_groups(
