@@ -26,19 +26,21 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import weakref
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
 from misdirect.core.alterations import max_alteration_cost
-from misdirect.core.model import Problem
+from misdirect.core.model import Pomdp, Problem
 from misdirect.errors import ProblemError, ProblemsError
 from misdirect.io.files import check_input_file, parse_yaml, read_text_file
 from misdirect.io.paynt import forbid_targets, read_paynt_controller, unmet_rule_warning
 from misdirect.io.problem_file import (
     FORMAT,
     ControllerSpec,
+    StormPomdpSpec,
     compile_controller,
     compile_problem,
     controller_error,
@@ -49,6 +51,7 @@ from misdirect.io.problem_file import (
 )
 
 __all__ = [
+    "built_from",
     "controller_document",
     "decoy_document",
     "model_document",
@@ -224,9 +227,23 @@ def problem_from_model(
     try:
         spec = parse_spec(document)
         # the model's own name is the source: results are titled by it
-        return compile_problem(spec, source=str(model_path))
+        problem = compile_problem(spec, source=str(model_path))
     except ProblemError as error:
         raise _attributed(error, str(model_path), str(controller)) from None
+    assert isinstance(spec.pomdp, StormPomdpSpec)  # model_document names a model
+    _BUILT[problem.pomdp] = spec.pomdp
+    return problem
+
+
+# the settings each world built from a model was built with (its file names absolute), for
+# what builds it again (exact_model: Storm in rational arithmetic); held while the world is
+_BUILT: weakref.WeakKeyDictionary[Pomdp, StormPomdpSpec] = weakref.WeakKeyDictionary()
+
+
+def built_from(problem: Problem) -> StormPomdpSpec | None:
+    """The ``pomdp:`` settings :func:`problem_from_model` built ``problem``'s world with (the
+    model named by its absolute path), or None for a problem read from a file."""
+    return _BUILT.get(problem.pomdp)
 
 
 def with_controller(problem: Problem, controller: str | Path) -> Problem:
