@@ -24,7 +24,6 @@ a document; :func:`with_controller` puts it in place of any problem's own contro
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
 import weakref
 from pathlib import Path
@@ -35,7 +34,7 @@ from pydantic import ValidationError
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.model import Pomdp, Problem
 from misdirect.errors import ProblemError, ProblemsError
-from misdirect.io.files import check_input_file, parse_yaml, read_text_file
+from misdirect.io.files import check_input_file
 from misdirect.io.paynt import forbid_targets, read_paynt_controller, unmet_rule_warning
 from misdirect.io.problem_file import (
     FORMAT,
@@ -43,11 +42,13 @@ from misdirect.io.problem_file import (
     StormPomdpSpec,
     compile_controller,
     compile_problem,
+    controller_document,
     controller_error,
     error_field,
     error_reason,
     model_kind,
     parse_spec,
+    relative_path,
 )
 
 __all__ = [
@@ -62,7 +63,6 @@ __all__ = [
 
 # a decoy given as one name is a state label; anything else is a state expression
 _LABEL = re.compile(r'^\s*(?:"([A-Za-z_][\w]*)"|([A-Za-z_][\w]*))\s*$')
-_RULES_SUFFIXES = (".yaml", ".yml")
 
 
 def decoy_document(decoy: str) -> dict[str, str]:
@@ -72,41 +72,6 @@ def decoy_document(decoy: str) -> dict[str, str]:
     if match:
         return {"label": match[1] or match[2]}
     return {"expression": decoy}
-
-
-def _relative(path: str | Path, relative_to: Path | None) -> str:
-    """``path`` as a problem file in ``relative_to`` names it (absolute when there is none)."""
-    if relative_to is None:
-        return str(Path(path).absolute())
-    return os.path.relpath(Path(path).absolute(), Path(relative_to).absolute())
-
-
-def controller_document(path: str | Path, *, relative_to: Path | None = None) -> dict[str, Any]:
-    """The ``controller:`` entry of a document for the controller in ``path``.
-
-    A ``.yaml``/``.yml`` file holds rules (``nodes``, ``initial``, ``rules``, as under
-    ``controller:`` in a problem file) or is a problem file whose controller is taken; any
-    other file is PAYNT's ``.fsc.json``, named (relative to ``relative_to``, the folder of
-    the document, or absolute) and read when the problem is compiled."""
-    path = Path(path)
-    if path.suffix.lower() not in _RULES_SUFFIXES:
-        return {"paynt": _relative(path, relative_to)}
-    if not path.exists():
-        raise ProblemError(f"file not found: {path}", source="controller")
-    check_input_file(path, source="controller")
-    document = parse_yaml(read_text_file(path), source=str(path))
-    if isinstance(document, dict) and "format" in document and "controller" in document:
-        controller = document["controller"]  # another problem file's controller
-        if isinstance(controller, dict) and isinstance(controller.get("paynt"), str):
-            return {"paynt": _relative(path.parent / controller["paynt"], relative_to)}
-        document = controller
-    if not isinstance(document, dict) or "rules" not in document:
-        raise ProblemError(
-            "expected a controller: a mapping with nodes, initial and rules (as under "
-            "controller: in a problem file), or a problem file",
-            source=str(path),
-        )
-    return document
 
 
 def model_document(
@@ -127,7 +92,7 @@ def model_document(
     to), or absolute. ``goal`` is the file's ``pomdp.terminal``; a setting not given is left
     out, so the file's defaults apply (budget 0, every alteration costing 1)."""
     kind = kind or model_kind(model) or "prism"
-    pomdp: dict[str, Any] = {kind: _relative(model, relative_to)}
+    pomdp: dict[str, Any] = {kind: relative_path(model, relative_to)}
     if constants is not None:
         pomdp["constants"] = constants
     if goal is not None:

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import json
 import math
+import os
 import re
 from collections.abc import Iterator, Mapping
 from fractions import Fraction
@@ -479,9 +480,10 @@ def not_a_problem_file(path: Path, kind: str) -> ProblemError:
     """What to do with a PRISM or DRN model given where a problem file was expected."""
     what = "a PRISM program" if kind == "prism" else "a DRN model"
     return ProblemError(
-        f"{what}, not a misdirect/v1 problem file: on the command line give it with "
-        f"--controller FILE and --decoy LABEL (misdirect.problem_from_model in Python), or "
-        f"name it in a problem file: pomdp: {{{kind}: {path.name}}}",
+        f"{what}, not a misdirect/v1 problem file: name it in one (pomdp: {{{kind}: "
+        f"{path.name}}}), or build the problem from it, its controller and its decoy "
+        "(misdirect.problem_from_model; the commands that take FILE take the model with "
+        "its controller and decoy as options)",
         source=str(path),
     )
 
@@ -585,8 +587,6 @@ def load_problem(path: str | Path, *, controller: str | Path | None = None) -> P
     path = Path(path)
     spec = read_spec(path)
     if controller is not None:
-        from misdirect.io.model_problem import controller_document
-
         replaced = controller_document(controller)
         spec = spec.model_copy(update={"controller": _controller_spec(replaced, controller)})
     try:
@@ -595,6 +595,44 @@ def load_problem(path: str | Path, *, controller: str | Path | None = None) -> P
         if controller is not None:
             error = controller_error(error, str(controller))
         raise error.located(str(path)) from None
+
+
+_RULES_SUFFIXES = (".yaml", ".yml")
+
+
+def relative_path(path: str | Path, relative_to: Path | None) -> str:
+    """``path`` as a problem file in ``relative_to`` names it (absolute when there is none)."""
+    if relative_to is None:
+        return str(Path(path).absolute())
+    return os.path.relpath(Path(path).absolute(), Path(relative_to).absolute())
+
+
+def controller_document(path: str | Path, *, relative_to: Path | None = None) -> dict[str, Any]:
+    """The ``controller:`` entry of a document for the controller in ``path``.
+
+    A ``.yaml``/``.yml`` file holds rules (``nodes``, ``initial``, ``rules``, as under
+    ``controller:`` in a problem file) or is a problem file whose controller is taken; any
+    other file is PAYNT's ``.fsc.json``, named (relative to ``relative_to``, the folder of
+    the document, or absolute) and read when the problem is compiled."""
+    path = Path(path)
+    if path.suffix.lower() not in _RULES_SUFFIXES:
+        return {"paynt": relative_path(path, relative_to)}
+    if not path.exists():
+        raise ProblemError(f"file not found: {path}", source="controller")
+    check_input_file(path, source="controller")
+    document = parse_yaml(read_text_file(path), source=str(path))
+    if isinstance(document, dict) and "format" in document and "controller" in document:
+        controller = document["controller"]  # another problem file's controller
+        if isinstance(controller, dict) and isinstance(controller.get("paynt"), str):
+            return {"paynt": relative_path(path.parent / controller["paynt"], relative_to)}
+        document = controller
+    if not isinstance(document, dict) or "rules" not in document:
+        raise ProblemError(
+            "expected a controller: a mapping with nodes, initial and rules (as under "
+            "controller: in a problem file), or a problem file",
+            source=str(path),
+        )
+    return document
 
 
 def _controller_spec(document: dict[str, Any], path: str | Path) -> Any:
