@@ -27,6 +27,7 @@ from misdirect.defence import (
 )
 from misdirect.errors import MisdirectError, OptionError, ProblemError, SolverError
 from misdirect.io.exact_model import ExactModel, ExactValue, exact_model
+from misdirect.io.model_problem import problem_from_model, with_controller
 from misdirect.io.problem_file import load_problem, problem_from_dict, write_problem
 from misdirect.solvers.base import ProgressCallback
 from misdirect.solvers.deadline import CancelToken, Deadline
@@ -70,9 +71,11 @@ __all__ = [
     "load_problem",
     "online_attack_value",
     "problem_from_dict",
+    "problem_from_model",
     "scenarios",
     "shared_preparation",
     "simulate",
     "solve",
+    "with_controller",
     "write_problem",
 ]

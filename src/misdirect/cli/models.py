@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from misdirect.cli.common import check_range, note, out, print_json, write_text
+from misdirect.cli.common import check_budget, check_range, note, out, print_json, write_text
 from misdirect.cli.exports import column_map_path, column_map_text
 from misdirect.cli.options import (
     MAX_GRID_SIZE,
@@ -28,7 +28,7 @@ from misdirect.cli.options import (
 from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
 from misdirect.io.files import check_output_path, write_output
-from misdirect.io.problem_file import json_schema, write_problem
+from misdirect.io.problem_file import json_schema, model_kind, write_problem
 from misdirect.report import json_output
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers.milp.backends import write_model
@@ -226,29 +226,99 @@ class ConvertTarget(StrEnum):
     yaml = "yaml"
 
 
+_SUFFIX_TARGETS = {
+    ".prism": "prism",
+    ".drn": "drn",
+    ".json": "json",
+    ".yaml": "yaml",
+    ".yml": "yaml",
+}
+
+
 @problem_input
 def convert(
-    to: Annotated[ConvertTarget, typer.Option("--to", help="Format to write.")],
+    to: Annotated[
+        ConvertTarget | None,
+        typer.Option("--to", help="Format to write (default: by the suffix of -o)."),
+    ] = None,
     output: Annotated[
         Path | None,
         typer.Option("--output", "-o", help="File to write (default: standard output)."),
     ] = None,
+    budget: Annotated[
+        float | None,
+        typer.Option(help="Budget written into the file (default: the problem's)."),
+    ] = None,
+    explicit: Annotated[
+        bool,
+        typer.Option(
+            "--explicit",
+            help="With a PRISM/DRN model and --to yaml/json: write the model's states and "
+            "transitions, not a problem file that names the model and the flags.",
+        ),
+    ] = False,
     *,
     source: ProblemSource,
     as_json: JsonOption = False,
 ) -> None:
-    """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1."""
+    """Write the explicit model: PRISM or DRN for Storm (decoy as label "decoy"), or v1.
+    Given a PRISM or DRN model with --controller and --decoy, --to yaml/json writes the
+    problem file those flags stand for (the model and the controller named in it)."""
     if output is not None:
         check_output_path(output)
-    problem = source.load()
+    if to is None:
+        target = None if output is None else _SUFFIX_TARGETS.get(output.suffix.lower())
+        if target is None:
+            raise ProblemError(
+                "give the format to write (prism, drn, json or yaml), or -o with one of the "
+                "suffixes .prism, .drn, .json, .yaml",
+                field="--to",
+            )
+        to = ConvertTarget(target)
+    check_budget(budget, "--budget")
     if output is not None and to in (ConvertTarget.json, ConvertTarget.yaml):
         wanted = (".json",) if to is ConvertTarget.json else (".yaml", ".yml")
         if output.suffix.lower() not in wanted:
             raise ProblemError(f"--to {to.value} writes a {wanted[0]} file", field="-o")
-    text = _converted(problem, to)
-    write_text("convert", text, output, as_json, problem=problem.name, format=to.value)
+    kind = model_kind(source.file) if source.file is not None else None
+    if kind is not None and not explicit and to in (ConvertTarget.json, ConvertTarget.yaml):
+        text, name, states = _problem_file_of_flags(source, kind, to, output, budget)
+    else:
+        problem = source.load()
+        if budget is not None:
+            problem = problem.with_budget(budget)
+        text, name, states = _converted(problem, to), problem.name, problem.pomdp.n_states
+    write_text("convert", text, output, as_json, problem=name, format=to.value)
     if output is not None and not as_json:
-        note(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
+        size = "" if states is None else f", {states:,} states"
+        note(f"wrote {output} ({to.value}{size})")
+
+
+def _problem_file_of_flags(
+    source: ProblemSource,
+    kind: str,
+    to: ConvertTarget,
+    output: Path | None,
+    budget: float | None,
+) -> tuple[str, str, int | None]:
+    """The problem file a PRISM or DRN model and its flags stand for: checked by loading it
+    (as the flags' own route does), written with file names relative to ``output``."""
+    from misdirect.io.model_problem import model_document
+    from misdirect.io.problem_file import problem_document_text
+
+    problem = source.load()  # every mistake is reported against its flag, before writing
+    assert source.file is not None and source.controller is not None and source.decoy is not None
+    document = model_document(
+        source.file,
+        controller=source.controller,
+        decoy=source.decoy,
+        **{name: value for name, value in source.model_flags().items() if name != "decoy"},
+        budget=budget,
+        kind=kind,
+        relative_to=(output or Path("x")).absolute().parent,
+    )
+    text = problem_document_text(document, as_json=to is ConvertTarget.json)
+    return text, problem.name, problem.pomdp.n_states
 
 
 def _converted(problem: Problem, to: ConvertTarget) -> str:

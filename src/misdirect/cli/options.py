@@ -19,10 +19,11 @@ from typing import Annotated, Any
 
 import typer
 
-from misdirect.cli.common import check_range
+from misdirect.cli.common import check_range, flag
 from misdirect.core.model import AlterationArray, Problem
-from misdirect.errors import ProblemError
-from misdirect.io.problem_file import load_problem
+from misdirect.errors import ProblemError, ProblemsError
+from misdirect.io.model_problem import problem_from_model, with_controller
+from misdirect.io.problem_file import load_problem, model_kind
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solvers.milp.solver import FORMULATIONS
 
@@ -46,7 +47,51 @@ class Scenario(StrEnum):
 JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON object to stdout.")]
 FileArgument = Annotated[
     Path | None,
-    typer.Argument(help="Problem file (misdirect/v1, YAML or JSON).", show_default=False),
+    typer.Argument(
+        help="Problem file (misdirect/v1, YAML or JSON), or a PRISM (.prism) or DRN (.drn) "
+        "model with --controller and --decoy.",
+        show_default=False,
+    ),
+]
+ControllerOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--controller",
+        help="The robot's controller: PAYNT's .fsc.json (or a YAML file of rules); replaces "
+        "the controller of a problem file or scenario.",
+        show_default=False,
+    ),
+]
+DecoyOption = Annotated[
+    str | None,
+    typer.Option(
+        "--decoy",
+        help="With a PRISM/DRN model: the decoy, a state label (bad) or an expression "
+        '("x=3 & y>2").',
+        show_default=False,
+    ),
+]
+GoalOption = Annotated[
+    str | None,
+    typer.Option(
+        "--goal",
+        help="With a PRISM/DRN model: states that end the run, built terminal as PAYNT does "
+        "(a label or an expression; the file's pomdp.terminal).",
+        show_default=False,
+    ),
+]
+ConstantsOption = Annotated[
+    str | None,
+    typer.Option("--constants", help='With a PRISM model: undefined constants, e.g. "N=4,p=0.1".'),
+]
+TerminalFromOption = Annotated[
+    str | None,
+    typer.Option(
+        "--terminal-from",
+        help="With a PRISM/DRN model: PAYNT's property, e.g. 'P=? [F \"goal\"]'; its "
+        "target states are built terminal, as PAYNT builds the model.",
+        show_default=False,
+    ),
 ]
 ScenarioOption = Annotated[
     Scenario | None, typer.Option(help="Use a generated problem instead of FILE.")
@@ -91,6 +136,11 @@ class ProblemSource:
     its own options first."""
 
     file: Path | None
+    controller: Path | None
+    decoy: str | None
+    goal: str | None
+    constants: str | None
+    terminal_from: str | None
     scenario: Scenario | None
     size: int
     weights: str | None
@@ -100,12 +150,75 @@ class ProblemSource:
 
     def load(self) -> Problem:
         if (self.file is None) == (self.scenario is None):
-            raise ProblemError("give either a problem FILE or --scenario (exactly one)")
+            raise ProblemError(
+                "give either a problem FILE (or a PRISM/DRN model) or --scenario (exactly one)"
+            )
         check_range("--seed", self.seed, 0, MAX_SEED)
         if self.size > MAX_GRID_SIZE:
             check_range("--size", self.size, 5, MAX_GRID_SIZE)
+        kind = model_kind(self.file) if self.file is not None else None
+        self.check_model_flags(kind)
+        try:
+            return self._load(kind)
+        except ProblemError as error:
+            raise with_flag_sources(error) from None
+
+    def model_flags(self) -> dict[str, str | None]:
+        """The flags that describe a PRISM or DRN model given as FILE, by parameter name."""
+        return {
+            "decoy": self.decoy,
+            "goal": self.goal,
+            "constants": self.constants,
+            "terminal_from": self.terminal_from,
+        }
+
+    def check_model_flags(self, kind: str | None) -> None:
+        """--decoy (and --controller) are needed with a PRISM or DRN model, and the flags
+        that describe one are refused with anything else."""
+        if kind is not None:
+            missing = [
+                ProblemError(
+                    f"is required with the {'PRISM' if kind == 'prism' else 'DRN'} model "
+                    f"{self.file}: {what}",
+                    source=option,
+                )
+                for option, value, what in (
+                    ("--controller", self.controller, "the robot's controller (PAYNT's .fsc.json)"),
+                    ("--decoy", self.decoy, "the decoy states, a label or an expression"),
+                )
+                if value is None
+            ]
+            if missing:
+                raise ProblemsError.of(missing)
+            return
+        what = "a problem file" if self.file is not None else "a scenario"
+        for name, value in self.model_flags().items():
+            if value is not None:
+                raise ProblemError(
+                    f"describes a PRISM or DRN model given as FILE; {what} says it itself "
+                    "(only --controller replaces part of it)",
+                    source=flag(name),
+                )
+
+    def _load(self, kind: str | None) -> Problem:
+        if self.file is not None and kind is not None:
+            assert self.controller is not None and self.decoy is not None  # checked
+            return problem_from_model(
+                self.file,
+                controller=self.controller,
+                decoy=self.decoy,
+                goal=self.goal,
+                constants=self.constants,
+                terminal_from=self.terminal_from,
+            )
         if self.file is not None:
-            return load_problem(self.file)
+            return load_problem(self.file, controller=self.controller)
+        problem = self._scenario()
+        if self.controller is not None:
+            problem = with_controller(problem, self.controller)
+        return problem
+
+    def _scenario(self) -> Problem:
         if self.scenario is Scenario.paper_grid:
             return paper_grid(self.size)
         if self.scenario is Scenario.knapsack:
@@ -114,6 +227,20 @@ class ProblemSource:
             weights = numbers(self.weights, "--weights")
             return knapsack(weights, numbers(self.values, "--values"), self.capacity)
         return random_problem(self.seed)
+
+
+# the settings of misdirect.io.model_problem, which errors name as their source, as flags
+_SETTINGS = ("decoy", "goal", "constants", "terminal_from", "controller", "budget")
+
+
+def with_flag_sources(error: ProblemError) -> ProblemError:
+    """A library error whose source is a setting (``decoy``) with the flag as its source."""
+    if isinstance(error, ProblemsError):
+        problems = [with_flag_sources(problem) for problem in error.problems]
+        return ProblemsError.of(problems, error.total)
+    if error.source in _SETTINGS:
+        return ProblemError(error.reason, source=flag(error.source), field=error.field)
+    return error
 
 
 def _keyword(name: str, annotation: Any, default: Any) -> inspect.Parameter:
@@ -126,6 +253,11 @@ def _keyword(name: str, annotation: Any, default: Any) -> inspect.Parameter:
 # command declares ``source``, the options just before --json.
 _FILE = _keyword("file", FileArgument, None)
 _OPTIONS = (
+    _keyword("controller", ControllerOption, None),
+    _keyword("decoy", DecoyOption, None),
+    _keyword("goal", GoalOption, None),
+    _keyword("constants", ConstantsOption, None),
+    _keyword("terminal_from", TerminalFromOption, None),
     _keyword("scenario", ScenarioOption, None),
     _keyword("size", SizeOption, 5),
     _keyword("weights", WeightsOption, None),

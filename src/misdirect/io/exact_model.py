@@ -29,6 +29,7 @@ from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem, reachable_from
 from misdirect.core.product import full_product_matrix
 from misdirect.errors import ProblemError
+from misdirect.io.model_problem import built_from
 from misdirect.io.problem_file import StormPomdpSpec, read_spec
 from misdirect.io.storm import build_storm_model, load_stormpy
 from misdirect.io.storm_guard import run_isolated
@@ -156,16 +157,20 @@ def exact_model(problem: Problem) -> ExactModel:
             "(this problem was not read from a file)"
         )
     path = Path(problem.source)
-    spec = read_spec(path)
-    if not isinstance(spec.pomdp, StormPomdpSpec) or spec.grid is not None:
-        raise ProblemError(
-            "exact values need a world that Storm builds (pomdp: {prism: FILE} or "
-            "{drn: FILE}); this problem's world is "
-            + ("a grid map" if spec.grid is not None else "an explicit model"),
-            field="pomdp",
-            source=str(path),
-        )
-    world = spec.pomdp
+    settings = built_from(problem)
+    if settings is not None:  # built from a model and its settings, not a problem file
+        world, path = settings, Path(problem.source).absolute().parent / "settings"
+    else:
+        spec = read_spec(path)
+        if not isinstance(spec.pomdp, StormPomdpSpec) or spec.grid is not None:
+            raise ProblemError(
+                "exact values need a world that Storm builds (pomdp: {prism: FILE} or "
+                "{drn: FILE}); this problem's world is "
+                + ("a grid map" if spec.grid is not None else "an explicit model"),
+                field="pomdp",
+                source=str(path),
+            )
+        world = spec.pomdp
     kind = "prism" if world.prism is not None else "drn"
     model = path.parent / str(world.prism or world.drn)
     transitions = run_isolated(

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import json
 import math
+import os
 import re
 from collections.abc import Iterator, Mapping
 from fractions import Fraction
@@ -445,12 +446,58 @@ def read_spec(path: str | Path) -> ProblemFileV1:
         raise error.located(str(path)) from None
 
 
+# suffixes of the models Storm reads (PAYNT's sketches are PRISM programs named *.templ)
+MODEL_SUFFIXES = {".prism": "prism", ".pm": "prism", ".nm": "prism", ".templ": "prism"}
+MODEL_SUFFIXES[".drn"] = "drn"
+PROBLEM_SUFFIXES = (".yaml", ".yml", ".json")
+_PRISM_START = re.compile(r"^(?:\s|//[^\n]*\n)*(?:pomdp|mdp|dtmc|ctmc|nondeterministic)\b")
+_DRN_START = re.compile(r"^(?:\s|//[^\n]*\n)*@type\b")
+
+
+def model_kind(path: str | Path, text: str | None = None) -> str | None:
+    """``prism`` or ``drn`` when ``path`` is a model Storm reads rather than a problem file:
+    by its suffix (``.prism``, ``.nm``, ``.pm``, ``.templ``; ``.drn``), or, for a name with
+    another suffix, by how ``text`` (the file's text, read when not given) begins."""
+    suffix = Path(path).suffix.lower()
+    if suffix in MODEL_SUFFIXES:
+        return MODEL_SUFFIXES[suffix]
+    if suffix in PROBLEM_SUFFIXES:
+        return None
+    if text is None:
+        try:
+            with open(path, encoding="utf-8", errors="replace") as handle:
+                text = handle.read(4096)
+        except OSError:
+            return None
+    if _PRISM_START.match(text):
+        return "prism"
+    if _DRN_START.match(text):
+        return "drn"
+    return None
+
+
+def not_a_problem_file(path: Path, kind: str) -> ProblemError:
+    """What to do with a PRISM or DRN model given where a problem file was expected."""
+    what = "a PRISM program" if kind == "prism" else "a DRN model"
+    return ProblemError(
+        f"{what}, not a misdirect/v1 problem file: name it in one (pomdp: {{{kind}: "
+        f"{path.name}}}), or build the problem from it, its controller and its decoy "
+        "(misdirect.problem_from_model; the commands that take FILE take the model with "
+        "its controller and decoy as options)",
+        source=str(path),
+    )
+
+
 def _read_document(path: Path) -> Any:
     """The parsed file: a regular file within the size limit, JSON by suffix, else YAML, with
-    depth, alias and duplicate-key limits (misdirect.io.files)."""
+    depth, alias and duplicate-key limits (misdirect.io.files). A PRISM or DRN model is
+    refused as one, not as invalid YAML."""
     text = read_text_file(path)
     if path.suffix.lower() == ".json":
         return parse_json(text, source=str(path))
+    kind = model_kind(path, text)
+    if kind is not None:
+        raise not_a_problem_file(path, kind)
     return parse_yaml(text, source=str(path))
 
 
@@ -507,7 +554,7 @@ def _check_key_names(document: dict) -> None:
         )
 
 
-def load_problem(path: str | Path) -> Problem:
+def load_problem(path: str | Path, *, controller: str | Path | None = None) -> Problem:
     """Read and check a problem file (YAML or JSON; docs/problem-format.md).
 
     Parameters
@@ -515,6 +562,9 @@ def load_problem(path: str | Path) -> Problem:
     path : str or Path
         A ``misdirect/v1`` problem file: JSON by its ``.json`` suffix, else YAML. Files it
         names (a PRISM or DRN model, a PAYNT controller) are found relative to it.
+    controller : str or Path, optional
+        A controller file to use instead of the file's own: PAYNT's ``.fsc.json``, or a YAML
+        file of rules (relative to the working directory, not to the problem file).
 
     Returns
     -------
@@ -536,10 +586,76 @@ def load_problem(path: str | Path) -> Problem:
     """
     path = Path(path)
     spec = read_spec(path)
+    if controller is not None:
+        replaced = controller_document(controller)
+        spec = spec.model_copy(update={"controller": _controller_spec(replaced, controller)})
     try:
         return compile_problem(spec, source=str(path))
     except ProblemError as error:
+        if controller is not None:
+            error = controller_error(error, str(controller))
         raise error.located(str(path)) from None
+
+
+_RULES_SUFFIXES = (".yaml", ".yml")
+
+
+def relative_path(path: str | Path, relative_to: Path | None) -> str:
+    """``path`` as a problem file in ``relative_to`` names it (absolute when there is none)."""
+    if relative_to is None:
+        return str(Path(path).absolute())
+    return os.path.relpath(Path(path).absolute(), Path(relative_to).absolute())
+
+
+def controller_document(path: str | Path, *, relative_to: Path | None = None) -> dict[str, Any]:
+    """The ``controller:`` entry of a document for the controller in ``path``.
+
+    A ``.yaml``/``.yml`` file holds rules (``nodes``, ``initial``, ``rules``, as under
+    ``controller:`` in a problem file) or is a problem file whose controller is taken; any
+    other file is PAYNT's ``.fsc.json``, named (relative to ``relative_to``, the folder of
+    the document, or absolute) and read when the problem is compiled."""
+    path = Path(path)
+    if path.suffix.lower() not in _RULES_SUFFIXES:
+        return {"paynt": relative_path(path, relative_to)}
+    if not path.exists():
+        raise ProblemError(f"file not found: {path}", source="controller")
+    check_input_file(path, source="controller")
+    document = parse_yaml(read_text_file(path), source=str(path))
+    if isinstance(document, dict) and "format" in document and "controller" in document:
+        controller = document["controller"]  # another problem file's controller
+        if isinstance(controller, dict) and isinstance(controller.get("paynt"), str):
+            return {"paynt": relative_path(path.parent / controller["paynt"], relative_to)}
+        document = controller
+    if not isinstance(document, dict) or "rules" not in document:
+        raise ProblemError(
+            "expected a controller: a mapping with nodes, initial and rules (as under "
+            "controller: in a problem file), or a problem file",
+            source=str(path),
+        )
+    return document
+
+
+def _controller_spec(document: dict[str, Any], path: str | Path) -> Any:
+    """A controller file's ``controller:`` entry, validated (errors name the file)."""
+    try:
+        return parse_spec({"format": FORMAT, "controller": document, "deception": {}}).controller
+    except ProblemError as error:
+        raise controller_error(error, str(path)) from None
+
+
+def controller_error(error: ProblemError, controller: str) -> ProblemError:
+    """An error about the ``controller:`` of a document that a controller file (given as a
+    setting, ``--controller``) filled in: a missing file names the setting, a rule the file."""
+    if isinstance(error, ProblemsError):
+        problems = [controller_error(problem, controller) for problem in error.problems]
+        return ProblemsError.of(problems, error.total)
+    field = error.field or ""
+    if error.source is not None or not field.startswith("controller"):
+        return error
+    if field == "controller.paynt":
+        return ProblemError(error.reason, source="controller")
+    inside = field[len("controller") :].lstrip(".") or None
+    return ProblemError(error.reason, source=controller, field=inside)
 
 
 def problem_from_dict(
@@ -1036,6 +1152,11 @@ def _compile_pomdp(spec: PomdpSpec, names: _Names, observation_of: np.ndarray) -
     )
 
 
+def compile_controller(spec: ControllerSpec, pomdp: Pomdp) -> Controller:
+    """A controller of rules, resolved against ``pomdp``'s names and checked."""
+    return _compile_controller(spec, pomdp)
+
+
 def _compile_controller(spec: ControllerSpec, pomdp: Pomdp | _Names) -> Controller:
     found = _Found()
     nodes = _index(spec.nodes, "controller.nodes")
@@ -1342,7 +1463,11 @@ def write_problem(problem: Problem, path: str | Path) -> None:
 
 def problem_text(problem: Problem, *, as_json: bool = False) -> str:
     """The explicit ``misdirect/v1`` document of ``problem`` as YAML (or JSON) text."""
-    document = problem_to_document(problem)
+    return problem_document_text(problem_to_document(problem), as_json=as_json)
+
+
+def problem_document_text(document: dict[str, Any], *, as_json: bool = False) -> str:
+    """A ``misdirect/v1`` document as YAML (or JSON) text."""
     if as_json:
         return json.dumps(document, indent=1) + "\n"
     return yaml.dump(
