@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from misdirect.core.reachability import (
     occupation,
     reach_probability_bounded,
 )
+
+if TYPE_CHECKING:
+    from misdirect.core.notebook import View
 
 
 def decoy_probability(problem: Problem, alteration: AlterationArray) -> float:
@@ -129,6 +132,56 @@ class Evaluation:
         values = self.first_entry[self.terminal_states].tolist()
         names = [self.state_names[s] for s in self.terminal_states]
         return dict(zip(names, values, strict=True))
+
+    def _repr_html_(self) -> str:
+        """The evaluation in a notebook: the value, the alteration and where runs end."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        from misdirect.core import notebook as nb
+        from misdirect.core.objective import LABELS
+
+        within = "within" if self.within_budget else "over"
+        facts = [
+            (LABELS.get(self.objective, self.objective), nb.number(self.probability)),
+            ("alteration", nb.changes(self.alteration)),
+            ("cost", nb.text(f"{self.cost:g} ({within} the budget {self.budget:g})")),
+            ("error bound", nb.small(self.error_bound)),
+        ]
+        if self.baseline_value is not None:
+            facts.append(("without alteration", nb.number(self.baseline_value)))
+        facts.append(
+            (
+                "product chain",
+                nb.text(
+                    f"{self.product_states:,} states, {self.product_transitions:,} transitions"
+                ),
+            )
+        )
+        rows = [
+            (
+                nb.text(row["kind"]),
+                nb.text(row["state"] or "(never absorbed)"),
+                nb.number(row["probability"]),
+            )
+            for row in self.outcome_list()
+        ]
+        ends = nb.Table(("kind", "state", "probability"), rows, "where runs end first")
+        sets = (
+            [
+                nb.Table(
+                    ("decoy set", "probability"),
+                    [(nb.text(name), nb.number(p)) for name, p in self.decoy_sets.items()],
+                )
+            ]
+            if self.decoy_sets
+            else []
+        )
+        title = f"{self.problem or 'problem'}: evaluation"
+        return nb.View(title, facts, [ends, *sets], [*self.warnings, *self.notes])
 
     def outcome_list(self, *, all_outcomes: bool = False) -> list[dict[str, Any]]:
         """:attr:`outcomes` (or :attr:`all_outcomes`) as the JSON lists them: ``kind``

@@ -14,7 +14,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import PurePath
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,6 +23,9 @@ from scipy.sparse.csgraph import breadth_first_order
 from misdirect.core import tolerance
 from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
+
+if TYPE_CHECKING:
+    from misdirect.core.notebook import View
 
 # an alteration as a plain int array, ``alpha[o]`` = the observation received instead of ``o``:
 # what the solvers pass around (an :class:`Alteration` is one too)
@@ -586,6 +589,51 @@ class Problem:
             f"budget {self.budget:g})"
         )
 
+    def _repr_html_(self) -> str:
+        """The problem in a notebook: its sizes, names, decoys, costs and budget."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        """What a notebook shows of the problem (:mod:`misdirect.core.notebook`)."""
+        from misdirect.core import notebook as nb
+
+        pomdp, controller, cost = self.pomdp, self.controller, self.cost
+        decoys = [pomdp.states[s] for s in np.flatnonzero(self.decoy)]
+        kind = "deterministic" if controller.is_deterministic else "randomized"
+        s0 = pomdp.initial_state
+        facts = [
+            ("states", nb.text(f"{pomdp.n_states:,} ({int(pomdp.absorbing.sum()):,} absorbing)")),
+            ("actions", nb.names(pomdp.actions, where="problem.pomdp.actions")),
+            (
+                f"observations ({pomdp.n_observations:,})",
+                nb.names(pomdp.observations, where="problem.pomdp.observations"),
+            ),
+            ("memory nodes", nb.text(f"{controller.n_nodes:,} ({kind} controller)")),
+            (
+                "initial state",
+                nb.text(
+                    f"{pomdp.states[s0]} (reads {pomdp.observations[pomdp.initial_observation]})"
+                ),
+            ),
+            (f"decoy states ({len(decoys):,})", nb.names(decoys, where="problem.decoy")),
+            ("objective", nb.text(self.objective.label)),
+            ("budget", nb.amount(self.budget)),
+            ("cost of an alteration", nb.text(_cost_summary(cost))),
+            (
+                "protected sensors",
+                nb.names(sorted(pomdp.observations[o] for o in cost.protected)),
+            ),
+        ]
+        if self.decoy_sets:
+            sets = [f"{d.name}: weight {d.weight:g}" for d in self.decoy_sets]
+            facts.append(("decoy sets", nb.names(sets)))
+        if self.source:
+            facts.append(("file", nb.text(self.source)))
+        return nb.View(f"Problem {self.title}", facts, (), [*self.warnings, *self.notes])
+
     @cached_property
     def objective(self) -> Objective:
         if not self.decoy_sets:
@@ -790,6 +838,14 @@ class Problem:
             for o in self.relevant_observations.tolist()
         ]
         return min(costs, default=float("inf"))
+
+
+def _cost_summary(cost: CostModel) -> str:
+    """The cost model in a few words: the default, and how many pairs differ."""
+    default = "forbidden" if not np.isfinite(cost.default) else f"{cost.default:g}"
+    if not cost.pairs:
+        return f"{default} per altered sensor"
+    return f"{default} by default, {len(cost.pairs):,} pairs priced apart (problem.cost.pairs)"
 
 
 def format_alteration(changes: Mapping[str, str]) -> str:

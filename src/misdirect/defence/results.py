@@ -8,14 +8,17 @@ read answers, need not depend on how they were found.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from misdirect.core import tolerance
 from misdirect.core.model import format_alteration
 from misdirect.core.objective import LABELS
 from misdirect.core.tables import dataframe, short_float
-from misdirect.solvers.run import BudgetResult, curve_fields
+from misdirect.solvers.run import BudgetResult, curve_fields, curve_table
 from misdirect.solvers.status import Status
+
+if TYPE_CHECKING:
+    from misdirect.core.notebook import View
 
 
 @dataclass(frozen=True)
@@ -171,6 +174,53 @@ class AuditResult:
             f"alteration={self.alteration!r}, sensors={len(self.sensors)}, "
             f"certified={self.certified})"
         )
+
+    def _repr_html_(self) -> str:
+        """The audit in a notebook: the optimum at ``B``, the sensors by criticality, the
+        curve and the online attacker."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        from misdirect.core import notebook as nb
+
+        facts = [
+            ("objective", nb.text(self.objective_label)),
+            ("status", nb.text(self.status)),
+            (f"optimum at budget {self.budget:g}", nb.number(self.probability)),
+            ("proven bound", nb.number(self.upper_bound)),
+            ("alteration", nb.changes(self.alteration)),
+            ("without alteration", nb.number(self.baseline_probability)),
+            ("certified", nb.text("yes" if self.certified else "no")),
+        ]
+        if self.online is not None:
+            facts.append(("online attacker", nb.number(self.online.probability)))
+        facts.append(("time", nb.text(f"{self.time_s:.3g} s")))
+        sensors = nb.Table(
+            ("sensor", "criticality", "protected: optimum", "alone: optimum", "in attack"),
+            [
+                (
+                    nb.text(row.observation),
+                    nb.number(row.criticality)
+                    if row.exact
+                    else nb.Cell(
+                        f"{row.criticality:.6f} to {row.criticality_upper:.6f}", number=True
+                    ),
+                    nb.number(row.protected_probability),
+                    nb.number(row.single_probability),
+                    nb.text("yes" if row.in_optimal_attack else "no"),
+                )
+                for row in self.sensors
+            ],
+            "sensors, the most critical first",
+        )
+        notes = list(self.notes)
+        if self.online_budgeted_note:
+            notes.append(self.online_budgeted_note)
+        curve = curve_table(self.curve, caption="the attacker's optimum per budget")
+        return nb.View(f"{self.problem or 'problem'}: audit", facts, [sensors, curve], notes)
 
     def to_dataframe(self) -> Any:
         """The sensors as a ``pandas.DataFrame``, one row per alterable sensor, most critical
@@ -374,6 +424,48 @@ class HardenResult:
             f"protection={self.protection!r}, value_before={short_float(self.value_before)}, "
             f"value_after={short_float(self.value_after)})"
         )
+
+    def _repr_html_(self) -> str:
+        """The hardening in a notebook: the protection, the attacker's optimum before and
+        after, and the trade-off per protection budget."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        from misdirect.core import notebook as nb
+
+        facts = [
+            ("objective", nb.text(LABELS.get(self.objective, self.objective))),
+            ("status", nb.text(self.status)),
+            ("protect", nb.names(self.protection, empty="nothing")),
+            ("protection cost", nb.amount(self.protection_cost)),
+            (f"attacker's optimum at budget {self.budget:g}, before", nb.number(self.value_before)),
+            ("after", nb.number(self.value_after)),
+            ("proven bound after", nb.number(self.value_after_upper)),
+            ("no protection holds it below", nb.number(self.lower_bound)),
+            ("attacker's best reply", nb.changes(self.best_reply)),
+            ("time", nb.text(f"{self.time_s:.3g} s")),
+        ]
+        curve = nb.Table(
+            ("protect budget", "protect", "cost", "status", "attacker", "bound", "reply"),
+            [
+                (
+                    nb.amount(p.protect_budget),
+                    nb.names(p.protection, empty="nothing"),
+                    nb.amount(p.protection_cost),
+                    nb.text(p.status.value),
+                    nb.number(p.probability),
+                    nb.number(p.upper_bound),
+                    nb.changes(p.attack),
+                )
+                for p in self.curve
+            ],
+            "the best protection per protection budget",
+        )
+        title = f"{self.problem or 'problem'}: hardening"
+        return nb.View(title, facts, [curve], self.notes)
 
     def to_dataframe(self) -> Any:
         """The trade-off curve as a ``pandas.DataFrame``: one row per protection budget

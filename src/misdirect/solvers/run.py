@@ -11,7 +11,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
 from misdirect.solvers.status import Status
+
+if TYPE_CHECKING:
+    from misdirect.core.notebook import Table, View
 
 
 @dataclass(frozen=True, repr=False)
@@ -106,6 +109,30 @@ class BudgetResult:
             f"upper_bound={short_float(self.upper_bound)})"
         )
 
+    def _repr_html_(self) -> str:
+        """The point in a notebook: status, value, proven bound, gap and the alteration."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        from misdirect.core import notebook as nb
+
+        facts = [
+            ("status", nb.text(self.status.value)),
+            ("value", nb.number(self.probability)),
+            ("proven bound", nb.number(self.upper_bound)),
+            ("gap", nb.small(self.gap)),
+            ("error bound", nb.small(self.error_bound)),
+            ("alteration", nb.changes(self.alteration)),
+            ("cost", nb.amount(self.cost)),
+        ]
+        if self.certified_by:
+            facts.append(("certified by", nb.text(self.certified_by)))
+        notes = [f"{key}: {note}" for key, note in self.notes.items()]
+        return nb.View(f"Budget {self.budget:g}", facts, (), notes)
+
     def to_dict(self, *, stats: bool = True) -> dict[str, Any]:
         """The point as the JSON writes it (``misdirect-result/1``, ``$defs/point``): the
         exact value is ``value``, certification's notes are ``certification``. ``stats``:
@@ -126,6 +153,27 @@ class BudgetResult:
         if stats:
             shown["stats"] = {k: v for k, v in self.stats.to_dict().items() if k != "auto_reason"}
         return shown
+
+
+def curve_table(points: Sequence[BudgetResult], *, caption: str = "") -> Table:
+    """A curve as a notebook table: per budget its status, exact value, proven bound, gap,
+    cost and alteration (the changes as names, wrapped between changes)."""
+    from misdirect.core import notebook as nb
+
+    header = ("budget", "status", "value", "proven bound", "gap", "cost", "alteration")
+    rows = [
+        (
+            nb.amount(p.budget),
+            nb.text(p.status.value),
+            nb.number(p.probability),
+            nb.number(p.upper_bound),
+            nb.small(p.gap),
+            nb.amount(p.cost),
+            nb.changes(p.alteration),
+        )
+        for p in points
+    ]
+    return nb.Table(header, rows, caption)
 
 
 def curve_fields(points: Sequence[BudgetResult]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -226,6 +274,41 @@ class SolveResult:
             f"curve={len(self.curve)} point{'s' * (len(self.curve) != 1)}, "
             f"time_s={self.time_s:.3g})"
         )
+
+    def _repr_html_(self) -> str:
+        """The result in a notebook: the answer, then the curve (per budget its status,
+        value, proven bound, gap and alteration), warnings and notes."""
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+    def _view(self) -> View:
+        from misdirect.core import notebook as nb
+        from misdirect.core.objective import LABELS
+
+        facts = [
+            ("objective", nb.text(LABELS.get(self.objective, self.objective))),
+            ("status", nb.text(self.status.value)),
+            (f"value at budget {self.budget:g}", nb.number(self.probability)),
+            ("proven bound", nb.number(self.upper_bound)),
+            ("alteration", nb.changes(self.alteration)),
+            ("without alteration", nb.number(self.baseline_probability)),
+            ("method", nb.text(self.method)),
+            ("time", nb.text(f"{self.time_s:.3g} s")),
+        ]
+        if self.certified_by:
+            facts.insert(4, ("certified by", nb.text(self.certified_by)))
+        notes = [*self.warnings, *self.notes]
+        if self.budget_clamped_from is not None:
+            notes.append(
+                f"budget {self.budget_clamped_from:g} affords every alteration: solved at "
+                f"{self.budget_clamped_to:g}, the cost of the most expensive one"
+            )
+        if self.interrupted:
+            notes.append("interrupted: the best answers found so far")
+        title = f"{self.problem or 'problem'}: optimal alterations"
+        return nb.View(title, facts, [curve_table(self.curve)], notes)
 
     def to_dataframe(self) -> Any:
         """The curve as a ``pandas.DataFrame``, one row per budget.
