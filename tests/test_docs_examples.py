@@ -162,6 +162,25 @@ def check_output(name: str, shown: list[str], output: str) -> None:
         at += 1
 
 
+SITE_COLUMNS = 100  # what docs/stylesheets/extra.css fits in the site's text column
+
+
+def test_shown_output_fits_the_site_width() -> None:
+    """Every output line a console example shows fits the documentation site's column
+    (issue 53: the solve table scrolled sideways, its status cut to "optim…")."""
+    wide = [
+        f"{block.name}: {len(line)} columns: {line}"
+        for block in _blocks("console")
+        for _, shown in _commands(block)
+        for line in shown
+        if len(line) > SITE_COLUMNS
+    ]
+    assert wide == []
+    config = (ROOT / "mkdocs.yml").read_text(encoding="utf-8")
+    assert "stylesheets/extra.css" in config
+    assert "max-width" in (ROOT / "docs" / "stylesheets" / "extra.css").read_text()
+
+
 def test_check_output_can_fail() -> None:
     """The comparison rejects a wrong number and a wrong order (it is no rubber stamp)."""
     output = "│ 1 │ 0.719924 │ o1 → o2 │\n│ 2 │ 0.860130 │ o1 → o2, o2 → o0 │\n"
