@@ -396,6 +396,12 @@ PROOF_EXTENDED = CERTIFY / 100
 with the values and the check in double-double: certification needs the bound within
 :data:`CERTIFY`, and a chain absorbed after 10^8 steps adds up the check's rounding to more."""
 
+KEPT_BASIS_RANGE = 1e-6
+"""A kept basis's reduced values (:mod:`misdirect.solvers.engines.kept_basis`) may stray this
+far (relative to the largest value) outside ``[0, top]`` before the solve is distrusted and
+the relaxation solved on the whole chain: further out, a round stranded a state (a singular
+system) rather than rounding."""
+
 PROOF_COLLAPSE = 1e-6
 """A proven bound further than this (relative) above policy iteration's value after both
 checks is proven once more on the MDP with its end components collapsed

@@ -34,9 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.kept_basis import KeptBasis, one_blas_thread
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_UNIONS = 5_000  # a cover of more unions than this is not tried (each is a relaxation solve)
+KEPT_FROM = 4  # unions from which a cover solves them on a kept basis (engines/kept_basis.py)
 MAX_GROUPS = 24  # groups a cover splits the undecided sensors into, at most
 COVER_SHARE = 0.25  # a node's cover may take this share of the search's time left
 UNLIMITED_UNIONS = 200  # ... and without a time limit, this many unions
@@ -174,9 +176,18 @@ def covering_bound(
     if len(sets) > MAX_UNIONS:
         return None
     unions = []
-    for chosen in sets:
-        free = [i for j in chosen for i in groups[j]]
-        unions.append((chosen, _relaxation(relax, free, cap, fixed, deadline)))
+    with one_blas_thread():
+        basis = None
+        if len(sets) >= KEPT_FROM:  # its cost (a node's solves) is repaid over a few unions
+            basis = KeptBasis(relax, fixed, sorted(grouped))
+            basis = basis if basis.usable else None
+        for chosen in sets:
+            free = [i for j in chosen for i in groups[j]]
+            if basis is not None:
+                bound = basis.bound(free, cap, deadline)
+            else:
+                bound = _relaxation(relax, free, cap, fixed, deadline)
+            unions.append((chosen, bound))
     unions.sort(key=lambda item: -item[1])
     return CoverBound(max((b for _, b in unions), default=-np.inf), unions)
 

@@ -19,6 +19,7 @@ end components: :mod:`misdirect.solvers.engines.transient`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cached_property
 from typing import Literal, cast, overload
 
@@ -243,10 +244,16 @@ class MaxReachability:
         state: int,
         penalty: np.ndarray | float = 0.0,
         deadline: Deadline | None = None,
+        *,
+        offset: Callable[[np.ndarray], np.ndarray | None] | None = None,
     ) -> float:
         """A proven upper bound at ``state`` on the optimum among the choices whose ``penalty``
         is 0, from the values and policy :meth:`optimise` returned; the largest target value
-        (the trivial bound) when no proof is found.
+        (the trivial bound) when no proof is found. ``offset``: a faster solve of the first
+        offset (the expected sum of a cost along ``policy``'s chain, at least the one summed
+        until it leaves the states of positive value), e.g. on a kept basis
+        (:mod:`misdirect.solvers.engines.kept_basis`); it only proposes ``u``, the check
+        decides.
 
         The optimum is the least fixed point of the Bellman operator ``T`` (target states fixed
         at their value, values capped at the largest one: no value of the chain exceeds it),
@@ -275,7 +282,9 @@ class MaxReachability:
         values = np.clip(np.where(target, fixed, values), 0.0, top)
         positive = ~target & (values > 0) & (values < top)
         bellman = self._upper(values, allowed, target, fixed, top)
-        found = self._proven_double(values, bellman, policy, state, allowed, positive, deadline)
+        found = self._proven_double(
+            values, bellman, policy, state, allowed, positive, deadline, offset
+        )
         bound = top if found is None else min(found, top)
         # far above the values (a chain absorbed after 10^8 steps: the check's own rounding,
         # 10^-16 a step, adds up): again with the values and the check in double-double
@@ -316,6 +325,7 @@ class MaxReachability:
         allowed: np.ndarray,
         positive: np.ndarray,
         deadline: Deadline | None,
+        offset: Callable[[np.ndarray], np.ndarray | None] | None = None,
     ) -> float | None:
         """:meth:`proven_bound` in double precision: the bound, or None."""
         target = self.target
@@ -333,7 +343,13 @@ class MaxReachability:
                 internal = self._internal(components)
             if attempt >= 2:
                 cost = cost * PROOF_GROWTH
-            u = self._settle(policy, positive, values, cost, components, offset=attempt == 0)
+            u = None
+            if attempt == 0 and offset is not None:
+                collected = offset(cost)
+                if collected is not None:
+                    u = np.where(positive, values + np.maximum(collected, cost), values)
+            if u is None:
+                u = self._settle(policy, positive, values, cost, components, offset=attempt == 0)
             if u is None:
                 continue
             u = np.minimum(u, top)

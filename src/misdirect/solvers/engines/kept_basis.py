@@ -1,0 +1,290 @@
+"""Relaxations on a kept basis: the per-state relaxation of many free sets at one node, each for
+a few milliseconds of policy iteration instead of a whole-chain LU per round (issue 50).
+
+A covering bound solves the per-state relaxation once per union of sensor groups, every union
+at the same node: the decided sensors as decided, the union's sensors free, every other sensor
+unaltered. Only the states the undecided sensors own (``O``: on a 40x40 turn-back grid with 64
+sensors, 928 of 6,400) ever change their row; every other state moves as in the node's *base
+chain* (every undecided sensor unaltered). So the base chain is solved once per node for its
+first entries into ``O``: from each state outside ``O``, the probability of reaching the target
+before ``O`` (``h``) and the distribution of the first state of ``O`` it enters (``H``), one
+sparse LU and ``|O| + 1`` solves. Each relaxation is then exactly an MDP on ``O``: a row
+``P_g`` of a state of ``O`` becomes ``r_g = P_g[target] + P_g[E] h`` to the target and
+``q_g = P_g[O] + P_g[E] H`` into ``O`` (``E``: the states outside ``O`` that reach the target
+or ``O`` under the base chain; the others are worth 0 in every relaxation of the node). Policy
+iteration on that dense MDP of a few hundred states costs milliseconds a round.
+
+The values found are lifted back to the whole chain (``v = h + H v_O`` outside ``O``) and the
+bound is proven there, by :meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.
+proven_bound`, as every bound of the per-state relaxation is: the reduction only finds the
+values, it proves nothing. Where the reduced policy iteration does not settle (a round that
+would strand a state, a singular solve), the relaxation is solved on the whole chain instead.
+
+The dense algebra runs on one BLAS thread (:func:`one_blas_thread`): these matrices are a few
+hundred wide, and OpenBLAS's threads spinning for a core the other worker holds made a 140x140
+solve take 80 ms instead of 0.2 (bench/results/covering).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+
+import numpy as np
+import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
+
+from misdirect.core import tolerance
+from misdirect.core.model import reachable_from
+from misdirect.core.reachability import factorise
+from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+MAX_ROUNDS = 64  # rounds of the reduced policy iteration before the whole chain takes over
+MAX_KEPT_ENTRIES = 20_000_000  # H (states outside O x states of O) kept at most this large
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Dense algebra of a few hundred rows on one BLAS thread (see the module docstring)."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+class KeptBasis:
+    """One node's base chain, solved for its first entries into the states of its undecided
+    sensors; :meth:`bound` solves a free set's relaxation on it (see the module docstring)."""
+
+    def __init__(
+        self,
+        relax: PerStateRelaxation,
+        fixed: Mapping[int, int],
+        undecided: Sequence[int],
+    ):
+        """``fixed``: choice index -> option of every decided choice; ``undecided``: the
+        choices a free set may hold (the others count as unaltered)."""
+        self.relax = relax
+        chain = relax.chain
+        self.fixed = dict(fixed)
+        n = chain.n_states
+        observation = relax.problem.pomdp.observation_of[chain.world_state]
+        choice_of = np.full(relax.problem.pomdp.n_observations, -1, dtype=np.int64)
+        for i, choice in enumerate(relax.space.choices):
+            choice_of[choice.observation] = i
+        self.state_choice = choice_of[observation]
+        undecided_mask = np.zeros(len(relax.space.choices) + 1, dtype=bool)
+        undecided_mask[list(undecided)] = True
+        in_o = relax.live & (chain.groups_per_state > 1) & undecided_mask[self.state_choice]
+        self.o_states = np.flatnonzero(in_o)
+        base_options = self._options({})
+        self.base_policy = relax.best_groups(
+            np.where(relax.allowed_groups(base_options), 0.0, -np.inf)
+        )[0]
+        transitions = chain.transitions.tocsr()
+        target = chain.target
+        self.target_value = np.where(
+            target, 1.0 if chain.target_value is None else chain.target_value, 0.0
+        )
+        base = transitions[self.base_policy]
+        outside = relax.live & ~in_o
+        # states outside O that reach the target or O along the base chain (through
+        # states outside O); the others never leave what is worth 0
+        through = base.multiply(outside[:, None]).tocsr()
+        reaches = reachable_from(through.T.tocsr(), np.flatnonzero(target | in_o))
+        self.e_states = np.flatnonzero(outside & reaches)
+        self.position = np.full(n, -1, dtype=np.int64)
+        self.position[self.o_states] = np.arange(self.o_states.size)
+        self.e_position = np.full(n, -1, dtype=np.int64)
+        self.e_position[self.e_states] = np.arange(self.e_states.size)
+        self.reduced = self.fallbacks = 0  # relaxations solved on the basis, and without it
+        self.usable = self.e_states.size * max(self.o_states.size, 1) <= MAX_KEPT_ENTRIES
+        if not self.usable:
+            return
+        e, o = self.e_states, self.o_states
+        block = base[e][:, e]
+        self.lu = factorise(block) if e.size else None
+        rhs = np.empty((e.size, o.size + 1))
+        rhs[:, : o.size] = base[e][:, o].toarray()
+        rhs[:, o.size] = base[e] @ self.target_value
+        solved = self.lu.solve(rhs) if self.lu is not None else rhs
+        self.first_entry, self.before = solved[:, : o.size], solved[:, o.size]  # H, h
+        # the reduced rows: every group of a state of O
+        self.groups = np.flatnonzero(in_o[chain.group_state])
+        rows = transitions[self.groups]
+        self.into_e = rows[:, e].tocsr()
+        self.q = rows[:, o].toarray() + self.into_e @ self.first_entry
+        self.r = rows @ self.target_value + self.into_e @ self.before
+        self.group_owner = self.position[chain.group_state[self.groups]]
+        order = np.lexsort((np.arange(self.groups.size), self.group_owner))
+        self._by_state = order
+        counts = np.bincount(self.group_owner, minlength=o.size)
+        self._state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        local = np.full(chain.group_state.size, -1, dtype=np.int64)
+        local[self.groups] = np.arange(self.groups.size)
+        self.base_local = local[self.base_policy[o]]
+        # the base chain on O, inverted once: a policy differing from it in a few states is
+        # solved by Woodbury (states it cannot lead to the target are stopped: worth 0)
+        reaching = self._reaching(self.base_local)
+        self.base_q = np.where(reaching[:, None], self.q[self.base_local], 0.0)
+        self.base_r = np.where(reaching, self.r[self.base_local], 0.0)
+        try:
+            self.base_inverse = np.linalg.inv(np.eye(o.size) - self.base_q)
+        except np.linalg.LinAlgError:
+            self.usable = False
+            return
+        self.base_values = self.base_inverse @ self.base_r
+        self._solver: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def _options(self, free: Mapping[int, float]) -> np.ndarray:
+        """The options a relaxation allows: the decided ones, every option within its cap of
+        a ``free`` choice (choice -> cap), and unaltered everywhere else."""
+        relax = self.relax
+        first, cost = relax.first_option, relax.option_cost
+        allowed = np.zeros(cost.size, dtype=bool)
+        allowed[first[:-1]] = True
+        for i, cap in free.items():
+            span = slice(first[i], first[i + 1])
+            allowed[span] = cost[span] <= cap
+            allowed[first[i]] = True
+        for i, k in self.fixed.items():
+            allowed[first[i] : first[i + 1]] = False
+            allowed[first[i] + k] = True
+        return allowed
+
+    def bound(self, free: Sequence[int], cap: float, deadline: Deadline | None = None) -> float:
+        """The proven bound of the per-state relaxation with the ``free`` choices free (their
+        options within ``cap``), the decided ones as decided, every other choice unaltered."""
+        relax = self.relax
+        allowed_full = relax.allowed_groups(self._options(dict.fromkeys(free, cap)))
+        penalty = np.where(allowed_full, 0.0, -np.inf)
+        found = self._reduced(allowed_full[self.groups]) if self.usable else None
+        if found is None:  # the whole chain, as without a kept basis
+            self.fallbacks += 1
+            start = relax.best_groups(penalty)[0]
+            bound, _, _ = relax.optimise(allowed_full, start, deadline)
+            return float(bound)
+        self.reduced += 1
+        values_o, policy_o = found
+        values = self.target_value.copy()
+        values[self.o_states] = values_o
+        if self.e_states.size:
+            values[self.e_states] = self.before + self.first_entry @ values_o
+        policy = self.base_policy.copy()
+        policy[self.o_states] = self.groups[policy_o]
+        offset = self.offset_solver(policy_o)
+        return float(
+            relax.mdp.proven_bound(
+                values, policy, relax.chain.initial, penalty, deadline, offset=offset
+            )
+        )
+
+    def _reduced(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Policy iteration on the reduced MDP among the ``allowed`` reduced rows, from the
+        base chain's rows (always allowed: unaltered): (values on O, the chosen local row per
+        state of O), or None where it does not settle."""
+        policy = self.base_local.copy()
+        policy = self._proper(policy, allowed)
+        for _ in range(MAX_ROUNDS):
+            values = self._evaluate(policy)
+            if values is None:
+                return None
+            score = np.where(allowed, self.r + self.q @ values, -np.inf)
+            ranked = np.lexsort((-score, self.group_owner))
+            best = ranked[self._state_start]
+            room = tolerance.IMPROVE * np.maximum(
+                np.abs(score[best]), np.abs(values).max(initial=0.0)
+            )
+            switch = score[best] > score[policy] + room
+            if not switch.any():
+                return values, policy
+            # a round that strands a state (no strict gain does, in exact arithmetic) makes
+            # the next solve singular or its values no probabilities: the whole chain decides
+            policy = np.where(switch, best, policy)
+        return None
+
+    def _reaching(self, policy: np.ndarray) -> np.ndarray:
+        """States of O from which ``policy`` reaches the target (through the reduced rows)."""
+        q = self.q[policy]
+        graph = sp.csr_matrix((q > 0).T.astype(np.int8))  # entered state -> its enterer
+        return reachable_from(graph, np.flatnonzero(self.r[policy] > 0))
+
+    def _proper(self, policy: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        """``policy`` with every state that cannot reach the target under it switched to an
+        allowed row one step closer to it (breadth-first), as
+        :meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proper` does."""
+        reaching = self._reaching(policy)
+        if reaching.all():
+            return policy
+        policy = policy.copy()
+        closer = np.zeros(reaching.size, dtype=bool)
+        stepping = allowed & (self.r > 0)  # rows into the target: the first layer
+        while stepping.any():
+            rows = np.flatnonzero(stepping & ~closer[self.group_owner])
+            if not rows.size:
+                break
+            states, first = np.unique(self.group_owner[rows], return_index=True)
+            switch = ~reaching[states]
+            policy[states[switch]] = rows[first[switch]]
+            closer[states] = True
+            stepping = allowed & (self.q[:, closer] > 0).any(axis=1)
+        return policy
+
+    def _evaluate(self, policy: np.ndarray) -> np.ndarray | None:
+        """Values on O of the reduced chain that takes row ``policy[s]`` in ``s``, by Woodbury
+        from the base chain's inverse (the rows that differ replaced); None where that system
+        is singular or its solution is not a probability (a policy that strands a state)."""
+        solved = self._solve(policy, self.r[policy], self.base_values)
+        if solved is None:
+            return None
+        top = float(self.target_value.max(initial=0.0))
+        slack = tolerance.KEPT_BASIS_RANGE * max(top, 1.0)
+        if not (np.isfinite(solved).all() and (solved >= -slack).all()):
+            return None
+        if (solved > top + slack).any():
+            return None
+        clipped: np.ndarray = np.clip(solved, 0.0, top)
+        return clipped
+
+    def _solve(
+        self, policy: np.ndarray, rhs: np.ndarray, base_solution: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """``(I - q_policy)⁻¹ rhs`` on O by Woodbury from the base inverse (``base_solution``:
+        the base inverse times the base rows' right-hand side, if at hand)."""
+        changed = np.flatnonzero(policy != self.base_local)
+        inverse = self.base_inverse
+        if base_solution is None or changed.size:
+            # the base inverse applied to rhs with the base's own entries at unchanged rows
+            base_solution = inverse @ rhs
+        if not changed.size:
+            return base_solution
+        delta = self.base_q[changed] - self.q[policy[changed]]  # rows of (I - q') - (I - q)
+        columns = inverse[:, changed]
+        capacitance = np.eye(changed.size) + delta @ columns
+        try:
+            correction = np.linalg.solve(capacitance, delta @ base_solution)
+        except np.linalg.LinAlgError:
+            return None
+        solved: np.ndarray = base_solution - columns @ correction
+        return solved
+
+    def offset_solver(self, policy_o: np.ndarray) -> Callable[[np.ndarray], np.ndarray | None]:
+        """What the proof's first offset asks for, on the kept basis: the expected sum of a
+        cost along the whole chain's policy (``policy_o`` on O, the base chain elsewhere)
+        until it stops; None where the system is singular."""
+
+        def solve(cost: np.ndarray) -> np.ndarray | None:
+            e, o = self.e_states, self.o_states
+            from_e = (
+                self.lu.solve(cost[e]) if self.lu is not None else np.zeros(e.size)
+            )  # the sum collected outside O before entering it
+            rhs = cost[o] + self.into_e[policy_o] @ from_e
+            on_o = self._solve(policy_o, rhs)
+            if on_o is None or not np.isfinite(on_o).all():
+                return None
+            total = np.zeros(cost.size)
+            total[o] = on_o
+            if e.size:
+                total[e] = from_e + self.first_entry @ on_o
+            return total
+
+        return solve

@@ -1,0 +1,84 @@
+"""Relaxations on a kept basis (issue 50): the same proven bounds as the per-state relaxation
+solved on the whole chain, for free sets of random problems whose controllers loop and of a
+turn-back grid, at nodes with decided sensors; and the proof's offset on the kept basis lets
+a bound through only where the rigorous check holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from misdirect.core.attack import prepare
+from misdirect.scenarios import random_problem
+from misdirect.scenarios.sensor_grid import sensor_grid
+from misdirect.solvers.engines.covering import _relaxation
+from misdirect.solvers.engines.kept_basis import KeptBasis, one_blas_thread
+from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+
+def _agree(relax, fixed, undecided, frees, cap) -> int:
+    """Asserts each free set's bound on the kept basis equals the whole chain's (both proven;
+    two proofs of one optimum differ by their offsets only); returns how many the kept basis
+    solved itself (not handed back to the whole chain)."""
+    with one_blas_thread():
+        basis = KeptBasis(relax, fixed, undecided)
+        for free in frees:
+            kept = basis.bound(free, cap)
+            whole = _relaxation(relax, free, cap, fixed, None)
+            assert kept == pytest.approx(whole, rel=1e-7, abs=1e-12), (free, kept, whole)
+    return basis.reduced
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_random_problems_with_loops(seed):
+    rng = np.random.default_rng(seed)
+    for attempt in range(100):
+        problem = random_problem(
+            300 * seed + attempt, states=10, actions=3, observations=6, nodes=3, budget=3.0
+        )
+        instance = prepare(problem, 2.0)
+        if len(instance.space.choices) >= 3:
+            break
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    n = len(instance.space.choices)
+    cap = instance.space.scale.cap(2.0)
+    frees = [sorted(rng.choice(n, int(rng.integers(1, n + 1)), replace=False)) for _ in range(4)]
+    _agree(relax, {}, range(n), [list(map(int, f)) for f in frees], cap)
+    # a node: choice 0 decided (its first alteration), the others undecided
+    if instance.space.choices[0].size > 1:
+        rest = [list(map(int, f)) for f in frees if 0 not in f] or [[1]]
+        _agree(relax, {0: 1}, range(1, n), rest, cap)
+
+
+def test_a_turn_back_grid_with_decided_sensors():
+    """The 12x12 grid with 16 sensors (end components: the robot turns back): free sets of 4
+    and 8 sensors, at the root and with two sensors decided (one altered, one not)."""
+    problem = sensor_grid(12, 16, goal="inside")
+    instance = prepare(problem, 3.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    cap = instance.space.scale.cap(3.0)
+    rng = np.random.default_rng(5)
+    frees = [list(map(int, rng.choice(16, size, replace=False))) for size in (4, 8, 4, 8)]
+    assert _agree(relax, {}, range(16), frees, cap) == 4  # none handed back
+    fixed = {0: 1, 1: 0}
+    frees = [[i for i in free if i not in fixed] for free in frees]
+    assert _agree(relax, fixed, range(2, 16), frees, instance.space.scale.cap(2.0)) == 4
+
+
+def test_an_offset_only_proposes():
+    """The proof only takes an offset the check accepts, and never one below the cost it was
+    asked for: an offset solver that proposes negative sums leaves the same bound."""
+    problem = sensor_grid(10, 12, goal="inside")
+    instance = prepare(problem, 2.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    cap = instance.space.scale.cap(2.0)
+    allowed = relax.allowed_groups(relax.allowed_options((), cap))
+    penalty = np.where(allowed, 0.0, -np.inf)
+    values, policy = relax.mdp.optimise(relax.best_groups(penalty)[0], penalty)
+    start = relax.chain.initial
+    honest = relax.mdp.proven_bound(values, policy, start, penalty)
+    lazy = relax.mdp.proven_bound(
+        values, policy, start, penalty, offset=lambda cost: np.full_like(cost, -1.0)
+    )
+    assert lazy == pytest.approx(honest, rel=1e-9)
+    assert lazy >= values[start]
