@@ -226,48 +226,76 @@ def alteration(problem: Problem, alter: list[str] | None) -> AlterationArray:
 
 LISTED_RANGE = 1_000  # a range of budgets this long is listed whole, even above the cap
 
+BudgetOption = Annotated[
+    str | None,
+    typer.Option(
+        "--budget",
+        "--budgets",
+        help="Budget B: a number (2), a range (0..4: each whole budget in it) or a list "
+        "(0,1,3); default: the file's budget. --budgets is the same option.",
+        show_default=False,
+    ),
+]
+
 
 def parse_budgets(
-    budget: str | None, budgets: str | None, cap: float | None = None
+    budget: str | None, budgets: str | None = None, cap: float | None = None
 ) -> list[float] | None:
-    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``.
+    """``--budget`` (alias ``--budgets``): a number ``4``, a range ``0..7`` (each whole budget
+    in it) or a list ``0,1,2``, each refused with the message of its own syntax.
 
     A range lists every whole budget in it, those above ``cap`` (the most expensive complete
     alteration: solve answers them with its answer) included. Only a range of more than
     :data:`LISTED_RANGE` budgets is expanded up to the cap and then its upper end, so
-    ``0..1000000000`` never materialises a billion budgets."""
-    if budget is not None and budgets is not None:
-        raise ProblemError("give --budget or --budgets, not both", field="--budgets")
-    option = "--budgets" if budgets is not None else "--budget"
-    try:
-        if budgets is not None:
-            parsed = [float(b) for b in budgets.split(",") if b.strip()]
-        elif budget is not None and ".." in budget:
-            low, high = (int(part) for part in budget.split("..", 1))
-            if low < 0 or high < low:
-                raise ProblemError(
-                    f"expected a range low..high with 0 ≤ low ≤ high, got {budget!r}", field=option
-                )
-            top = high
-            if cap is not None and high - low >= LISTED_RANGE:
-                top = min(high, max(low, math.ceil(cap)))
-            if top - low > 1_000_000:
-                raise ProblemError(
-                    f"a range of {top - low + 1:,} budgets is too many; give fewer", field=option
-                )
-            parsed = [float(b) for b in range(low, top + 1)]
-            if top < high:
-                parsed.append(float(high))
-        elif budget is not None:
-            parsed = [float(budget)]
-        else:
-            return None
-    except (ValueError, OverflowError) as error:
-        if isinstance(error, ProblemError):
-            raise
-        raise ProblemError(
-            "expected a number, a range like 0..7, or a list like 0,1,2", field=option
-        ) from None
+    ``0..1000000000`` never materialises a billion budgets. (``budgets``: the value of the
+    separate ``--budgets`` option of earlier versions, taken the same way.)"""
+    if budget is not None and budgets is not None and budget != budgets:
+        raise ProblemError("give --budget or --budgets, not both", field="--budget")
+    text = budget if budget is not None else budgets
+    if text is None:
+        return None
+    if ".." in text:
+        parsed = _budget_range(text, cap)
+    elif "," in text:
+        try:
+            parsed = [float(b) for b in text.split(",") if b.strip()]
+        except ValueError:
+            raise ProblemError(
+                f"expected a list of numbers like 0,1,3, got {text!r}", field="--budget"
+            ) from None
+    else:
+        try:
+            parsed = [float(text)]
+        except ValueError:
+            raise ProblemError(
+                f"expected a number (2), a range (0..4) or a list (0,1,3), got {text!r}",
+                field="--budget",
+            ) from None
     if not parsed or any(not math.isfinite(b) or b < 0 for b in parsed):
-        raise ProblemError("budgets must be non-negative numbers", field=option)
+        raise ProblemError(f"budgets must be non-negative numbers, got {text!r}", field="--budget")
+    return parsed
+
+
+def _budget_range(text: str, cap: float | None) -> list[float]:
+    """``0..7``: each whole budget from low to high (see :func:`parse_budgets`)."""
+    try:
+        low, high = (int(part) for part in text.split("..", 1))
+    except ValueError:
+        raise ProblemError(
+            f"expected a range of whole numbers like 0..4, got {text!r}", field="--budget"
+        ) from None
+    if low < 0 or high < low:
+        raise ProblemError(
+            f"expected a range low..high with 0 ≤ low ≤ high, got {text!r}", field="--budget"
+        )
+    top = high
+    if cap is not None and high - low >= LISTED_RANGE:
+        top = min(high, max(low, math.ceil(cap)))
+    if top - low > 1_000_000:
+        raise ProblemError(
+            f"a range of {top - low + 1:,} budgets is too many; give fewer", field="--budget"
+        )
+    parsed = [float(b) for b in range(low, top + 1)]
+    if top < high:
+        parsed.append(float(high))
     return parsed

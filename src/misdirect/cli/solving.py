@@ -37,6 +37,7 @@ from misdirect.cli.options import (
     MAX_SEED,
     MAX_STEPS,
     AlterOption,
+    BudgetOption,
     ExactOption,
     JsonOption,
     ProblemSource,
@@ -187,11 +188,7 @@ def _print_evaluation(
 @problem_input
 def solve(
     source: ProblemSource,
-    budget: Annotated[
-        str | None,
-        typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
-    ] = None,
-    budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
+    budget: BudgetOption = None,
     method: Annotated[
         str | None,
         typer.Option(
@@ -249,7 +246,7 @@ def solve(
         check_range("--threads", threads, 1, 1024)
     check_seconds(time_limit)
     problem = source.load()
-    requested = parse_budgets(budget, budgets, cap=max_alteration_cost(problem))
+    requested = parse_budgets(budget, cap=max_alteration_cost(problem))
     if requested is not None:
         problem = problem.with_budget(max(requested))
         if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
