@@ -5,12 +5,16 @@ alterations that travel between commands, and a summary of every file written.""
 from __future__ import annotations
 
 import json
+import re
+import sys
 
 import pytest
+import typer.main
 from typer.testing import CliRunner
 
 import misdirect
-from misdirect.cli import app
+from misdirect.cli import app, main
+from misdirect.cli.helptext import unescaped
 from misdirect.scenarios import paper_grid
 
 runner = CliRunner()
@@ -66,3 +70,119 @@ def test_the_library_takes_budget_and_budgets_alike():
         misdirect.harden(problem, protect_budget=1, budgets=[1, 2])
     with pytest.raises(TypeError, match="same parameter"):
         misdirect.audit(problem, budget=1, budgets=2)
+
+
+# -- B: help and output consistency --------------------------------------------------------------
+
+
+def _commands(command=None, path=()):
+    command = command or typer.main.get_command(app)
+    found = [(path, command)]
+    for name, sub in getattr(command, "commands", {}).items():
+        found += _commands(sub, (*path, name))
+    return found
+
+
+def _help(path) -> str:
+    result = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "250", "TERMINAL_WIDTH": "250"})
+    assert result.exit_code == 0, result.output
+    return result.stdout
+
+
+BRACKETED = re.compile(r"\w+\[\w+\]")  # misdirect[cluster], misdirect[storm]
+
+
+def test_help_shows_brackets_as_the_source_writes_them():
+    seen = set()
+    for path, command in _commands():
+        shown = " ".join(_help(path).split())
+        texts = [command.help or ""] + [getattr(p, "help", None) or "" for p in command.params]
+        for text in texts:
+            for word in BRACKETED.findall(unescaped(text)):
+                assert word in shown, (path, word)
+                seen.add(word)
+    assert {"misdirect[cluster]", "misdirect[storm]"} <= seen
+    assert "\\[" not in _help(("solve",))
+
+
+def test_flags_are_shown_as_flags():
+    for path, _command in _commands():
+        assert "<bool>" not in _help(path), path
+    lines = [line for line in _help(("solve",)).splitlines() if "--json" in line]
+    assert lines and all("<" not in line for line in lines)
+
+
+def _main(monkeypatch, capsys, *args: str):
+    monkeypatch.setattr(sys, "argv", ["misdirect", *args])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    captured = capsys.readouterr()
+    return exit_.value.code, captured.out, captured.err
+
+
+@pytest.mark.parametrize(
+    ("args", "command", "field"),
+    [
+        (["solve", "--scenario", "paper-grid", "--bogus", "--json"], "solve", "--bogus"),
+        (["solve", "--json", "--seed", "abc"], "solve", "--seed"),
+        (["scenario", "knapsack", "--json", "--nope"], "scenario knapsack", "--nope"),
+        (["solvx", "--json"], None, None),
+        (["solve", "--json", "--scenario", "paper-grid", "true"], "solve", None),
+    ],
+)
+def test_usage_errors_in_json_mode_are_json(monkeypatch, capsys, args, command, field):
+    code, stdout, stderr = _main(monkeypatch, capsys, *args)
+    assert code == 2
+    document = json.loads(stdout)
+    assert document["command"] == command
+    assert set(document["error"]) == {"message", "field", "source"}
+    assert document["error"]["field"] == field and document["error"]["source"] is None
+    assert stderr.startswith("error: ") and stderr.count("\n") == 1
+
+
+def test_usage_errors_without_json_print_no_json(monkeypatch, capsys):
+    code, stdout, stderr = _main(monkeypatch, capsys, "solve", "--bogus")
+    assert code == 2 and stdout == "" and "--bogus" in stderr
+
+
+def test_every_error_has_one_shape(tmp_path):
+    bad_alter = runner.invoke(
+        app, ["evaluate", "--scenario", "paper-grid", "--alter", "o9=o1", "--json"]
+    )
+    bad_budget = runner.invoke(
+        app, ["solve", "--scenario", "paper-grid", "--budget", "x", "--json"]
+    )
+    missing = runner.invoke(app, ["evaluate", str(tmp_path / "nope.yaml"), "--json"])
+    errors = [json.loads(r.stdout)["error"] for r in (bad_alter, bad_budget, missing)]
+    for error in errors:
+        assert set(error) == {"message", "field", "source"}, error
+    assert errors[0]["field"] == "--alter" and errors[0]["source"] is None
+    assert "o9=o1" in errors[0]["message"] and "unknown observation 'o9'" in errors[0]["message"]
+    assert errors[1]["field"] == "--budget" and errors[1]["source"] is None
+    assert errors[2]["source"] == str(tmp_path / "nope.yaml")
+
+
+WRITING = {
+    ("show",): "--output",
+    ("convert",): "--output",
+    ("export-fsc",): "--output",
+    ("export-milp",): "--output",
+    ("export-chain",): "--output",
+    ("audit",): "--output",
+    ("harden",): "--output",
+    ("reproduce",): "--out",
+    ("sweep",): "--out",
+    ("simulate",): "--trajectories",
+    ("controller", "synthesize"): "--output",
+    **{("scenario", name): "--output" for name in ("paper-grid", "knapsack", "random")},
+}
+
+
+def test_every_command_that_writes_files_takes_o_beside_its_old_name():
+    commands = dict(_commands())
+    for path, old in WRITING.items():
+        names = [name for param in commands[path].params for name in param.opts]
+        assert "-o" in names and old in names, path
+        assert next(p for p in commands[path].params if "-o" in p.opts) is next(
+            p for p in commands[path].params if old in p.opts
+        ), path

@@ -53,7 +53,10 @@ def sweep(
     out: Annotated[
         Path,
         typer.Option(
-            "--out", "-o", help="Folder of the results table (results.csv, results.parquet)."
+            "--output",
+            "--out",
+            "-o",
+            help="Folder of the results table (results.csv, results.parquet).",
         ),
     ] = Path("sweep-results"),
     cluster: ClusterOption = None,

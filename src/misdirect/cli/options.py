@@ -221,7 +221,12 @@ def parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[st
 def alteration(problem: Problem, alter: list[str] | None) -> AlterationArray:
     """The alteration ``--alter`` names, checked against ``problem``."""
     changes = parse_alter(alter or [], problem.pomdp.observations)
-    return problem.alteration(changes, source="--alter")
+    try:
+        return problem.alteration(changes, source="--alter")
+    except ProblemError as error:  # the flag is the field, as for every option
+        if error.source != "--alter":
+            raise
+        raise ProblemError(f"{error.field}: {error.reason}", field="--alter") from None
 
 
 LISTED_RANGE = 1_000  # a range of budgets this long is listed whole, even above the cap

@@ -466,7 +466,10 @@ def simulate(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_steps: Annotated[int, typer.Option(help="Stop a run after this many steps.")] = 10_000,
     trajectories: Annotated[
-        Path | None, typer.Option(help="Write the first --samples runs step by step (CSV).")
+        Path | None,
+        typer.Option(
+            "--trajectories", "-o", help="Write the first --samples runs step by step (CSV)."
+        ),
     ] = None,
     samples: Annotated[int, typer.Option(help="Runs to write with --trajectories.")] = 10,
     as_json: JsonOption = False,
