@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import re
 import sys
+from pathlib import Path
 
 import pytest
 import typer.main
@@ -186,3 +187,83 @@ def test_every_command_that_writes_files_takes_o_beside_its_old_name():
         assert next(p for p in commands[path].params if "-o" in p.opts) is next(
             p for p in commands[path].params if old in p.opts
         ), path
+
+
+# -- C: PAYNT's conventions for controller synthesize -------------------------------------------
+
+GRID = Path(__file__).parent / "data" / "grid_avoid.prism"
+
+
+def _synthesize(tmp_path, *args: str):
+    output = tmp_path / "robot.fsc.json"
+    command = ["controller", "synthesize", str(GRID), "--constants", "N=3", "-o", str(output)]
+    return runner.invoke(app, [*command, *args, "--json"])
+
+
+def test_synthesize_reads_a_paynt_properties_file_under_its_spellings(tmp_path):
+    pytest.importorskip("paynt")
+    props = tmp_path / "grid.props"
+    props.write_text('// what the robot wants\n\nPmax=? [F "goal"];\n')
+    new = _synthesize(tmp_path, "--props", str(props), "--memory-nodes", "2", "--time-limit", "30")
+    old = _synthesize(tmp_path, "--props", 'Pmax=? [F "goal"]', "--memory", "2", "--timeout", "30")
+    written = _synthesize(tmp_path, "--property", 'Pmax=? [F "goal"]', "--memory-nodes", "2")
+    reports = [json.loads(result.stdout) for result in (new, old, written)]
+    assert all(result.exit_code == 0 for result in (new, old, written)), new.output
+    assert {r["property"] for r in reports} == {'Pmax=? [F "goal"]'}
+    assert {r["memory"] for r in reports} == {2} and reports[0]["value"] == reports[1]["value"]
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "words"),
+    [
+        ("Pmax=? [F goal\n", "line 1", "Storm cannot parse it"),
+        ('// comment\nP=? [F "goal"]\n', "line 2", "optimizing property"),
+        ('Pmax=? [F "goal"]\nPmin=? [F "goal"]\n', None, "2 properties (lines 1, 2)"),
+        ("// nothing\n", None, "no property"),
+    ],
+)
+def test_a_bad_properties_file_is_named_not_the_model(tmp_path, text, field, words):
+    if field is not None:
+        pytest.importorskip("paynt")
+    props = tmp_path / "grid.props"
+    props.write_text(text)
+    result = _synthesize(tmp_path, "--props", str(props))
+    assert result.exit_code == 2, result.output
+    error = json.loads(result.stdout)["error"]
+    assert error["source"] == str(props) and error["field"] == field, error
+    assert words in error["message"] and str(GRID) not in error["message"]
+
+
+def test_a_missing_properties_file_is_named(tmp_path):
+    result = _synthesize(tmp_path, "--props", "grid4.props")
+    assert result.exit_code == 2
+    error = json.loads(result.stdout)["error"]
+    assert error["source"] == "grid4.props" and "file not found" in error["message"]
+
+
+def test_a_property_written_out_is_named_by_its_flag(tmp_path):
+    pytest.importorskip("paynt")
+    result = _synthesize(tmp_path, "--property", 'P=? [F "goal"]')
+    error = json.loads(result.stdout)["error"]
+    assert error["field"] == "--property" and error["source"] is None
+    both = _synthesize(tmp_path, "--property", 'Pmax=? [F "goal"]', "--props", "x.props")
+    assert both.exit_code == 2 and "not both" in json.loads(both.stdout)["error"]["message"]
+    none = _synthesize(tmp_path)
+    assert (
+        none.exit_code == 2 and "--property STRING" in json.loads(none.stdout)["error"]["message"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("flag", "field"),
+    [
+        ("--time-limit", "--time-limit"),
+        ("--timeout", "--time-limit"),
+        ("--memory-nodes", "--memory-nodes"),
+        ("--memory", "--memory-nodes"),
+    ],
+)
+def test_synthesis_limits_are_named_by_their_new_flag(tmp_path, flag, field):
+    result = _synthesize(tmp_path, "--property", 'Pmax=? [F "goal"]', flag, "0")
+    assert result.exit_code == 2
+    assert json.loads(result.stdout)["error"]["field"] == field
