@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import typer.main
+import yaml
 from typer.testing import CliRunner
 
 import misdirect
@@ -109,7 +110,7 @@ def test_help_shows_brackets_as_the_source_writes_them():
 def test_flags_are_shown_as_flags():
     for path, _command in _commands():
         assert "<bool>" not in _help(path), path
-    lines = [line for line in _help(("solve",)).splitlines() if "--json" in line]
+    lines = [line for line in _help(("solve",)).splitlines() if "│ --json " in line]
     assert lines and all("<" not in line for line in lines)
 
 
@@ -267,3 +268,128 @@ def test_synthesis_limits_are_named_by_their_new_flag(tmp_path, flag, field):
     result = _synthesize(tmp_path, "--property", 'Pmax=? [F "goal"]', flag, "0")
     assert result.exit_code == 2
     assert json.loads(result.stdout)["error"]["field"] == field
+
+
+# -- D: alterations travel -----------------------------------------------------------------------
+
+ALTERING = ["evaluate", "simulate", "show", "export-chain"]
+
+
+def _alteration_of(command: str, tmp_path, *args: str) -> dict[str, str]:
+    """The alteration ``command`` applied, from its --json output."""
+    extra = {
+        "simulate": ["--runs", "10"],
+        "show": ["-o", str(tmp_path / "map.dot")],
+        "export-chain": ["-o", str(tmp_path / "chain.drn")],
+    }.get(command, [])
+    result = runner.invoke(app, [command, "--scenario", "paper-grid", *args, *extra, "--json"])
+    assert result.exit_code == 0, result.output
+    if command in ("show", "export-chain"):  # no alteration in their documents: the file's
+        return {"written": json.loads(result.stdout)["written"]}  # written means it loaded
+    return json.loads(result.stdout)["alteration"]
+
+
+def test_solve_writes_what_every_altering_command_reads(tmp_path):
+    as_json, as_yaml = tmp_path / "answer.json", tmp_path / "answer.yaml"
+    for path in (as_json, as_yaml):
+        result = runner.invoke(
+            app, ["solve", "--scenario", "paper-grid", "--budget", "0..2", "-o", str(path)]
+        )
+        assert result.exit_code == 0, result.output
+        assert f"wrote {path}" in " ".join(result.stdout.split())
+    curve = json.loads(as_json.read_text())["curve"]
+    assert (
+        yaml.safe_load(as_yaml.read_text()) == curve[-1]["alteration"] == {"o1": "o2", "o2": "o0"}
+    )
+    for command in ALTERING:
+        for path in (as_json, as_yaml):
+            assert _alteration_of(command, tmp_path, "--alteration", str(path)) == _alteration_of(
+                command, tmp_path, "--alter", "o1=o2", "--alter", "o2=o0"
+            ), (command, path)
+    at_one = _alteration_of("evaluate", tmp_path, "--alteration", str(as_json), "--at-budget", "1")
+    assert at_one == curve[1]["alteration"] == {"o1": "o2"}
+
+
+def test_evaluate_output_and_a_small_mapping_travel_too(tmp_path):
+    evaluated = runner.invoke(
+        app, ["evaluate", "--scenario", "paper-grid", "--alter", "o1=o3", "--json"]
+    )
+    (tmp_path / "e.json").write_text(evaluated.stdout)
+    (tmp_path / "m.yaml").write_text("o1: o3\n")
+    for name in ("e.json", "m.yaml"):
+        path = str(tmp_path / name)
+        assert _alteration_of("simulate", tmp_path, "--alteration", path) == {"o1": "o3"}
+
+
+@pytest.mark.parametrize(
+    ("args", "field", "words"),
+    [
+        (["--at-budget", "7"], "--at-budget", "no budget 7 (it has 0, 1)"),
+        (["--alter", "o1=o3"], "--alteration", "not both"),
+    ],
+)
+def test_a_bad_alteration_file_or_budget_is_named(tmp_path, args, field, words):
+    answer = tmp_path / "answer.json"
+    runner.invoke(app, ["solve", "--scenario", "paper-grid", "--budget", "0..1", "-o", str(answer)])
+    result = runner.invoke(
+        app, ["evaluate", "--scenario", "paper-grid", "--alteration", str(answer), *args, "--json"]
+    )
+    assert result.exit_code == 2
+    error = json.loads(result.stdout)["error"]
+    assert error["field"] == field and words in error["message"], error
+
+
+def test_an_unknown_name_in_an_alteration_file_names_the_file(tmp_path):
+    mapping = tmp_path / "m.yaml"
+    mapping.write_text("o1: o9\n")
+    result = runner.invoke(
+        app, ["evaluate", "--scenario", "paper-grid", "--alteration", str(mapping), "--json"]
+    )
+    error = json.loads(result.stdout)["error"]
+    assert error["source"] == str(mapping) and "unknown observation 'o9'" in error["message"]
+    alone = runner.invoke(
+        app, ["evaluate", "--scenario", "paper-grid", "--at-budget", "1", "--json"]
+    )
+    assert json.loads(alone.stdout)["error"]["field"] == "--at-budget"
+
+
+STORM_NAMED = """
+format: misdirect/v1
+pomdp:
+  states: [s0, s1, goal, trap]
+  actions: [a, b]
+  initial: s0
+  observe: {s0: "o=0", s1: "clk=0,!n", goal: "o=2", trap: "o=2"}
+  transitions:
+    - [s0, a, s1, 0.5]
+    - [s0, a, goal, 0.5]
+    - [s0, b, s0, 1.0]
+    - [s1, a, goal, 1.0]
+    - [s1, b, trap, 1.0]
+  absorbing: [goal, trap]
+controller:
+  nodes: [n0]
+  initial: n0
+  rules:
+    - {node: "*", obs: "*", action: a, next: n0}
+deception:
+  decoy: [trap]
+  budget: 1
+"""
+
+
+def test_storm_names_are_accepted_and_names_with_separators_quoted(tmp_path):
+    path = tmp_path / "storm.yaml"
+    path.write_text(STORM_NAMED)
+    for pair in ["[clk=0\t& !n]=[o=2]", "clk=0,!n=o=2", "[clk=0 & !n]=o=2"]:
+        result = runner.invoke(app, ["evaluate", str(path), "--alter", pair, "--json"])
+        assert result.exit_code == 0, (pair, result.output)
+        assert json.loads(result.stdout)["alteration"] == {"clk=0,!n": "o=2"}, pair
+    shown = runner.invoke(
+        app, ["evaluate", str(path), "--alter", "[clk=0 & !n]=[o=2]"], env={"COLUMNS": "200"}
+    )
+    assert '"clk=0,!n" → "o=2"' in shown.stdout, shown.stdout
+    mapping = tmp_path / "m.yaml"
+    mapping.write_text('"[clk=0\\t& !n]": "[o=2]"\n')
+    result = runner.invoke(app, ["evaluate", str(path), "--alteration", str(mapping), "--json"])
+    assert json.loads(result.stdout)["alteration"] == {"clk=0,!n": "o=2"}

@@ -20,6 +20,7 @@ from misdirect.cli.common import (
     print_notes,
 )
 from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
+from misdirect.core.model import quoted_name
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
 from misdirect.report import json_output
@@ -231,7 +232,7 @@ def _print_harden(result: HardenResult) -> None:
     for point in result.curve:
         table.add_row(
             f"{point.protect_budget:g}",
-            escape(", ".join(point.protection) or "nothing"),
+            escape(", ".join(map(quoted_name, point.protection)) or "nothing"),
             f"{point.protection_cost:g}",
             f"{point.probability:.6f}",
             f"{point.lower_bound:.6f}",
@@ -241,7 +242,7 @@ def _print_harden(result: HardenResult) -> None:
     out.print(table)
     out.print(
         escape(
-            f"protect {', '.join(result.protection) or 'nothing'} (cost "
+            f"protect {', '.join(map(quoted_name, result.protection)) or 'nothing'} (cost "
             f"{result.protection_cost:g}): the attacker's optimum drops from "
             f"{result.value_before:.6f} to {result.value_after:.6f} ({result.status}) · "
             f"{result.solves} attacker solves, {result.nodes} nodes · {result.time_s:.2f} s"

@@ -19,10 +19,12 @@ from typing import Annotated, Any
 
 import typer
 
+from misdirect.cli.alteration_file import read_alteration_file
 from misdirect.cli.common import check_range
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import ProblemError
 from misdirect.io.problem_file import load_problem
+from misdirect.io.storm_names import valuation_name
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solvers.milp.solver import FORMULATIONS
 
@@ -67,7 +69,29 @@ ExactOption = Annotated[
 ]
 AlterOption = Annotated[
     list[str] | None,
-    typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+    typer.Option(
+        "--alter",
+        "-a",
+        help="Alteration OBS=OBS (repeatable), e.g. o1=o3; Storm's names too, e.g. [s=0]=[s=1].",
+    ),
+]
+AlterationFileOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--alteration",
+        help="Read the alteration from a file: solve's or evaluate's --json output, or a "
+        "YAML mapping {observation: received observation} (as solve -o FILE.yaml writes).",
+        show_default=False,
+    ),
+]
+AtBudgetOption = Annotated[
+    float | None,
+    typer.Option(
+        "--at-budget",
+        help="With --alteration and solve's output: the budget whose alteration to take "
+        "(default: the largest in the file).",
+        show_default=False,
+    ),
 ]
 FormulationOption = Annotated[
     str,
@@ -186,13 +210,25 @@ def numbers(text: str | None, option: str) -> list[float]:
         ) from None
 
 
+def observation_name(text: str, known: set[str] | frozenset[str]) -> str:
+    """``text`` as the observation it names: itself when known, else Storm's valuation text of
+    one (``[s=0]``, ``[x=2\t& y=0]``, as PAYNT's controller files write them) as the model
+    names it (``s=0``, ``x=2,y=0``); unknown names are returned as they are (and reported)."""
+    if text in known or not (text.startswith("[") and text.endswith("]")):
+        return text
+    name = valuation_name(text)
+    return name if name in known else text
+
+
 def _split_alter(pair: str, observations: tuple[str, ...]) -> tuple[str, str]:
     """``OBS=OBS`` split at the ``=`` that leaves two known observations, so that names with
-    an ``=`` in them (Storm's ``o=2``) can be altered; if none does, at the first ``=`` (the
-    unknown name is then reported)."""
+    an ``=`` in them (Storm's ``o=2``, ``[s=0]``) can be altered; if none does, at the first
+    ``=`` (the unknown name is then reported)."""
     known = set(observations)
     splits = [(pair[:i].strip(), pair[i + 1 :].strip()) for i, c in enumerate(pair) if c == "="]
-    splits = [(a, b) for a, b in splits if a and b]
+    splits = [
+        (observation_name(a, known), observation_name(b, known)) for a, b in splits if a and b
+    ]
     if not splits:
         raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
     matching = [(a, b) for a, b in splits if a in known and b in known]
@@ -218,8 +254,25 @@ def parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[st
     return changes
 
 
-def alteration(problem: Problem, alter: list[str] | None) -> AlterationArray:
-    """The alteration ``--alter`` names, checked against ``problem``."""
+def alteration(
+    problem: Problem,
+    alter: list[str] | None,
+    alteration_file: Path | None = None,
+    at_budget: float | None = None,
+) -> AlterationArray:
+    """The alteration ``--alter`` names, or the one ``--alteration FILE`` holds (at
+    ``--at-budget`` of a solve document), checked against ``problem``."""
+    if at_budget is not None and alteration_file is None:
+        raise ProblemError("needs --alteration FILE (a solve --json document)", field="--at-budget")
+    if alteration_file is not None:
+        if alter:
+            raise ProblemError("give --alter or --alteration, not both", field="--alteration")
+        known = frozenset(problem.pomdp.observations)
+        written = read_alteration_file(alteration_file, at_budget)
+        changes = {
+            observation_name(o, known): observation_name(t, known) for o, t in written.items()
+        }
+        return problem.alteration(changes, source=str(alteration_file))
     changes = parse_alter(alter or [], problem.pomdp.observations)
     try:
         return problem.alteration(changes, source="--alter")

@@ -25,6 +25,7 @@ from misdirect.cli.common import (
     err,
     flag,
     fmt_alteration,
+    json_text,
     note,
     out,
     print_handovers,
@@ -36,7 +37,9 @@ from misdirect.cli.options import (
     MAX_SAMPLES,
     MAX_SEED,
     MAX_STEPS,
+    AlterationFileOption,
     AlterOption,
+    AtBudgetOption,
     BudgetOption,
     ExactOption,
     JsonOption,
@@ -73,12 +76,14 @@ if TYPE_CHECKING:
 def evaluate(
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     exact: ExactOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Exact probability of reaching the decoy under one alteration (none by default)."""
     problem = source.load()
-    altered = alteration(problem, alter)
+    altered = alteration(problem, alter, alteration_file, at_budget)
     result = evaluate_alteration(problem, altered)
     baseline = (
         result.probability
@@ -235,6 +240,17 @@ def solve(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
     ] = False,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "--output",
+            "-o",
+            help="Write the answer for --alteration FILE of evaluate, simulate, show and "
+            "export-chain: .json the whole --json document (every budget; pick one with "
+            "--at-budget), else (.yaml) the answer's alteration as {observation: received}.",
+            show_default=False,
+        ),
+    ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
     exact: ExactOption = False,
@@ -245,6 +261,8 @@ def solve(
     if threads is not None:
         check_range("--threads", threads, 1, 1024)
     check_seconds(time_limit)
+    if output is not None:
+        check_output_path(output, field="-o")
     problem = source.load()
     requested = parse_budgets(budget, cap=max_alteration_cost(problem))
     if requested is not None:
@@ -283,12 +301,39 @@ def solve(
         as_written = exact_values(problem, [p.alteration_array for p in result.curve])
         bounds = [p.error_bound for p in result.curve]
         notes += exact_notes(bounds, as_written, [p.budget for p in result.curve])
+    payload = json_output.solve(result, notes=notes, exact=as_written)
+    if output is not None:
+        payload["written"] = [str(output)]
+        write_output(output, _alteration_text(payload, output), field="-o")
     if as_json:
-        print_json(json_output.solve(result, notes=notes, exact=as_written))
+        print_json(payload)
     else:
         _print_solve(result, problem, as_written)
         _print_notes([*result.notes, *_point_notes(result.curve), *notes])
+        if output is not None:
+            out.print(escape(f"wrote {output} ({_written_what(output)})"), highlight=False)
     _finish_solve(result, received)
+
+
+def _written_what(output: Path) -> str:
+    if output.suffix.lower() == ".json":
+        return "every budget's answer: --alteration FILE --at-budget B reads one"
+    return "the answer's alteration: --alteration FILE reads it"
+
+
+def _alteration_text(payload: dict[str, Any], output: Path) -> str:
+    """What ``solve -o`` writes: the ``--json`` document for a ``.json`` file, else the
+    answer's alteration as a YAML mapping (with a comment saying what it is)."""
+    if output.suffix.lower() == ".json":
+        return json_text(payload)
+    import yaml
+
+    head = (
+        f"# misdirect solve: {payload['problem']}, {payload['status']} alteration at budget "
+        f"{payload['budget']:g} (value {payload['value']:.6f}); read by --alteration FILE\n"
+    )
+    body = payload["alteration"] or {}
+    return head + yaml.safe_dump(body, sort_keys=False, allow_unicode=True, width=10**6)
 
 
 POINT_NOTES = ("trivial_bound", "not_certified")  # why a point is open: shown under the table
@@ -462,6 +507,8 @@ def _method_stats(stats: MethodStats) -> MethodStats:
 def simulate(
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     runs: Annotated[int, typer.Option(help="Number of simulated runs.")] = 100_000,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_steps: Annotated[int, typer.Option(help="Stop a run after this many steps.")] = 10_000,
@@ -490,7 +537,7 @@ def simulate(
     if trajectories is not None:
         check_output_path(trajectories, field="--trajectories")
     problem = source.load()
-    alpha = alteration(problem, alter)
+    alpha = alteration(problem, alter, alteration_file, at_budget)
     record = samples if trajectories is not None else 0
     began = time.perf_counter()
     result = run_simulation(
@@ -629,6 +676,8 @@ def show(
     ],
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
@@ -636,7 +685,7 @@ def show(
 
     check_output_path(output)
     problem = source.load()
-    written = draw(problem, alteration(problem, alter), output)
+    written = draw(problem, alteration(problem, alter, alteration_file, at_budget), output)
     if as_json:
         print_json(json_output.written_files("show", [written], problem=problem.name))
     else:
