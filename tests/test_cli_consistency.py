@@ -393,3 +393,60 @@ def test_storm_names_are_accepted_and_names_with_separators_quoted(tmp_path):
     mapping.write_text('"[clk=0\\t& !n]": "[o=2]"\n')
     result = runner.invoke(app, ["evaluate", str(path), "--alteration", str(mapping), "--json"])
     assert json.loads(result.stdout)["alteration"] == {"clk=0,!n": "o=2"}
+
+
+# -- E: small surprises --------------------------------------------------------------------------
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_audit_and_harden_with_o_print_a_summary_on_stdout(tmp_path):
+    audit = runner.invoke(
+        app, ["audit", "--scenario", "paper-grid", "--budget", "1", "-o", str(tmp_path / "a")]
+    )
+    assert audit.exit_code == 0, audit.output
+    shown = " ".join(audit.stdout.split())
+    assert f"wrote {len(list((tmp_path / 'a').iterdir()))} files to {tmp_path / 'a'}/" in shown
+    assert "report.md" in shown and "criticality" in shown  # the table too, as without -o
+    harden = runner.invoke(
+        app,
+        [
+            *("harden", "--scenario", "paper-grid", "--budget", "1", "--protect-budget", "1"),
+            *("-o", str(tmp_path / "h")),
+        ],
+    )
+    assert harden.exit_code == 0, harden.output
+    assert f"files to {tmp_path / 'h'}/" in " ".join(harden.stdout.split())
+
+
+@pytest.mark.parametrize(
+    ("args", "written"),
+    [
+        (["convert", "--scenario", "paper-grid", "--to", "yaml", "-o", "p.yaml"], "p.yaml"),
+        (["show", "--scenario", "paper-grid", "-o", "p.dot"], "p.dot"),
+        (["export-chain", "--scenario", "paper-grid", "-o", "c.drn"], "c.drn"),
+        (["scenario", "paper-grid", "-o", "g.yaml"], "g.yaml"),
+        (["simulate", "--scenario", "paper-grid", "--runs", "5", "-o", "t.csv"], "t.csv"),
+        (["solve", "--scenario", "paper-grid", "--budget", "1", "-o", "a.yaml"], "a.yaml"),
+    ],
+)
+def test_every_command_that_writes_files_says_so_on_stdout(tmp_path, monkeypatch, args, written):
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / written).exists() and f"wrote {written}" in result.stdout, result.stdout
+
+
+def test_solve_of_a_file_says_when_it_answered_its_budget_alone():
+    """trap.yaml has budget 1: the help promised every smaller budget, the table had one row.
+    The help says when smaller budgets come (for free, else a range), and a note says how."""
+    help_text = " ".join(_help(("solve",)).split())
+    assert "every smaller budget" not in help_text and "--budget 0..B" in help_text
+    result = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml"), "--json"])
+    document = json.loads(result.stdout)
+    assert [point["budget"] for point in document["curve"]] == [1]
+    assert any("--budget 0..1 answers each budget" in n for n in document["notes"])
+    ranged = runner.invoke(app, ["solve", str(EXAMPLES / "trap.yaml"), "--budget", "0..1"])
+    assert ranged.exit_code == 0 and "alone was solved" not in ranged.output
+    table = [line for line in ranged.stdout.splitlines() if "optimal" in line and "│" in line]
+    assert len(table) == 2, ranged.stdout

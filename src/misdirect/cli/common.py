@@ -196,6 +196,12 @@ def note(text: str) -> None:
     err.print(escape(one_line(text)), highlight=False, soft_wrap=True)
 
 
+def wrote(text: str) -> None:
+    """The summary of what a command wrote (``wrote FILE (...)``), one line on stdout: every
+    command that writes files says so where its output goes, names escaped."""
+    out.print(escape(one_line(text)), highlight=False, soft_wrap=True)
+
+
 def print_notes(notes: list[str]) -> None:
     """A result's notes on stderr, one line each."""
     for text in notes:

@@ -14,10 +14,10 @@ from misdirect.cli.common import (
     check_budget,
     check_seconds,
     fmt_alteration,
-    note,
     out,
     print_json,
     print_notes,
+    wrote,
 )
 from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
 from misdirect.core.model import quoted_name
@@ -73,10 +73,15 @@ def audit(
         written = [str(p) for p in write_audit_report(problem, result, output)]
     if as_json:
         print_json(json_output.audit(result, written=written))
-    elif output is not None:
-        note(f"wrote {len(written)} files to {output}/ (report.md, curve.csv, sensors.csv, …)")
-    else:
-        _print_audit(result)
+        return
+    _print_audit(result)
+    if output is not None:
+        wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
+
+
+def _names(written: list[str]) -> list[str]:
+    """The files a report wrote, by name (they share its folder)."""
+    return [Path(path).name for path in written]
 
 
 def _print_audit(result: AuditResult) -> None:
@@ -216,7 +221,7 @@ def harden(
     else:
         _print_harden(result)
         if output is not None:
-            note(f"wrote {len(written)} files to {output}/ (report.md, tradeoff.png)")
+            wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 
 
 def _print_harden(result: HardenResult) -> None:

@@ -13,7 +13,7 @@ import typer
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from rich.markup import escape
 
-from misdirect.cli.common import fmt_alteration, note, out, print_json
+from misdirect.cli.common import fmt_alteration, note, out, print_json, wrote
 from misdirect.cli.options import (
     AlterationFileOption,
     AlterOption,
@@ -280,7 +280,7 @@ def export_chain(
         )
         return
     for path in written:
-        note(f"wrote {path}")
+        wrote(f"wrote {path}")
     note(
         f"{chain.n_states:,} states, {chain.n_transitions:,} transitions; "
         f'Storm\'s P=? [F "decoy"] should give {result.probability:.12g}'

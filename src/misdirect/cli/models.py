@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from misdirect.cli.common import check_range, note, out, print_json, write_text
+from misdirect.cli.common import check_range, note, out, print_json, write_text, wrote
 from misdirect.cli.exports import column_map_path, column_map_text
 from misdirect.cli.options import (
     MAX_GRID_SIZE,
@@ -51,7 +51,7 @@ def _write_scenario(problem: Problem, output: Path, as_json: bool, command: str)
             )
         )
     else:
-        note(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
+        wrote(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
 
 
 def scenario_paper_grid(
@@ -246,7 +246,7 @@ def controller_synthesize(
         highlight=False,
         soft_wrap=True,
     )
-    note(f"wrote {output}")
+    wrote(f"wrote {output}")
 
 
 # what --props holds when it is a property written out, not a file (the spelling of earlier
@@ -325,7 +325,7 @@ def convert(
     text = _converted(problem, to)
     write_text("convert", text, output, as_json, problem=problem.name, format=to.value)
     if output is not None and not as_json:
-        note(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
+        wrote(f"wrote {output} ({to.value}, {problem.pomdp.n_states:,} states)")
 
 
 def _converted(problem: Problem, to: ConvertTarget) -> str:
@@ -363,7 +363,7 @@ def export_fsc(
     text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
     write_text("export-fsc", text, output, as_json, problem=problem.name, format="paynt")
     if output is not None and not as_json:
-        note(f"wrote {output} ({problem.controller.n_nodes} nodes)")
+        wrote(f"wrote {output} ({problem.controller.n_nodes} nodes)")
 
 
 @problem_input
@@ -410,12 +410,12 @@ def export_milp(
             )
         )
     else:
-        note(
+        wrote(
             f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
             f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
             f"{model.matrix.nnz:,} non-zeros"
         )
-        note(f"wrote {map_path}: which column chooses which alteration (misdirect decode)")
+        wrote(f"wrote {map_path}: which column chooses which alteration (misdirect decode)")
 
 
 def schema(

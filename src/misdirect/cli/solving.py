@@ -26,11 +26,11 @@ from misdirect.cli.common import (
     flag,
     fmt_alteration,
     json_text,
-    note,
     out,
     print_handovers,
     print_json,
     stop_gracefully,
+    wrote,
 )
 from misdirect.cli.options import (
     MAX_RUNS,
@@ -256,8 +256,10 @@ def solve(
     exact: ExactOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Optimal alteration within the budget, with the best value for every smaller budget.
-    With --cluster or --workers, the search's subtrees run on Dask (branch-and-bound, auto)."""
+    """Optimal alteration within the budget B (--budget, default: the file's). A range or a
+    list (--budget 0..B, 0,1,3) answers each budget; one budget lists the smaller whole
+    budgets too where the method gets them for free (a note says when it did not). With
+    --cluster or --workers, the search's subtrees run on Dask (branch-and-bound, auto)."""
     if threads is not None:
         check_range("--threads", threads, 1, 1024)
     check_seconds(time_limit)
@@ -297,6 +299,8 @@ def solve(
         result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
     as_written = None
     notes = [implied] if implied else []
+    if budget is None and len(result.curve) == 1 and result.curve[0].budget >= 1:
+        notes.append(_single_budget_note(result.curve[0].budget))
     if exact:
         as_written = exact_values(problem, [p.alteration_array for p in result.curve])
         bounds = [p.error_bound for p in result.curve]
@@ -311,7 +315,7 @@ def solve(
         _print_solve(result, problem, as_written)
         _print_notes([*result.notes, *_point_notes(result.curve), *notes])
         if output is not None:
-            out.print(escape(f"wrote {output} ({_written_what(output)})"), highlight=False)
+            wrote(f"wrote {output} ({_written_what(output)})")
     _finish_solve(result, received)
 
 
@@ -334,6 +338,13 @@ def _alteration_text(payload: dict[str, Any], output: Path) -> str:
     )
     body = payload["alteration"] or {}
     return head + yaml.safe_dump(body, sort_keys=False, allow_unicode=True, width=10**6)
+
+
+def _single_budget_note(budget: float) -> str:
+    """Why the table has one row: the method did not get the smaller budgets for free, and
+    how to ask for them."""
+    asked = f"0..{budget:g}" if budget.is_integer() else f"0,1,{budget:g}"
+    return f"budget {budget:g} alone was solved: --budget {asked} answers each budget"
 
 
 POINT_NOTES = ("trivial_bound", "not_certified")  # why a point is open: shown under the table
@@ -560,6 +571,8 @@ def simulate(
         print_json(payload)
     else:
         _print_simulation(payload, result, max_steps)
+        if trajectories is not None:
+            wrote(f"wrote {trajectories} (the first {min(samples, runs):,} runs, step by step)")
 
 
 def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
@@ -689,4 +702,4 @@ def show(
     if as_json:
         print_json(json_output.written_files("show", [written], problem=problem.name))
     else:
-        note(f"wrote {written}")
+        wrote(f"wrote {written}")
