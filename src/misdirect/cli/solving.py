@@ -299,8 +299,6 @@ def solve(
         result, received = _run_solve(problem, method, requested, given, quiet or as_json, quiet)
     as_written = None
     notes = [implied] if implied else []
-    if budget is None and len(result.curve) == 1 and result.curve[0].budget >= 1:
-        notes.append(_single_budget_note(result.curve[0].budget))
     if exact:
         as_written = exact_values(problem, [p.alteration_array for p in result.curve])
         bounds = [p.error_bound for p in result.curve]
@@ -313,7 +311,9 @@ def solve(
         print_json(payload)
     else:
         _print_solve(result, problem, as_written)
-        _print_notes([*result.notes, *_point_notes(result.curve), *notes])
+        alone = budget is None and len(result.curve) == 1 and result.curve[0].budget >= 1
+        single = [_single_budget_note(result.curve[0].budget)] if alone else []
+        _print_notes([*result.notes, *_point_notes(result.curve), *notes, *single])
         if output is not None:
             wrote(f"wrote {output} ({_written_what(output)})")
     _finish_solve(result, received)
