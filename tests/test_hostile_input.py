@@ -340,7 +340,9 @@ def test_export_milp_writes_and_reports(tmp_path):
     output = tmp_path / "m.lp"
     result = runner.invoke(app, ["export-milp", str(TINY), "-o", str(output)])
     assert result.exit_code == 0, result.output
-    assert output.read_text().strip() and "wrote" in result.stderr
+    assert (
+        output.read_text().strip() and "wrote" in result.stdout
+    )  # the summary, on stdout (issue 53)
     # the model and its column map, no temporary file left
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.columns.json", "m.lp"]
 

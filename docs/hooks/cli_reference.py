@@ -26,6 +26,12 @@ file (or option), the field and the reason.
 """
 
 
+def unescaped(text: str) -> str:
+    from misdirect.cli.helptext import unescaped
+
+    return unescaped(text)
+
+
 def _command_tree() -> Any:
     from misdirect.cli import app
 
@@ -48,7 +54,7 @@ def _walk(command: Any, path: list[str]) -> list[tuple[list[str], Any]]:
 
 
 def _cell(text: Any) -> str:
-    return " ".join(str(text).split()).replace("|", "\\|")
+    return " ".join(unescaped(str(text)).split()).replace("|", "\\|")
 
 
 def _option_rows(command: Any, context: Any) -> list[str]:
@@ -77,7 +83,7 @@ def markdown() -> str:
             usage = command.get_usage(context).replace("Usage: ", "")
             level = "##" if len(path) <= 2 else "###"
             parts.append(f"{level} `{name}`\n")
-            help_text = inspect.cleandoc(command.help or "")
+            help_text = unescaped(inspect.cleandoc(command.help or ""))
             if help_text:
                 parts.append(help_text.replace("\b\n", "") + "\n")
             parts.append(f"```\n{usage}\n```\n")

@@ -13,6 +13,7 @@ This module builds the typer app from them and is the console entry point (:func
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from collections.abc import Callable
@@ -32,7 +33,9 @@ from misdirect.cli.common import (
     err,
     handle_errors,
     out,
+    print_json,
 )
+from misdirect.cli.helptext import Command, Group, literal_help
 from misdirect.cli.options import (
     MAX_GRID_SIZE,
     MAX_RANDOM,
@@ -44,8 +47,9 @@ from misdirect.cli.options import (
     parse_budgets,
 )
 from misdirect.core.memory import MEMORY_LIMIT_ENV, parse_memory_size
-from misdirect.errors import ProblemError
+from misdirect.errors import ProblemError, WriteError
 from misdirect.io.files import one_line
+from misdirect.report import json_output
 
 __all__ = [
     "INPUT_ERROR",
@@ -72,11 +76,12 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    cls=Group,
 )
-scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True)
+scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True, cls=Group)
 app.add_typer(scenario_app, name="scenario")
 controller_app = typer.Typer(
-    help="The robot's controller: synthesize it with PAYNT.", no_args_is_help=True
+    help="The robot's controller: synthesize it with PAYNT.", no_args_is_help=True, cls=Group
 )
 app.add_typer(controller_app, name="controller")
 
@@ -88,7 +93,7 @@ def _add(group: typer.Typer, command: Callable[..., None], name: str | None = No
         typed = f"scenario {typed}"
     elif group is controller_app:
         typed = f"controller {typed}"
-    group.command(name)(handle_errors(command, typed))
+    group.command(name, cls=Command, help=literal_help(command))(handle_errors(command, typed))
 
 
 # in the order of misdirect --help
@@ -168,10 +173,38 @@ def main() -> None:
             print(error.ctx.get_help())
             sys.exit(0)
         where = f"{error.ctx.command_path}: " if error.ctx is not None else ""
-        message = f"error: {escape(one_line(where + error.format_message()))}"
-        err.print(message, highlight=False, soft_wrap=True)
+        message = one_line(where + error.format_message())
+        if "--json" in sys.argv[1:]:  # the one JSON object, as for every other error
+            document = json_output.error_document(
+                _typed_command(error.ctx), message, field=_usage_field(error)
+            )
+            with contextlib.suppress(WriteError):
+                print_json(document)
+        err.print(f"error: {escape(message)}", highlight=False, soft_wrap=True)
         sys.exit(INPUT_ERROR)
     except typer.Abort:
         err.print("interrupted", highlight=False)
         sys.exit(INTERRUPTED)
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _typed_command(context: Any) -> str | None:
+    """The command of a usage error as typed (``solve``, ``scenario knapsack``); None when
+    the command itself is what did not parse."""
+    names = []
+    while context is not None and context.parent is not None:
+        names.append(context.info_name)
+        context = context.parent
+    return " ".join(reversed(names)) or None
+
+
+def _usage_field(error: Any) -> str | None:
+    """The option a usage error is about: the unknown one (``--bogus``), or the one whose
+    value does not parse (its first name); None for an extra argument."""
+    if getattr(error, "option_name", None):
+        return str(error.option_name)
+    param = getattr(error, "param", None)
+    if param is not None:
+        opts = getattr(param, "opts", None) or [param.name]
+        return str(max(opts, key=len)) if opts else None
+    return None

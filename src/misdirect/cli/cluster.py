@@ -17,6 +17,7 @@ from misdirect.cli.common import (
     note,
     print_json,
     stop_gracefully,
+    wrote,
 )
 from misdirect.cli.options import JsonOption
 from misdirect.report import json_output
@@ -53,7 +54,10 @@ def sweep(
     out: Annotated[
         Path,
         typer.Option(
-            "--out", "-o", help="Folder of the results table (results.csv, results.parquet)."
+            "--output",
+            "--out",
+            "-o",
+            help="Folder of the results table (results.csv, results.parquet).",
         ),
     ] = Path("sweep-results"),
     cluster: ClusterOption = None,
@@ -92,7 +96,7 @@ def sweep(
             )
         )
     else:
-        note(
+        wrote(
             f"{report.computed} rows computed, {report.skipped} skipped (already done), "
             f"{report.failed} failed; wrote {report.csv}"
             + ("" if report.parquet is None else f" and {report.parquet}")

@@ -159,15 +159,21 @@ def print_json(payload: dict[str, Any]) -> None:
     """The one JSON object of ``--json`` on stdout: a document of
     :mod:`misdirect.report.json_output`, which names its schema. A stdout that cannot take it
     (a full disk, ``> /dev/full``) is a WriteError, and what is left unwritten is dropped."""
-    assert payload.get("schema") == json_output.SCHEMA, "built by report.json_output"
-    safe = finite_json(payload)
-    text = json.dumps(safe, indent=2, default=_json_default, allow_nan=False) + "\n"
+    text = json_text(payload)
     try:
         sys.stdout.write(text)
         sys.stdout.flush()
     except OSError as error:
         _drop_stdout()
         raise WriteError(f"cannot write standard output: {error.strerror or error}") from None
+
+
+def json_text(payload: dict[str, Any]) -> str:
+    """The text of a ``--json`` document (as printed, and as ``solve -o FILE.json`` writes
+    it): NaN and infinities as null."""
+    assert payload.get("schema") == json_output.SCHEMA, "built by report.json_output"
+    safe = finite_json(payload)
+    return json.dumps(safe, indent=2, default=_json_default, allow_nan=False) + "\n"
 
 
 def _drop_stdout() -> None:
@@ -188,6 +194,12 @@ def _json_default(value: Any) -> Any:
 def note(text: str) -> None:
     """One line on stderr (``wrote ...``), names escaped."""
     err.print(escape(one_line(text)), highlight=False, soft_wrap=True)
+
+
+def wrote(text: str) -> None:
+    """The summary of what a command wrote (``wrote FILE (...)``), one line on stdout: every
+    command that writes files says so where its output goes, names escaped."""
+    out.print(escape(one_line(text)), highlight=False, soft_wrap=True)
 
 
 def print_notes(notes: list[str]) -> None:

@@ -14,12 +14,13 @@ from misdirect.cli.common import (
     check_budget,
     check_seconds,
     fmt_alteration,
-    note,
     out,
     print_json,
     print_notes,
+    wrote,
 )
 from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
+from misdirect.core.model import quoted_name
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
 from misdirect.report import json_output
@@ -72,10 +73,15 @@ def audit(
         written = [str(p) for p in write_audit_report(problem, result, output)]
     if as_json:
         print_json(json_output.audit(result, written=written))
-    elif output is not None:
-        note(f"wrote {len(written)} files to {output}/ (report.md, curve.csv, sensors.csv, …)")
-    else:
-        _print_audit(result)
+        return
+    _print_audit(result)
+    if output is not None:
+        wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
+
+
+def _names(written: list[str]) -> list[str]:
+    """The files a report wrote, by name (they share its folder)."""
+    return [Path(path).name for path in written]
 
 
 def _print_audit(result: AuditResult) -> None:
@@ -215,7 +221,7 @@ def harden(
     else:
         _print_harden(result)
         if output is not None:
-            note(f"wrote {len(written)} files to {output}/ (report.md, tradeoff.png)")
+            wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 
 
 def _print_harden(result: HardenResult) -> None:
@@ -231,7 +237,7 @@ def _print_harden(result: HardenResult) -> None:
     for point in result.curve:
         table.add_row(
             f"{point.protect_budget:g}",
-            escape(", ".join(point.protection) or "nothing"),
+            escape(", ".join(map(quoted_name, point.protection)) or "nothing"),
             f"{point.protection_cost:g}",
             f"{point.probability:.6f}",
             f"{point.lower_bound:.6f}",
@@ -241,7 +247,7 @@ def _print_harden(result: HardenResult) -> None:
     out.print(table)
     out.print(
         escape(
-            f"protect {', '.join(result.protection) or 'nothing'} (cost "
+            f"protect {', '.join(map(quoted_name, result.protection)) or 'nothing'} (cost "
             f"{result.protection_cost:g}): the attacker's optimum drops from "
             f"{result.value_before:.6f} to {result.value_after:.6f} ({result.status}) · "
             f"{result.solves} attacker solves, {result.nodes} nodes · {result.time_s:.2f} s"

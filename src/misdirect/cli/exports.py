@@ -13,9 +13,11 @@ import typer
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from rich.markup import escape
 
-from misdirect.cli.common import fmt_alteration, note, out, print_json
+from misdirect.cli.common import fmt_alteration, note, out, print_json, wrote
 from misdirect.cli.options import (
+    AlterationFileOption,
     AlterOption,
+    AtBudgetOption,
     FormulationOption,
     JsonOption,
     ProblemSource,
@@ -224,6 +226,8 @@ def export_chain(
     ],
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Write the product chain under an alteration (--alter; none by default), labels init,
@@ -238,7 +242,7 @@ def export_chain(
             f"cannot write {suffix or 'a file without suffix'}: use .drn or .tra", field="-o"
         )
     problem = source.load()
-    alpha = alteration(problem, alter)
+    alpha = alteration(problem, alter, alteration_file, at_budget)
     chain = build_product(problem, alpha)
     # what Storm's P=? [F "decoy"] computes: the probability of any decoy, unweighted
     result = evaluate_alteration(problem.unweighted(), alpha)
@@ -276,7 +280,7 @@ def export_chain(
         )
         return
     for path in written:
-        note(f"wrote {path}")
+        wrote(f"wrote {path}")
     note(
         f"{chain.n_states:,} states, {chain.n_transitions:,} transitions; "
         f'Storm\'s P=? [F "decoy"] should give {result.probability:.12g}'

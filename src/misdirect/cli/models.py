@@ -13,7 +13,15 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from misdirect.cli.common import check_budget, check_range, note, out, print_json, write_text
+from misdirect.cli.common import (
+    check_budget,
+    check_range,
+    note,
+    out,
+    print_json,
+    write_text,
+    wrote,
+)
 from misdirect.cli.exports import column_map_path, column_map_text
 from misdirect.cli.options import (
     MAX_GRID_SIZE,
@@ -27,7 +35,7 @@ from misdirect.cli.options import (
 )
 from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
-from misdirect.io.files import check_output_path, write_output
+from misdirect.io.files import check_output_path, read_text_file, write_output
 from misdirect.io.problem_file import json_schema, model_kind, write_problem
 from misdirect.report import json_output
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
@@ -51,7 +59,7 @@ def _write_scenario(problem: Problem, output: Path, as_json: bool, command: str)
             )
         )
     else:
-        note(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
+        wrote(f"wrote {output} ({problem.name}, {problem.pomdp.n_states:,} states)")
 
 
 def scenario_paper_grid(
@@ -172,14 +180,39 @@ def controller_synthesize(
         Path, typer.Option("--output", "-o", help="PAYNT .fsc.json to write (PAYNT's own JSON).")
     ],
     props: Annotated[
-        str, typer.Option("--props", help='One optimizing property, e.g. Pmax=? [F "goal"].')
-    ],
+        str | None,
+        typer.Option(
+            "--props",
+            help="Properties file, as PAYNT's --props takes it: one optimizing property, e.g. "
+            'Pmax=? [F "goal"] (// comments, a closing ; and empty lines allowed). A property '
+            "written out here is read as --property.",
+            show_default=False,
+        ),
+    ] = None,
+    property_text: Annotated[
+        str | None,
+        typer.Option(
+            "--property",
+            help='The optimizing property itself, e.g. Pmax=? [F "goal"].',
+            show_default=False,
+        ),
+    ] = None,
     constants: Annotated[
         str | None, typer.Option(help='Undefined PRISM constants, e.g. "N=5,p=0.1".')
     ] = None,
-    memory: Annotated[int, typer.Option(help="Memory nodes per observation.")] = 1,
-    timeout: Annotated[
-        float, typer.Option(help="Time limit (s) of the whole command, model build included.")
+    memory_nodes: Annotated[
+        int,
+        typer.Option(
+            "--memory-nodes", "--memory", help="Memory nodes per observation (PAYNT's memory)."
+        ),
+    ] = 1,
+    time_limit: Annotated[
+        float,
+        typer.Option(
+            "--time-limit",
+            "--timeout",
+            help="Seconds for the whole command, model build included.",
+        ),
     ] = 60.0,
     as_json: JsonOption = False,
 ) -> None:
@@ -188,9 +221,17 @@ def controller_synthesize(
     from misdirect.io.paynt_synthesis import synthesize
 
     check_output_path(output)
-    check_range("--memory", memory, 1, 100)
-    check_range("--timeout", timeout, 1, 10**6)
-    result = synthesize(model, props, constants=constants, memory=memory, timeout=timeout)
+    check_range("--memory-nodes", memory_nodes, 1, 100)
+    check_range("--time-limit", time_limit, 1, 10**6)
+    prop, where = synthesis_property(props, property_text)
+    try:
+        result = synthesize(
+            model, prop, constants=constants, memory=memory_nodes, timeout=time_limit
+        )
+    except ProblemError as error:  # the property's fault: name where it was written
+        if error.field != "prop" or error.source is not None:
+            raise
+        raise ProblemError(error.reason, **where) from None
     write_output(output, json.dumps(result.document, indent=4) + "\n")
     nodes = result.document.get("num_nodes")
     if as_json:
@@ -213,7 +254,51 @@ def controller_synthesize(
         highlight=False,
         soft_wrap=True,
     )
-    note(f"wrote {output}")
+    wrote(f"wrote {output}")
+
+
+# what --props holds when it is a property written out, not a file (the spelling of earlier
+# versions): a formula's brackets or query
+_WRITTEN_PROPERTY = ("[", "=?")
+
+
+def synthesis_property(
+    props: str | None, property_text: str | None
+) -> tuple[str, dict[str, str | None]]:
+    """The property of ``controller synthesize`` and where an error in it is to be named
+    (``source`` and ``field`` of the error): ``--property STRING``, or ``--props FILE`` read
+    as PAYNT reads a properties file (one property per line, ``//`` comments, a closing
+    ``;``), which must hold exactly one. A ``--props`` value that is a property itself (as
+    ``--props`` took before) is read as ``--property``."""
+    if props is not None and property_text is not None:
+        raise ProblemError("give --props FILE or --property STRING, not both", field="--property")
+    if props is None and property_text is None:
+        raise ProblemError(
+            'give the property: --props FILE or --property STRING (e.g. Pmax=? [F "goal"])',
+            field="--props",
+        )
+    if property_text is not None:
+        return property_text, {"field": "--property", "source": None}
+    assert props is not None
+    path = Path(props)
+    if not path.exists() and any(mark in props for mark in _WRITTEN_PROPERTY):
+        return props, {"field": "--props", "source": None}
+    text = read_text_file(path, field="--props")
+    found = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        formula = line.split("//", 1)[0].strip().removesuffix(";").strip()
+        if formula:
+            found.append((number, formula))
+    if len(found) != 1:
+        lines = ", ".join(str(number) for number, _ in found)
+        held = "no property" if not found else f"{len(found)} properties (lines {lines})"
+        raise ProblemError(
+            f"holds {held}; controller synthesize takes one optimizing property, e.g. "
+            'Pmax=? [F "goal"]',
+            source=str(path),
+        )
+    number, formula = found[0]
+    return formula, {"field": f"line {number}", "source": str(path)}
 
 
 # -- convert, export-fsc, export-milp, schema ---------------------------------------------------
@@ -291,7 +376,7 @@ def convert(
     write_text("convert", text, output, as_json, problem=name, format=to.value)
     if output is not None and not as_json:
         size = "" if states is None else f", {states:,} states"
-        note(f"wrote {output} ({to.value}{size})")
+        wrote(f"wrote {output} ({to.value}{size})")
 
 
 def _problem_file_of_flags(
@@ -356,7 +441,7 @@ def export_fsc(
     text = json.dumps(controller_to_paynt(problem.controller, problem.pomdp), indent=1) + "\n"
     write_text("export-fsc", text, output, as_json, problem=problem.name, format="paynt")
     if output is not None and not as_json:
-        note(f"wrote {output} ({problem.controller.n_nodes} nodes)")
+        wrote(f"wrote {output} ({problem.controller.n_nodes} nodes)")
 
 
 @problem_input
@@ -403,12 +488,12 @@ def export_milp(
             )
         )
     else:
-        note(
+        wrote(
             f"wrote {output}: {formulation} MILP, {model.n_columns:,} variables "
             f"({int(model.integer.sum()):,} binary), {model.n_rows:,} rows, "
             f"{model.matrix.nnz:,} non-zeros"
         )
-        note(f"wrote {map_path}: which column chooses which alteration (misdirect decode)")
+        wrote(f"wrote {map_path}: which column chooses which alteration (misdirect decode)")
 
 
 def schema(

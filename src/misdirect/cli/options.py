@@ -19,11 +19,13 @@ from typing import Annotated, Any
 
 import typer
 
+from misdirect.cli.alteration_file import read_alteration_file
 from misdirect.cli.common import check_range, flag
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import ProblemError, ProblemsError
 from misdirect.io.model_problem import problem_from_model, with_controller
 from misdirect.io.problem_file import load_problem, model_kind
+from misdirect.io.storm_names import valuation_name
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solvers.milp.solver import FORMULATIONS
 
@@ -112,7 +114,29 @@ ExactOption = Annotated[
 ]
 AlterOption = Annotated[
     list[str] | None,
-    typer.Option("--alter", "-a", help="Alteration OBS=OBS (repeatable), e.g. o1=o3."),
+    typer.Option(
+        "--alter",
+        "-a",
+        help="Alteration OBS=OBS (repeatable), e.g. o1=o3; Storm's names too, e.g. [s=0]=[s=1].",
+    ),
+]
+AlterationFileOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--alteration",
+        help="Read the alteration from a file: solve's or evaluate's --json output, or a "
+        "YAML mapping {observation: received observation} (as solve -o FILE.yaml writes).",
+        show_default=False,
+    ),
+]
+AtBudgetOption = Annotated[
+    float | None,
+    typer.Option(
+        "--at-budget",
+        help="With --alteration and solve's output: the budget whose alteration to take "
+        "(default: the largest in the file).",
+        show_default=False,
+    ),
 ]
 FormulationOption = Annotated[
     str,
@@ -318,13 +342,25 @@ def numbers(text: str | None, option: str) -> list[float]:
         ) from None
 
 
+def observation_name(text: str, known: set[str] | frozenset[str]) -> str:
+    """``text`` as the observation it names: itself when known, else Storm's valuation text of
+    one (``[s=0]``, ``[x=2\t& y=0]``, as PAYNT's controller files write them) as the model
+    names it (``s=0``, ``x=2,y=0``); unknown names are returned as they are (and reported)."""
+    if text in known or not (text.startswith("[") and text.endswith("]")):
+        return text
+    name = valuation_name(text)
+    return name if name in known else text
+
+
 def _split_alter(pair: str, observations: tuple[str, ...]) -> tuple[str, str]:
     """``OBS=OBS`` split at the ``=`` that leaves two known observations, so that names with
-    an ``=`` in them (Storm's ``o=2``) can be altered; if none does, at the first ``=`` (the
-    unknown name is then reported)."""
+    an ``=`` in them (Storm's ``o=2``, ``[s=0]``) can be altered; if none does, at the first
+    ``=`` (the unknown name is then reported)."""
     known = set(observations)
     splits = [(pair[:i].strip(), pair[i + 1 :].strip()) for i, c in enumerate(pair) if c == "="]
-    splits = [(a, b) for a, b in splits if a and b]
+    splits = [
+        (observation_name(a, known), observation_name(b, known)) for a, b in splits if a and b
+    ]
     if not splits:
         raise ProblemError(f"expected OBS=OBS (e.g. o1=o3), got {pair!r}", field="--alter")
     matching = [(a, b) for a, b in splits if a in known and b in known]
@@ -350,56 +386,106 @@ def parse_alter(pairs: list[str], observations: tuple[str, ...] = ()) -> dict[st
     return changes
 
 
-def alteration(problem: Problem, alter: list[str] | None) -> AlterationArray:
-    """The alteration ``--alter`` names, checked against ``problem``."""
+def alteration(
+    problem: Problem,
+    alter: list[str] | None,
+    alteration_file: Path | None = None,
+    at_budget: float | None = None,
+) -> AlterationArray:
+    """The alteration ``--alter`` names, or the one ``--alteration FILE`` holds (at
+    ``--at-budget`` of a solve document), checked against ``problem``."""
+    if at_budget is not None and alteration_file is None:
+        raise ProblemError("needs --alteration FILE (a solve --json document)", field="--at-budget")
+    if alteration_file is not None:
+        if alter:
+            raise ProblemError("give --alter or --alteration, not both", field="--alteration")
+        known = frozenset(problem.pomdp.observations)
+        written = read_alteration_file(alteration_file, at_budget)
+        changes = {
+            observation_name(o, known): observation_name(t, known) for o, t in written.items()
+        }
+        return problem.alteration(changes, source=str(alteration_file))
     changes = parse_alter(alter or [], problem.pomdp.observations)
-    return problem.alteration(changes, source="--alter")
+    try:
+        return problem.alteration(changes, source="--alter")
+    except ProblemError as error:  # the flag is the field, as for every option
+        if error.source != "--alter":
+            raise
+        raise ProblemError(f"{error.field}: {error.reason}", field="--alter") from None
 
 
 LISTED_RANGE = 1_000  # a range of budgets this long is listed whole, even above the cap
 
+BudgetOption = Annotated[
+    str | None,
+    typer.Option(
+        "--budget",
+        "--budgets",
+        help="Budget B: a number (2), a range (0..4: each whole budget in it) or a list "
+        "(0,1,3); default: the file's budget. --budgets is the same option.",
+        show_default=False,
+    ),
+]
+
 
 def parse_budgets(
-    budget: str | None, budgets: str | None, cap: float | None = None
+    budget: str | None, budgets: str | None = None, cap: float | None = None
 ) -> list[float] | None:
-    """``--budget 4``, ``--budget 0..7`` (each whole budget in it) or ``--budgets 0,1,2``.
+    """``--budget`` (alias ``--budgets``): a number ``4``, a range ``0..7`` (each whole budget
+    in it) or a list ``0,1,2``, each refused with the message of its own syntax.
 
     A range lists every whole budget in it, those above ``cap`` (the most expensive complete
     alteration: solve answers them with its answer) included. Only a range of more than
     :data:`LISTED_RANGE` budgets is expanded up to the cap and then its upper end, so
-    ``0..1000000000`` never materialises a billion budgets."""
-    if budget is not None and budgets is not None:
-        raise ProblemError("give --budget or --budgets, not both", field="--budgets")
-    option = "--budgets" if budgets is not None else "--budget"
-    try:
-        if budgets is not None:
-            parsed = [float(b) for b in budgets.split(",") if b.strip()]
-        elif budget is not None and ".." in budget:
-            low, high = (int(part) for part in budget.split("..", 1))
-            if low < 0 or high < low:
-                raise ProblemError(
-                    f"expected a range low..high with 0 ≤ low ≤ high, got {budget!r}", field=option
-                )
-            top = high
-            if cap is not None and high - low >= LISTED_RANGE:
-                top = min(high, max(low, math.ceil(cap)))
-            if top - low > 1_000_000:
-                raise ProblemError(
-                    f"a range of {top - low + 1:,} budgets is too many; give fewer", field=option
-                )
-            parsed = [float(b) for b in range(low, top + 1)]
-            if top < high:
-                parsed.append(float(high))
-        elif budget is not None:
-            parsed = [float(budget)]
-        else:
-            return None
-    except (ValueError, OverflowError) as error:
-        if isinstance(error, ProblemError):
-            raise
-        raise ProblemError(
-            "expected a number, a range like 0..7, or a list like 0,1,2", field=option
-        ) from None
+    ``0..1000000000`` never materialises a billion budgets. (``budgets``: the value of the
+    separate ``--budgets`` option of earlier versions, taken the same way.)"""
+    if budget is not None and budgets is not None and budget != budgets:
+        raise ProblemError("give --budget or --budgets, not both", field="--budget")
+    text = budget if budget is not None else budgets
+    if text is None:
+        return None
+    if ".." in text:
+        parsed = _budget_range(text, cap)
+    elif "," in text:
+        try:
+            parsed = [float(b) for b in text.split(",") if b.strip()]
+        except ValueError:
+            raise ProblemError(
+                f"expected a list of numbers like 0,1,3, got {text!r}", field="--budget"
+            ) from None
+    else:
+        try:
+            parsed = [float(text)]
+        except ValueError:
+            raise ProblemError(
+                f"expected a number (2), a range (0..4) or a list (0,1,3), got {text!r}",
+                field="--budget",
+            ) from None
     if not parsed or any(not math.isfinite(b) or b < 0 for b in parsed):
-        raise ProblemError("budgets must be non-negative numbers", field=option)
+        raise ProblemError(f"budgets must be non-negative numbers, got {text!r}", field="--budget")
+    return parsed
+
+
+def _budget_range(text: str, cap: float | None) -> list[float]:
+    """``0..7``: each whole budget from low to high (see :func:`parse_budgets`)."""
+    try:
+        low, high = (int(part) for part in text.split("..", 1))
+    except ValueError:
+        raise ProblemError(
+            f"expected a range of whole numbers like 0..4, got {text!r}", field="--budget"
+        ) from None
+    if low < 0 or high < low:
+        raise ProblemError(
+            f"expected a range low..high with 0 ≤ low ≤ high, got {text!r}", field="--budget"
+        )
+    top = high
+    if cap is not None and high - low >= LISTED_RANGE:
+        top = min(high, max(low, math.ceil(cap)))
+    if top - low > 1_000_000:
+        raise ProblemError(
+            f"a range of {top - low + 1:,} budgets is too many; give fewer", field="--budget"
+        )
+    parsed = [float(b) for b in range(low, top + 1)]
+    if top < high:
+        parsed.append(float(high))
     return parsed

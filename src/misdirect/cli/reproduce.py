@@ -22,7 +22,8 @@ if TYPE_CHECKING:
 
 def reproduce(
     out_dir: Annotated[
-        Path, typer.Option("--out", help="Folder for tables, figures and report.md.")
+        Path,
+        typer.Option("--output", "--out", "-o", help="Folder for tables, figures and report.md."),
     ] = Path("results"),
     quick: Annotated[
         bool,

@@ -25,18 +25,22 @@ from misdirect.cli.common import (
     err,
     flag,
     fmt_alteration,
-    note,
+    json_text,
     out,
     print_handovers,
     print_json,
     stop_gracefully,
+    wrote,
 )
 from misdirect.cli.options import (
     MAX_RUNS,
     MAX_SAMPLES,
     MAX_SEED,
     MAX_STEPS,
+    AlterationFileOption,
     AlterOption,
+    AtBudgetOption,
+    BudgetOption,
     ExactOption,
     JsonOption,
     ProblemSource,
@@ -72,12 +76,14 @@ if TYPE_CHECKING:
 def evaluate(
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     exact: ExactOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Exact probability of reaching the decoy under one alteration (none by default)."""
     problem = source.load()
-    altered = alteration(problem, alter)
+    altered = alteration(problem, alter, alteration_file, at_budget)
     result = evaluate_alteration(problem, altered)
     baseline = (
         result.probability
@@ -187,11 +193,7 @@ def _print_evaluation(
 @problem_input
 def solve(
     source: ProblemSource,
-    budget: Annotated[
-        str | None,
-        typer.Option(help="Budget B, or a range like 0..7 (default: the file's budget)."),
-    ] = None,
-    budgets: Annotated[str | None, typer.Option(help="Budgets to solve, e.g. 0,1,2.")] = None,
+    budget: BudgetOption = None,
     method: Annotated[
         str | None,
         typer.Option(
@@ -238,18 +240,33 @@ def solve(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
     ] = False,
+    output: Annotated[
+        Path | None,
+        typer.Option(
+            "--output",
+            "-o",
+            help="Write the answer for --alteration FILE of evaluate, simulate, show and "
+            "export-chain: .json the whole --json document (every budget; pick one with "
+            "--at-budget), else (.yaml) the answer's alteration as {observation: received}.",
+            show_default=False,
+        ),
+    ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
     exact: ExactOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Optimal alteration within the budget, with the best value for every smaller budget.
-    With --cluster or --workers, the search's subtrees run on Dask (branch-and-bound, auto)."""
+    """Optimal alteration within the budget B (--budget, default: the file's). A range or a
+    list (--budget 0..B, 0,1,3) answers each budget; one budget lists the smaller whole
+    budgets too where the method gets them for free (a note says when it did not). With
+    --cluster or --workers, the search's subtrees run on Dask (branch-and-bound, auto)."""
     if threads is not None:
         check_range("--threads", threads, 1, 1024)
     check_seconds(time_limit)
+    if output is not None:
+        check_output_path(output, field="-o")
     problem = source.load()
-    requested = parse_budgets(budget, budgets, cap=max_alteration_cost(problem))
+    requested = parse_budgets(budget, cap=max_alteration_cost(problem))
     if requested is not None:
         problem = problem.with_budget(max(requested))
         if len(requested) == 1:  # one budget: let the solver add the curve if it comes free
@@ -286,12 +303,48 @@ def solve(
         as_written = exact_values(problem, [p.alteration_array for p in result.curve])
         bounds = [p.error_bound for p in result.curve]
         notes += exact_notes(bounds, as_written, [p.budget for p in result.curve])
+    payload = json_output.solve(result, notes=notes, exact=as_written)
+    if output is not None:
+        payload["written"] = [str(output)]
+        write_output(output, _alteration_text(payload, output), field="-o")
     if as_json:
-        print_json(json_output.solve(result, notes=notes, exact=as_written))
+        print_json(payload)
     else:
         _print_solve(result, problem, as_written)
-        _print_notes([*result.notes, *_point_notes(result.curve), *notes])
+        alone = budget is None and len(result.curve) == 1 and result.curve[0].budget >= 1
+        single = [_single_budget_note(result.curve[0].budget)] if alone else []
+        _print_notes([*result.notes, *_point_notes(result.curve), *notes, *single])
+        if output is not None:
+            wrote(f"wrote {output} ({_written_what(output)})")
     _finish_solve(result, received)
+
+
+def _written_what(output: Path) -> str:
+    if output.suffix.lower() == ".json":
+        return "every budget's answer: --alteration FILE --at-budget B reads one"
+    return "the answer's alteration: --alteration FILE reads it"
+
+
+def _alteration_text(payload: dict[str, Any], output: Path) -> str:
+    """What ``solve -o`` writes: the ``--json`` document for a ``.json`` file, else the
+    answer's alteration as a YAML mapping (with a comment saying what it is)."""
+    if output.suffix.lower() == ".json":
+        return json_text(payload)
+    import yaml
+
+    head = (
+        f"# misdirect solve: {payload['problem']}, {payload['status']} alteration at budget "
+        f"{payload['budget']:g} (value {payload['value']:.6f}); read by --alteration FILE\n"
+    )
+    body = payload["alteration"] or {}
+    return head + yaml.safe_dump(body, sort_keys=False, allow_unicode=True, width=10**6)
+
+
+def _single_budget_note(budget: float) -> str:
+    """Why the table has one row: the method did not get the smaller budgets for free, and
+    how to ask for them."""
+    asked = f"0..{budget:g}" if budget.is_integer() else f"0,1,{budget:g}"
+    return f"budget {budget:g} alone was solved: --budget {asked} answers each budget"
 
 
 POINT_NOTES = ("trivial_bound", "not_certified")  # why a point is open: shown under the table
@@ -465,11 +518,16 @@ def _method_stats(stats: MethodStats) -> MethodStats:
 def simulate(
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     runs: Annotated[int, typer.Option(help="Number of simulated runs.")] = 100_000,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_steps: Annotated[int, typer.Option(help="Stop a run after this many steps.")] = 10_000,
     trajectories: Annotated[
-        Path | None, typer.Option(help="Write the first --samples runs step by step (CSV).")
+        Path | None,
+        typer.Option(
+            "--trajectories", "-o", help="Write the first --samples runs step by step (CSV)."
+        ),
     ] = None,
     samples: Annotated[int, typer.Option(help="Runs to write with --trajectories.")] = 10,
     as_json: JsonOption = False,
@@ -490,7 +548,7 @@ def simulate(
     if trajectories is not None:
         check_output_path(trajectories, field="--trajectories")
     problem = source.load()
-    alpha = alteration(problem, alter)
+    alpha = alteration(problem, alter, alteration_file, at_budget)
     record = samples if trajectories is not None else 0
     began = time.perf_counter()
     result = run_simulation(
@@ -513,6 +571,8 @@ def simulate(
         print_json(payload)
     else:
         _print_simulation(payload, result, max_steps)
+        if trajectories is not None:
+            wrote(f"wrote {trajectories} (the first {min(samples, runs):,} runs, step by step)")
 
 
 def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
@@ -629,6 +689,8 @@ def show(
     ],
     source: ProblemSource,
     alter: AlterOption = None,
+    alteration_file: AlterationFileOption = None,
+    at_budget: AtBudgetOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
@@ -636,8 +698,8 @@ def show(
 
     check_output_path(output)
     problem = source.load()
-    written = draw(problem, alteration(problem, alter), output)
+    written = draw(problem, alteration(problem, alter, alteration_file, at_budget), output)
     if as_json:
         print_json(json_output.written_files("show", [written], problem=problem.name))
     else:
-        note(f"wrote {written}")
+        wrote(f"wrote {written}")

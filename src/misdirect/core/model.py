@@ -10,6 +10,8 @@ the robot receives instead of ``o`` (SPEC §1: a function, the initial observati
 
 from __future__ import annotations
 
+import json
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -849,8 +851,20 @@ def _cost_summary(cost: CostModel) -> str:
 
 
 def format_alteration(changes: Mapping[str, str]) -> str:
-    """``{"o1": "o3"}`` as ``o1 → o3`` (``none`` when nothing changes), for tables and logs."""
-    return ", ".join(f"{o} → {t}" for o, t in changes.items()) or "none"
+    """``{"o1": "o3"}`` as ``o1 → o3`` (``none`` when nothing changes), for tables and logs;
+    a name that holds a separator is quoted (``"clk=0,!n" → "clk=0,n"``), so that the pairs
+    read one way only."""
+    pairs = (f"{quoted_name(o)} → {quoted_name(t)}" for o, t in changes.items())
+    return ", ".join(pairs) or "none"
+
+
+_SEPARATORS = re.compile(r'[\s,=→"\']')
+
+
+def quoted_name(name: str) -> str:
+    """An observation's name as text output shows it: as it is, or in double quotes (JSON's
+    escapes) when it is empty or holds a separator (comma, ``=``, space, arrow, quote)."""
+    return json.dumps(name, ensure_ascii=False) if not name or _SEPARATORS.search(name) else name
 
 
 def reachable_from(graph: sp.csr_matrix, sources: np.ndarray) -> np.ndarray:

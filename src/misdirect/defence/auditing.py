@@ -16,7 +16,7 @@ from misdirect.core import tolerance
 from misdirect.core.alterations import alteration_space, max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.grid import grid_cells
-from misdirect.core.keywords import checked_keywords
+from misdirect.core.keywords import checked_keywords, one_budget_keyword
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
@@ -43,6 +43,7 @@ def audit(
     problem: Problem,
     *,
     budget: float | None = None,
+    budgets: float | Sequence[float] | None = None,
     time_limit: float | None = None,
     method: str = "auto",
     deadline: Deadline | None = None,
@@ -58,6 +59,9 @@ def audit(
         The POMDP, controller, costs and decoy.
     budget : float, optional
         The attacker's budget ``B``; default ``problem.budget``.
+    budgets : float, optional
+        The same parameter spelled as ``solve`` spells it (a number, or a sequence of one);
+        both given and different is a ``TypeError``.
     time_limit : float, optional
         Seconds for the whole audit, every solve of it included.
     method : str
@@ -108,7 +112,7 @@ def audit(
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)
-    asked = attacker_budget(problem, budget)
+    asked = attacker_budget(problem, one_budget_keyword("audit", budget, budgets))
     # past the most expensive complete alteration every budget affords the same: work at it
     budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
     problem = problem.with_budget(budget)

@@ -18,7 +18,7 @@ import numpy as np
 
 from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost, options_bound
-from misdirect.core.keywords import checked_keywords
+from misdirect.core.keywords import checked_keywords, one_budget_keyword
 from misdirect.core.model import Problem
 from misdirect.defence.attack import (
     Attack,
@@ -140,6 +140,7 @@ def harden(
     *,
     protect_budget: float,
     budget: float | None = None,
+    budgets: float | Sequence[float] | None = None,
     protect_costs: Mapping[str, float] | None = None,
     time_limit: float | None = None,
     method: str = "auto",
@@ -158,6 +159,9 @@ def harden(
         The defender's budget ``D``: what the protected sensors may cost in all.
     budget : float, optional
         The attacker's budget ``B``; default ``problem.budget``.
+    budgets : float, optional
+        The same parameter spelled as ``solve`` spells it (a number, or a sequence of one);
+        both given and different is a ``TypeError``.
     protect_costs : mapping of str to float, optional
         What protecting each sensor costs, by observation name (``"default"`` for the
         rest); default 1 each.
@@ -214,7 +218,7 @@ def harden(
         raise ProblemError(
             f"must be a non-negative number, got {protect_budget}", field="protect_budget"
         )
-    asked = attacker_budget(problem, budget)
+    asked = attacker_budget(problem, one_budget_keyword("harden", budget, budgets))
     # budgets past what buys everything change nothing: B is clamped to the most expensive
     # complete alteration, D to protecting every sensor alterable within B
     budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))

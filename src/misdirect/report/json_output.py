@@ -60,9 +60,16 @@ def document(
 
 
 def error_document(command: str | None, message: str, **context: Any) -> dict[str, Any]:
-    """The document of a command that failed: the message, and the field and file it names."""
-    shown = {k: v for k, v in context.items() if v}
-    return {"schema": SCHEMA, "command": command, "error": {"message": message, **shown}}
+    """The document of a command that failed, in one shape whatever failed: the ``message``,
+    the ``field`` it names (an option, or a place in a file) and the ``source`` (the file),
+    each null when there is none, and the input's ``problems`` when it has several."""
+    shown = {k: v for k, v in context.items() if v and k not in ("field", "source")}
+    located = {"field": context.get("field") or None, "source": context.get("source") or None}
+    return {
+        "schema": SCHEMA,
+        "command": command,
+        "error": {"message": message, **located, **shown},
+    }
 
 
 # -- solve --------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.attack import shared_preparation
 from misdirect.core.checkpoint import interruptible
-from misdirect.core.keywords import checked_keywords
+from misdirect.core.keywords import budget_keyword, checked_keywords
 from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
 from misdirect.core.tables import dataframe, short_float
 from misdirect.errors import OptionError, ProblemError
@@ -397,7 +397,8 @@ def solve(
     problem: Problem,
     *,
     method: str = "auto",
-    budgets: Sequence[float] | None = None,
+    budget: float | Sequence[float] | None = None,
+    budgets: float | Sequence[float] | None = None,
     options: SolveOptions | None = None,
     time_limit: float | None = None,
     threads: int | None = None,
@@ -423,9 +424,12 @@ def solve(
         :func:`misdirect.problem_from_dict` or a generator of :mod:`misdirect.scenarios`).
     method : {"auto", "exhaustive", "incremental", "branch-and-bound", "milp"}
         ``auto`` (default) picks and combines the exact methods; the others run one method.
-    budgets : sequence of float, optional
-        Budgets to solve (the curve). Default: ``problem.budget``, plus every whole budget
-        below it where the method gets them for free.
+    budget, budgets : float or sequence of float, optional
+        One parameter, two spellings (as ``audit`` and ``harden`` take it; both given and
+        different is a ``TypeError``). A number: the budget B instead of
+        ``problem.budget``, with every whole budget below it where the method gets them for
+        free. A sequence: exactly these budgets (the curve). Default: ``problem.budget``, as
+        a number.
     options : SolveOptions, optional
         All options as one record; the keyword arguments below override its fields.
     time_limit : float, optional
@@ -497,6 +501,11 @@ def solve(
     Traceback (most recent call last):
     TypeError: solve() got an unexpected keyword argument 'time_limt' (did you mean ...
     """
+    asked = budget_keyword("solve", budget, budgets)
+    if isinstance(asked, float):  # a budget B, as the problem's own would be
+        problem, budgets = problem.with_budget(asked), None
+    else:
+        budgets = asked
     overrides: dict[str, Any] = {  # SolveOptions' fields, each of its own type
         "time_limit": time_limit,
         "threads": threads,
