@@ -44,7 +44,7 @@ from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
@@ -416,7 +416,7 @@ class AutoSolver:
         first (not for budgets an enumeration has just left unproven: it would only start
         over on them); ``below``: a smaller budget's certified answer (where the curve may
         have levelled off, :meth:`BranchAndBoundSolver.solve`)."""
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         facts = _Facts.measure(problem, budgets)
         split = self._split_curve(facts, budgets, deadline, progress) if may_split else None
         if split is not None:

@@ -15,7 +15,7 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.memory import available_cores
 from misdirect.core.model import AlterationArray, Problem
-from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.deadline import Deadline, call_deadline
 from misdirect.solvers.stats import MethodStats, NoStats
 from misdirect.solvers.status import Status
 
@@ -71,6 +71,14 @@ class Solver(Protocol):
         """One :class:`Solution` per budget, in the order given, by ``deadline`` (default:
         no limit). ``status`` says how the method stopped; certification is the front door's."""
         ...
+
+
+def method_deadline(deadline: Deadline | None, time_limit: float | None) -> Deadline:
+    """The deadline a method's ``solve`` runs by: the one it is given (:func:`misdirect.solve`
+    always gives one, with the call's time limit and cancel token in it), else, for a method
+    called on its own, one from its options' ``time_limit``
+    (:func:`~misdirect.solvers.deadline.call_deadline`, where every call's deadline is built)."""
+    return deadline if deadline is not None else call_deadline(None, time_limit)
 
 
 def report(

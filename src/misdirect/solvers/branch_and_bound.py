@@ -40,7 +40,7 @@ from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report, thread_count
 from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
@@ -147,7 +147,7 @@ class BranchAndBoundSolver:
         budget (an earlier stage's), the first incumbent; where no seed beats it, the curve
         may have levelled off there, and the largest budget is solved first (see the module
         docstring)."""
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         instance = prepare(problem, max(budgets))
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         curve = _Curve(

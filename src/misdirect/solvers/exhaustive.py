@@ -18,7 +18,13 @@ from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
 from misdirect.errors import SolverError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget, report
+from misdirect.solvers.base import (
+    ProgressCallback,
+    Solution,
+    best_per_budget,
+    method_deadline,
+    report,
+)
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
@@ -47,7 +53,7 @@ class ExhaustiveSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
         space = prepare(problem, top).space
         enumerated = space.within(top, limit=self.max_evaluations)

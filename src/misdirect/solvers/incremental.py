@@ -28,7 +28,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, thread_count
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
@@ -70,7 +70,7 @@ class IncrementalSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
         instance = prepare(problem, top)
         enumeration = LowRankEnumeration(

@@ -34,7 +34,7 @@ from misdirect.solvers.certification import (
     exact_scope,
     take_evidence,
 )
-from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError, call_deadline
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
@@ -433,7 +433,7 @@ def solve(
         problem = problem.with_budget(cap)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
-    deadline = _call_deadline(deadline, options.time_limit, cancel)
+    deadline = call_deadline(deadline, options.time_limit, cancel)
     started = time.perf_counter()
     exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
     # the stages of this call share each prepared instance, and the exact values; building
@@ -473,18 +473,6 @@ def solve(
         interrupted=interrupted,
         objective=problem.objective.kind,
     )
-
-
-def _call_deadline(
-    deadline: Deadline | None, time_limit: float | None, cancel: CancelToken | None
-) -> Deadline:
-    """The deadline of one :func:`solve` call: a caller's shared one, limited further by the
-    call's own time limit or cancel token, or a new one from them."""
-    if deadline is None:
-        return Deadline(time_limit, cancel=cancel)
-    if time_limit is not None or cancel is not None:
-        return Deadline(time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
-    return deadline
 
 
 def _unaltered_solutions(

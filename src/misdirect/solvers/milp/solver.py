@@ -51,7 +51,7 @@ from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
 from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
@@ -170,7 +170,7 @@ class MilpSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         # the values' scale: the relaxation's bound on the optimum, and on every state's value,
         # at the largest budget (a decoy behind a branch of 1e-10 has values of 1e-10, below
         # HiGHS's tolerances), in the time the schedule gives it
