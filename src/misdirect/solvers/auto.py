@@ -54,7 +54,7 @@ from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import AutoStats, MethodStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 INCREMENTAL_LIMIT = MAX_ALTERATIONS  # the most the low-rank enumeration is given
@@ -582,6 +582,8 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
     else:
         status = pick.status
     stats = AutoStats(_answer(pick.stats), why, (first.stats, second.stats))
+    # a stage that finished the budget finished it; else the last stage's stop is the answer's
+    stop = StopReason.FINISHED if finished else second.stop_reason or first.stop_reason
     # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
     closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
     return Solution(
@@ -593,6 +595,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         stats=stats,
         certified_by=(closer if proven else pick).certified_by or "auto",
         notes={**first.notes, **second.notes},  # what each method said of its answer or bound
+        stop_reason=stop,
     )
 
 

@@ -17,7 +17,7 @@ from misdirect.core.memory import available_cores
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers.deadline import Deadline, call_deadline
 from misdirect.solvers.stats import MethodStats, NoStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 
 class ProgressCallback(Protocol):
@@ -53,6 +53,9 @@ class Solution:
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
     # what the method says of its answer for the point's notes (why its bound is no proof)
     notes: dict[str, str] = field(default_factory=dict)
+    # how the method's work on this budget ended, in its own words (None: it did not say);
+    # ``status`` is what certification makes of it
+    stop_reason: StopReason | None = None
 
 
 class Solver(Protocol):

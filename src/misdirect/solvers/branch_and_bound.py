@@ -50,7 +50,7 @@ from misdirect.solvers.engines.segment_search import SegmentSearch
 from misdirect.solvers.engines.subtrees import DistributedSegmentSearch
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import BranchAndBoundStats, SegmentStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
@@ -242,6 +242,8 @@ class BranchAndBoundSolver:
             report(progress, step.done, step.total, stage=stage, detail=search.describe())
 
         answer = search.run(limit, tick)
+        # how the per-state search stopped: finished, its node limit, or its time
+        answer = replace(answer, stop_reason=StopReason.of(answer.status, deadline.cancelled))
         if not schedule.segment_has_time(deadline):
             curve.segment_backs_up = False  # too little time left to build and search it
         if answer.status != Status.OPTIMAL and curve.segment_backs_up and curve.segments is None:
@@ -330,6 +332,7 @@ class BranchAndBoundSolver:
             status=Status.OPTIMAL if finished else answer.status,
             upper_bound=value if finished else bound,
             stats=stats,
+            stop_reason=StopReason.of(status, deadline.cancelled),  # the segment search's stop
         )
 
 

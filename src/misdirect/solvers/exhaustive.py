@@ -29,7 +29,7 @@ from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import ExhaustiveStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 MAX_EVALUATIONS = 2_000_000  # alterations it takes on (more: it refuses, naming the MILP)
 
@@ -103,6 +103,7 @@ class ExhaustiveSolver:
             else relaxation_bound(problem, top, schedule.closing_bound(deadline))
         )
         top_value = problem.objective.max_value
+        cut = StopReason.cut(deadline.cancelled)
         return [
             Solution(
                 b,
@@ -111,6 +112,8 @@ class ExhaustiveSolver:
                 status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
                 upper_bound=_bound(float(values[i]), proven, bound, worst_error, top_value),
                 stats=stats,
+                # cheapest first: a budget whose every alteration was evaluated is finished
+                stop_reason=StopReason.FINISHED if proven else cut,
             )
             for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]

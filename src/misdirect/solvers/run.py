@@ -38,7 +38,7 @@ from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredErr
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 
 @dataclass(frozen=True, repr=False)
@@ -74,6 +74,11 @@ class BudgetResult:
         The method whose answer or bound proved the point optimal.
     error_bound : float or None
         A proven bound on the error of :attr:`probability` on the chain as built.
+    stop_reason : StopReason or None
+        How the method's work on this budget ended, in its own words: ``finished``, ``time``,
+        ``nodes`` (a search's node limit), ``gap`` (the MILP's gap) or ``cancelled``; None
+        where no method said. Only certification makes a point ``optimal``: a finished method
+        may still leave it ``feasible``, and a point may be proven after a method's ``time``.
     """
 
     budget: float
@@ -90,6 +95,7 @@ class BudgetResult:
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
     # proven bound on the error of ``probability`` on the chain as built; None: none proven
     error_bound: float | None = 0.0
+    stop_reason: StopReason | None = None  # how the method stopped, before certification
 
     @property
     def gap(self) -> float | None:
@@ -122,6 +128,7 @@ class BudgetResult:
             "gap": self.gap,
             "certified_by": self.certified_by,
             "certification": dict(self.notes),
+            "stop_reason": None if self.stop_reason is None else str(self.stop_reason),
         }
         if stats:
             shown["stats"] = {k: v for k, v in self.stats.to_dict().items() if k != "auto_reason"}
@@ -262,6 +269,7 @@ class SolveResult:
             **{k: final[k] for k in ("upper_bound", "gap", "error_bound")},
             "method": self.method,
             "certified_by": final["certified_by"],
+            "stop_reason": final["stop_reason"],
             "budget_clamped_from": self.budget_clamped_from,
             "budget_clamped_to": self.budget_clamped_to,
             "interrupted": self.interrupted,
@@ -447,7 +455,7 @@ def solve(
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started  # the search's time: exact values come on top
     if solutions is None:
-        solutions = _unaltered_solutions(problem, clamped, exact_value)
+        solutions = _unaltered_solutions(problem, clamped, exact_value, interrupted)
     if clamped_from is not None:
         by_budget = {solution.budget: solution for solution in solutions}
         solutions = [
@@ -476,10 +484,12 @@ def solve(
 
 
 def _unaltered_solutions(
-    problem: Problem, budgets: Sequence[float], exact_value: ExactValues
+    problem: Problem, budgets: Sequence[float], exact_value: ExactValues, cancelled: bool
 ) -> list[Solution]:
     """Answers for a call cut before its method had any: the unaltered chain, proven where no
-    alteration fits the budget (then it is all there is), else open at the trivial bound."""
+    alteration fits the budget (then it is all there is), else open at the trivial bound. The
+    method stopped by time, or (``cancelled``) on request, either way."""
+    stop = StopReason.cut(cancelled)
     cheapest = problem.cheapest_alteration_cost()
     unaltered_value = exact_value(problem.identity())
     return [
@@ -489,6 +499,7 @@ def _unaltered_solutions(
             solver_probability=unaltered_value,
             status=Status.OPTIMAL,
             upper_bound=unaltered_value,
+            stop_reason=stop,
         )
         if not problem.cost.scale.fits(cheapest, b)
         else Solution(
@@ -497,6 +508,7 @@ def _unaltered_solutions(
             solver_probability=None,
             status=Status.TIME_LIMIT,
             upper_bound=problem.objective.max_value,  # nothing proven: the trivial bound
+            stop_reason=stop,
         )
         for b in budgets
     ]
@@ -528,6 +540,7 @@ def _exact_curve(
             stats=solution.stats,
             certified_by=solution.certified_by,
             notes=dict(solution.notes),
+            stop_reason=solution.stop_reason,
         )
         warnings += check_claims(point, method, scale, _floor(problem))
         curve.append(point)
@@ -567,6 +580,7 @@ def _point(answer: BudgetResult) -> CurvePoint:
         certified_by=answer.certified_by,
         notes=dict(answer.notes),
         error_bound=math.inf if answer.error_bound is None else answer.error_bound,
+        stop_reason=answer.stop_reason,
     )
 
 
@@ -637,4 +651,5 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         alteration_array=Alteration(point.alteration, problem.pomdp.observations),
         certified_by=point.certified_by,
         error_bound=point.error_bound if math.isfinite(point.error_bound) else None,
+        stop_reason=point.stop_reason,
     )

@@ -67,7 +67,7 @@ from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import MilpStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 # Bytes a backend takes per non-zero on top of the model (its copy, presolve, the LP's
 # row-wise copy, factors): HiGHS took 254 on the paper's MILP of a 14x14 sensor grid; the lower
@@ -338,6 +338,7 @@ class MilpSolver:
             upper_bound=upper_bound,
             stats=stats,
             notes=notes,
+            stop_reason=StopReason.of(status, deadline.cancelled),
         )
 
 
