@@ -14,7 +14,11 @@ its own low-rank update, with its changed rows that can no longer reach the deco
 (value 0); one that changes a row of a base closed class (which it may open) is valued
 exactly, one chain each (:mod:`misdirect.solvers.engines.closed_classes`). Values within
 :data:`~misdirect.core.tolerance.NEAR_TIE` of the best count as tied (the cheapest wins);
-every value reported is re-computed exactly by the front door.
+where a base is too ill-conditioned for its low-rank values to rank them, the candidates are
+valued exactly first (:mod:`misdirect.solvers.engines.exact_revaluation`); with a floor, the
+alterations the gain bound proves below it are left out
+(:func:`~misdirect.solvers.engines.entry_gain.floor_filter`). Every value reported is
+re-computed exactly by the front door.
 
 Used by the ``incremental`` method (the whole curve) and by the segment search (the subtrees
 small enough to enumerate, with their bases kept in a :class:`BasisCache`).
