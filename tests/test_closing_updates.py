@@ -143,7 +143,7 @@ def test_the_trap_search_flags_exactly_the_alterations_that_close_or_open_a_clas
     leaves under every alteration (or a base closed class). Those, the ones that change a
     row of a base closed class, and all their extensions are flagged, and no other."""
     from misdirect.core.model import reachable_from
-    from misdirect.solvers.engines.lowrank import _with_extensions
+    from misdirect.solvers.engines.closed_classes import with_extensions
 
     make, top, _ = CASES[case]
     problem = make()
@@ -178,7 +178,7 @@ def test_the_trap_search_flags_exactly_the_alterations_that_close_or_open_a_clas
         can_leave = reachable_from(moves.T.tocsr(), exits)
         closing[a] = not can_leave[changed].all()
         opening[a] = cycles.classes.closed[changed].any()
-    expected = np.flatnonzero(_with_extensions(altered.parent, np.flatnonzero(closing | opening)))
+    expected = np.flatnonzero(with_extensions(altered.parent, np.flatnonzero(closing | opening)))
     assert closing.any()  # the case exercises it
     assert np.array_equal(trap.flagged, expected)
     assert np.array_equal(trap.closes, (closing | opening)[expected])

@@ -166,12 +166,12 @@ def test_searches_whose_enumerations_filter_by_the_bound_still_find_the_optimum(
     tests/test_segment_relaxation.py still certify the exhaustive optimum exactly on random
     models (end components included), small sensor grids and weighted decoys, and the filter
     did leave alterations out."""
-    from misdirect.solvers.engines import lowrank
+    from misdirect.solvers.engines import entry_gain, lowrank
     from test_segment_relaxation import check_bounds, random_suite, small_grids
     from test_weighted_decoys import weighted_random
 
-    monkeypatch.setattr(lowrank, "FILTER_FROM", 0)
-    monkeypatch.setattr(lowrank, "FILTER_PER_STATE", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_FROM", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_PER_STATE", 0)
     left_out = []
     filtered = lowrank.LowRankEnumeration._filtered
 
@@ -198,10 +198,10 @@ def test_an_enumeration_with_a_floor_keeps_every_alteration_that_reaches_it(monk
     it returns beats the floor. Some alterations are left out along the way."""
     from misdirect.core.attack import prepare
     from misdirect.solvers.deadline import Deadline
-    from misdirect.solvers.engines import lowrank
+    from misdirect.solvers.engines import entry_gain, lowrank
 
-    monkeypatch.setattr(lowrank, "FILTER_FROM", 0)
-    monkeypatch.setattr(lowrank, "FILTER_PER_STATE", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_FROM", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_PER_STATE", 0)
     if kind == "turn-back grid":
         problem = sensor_grid(8, 6, seed=1, goal="inside")
     else:
@@ -242,10 +242,10 @@ def test_a_run_with_a_floor_answers_for_its_top_budget_only(monkeypatch):
     the run says it is complete for its own budget, not for the ones below."""
     from misdirect.core.attack import prepare
     from misdirect.solvers.deadline import Deadline
-    from misdirect.solvers.engines import lowrank
+    from misdirect.solvers.engines import entry_gain, lowrank
 
-    monkeypatch.setattr(lowrank, "FILTER_FROM", 0)
-    monkeypatch.setattr(lowrank, "FILTER_PER_STATE", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_FROM", 0)
+    monkeypatch.setattr(entry_gain, "FILTER_PER_STATE", 0)
     problem = sensor_grid(8, 6, seed=1, goal="inside")
     enumeration = lowrank.LowRankEnumeration(prepare(problem, 2.0))
     plain = enumeration.run(2.0, deadline=Deadline(None))

@@ -328,3 +328,17 @@ def test_the_literal_finder_sees_code_not_comments(tmp_path):
     )
     found = [(literal, assigned) for _, literal, assigned in _small_literals(sample)]
     assert found == [("2.5e-10", "LIMIT"), ("1E-7", None)]
+
+
+def test_a_call_deadline_is_built_from_a_time_limit_in_one_place():
+    """``Deadline`` carries a call's time: only ``deadline.call_deadline`` builds one from a
+    ``time_limit`` (a method takes the front door's, :func:`misdirect.solvers.base.
+    method_deadline`), so no method starts a clock of its own beside the call's."""
+    builds = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and ast.unparse(node.func).endswith("Deadline")):
+                continue
+            if "time_limit" in ast.unparse(node):
+                builds.append(f"{name}:{node.lineno}")
+    assert builds and {b.split(":")[0] for b in builds} == {"misdirect.solvers.deadline"}, builds

@@ -615,7 +615,7 @@ def test_a_deadline_inside_the_exact_revaluation_keeps_the_unaltered_answer(monk
     """`solve --scenario paper-grid --size 300 --budget 0..3 --time-limit 10` crashed (a max
     over no candidate): ill-conditioned bases are re-valued exactly, and a deadline passing
     there dropped every candidate, the unaltered one of cost 0 too."""
-    from misdirect.solvers.engines import lowrank
+    from misdirect.solvers.engines import exact_revaluation, lowrank
 
     original = lowrank.LowRankEnumeration._verified
 
@@ -624,6 +624,7 @@ def test_a_deadline_inside_the_exact_revaluation_keeps_the_unaltered_answer(monk
 
     # every low-rank value counted as possibly off by 1: each may be the best, re-valued
     monkeypatch.setattr(lowrank, "update_error", lambda steps, scale: 1.0)
+    monkeypatch.setattr(exact_revaluation, "update_error", lambda steps, scale: 1.0)
     monkeypatch.setattr(lowrank.LowRankEnumeration, "_verified", cut)
     problem = paper_grid(5)
     result = misdirect.solve(problem, method="incremental", budgets=[0, 1, 2])

@@ -33,7 +33,7 @@ from misdirect.solvers.base import ProgressCallback
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.run import BudgetResult, SolveResult, solve
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 __version__ = "0.1.0"
 
@@ -62,6 +62,7 @@ __all__ = [
     "SolveResult",
     "SolverError",
     "Status",
+    "StopReason",
     "audit",
     "build_product",
     "decoy_probability",

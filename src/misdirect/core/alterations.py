@@ -67,6 +67,20 @@ class AlteredEntries(NamedTuple):
         picked[rows, self.choice[mask]] = self.option[mask]
         return picked
 
+    def restricted(self, keep: np.ndarray) -> AlteredEntries:
+        """The alterations ``keep`` selects, renumbered; each one's parent must be kept too
+        (the low-rank updates build every alteration from its parent)."""
+        number = np.cumsum(keep) - 1
+        entries = keep[self.alteration]
+        parent = self.parent[keep]
+        return AlteredEntries(
+            alteration=number[self.alteration[entries]],
+            choice=self.choice[entries],
+            option=self.option[entries],
+            costs=self.costs[keep],
+            parent=np.where(parent >= 0, number[np.maximum(parent, 0)], -1),
+        )
+
 
 def _chunks(counts: np.ndarray, size: int) -> Iterator[slice]:
     """Consecutive slices of ``counts`` whose sums are about ``size`` (at least one item)."""

@@ -18,7 +18,7 @@ import numpy as np
 from misdirect.core.alterations import alteration_space
 from misdirect.core.model import Problem
 from misdirect.errors import ProblemError
-from misdirect.solvers.deadline import CancelToken, Deadline
+from misdirect.solvers.deadline import CancelToken, Deadline, call_deadline
 from misdirect.solvers.options import check_time_limit
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.run import BudgetResult, solve
@@ -80,9 +80,7 @@ def shared_deadline(
     from now, within the caller's ``deadline`` if given; cancelling ``cancel`` (default: the
     deadline's token) stops every one of its solves."""
     check_time_limit(seconds)
-    if deadline is None:
-        return Deadline(seconds, cancel=cancel)
-    return Deadline(seconds, cancel=cancel or deadline.cancel, end=deadline.end)
+    return call_deadline(deadline, seconds, cancel)
 
 
 def attacker_budget(problem: Problem, budget: float | None) -> float:

@@ -44,7 +44,7 @@ from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
@@ -54,7 +54,7 @@ from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import AutoStats, MethodStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 ENUMERATION_LIMIT = 300  # alterations within the budget for plain enumeration
 INCREMENTAL_LIMIT = MAX_ALTERATIONS  # the most the low-rank enumeration is given
@@ -416,7 +416,7 @@ class AutoSolver:
         first (not for budgets an enumeration has just left unproven: it would only start
         over on them); ``below``: a smaller budget's certified answer (where the curve may
         have levelled off, :meth:`BranchAndBoundSolver.solve`)."""
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         facts = _Facts.measure(problem, budgets)
         split = self._split_curve(facts, budgets, deadline, progress) if may_split else None
         if split is not None:
@@ -582,6 +582,8 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
     else:
         status = pick.status
     stats = AutoStats(_answer(pick.stats), why, (first.stats, second.stats))
+    # a stage that finished the budget finished it; else the last stage's stop is the answer's
+    stop = StopReason.FINISHED if finished else second.stop_reason or first.stop_reason
     # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
     closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
     return Solution(
@@ -593,6 +595,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         stats=stats,
         certified_by=(closer if proven else pick).certified_by or "auto",
         notes={**first.notes, **second.notes},  # what each method said of its answer or bound
+        stop_reason=stop,
     )
 
 

@@ -15,9 +15,9 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.memory import available_cores
 from misdirect.core.model import AlterationArray, Problem
-from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.deadline import Deadline, call_deadline
 from misdirect.solvers.stats import MethodStats, NoStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 
 class ProgressCallback(Protocol):
@@ -53,6 +53,9 @@ class Solution:
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
     # what the method says of its answer for the point's notes (why its bound is no proof)
     notes: dict[str, str] = field(default_factory=dict)
+    # how the method's work on this budget ended, in its own words (None: it did not say);
+    # ``status`` is what certification makes of it
+    stop_reason: StopReason | None = None
 
 
 class Solver(Protocol):
@@ -71,6 +74,14 @@ class Solver(Protocol):
         """One :class:`Solution` per budget, in the order given, by ``deadline`` (default:
         no limit). ``status`` says how the method stopped; certification is the front door's."""
         ...
+
+
+def method_deadline(deadline: Deadline | None, time_limit: float | None) -> Deadline:
+    """The deadline a method's ``solve`` runs by: the one it is given (:func:`misdirect.solve`
+    always gives one, with the call's time limit and cancel token in it), else, for a method
+    called on its own, one from its options' ``time_limit``
+    (:func:`~misdirect.solvers.deadline.call_deadline`, where every call's deadline is built)."""
+    return deadline if deadline is not None else call_deadline(None, time_limit)
 
 
 def report(

@@ -41,7 +41,7 @@ from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report, thread_count
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report, thread_count
 from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.covering import CoverRule, covering_bound
@@ -52,7 +52,7 @@ from misdirect.solvers.engines.segment_search import SegmentSearch
 from misdirect.solvers.engines.subtrees import DistributedSegmentSearch
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import BranchAndBoundStats, SegmentStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
@@ -152,7 +152,7 @@ class BranchAndBoundSolver:
         budget (an earlier stage's), the first incumbent; where no seed beats it, the curve
         may have levelled off there, and the largest budget is solved first (see the module
         docstring)."""
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         instance = prepare(problem, max(budgets))
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         curve = _Curve(
@@ -249,6 +249,8 @@ class BranchAndBoundSolver:
             report(progress, step.done, step.total, stage=stage, detail=search.describe())
 
         answer = search.run(limit, tick)
+        # how the per-state search stopped: finished, its node limit, or its time
+        answer = replace(answer, stop_reason=StopReason.of(answer.status, deadline.cancelled))
         if not schedule.segment_has_time(deadline):
             curve.segment_backs_up = False  # too little time left to build and search it
         if answer.status != Status.OPTIMAL and curve.segment_backs_up and curve.segments is None:
@@ -337,6 +339,7 @@ class BranchAndBoundSolver:
             status=Status.OPTIMAL if finished else answer.status,
             upper_bound=value if finished else bound,
             stats=stats,
+            stop_reason=StopReason.of(status, deadline.cancelled),  # the segment search's stop
         )
 
 

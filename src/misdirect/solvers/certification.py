@@ -24,7 +24,7 @@ from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
 from misdirect.core.reachability import Bounded
 from misdirect.solvers.stats import MethodStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 
 class ExactValues:
@@ -108,6 +108,7 @@ class CurvePoint:
     notes: dict[str, str] = field(default_factory=dict)  # what certification says of it
     error_bound: float = 0.0  # proven bound on the error of ``probability`` (inf: none)
     fits: bool = True  # the alteration's exact cost fits ``budget`` (CostModel.fits)
+    stop_reason: StopReason | None = None  # how the method stopped (never judged here)
 
 
 @dataclass(frozen=True)

@@ -91,3 +91,19 @@ class Deadline:
         curve's budgets, smallest first, where the next one is the likelier to finish."""
         left = self.remaining()
         return None if left is None else 2 * left / (max(parts, 1) + 1)
+
+
+def call_deadline(
+    deadline: Deadline | None = None,
+    time_limit: float | None = None,
+    cancel: CancelToken | None = None,
+) -> Deadline:
+    """The deadline of one call (a solve, an audit): a caller's shared ``deadline``, limited
+    further by the call's own ``time_limit`` or ``cancel`` token, or a new one from them. The
+    one place a deadline is built from a call's options, so every method runs by the clock
+    the front door started, not by one of its own."""
+    if deadline is None:
+        return Deadline(time_limit, cancel=cancel)
+    if time_limit is not None or cancel is not None:
+        return Deadline(time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
+    return deadline

@@ -18,12 +18,18 @@ from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Problem
 from misdirect.errors import SolverError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, best_per_budget, report
+from misdirect.solvers.base import (
+    ProgressCallback,
+    Solution,
+    best_per_budget,
+    method_deadline,
+    report,
+)
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import ExhaustiveStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 MAX_EVALUATIONS = 2_000_000  # alterations it takes on (more: it refuses, naming the MILP)
 
@@ -47,7 +53,7 @@ class ExhaustiveSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
         space = prepare(problem, top).space
         enumerated = space.within(top, limit=self.max_evaluations)
@@ -97,6 +103,7 @@ class ExhaustiveSolver:
             else relaxation_bound(problem, top, schedule.closing_bound(deadline))
         )
         top_value = problem.objective.max_value
+        cut = StopReason.cut(deadline.cancelled)
         return [
             Solution(
                 b,
@@ -105,6 +112,8 @@ class ExhaustiveSolver:
                 status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
                 upper_bound=_bound(float(values[i]), proven, bound, worst_error, top_value),
                 stats=stats,
+                # cheapest first: a budget whose every alteration was evaluated is finished
+                stop_reason=StopReason.FINISHED if proven else cut,
             )
             for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]

@@ -28,7 +28,7 @@ from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, thread_count
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, thread_count
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
@@ -39,7 +39,7 @@ from misdirect.solvers.engines.lowrank import (
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import IncrementalStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 __all__ = ["IncrementalSolver", "NotApplicableError"]
 
@@ -70,7 +70,7 @@ class IncrementalSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
         instance = prepare(problem, top)
         enumeration = LowRankEnumeration(
@@ -78,7 +78,16 @@ class IncrementalSolver:
         )
         if not instance.space.choices:
             value = decoy_probability(problem, problem.identity())
-            return [Solution(b, problem.identity(), value, upper_bound=value) for b in budgets]
+            return [
+                Solution(
+                    b,
+                    problem.identity(),
+                    value,
+                    upper_bound=value,
+                    stop_reason=StopReason.FINISHED,
+                )
+                for b in budgets
+            ]
         runs = self._runs(enumeration, budgets, deadline, progress, self.hand_over)
         last = runs[-1][1]
         stats = IncrementalStats(
@@ -96,6 +105,7 @@ class IncrementalSolver:
             else relaxation_bound(problem, top, schedule.closing_bound(deadline))
         )
         solutions = []
+        cut = StopReason.cut(deadline.cancelled)
         for budget, found, finished in zip(budgets, chosen, complete, strict=True):
             within = found.values[found.costs <= problem.cost.scale.cap(budget)]
             if not within.size:  # the deadline left nothing valued within it: alter nothing
@@ -107,6 +117,7 @@ class IncrementalSolver:
                         status=Status.TIME_LIMIT,
                         upper_bound=problem.objective.max_value if relaxed is None else relaxed,
                         stats=stats,
+                        stop_reason=cut,
                     )
                 )
                 continue
@@ -122,6 +133,7 @@ class IncrementalSolver:
                     status=Status.OPTIMAL if finished else Status.TIME_LIMIT,
                     upper_bound=bound,
                     stats=stats,
+                    stop_reason=StopReason.FINISHED if finished else cut,
                 )
             )
         return solutions

@@ -34,11 +34,11 @@ from misdirect.solvers.certification import (
     exact_scope,
     take_evidence,
 )
-from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError, call_deadline
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 if TYPE_CHECKING:
     from misdirect.core.notebook import Table, View
@@ -77,6 +77,11 @@ class BudgetResult:
         The method whose answer or bound proved the point optimal.
     error_bound : float or None
         A proven bound on the error of :attr:`probability` on the chain as built.
+    stop_reason : StopReason or None
+        How the method's work on this budget ended, in its own words: ``finished``, ``time``,
+        ``nodes`` (a search's node limit), ``gap`` (the MILP's gap) or ``cancelled``; None
+        where no method said. Only certification makes a point ``optimal``: a finished method
+        may still leave it ``feasible``, and a point may be proven after a method's ``time``.
     """
 
     budget: float
@@ -93,6 +98,7 @@ class BudgetResult:
     certified_by: str | None = None  # auto: the method whose answer (or bound) this is
     # proven bound on the error of ``probability`` on the chain as built; None: none proven
     error_bound: float | None = 0.0
+    stop_reason: StopReason | None = None  # how the method stopped, before certification
 
     @property
     def gap(self) -> float | None:
@@ -149,6 +155,7 @@ class BudgetResult:
             "gap": self.gap,
             "certified_by": self.certified_by,
             "certification": dict(self.notes),
+            "stop_reason": None if self.stop_reason is None else str(self.stop_reason),
         }
         if stats:
             shown["stats"] = {k: v for k, v in self.stats.to_dict().items() if k != "auto_reason"}
@@ -345,6 +352,7 @@ class SolveResult:
             **{k: final[k] for k in ("upper_bound", "gap", "error_bound")},
             "method": self.method,
             "certified_by": final["certified_by"],
+            "stop_reason": final["stop_reason"],
             "budget_clamped_from": self.budget_clamped_from,
             "budget_clamped_to": self.budget_clamped_to,
             "interrupted": self.interrupted,
@@ -525,7 +533,7 @@ def solve(
         problem = problem.with_budget(cap)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
-    deadline = _call_deadline(deadline, options.time_limit, cancel)
+    deadline = call_deadline(deadline, options.time_limit, cancel)
     started = time.perf_counter()
     exact_value = ExactValues(problem)  # every exact value of this call: the stages' and ours
     # the stages of this call share each prepared instance, and the exact values; building
@@ -539,7 +547,7 @@ def solve(
     interrupted = deadline.cancelled
     elapsed = time.perf_counter() - started  # the search's time: exact values come on top
     if solutions is None:
-        solutions = _unaltered_solutions(problem, clamped, exact_value)
+        solutions = _unaltered_solutions(problem, clamped, exact_value, interrupted)
     if clamped_from is not None:
         by_budget = {solution.budget: solution for solution in solutions}
         solutions = [
@@ -567,23 +575,13 @@ def solve(
     )
 
 
-def _call_deadline(
-    deadline: Deadline | None, time_limit: float | None, cancel: CancelToken | None
-) -> Deadline:
-    """The deadline of one :func:`solve` call: a caller's shared one, limited further by the
-    call's own time limit or cancel token, or a new one from them."""
-    if deadline is None:
-        return Deadline(time_limit, cancel=cancel)
-    if time_limit is not None or cancel is not None:
-        return Deadline(time_limit, cancel=cancel or deadline.cancel, end=deadline.end)
-    return deadline
-
-
 def _unaltered_solutions(
-    problem: Problem, budgets: Sequence[float], exact_value: ExactValues
+    problem: Problem, budgets: Sequence[float], exact_value: ExactValues, cancelled: bool
 ) -> list[Solution]:
     """Answers for a call cut before its method had any: the unaltered chain, proven where no
-    alteration fits the budget (then it is all there is), else open at the trivial bound."""
+    alteration fits the budget (then it is all there is), else open at the trivial bound. The
+    method stopped by time, or (``cancelled``) on request, either way."""
+    stop = StopReason.cut(cancelled)
     cheapest = problem.cheapest_alteration_cost()
     unaltered_value = exact_value(problem.identity())
     return [
@@ -593,6 +591,7 @@ def _unaltered_solutions(
             solver_probability=unaltered_value,
             status=Status.OPTIMAL,
             upper_bound=unaltered_value,
+            stop_reason=stop,
         )
         if not problem.cost.scale.fits(cheapest, b)
         else Solution(
@@ -601,6 +600,7 @@ def _unaltered_solutions(
             solver_probability=None,
             status=Status.TIME_LIMIT,
             upper_bound=problem.objective.max_value,  # nothing proven: the trivial bound
+            stop_reason=stop,
         )
         for b in budgets
     ]
@@ -632,6 +632,7 @@ def _exact_curve(
             stats=solution.stats,
             certified_by=solution.certified_by,
             notes=dict(solution.notes),
+            stop_reason=solution.stop_reason,
         )
         warnings += check_claims(point, method, scale, _floor(problem))
         curve.append(point)
@@ -671,6 +672,7 @@ def _point(answer: BudgetResult) -> CurvePoint:
         certified_by=answer.certified_by,
         notes=dict(answer.notes),
         error_bound=math.inf if answer.error_bound is None else answer.error_bound,
+        stop_reason=answer.stop_reason,
     )
 
 
@@ -741,4 +743,5 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         alteration_array=Alteration(point.alteration, problem.pomdp.observations),
         certified_by=point.certified_by,
         error_bound=point.error_bound if math.isfinite(point.error_bound) else None,
+        stop_reason=point.stop_reason,
     )

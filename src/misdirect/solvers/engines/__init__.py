@@ -11,6 +11,12 @@
   heap, with small subtrees enumerated.
 * ``lowrank`` and ``lowrank_updates``: the enumeration of every alteration within a budget by
   low-rank updates of one base solve per outer choice.
+* ``closed_classes``: a base chain's closed classes, and the enumeration's trap handling
+  (which alterations may close or open a class, so that no update divides by a singular
+  system).
+* ``entry_gain``: the first-entry gain bound, and the enumeration's floor filter built on it.
+* ``exact_revaluation``: the enumeration's exact-valuation guard (alterations its low-rank
+  values cannot vouch for, valued on their own chains).
 
 Engines import no method; methods import engines, never each other (tests/test_layers.py).
 """

@@ -28,21 +28,28 @@ a changed row in each new class; emptying the changed rows the search found trap
 0, which they have) leaves the base's closed classes only, so its low-rank update of the
 base is again the least fixed point. One that changes a row of a base closed class may open
 it, and is valued exactly, one chain each.
+
+:class:`TrapSearch` asks these questions for the low-rank enumeration
+(:mod:`misdirect.solvers.engines.lowrank`): a base's closed classes and unsafe options, whether
+a kept basis with some options fixed keeps its classes, and which of a block's alterations
+the batch must leave out (:class:`Trap`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, shortest_path
 
+from misdirect.core.alterations import AlteredEntries, rank_in_group
 from misdirect.core.jit import njit
 from misdirect.core.model import reachable_from, with_super_source
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.lowrank_updates import RowDeltas
 
 
 @dataclass(frozen=True)
@@ -408,3 +415,243 @@ def closing_alterations(
         changed_group.astype(np.int64),
     )
     return Traps(closes, emptied)
+
+
+# The trap handling of the low-rank enumeration (misdirect.solvers.engines.lowrank): which of
+# a block's alterations may close or open a class, found before its batch of low-rank updates
+# divides by a singular system.
+
+TRAP_BATCH = 100_000  # alterations per trap search between two looks at the deadline
+
+
+class Cycles(NamedTuple):
+    """What a base chain with end components needs besides its solve: its closed classes and
+    safe states, the options that may close a class, and the live state and new group of every
+    row slot of its :class:`~misdirect.solvers.engines.lowrank_updates.RowDeltas` (the changed
+    rows, for the trap search)."""
+
+    classes: ClosedClasses
+    base_groups: np.ndarray
+    unsafe: np.ndarray
+    slot_state: np.ndarray
+    slot_group: np.ndarray
+
+
+class Trap(NamedTuple):
+    """The alterations of a block the batch leaves out (``flagged``: those that may close or
+    open a class, and their extensions; every one that takes an unsafe option when the deadline
+    cut the search short), their row slots (``slots``, each owned by ``owner``, ``counts`` per
+    alteration), and which of them may close a class (``closes``; None when cut short): those
+    that change a row of a base closed class (``touched``), and the others, whose changed rows
+    that can no longer reach the decoy ``emptied`` marks (per row slot)."""
+
+    flagged: np.ndarray
+    slots: np.ndarray
+    owner: np.ndarray
+    counts: np.ndarray
+    closes: np.ndarray | None
+    touched: np.ndarray | None = None
+    emptied: np.ndarray | None = None
+
+
+def with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """Mask of the alterations ``roots`` and every alteration that extends one of them (whose
+    chain of parents reaches it): the low-rank batch builds each alteration from its parent,
+    so an alteration that closes a class takes its extensions out of the batch with it."""
+    marked = np.zeros(parent.size, dtype=bool)
+    marked[roots] = True
+    has_parent = parent >= 0
+    while True:
+        grown = marked | (has_parent & marked[np.maximum(parent, 0)])
+        if (grown == marked).all():
+            return marked
+        marked = grown
+
+
+def opening(cycles: Cycles, table: RowDeltas) -> np.ndarray:
+    """Per (choice, option), whether it changes a row of a base closed class (may open it):
+    such an alteration's chain may not keep the base's closed classes, so no update of the
+    base values it."""
+    in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
+    return cast(
+        np.ndarray, in_closed[table.flat_start + table.flat_length] > in_closed[table.flat_start]
+    )
+
+
+def taking(altered: AlteredEntries, marked: np.ndarray) -> np.ndarray:
+    """Per alteration, whether it takes some option that ``marked[choice, option]`` marks."""
+    taken = np.zeros(altered.costs.size, dtype=bool)
+    taken[altered.alteration[marked[altered.choice, altered.option]]] = True
+    return taken
+
+
+class TrapSearch:
+    """The closed-class questions one enumeration asks of its base chains, on its transitions
+    into live states (``inside``, an empty last row: ``closed_group``) and their ``leaks``:
+    kept apart from the enumeration because they decide *whether* a low-rank value is the least
+    fixed point, not what it is."""
+
+    def __init__(self, inside: sp.csr_matrix, leaks: np.ndarray, closed_group: int):
+        self.inside = inside
+        self.leaks = leaks
+        self.closed_group = closed_group
+
+    def closing(
+        self,
+        base_groups: np.ndarray,
+        option_groups: list[np.ndarray],
+        regions: list[np.ndarray],
+        deadline: Deadline | None = None,
+    ) -> tuple[np.ndarray, list[np.ndarray], tuple[ClosedClasses, np.ndarray]]:
+        """A base with end components: its closed classes take the empty group (their values
+        are 0, so the system on the other live states is non-singular), and so does every
+        option that leaves such a row as it is; with the closed classes, the options that may
+        close a class (:func:`unsafe_options`)."""
+        repeated = (np.repeat(r, g.shape[1]) for r, g in zip(regions, option_groups, strict=True))
+        inner_rows = (
+            np.concatenate([np.zeros(0, dtype=np.int64), *repeated]),
+            np.concatenate([np.zeros(0, dtype=np.int64), *(g.ravel() for g in option_groups)]),
+        )
+        classes = closed_classes(self.inside, self.leaks, base_groups, inner_rows, deadline)
+        unsafe = unsafe_options(
+            classes, self.inside, self.leaks, option_groups, base_groups, regions
+        )
+        closed_base = np.where(classes.closed, self.closed_group, base_groups)
+        option_groups = [
+            np.where(g == base_groups[region][:, None], closed_base[region][:, None], g)
+            for g, region in zip(option_groups, regions, strict=True)
+        ]
+        return closed_base, option_groups, (classes, unsafe)
+
+    @staticmethod
+    def cycles(
+        closing: tuple[ClosedClasses, np.ndarray] | None,
+        base_groups: np.ndarray,
+        deltas: RowDeltas,
+        inner_rows: np.ndarray,
+    ) -> Cycles | None:
+        """The :class:`Cycles` of a base: its row slots' live states (``inner_rows``: the
+        live state of each column of ``W``) and new groups, as ``deltas`` lists them."""
+        if closing is None:
+            return None
+        slots = deltas.column[:-1]  # without the pad
+        return Cycles(closing[0], base_groups, closing[1], inner_rows[slots], deltas.group[:-1])
+
+    def keeps_classes(
+        self,
+        cycles: Cycles,
+        table: RowDeltas,
+        fixed: list[tuple[int, int]],
+        slots: np.ndarray,
+    ) -> bool:
+        """Whether the kept basis's chain with the options ``fixed`` (their row ``slots``)
+        has exactly the basis's closed classes: none of them changes a row of one (which may
+        open it), and the trap search from their changed rows finds no new one. Then the
+        basis updated in low rank is the block's base, and a class closed by an inner
+        alteration holds one of its changed rows, as the block's trap search assumes. An
+        option that only *may* close a class rarely does (on the drones among patrolling
+        agents, the search's subtrees fixed such options hundreds of times, each a new base
+        solve)."""
+        if not any(cycles.unsafe[j, k] for j, k in fixed):
+            return True
+        opens = opening(cycles, table)
+        if any(opens[j, k] for j, k in fixed):
+            return False
+        traps = closing_alterations(
+            self.inside,
+            self.leaks,
+            cycles.classes,
+            cycles.base_groups,
+            np.array([0, slots.size]),
+            cycles.slot_state[slots],
+            cycles.slot_group[slots],
+        )
+        return not bool(traps.closes[0])
+
+    def search(
+        self,
+        altered: AlteredEntries,
+        cycles: Cycles,
+        table: RowDeltas,
+        fixed_rows: tuple[np.ndarray, np.ndarray] | None,
+        deadline: Deadline,
+    ) -> Trap:
+        """The alterations of a block that may close a class or open one, with every extension
+        of those (the batch leaves them all out), their row slots, and which of them may close
+        a class (``closes``; None when ``deadline`` cut the search short: ``flagged`` then
+        lists every alteration that takes an unsafe option). ``table``: the block's row
+        differences; ``fixed_rows``: the rows (live state, group) every alteration of the
+        block takes."""
+        n_alterations = altered.costs.size
+        risky = taking(altered, cycles.unsafe)
+        candidates = np.flatnonzero(risky)
+        entries = np.flatnonzero(risky[altered.alteration])  # grouped by alteration
+        counts = np.bincount(altered.alteration[entries], minlength=n_alterations)[candidates]
+        start = np.concatenate([[0], np.cumsum(counts)])
+        closing = np.zeros(candidates.size, dtype=bool)
+        for lo in range(0, candidates.size, TRAP_BATCH):
+            if deadline.expired():
+                none = np.zeros(0, dtype=np.int64)
+                return Trap(candidates, none, none, none, None)
+            hi = min(lo + TRAP_BATCH, candidates.size)
+            part = entries[start[lo] : start[hi]]
+            closing[lo:hi] = may_close(
+                self.inside,
+                self.leaks,
+                cycles.classes,
+                cycles.base_groups,
+                (start[lo : hi + 1] - start[lo], altered.choice[part], altered.option[part]),
+                (table.flat_start, table.flat_length),
+                (cycles.slot_state, cycles.slot_group),
+                fixed_rows,
+            )
+        # an option that changes a row of a base closed class may open it: its alterations are
+        # valued apart (the enumeration's _value_flagged)
+        opens = opening(cycles, table)
+        roots = np.union1d(candidates[closing], np.flatnonzero(taking(altered, opens) & risky))
+        flagged = np.flatnonzero(with_extensions(altered.parent, roots))
+        return self.details(flagged, altered, cycles, table, fixed_rows, deadline)
+
+    def details(
+        self,
+        flagged: np.ndarray,
+        altered: AlteredEntries,
+        cycles: Cycles,
+        table: RowDeltas,
+        fixed_rows: tuple[np.ndarray, np.ndarray] | None,
+        deadline: Deadline,
+    ) -> Trap:
+        """The trap search's details for the alterations ``flagged`` (few: those that may close
+        or open a class, and their extensions): their row slots, which of them may close a
+        class, and the changed rows found trapped."""
+        entries = np.flatnonzero(np.isin(altered.alteration, flagged))
+        choice, option = altered.choice[entries], altered.option[entries]
+        lengths = table.flat_length[choice, option]
+        slots = np.repeat(table.flat_start[choice, option], lengths) + rank_in_group(lengths)
+        owner = np.searchsorted(flagged, np.repeat(altered.alteration[entries], lengths))
+        counts = np.bincount(owner, minlength=flagged.size)
+        start = np.concatenate([[0], np.cumsum(counts)])
+        closes = np.zeros(flagged.size, dtype=bool)
+        emptied = np.zeros(slots.size, dtype=bool)
+        for lo in range(0, flagged.size, TRAP_BATCH):
+            if deadline.expired():
+                return Trap(flagged, slots, owner, counts, None)
+            hi = min(lo + TRAP_BATCH, flagged.size)
+            part = slots[start[lo] : start[hi]]
+            traps = closing_alterations(
+                self.inside,
+                self.leaks,
+                cycles.classes,
+                cycles.base_groups,
+                start[lo : hi + 1] - start[lo],
+                cycles.slot_state[part],
+                cycles.slot_group[part],
+                fixed_rows,
+            )
+            closes[lo:hi] = traps.closes
+            emptied[start[lo] : start[hi]] = traps.emptied
+        # one that changes a row of a closed class may open it: valued exactly too
+        touched = cycles.classes.closed[cycles.slot_state[slots]]
+        touched = np.bincount(owner, weights=touched, minlength=flagged.size) > 0
+        closes |= touched
+        return Trap(flagged, slots, owner, counts, closes, touched, emptied)

@@ -19,7 +19,8 @@ chain too ill-conditioned for doubles gets loose gains, never wrong ones.
 
 :func:`entry_gains` counts every entry (one solve of the base chain);
 :func:`first_entry_gains` counts each region's first entry only, which is tighter where runs
-circle back and costs one factorisation per region.
+circle back and costs one factorisation per region. :func:`floor_filter` drops, from an
+enumeration's block, the alterations whose bound cannot reach a value already reached.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU
 
 from misdirect.core import residual, tolerance
+from misdirect.core.alterations import AlteredEntries
 from misdirect.core.reachability import factorise, steps_bound
 
 UNIT_ROUNDOFF = residual.UNIT_ROUNDOFF
@@ -287,3 +289,51 @@ def first_entry_gains(
         if np.isfinite(proven):
             gains[s] = min(gains[s], max(proven, 0.0) * (1 + 4 * UNIT_ROUNDOFF))
     return EntryGains(base.value, gains)
+
+
+# The floor filter of the low-rank enumeration (misdirect.solvers.engines.lowrank): a block
+# with a floor lists at least this many alterations, and this many per live state (the gains
+# cost about one solve of its base chain), before the gain bound filters them
+FILTER_FROM = 20_000
+FILTER_PER_STATE = 4
+
+
+def worth_filtering(count: int, live_states: int) -> bool:
+    """Whether a block of ``count`` alterations on a chain of ``live_states`` is big enough
+    for the floor filter: its gains cost about one solve of the block's base chain, which a
+    small block would not repay."""
+    return count >= max(FILTER_FROM, FILTER_PER_STATE * live_states)
+
+
+class FloorFiltered(NamedTuple):
+    """What the floor filter kept: the alterations (renumbered), which of them may reach the
+    floor (the others are kept only as parents), and how many it left out."""
+
+    altered: AlteredEntries
+    reaches: np.ndarray
+    dropped: int
+
+
+def floor_filter(altered: AlteredEntries, bound: np.ndarray, floor: float) -> FloorFiltered:
+    """``altered`` without the alterations whose gain ``bound`` (per alteration, proven from
+    above) cannot reach ``floor``: valuing them could not change the answer, since some
+    alteration already reaches the floor. Those within a near-tie of ``floor`` may (the
+    cheaper of tied ones wins); every parent of one that may is kept too (the low-rank
+    updates build each alteration from its parent), but need not be valued exactly."""
+    count = len(altered.costs)
+    reaches = bound >= floor - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
+    keep = reaches.copy()
+    keep[0] = True  # the base itself: every alteration's ancestor
+    marked = keep
+    while True:  # every ancestor of one kept (as deep as the budget allows)
+        parents = altered.parent[marked]
+        parents = parents[(parents >= 0) & ~keep[np.maximum(parents, 0)]]
+        if not parents.size:
+            break
+        keep[parents] = True
+        marked = np.zeros(count, dtype=bool)
+        marked[parents] = True
+    dropped = int(count - keep.sum())
+    if keep.all():
+        return FloorFiltered(altered, reaches, dropped)
+    return FloorFiltered(altered.restricted(keep), reaches[keep], dropped)

@@ -14,7 +14,11 @@ its own low-rank update, with its changed rows that can no longer reach the deco
 (value 0); one that changes a row of a base closed class (which it may open) is valued
 exactly, one chain each (:mod:`misdirect.solvers.engines.closed_classes`). Values within
 :data:`~misdirect.core.tolerance.NEAR_TIE` of the best count as tied (the cheapest wins);
-every value reported is re-computed exactly by the front door.
+where a base is too ill-conditioned for its low-rank values to rank them, the candidates are
+valued exactly first (:mod:`misdirect.solvers.engines.exact_revaluation`); with a floor, the
+alterations the gain bound proves below it are left out
+(:func:`~misdirect.solvers.engines.entry_gain.floor_filter`). Every value reported is
+re-computed exactly by the front door.
 
 Used by the ``incremental`` method (the whole curve) and by the segment search (the subtrees
 small enough to enumerate, with their bases kept in a :class:`BasisCache`).
@@ -38,12 +42,9 @@ from misdirect.core.alterations import (
     AlterationSpace,
     AlteredEntries,
     ObservationChoices,
-    rank_in_group,
 )
 from misdirect.core.attack import AttackInstance
-from misdirect.core.elimination import fill_reducing_rank
 from misdirect.core.memory import memory_limit
-from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import SolverError
 from misdirect.solvers.base import (
     DEFAULT_THREADS,
@@ -55,17 +56,25 @@ from misdirect.solvers.base import (
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.closed_classes import (
     ClosedClasses,
-    closed_classes,
-    closing_alterations,
+    Cycles,
+    Trap,
+    TrapSearch,
     group_leaks,
-    may_close,
-    unsafe_options,
+    opening,
+    with_extensions,
 )
 from misdirect.solvers.engines.entry_gain import (
     EntryGains,
     GainsOf,
     entry_gains,
     first_entry_gains,
+    floor_filter,
+    worth_filtering,
+)
+from misdirect.solvers.engines.exact_revaluation import (
+    ExactChains,
+    guard_ill_conditioned,
+    value_one_chain_each,
 )
 from misdirect.solvers.engines.lowrank_updates import (
     BaseRows,
@@ -90,12 +99,7 @@ INNER_ROWS_MAX = 3_000  # ... up to this many (the corrections grow with their s
 INNER_BLOCK = 64  # ... and each at most this many (a bigger one is cheaper as an outer one)
 MAX_ALTERATIONS = 12_000_000  # listed sparsely, their tables stay within a few GiB
 BASES_KEPT = 8  # base chains a search keeps between its enumerations (one per blank pick)
-TRAP_BATCH = 100_000  # alterations per trap search between two looks at the deadline
 FIRST_ENTRY_SHARE = 0.05  # of the time left: the root chain's first-entry gains, at most
-# a block with a floor lists at least this many alterations, and this many per live state
-# (the gains cost about one solve of its base chain), before the gain bound filters them
-FILTER_FROM = 20_000
-FILTER_PER_STATE = 4
 OPENED_BLOCK_FROM = 16  # alterations opening a base closed class by one option: from this many
 # on they are a block of their own (that option fixed, its base solved once, the rest by low
 # rank); fewer are valued one chain each (a base solve costs several single chains)
@@ -170,85 +174,14 @@ class Enumerated:
         )
 
 
-class _Cycles(NamedTuple):
-    """What a base chain with end components needs besides its solve: its closed classes and
-    safe states, the options that may close a class, and the live state and new group of every
-    row slot of its :class:`RowDeltas` (the changed rows, for the trap search)."""
-
-    classes: ClosedClasses
-    base_groups: np.ndarray
-    unsafe: np.ndarray
-    slot_state: np.ndarray
-    slot_group: np.ndarray
-
-
-class _Trap(NamedTuple):
-    """The alterations of a block the batch leaves out (``flagged``: those that may close or
-    open a class, and their extensions; every one that takes an unsafe option when the deadline
-    cut the search short), their row slots (``slots``, each owned by ``owner``, ``counts`` per
-    alteration), and which of them may close a class (``closes``; None when cut short): those
-    that change a row of a base closed class (``touched``), and the others, whose changed rows
-    that can no longer reach the decoy ``emptied`` marks (per row slot)."""
-
-    flagged: np.ndarray
-    slots: np.ndarray
-    owner: np.ndarray
-    counts: np.ndarray
-    closes: np.ndarray | None
-    touched: np.ndarray | None = None
-    emptied: np.ndarray | None = None
-
-
 class _KeptBasis(NamedTuple):
     basis: Basis
-    cycles: _Cycles | None
-
-
-def _with_extensions(parent: np.ndarray, roots: np.ndarray) -> np.ndarray:
-    """Mask of the alterations ``roots`` and every alteration that extends one of them (whose
-    chain of parents reaches it)."""
-    marked = np.zeros(parent.size, dtype=bool)
-    marked[roots] = True
-    has_parent = parent >= 0
-    while True:
-        grown = marked | (has_parent & marked[np.maximum(parent, 0)])
-        if (grown == marked).all():
-            return marked
-        marked = grown
-
-
-def _opening(cycles: _Cycles, table: RowDeltas) -> np.ndarray:
-    """Per (choice, option), whether it changes a row of a base closed class (may open it)."""
-    in_closed = np.concatenate([[0], np.cumsum(cycles.classes.closed[cycles.slot_state])])
-    return cast(
-        np.ndarray, in_closed[table.flat_start + table.flat_length] > in_closed[table.flat_start]
-    )
-
-
-def _taking(altered: AlteredEntries, marked: np.ndarray) -> np.ndarray:
-    """Per alteration, whether it takes some option that ``marked[choice, option]`` marks."""
-    taking = np.zeros(altered.costs.size, dtype=bool)
-    taking[altered.alteration[marked[altered.choice, altered.option]]] = True
-    return taking
-
-
-def _restricted(altered: AlteredEntries, keep: np.ndarray) -> AlteredEntries:
-    """The alterations ``keep`` selects, renumbered; each one's parent must be kept too."""
-    number = np.cumsum(keep) - 1
-    entries = keep[altered.alteration]
-    parent = altered.parent[keep]
-    return AlteredEntries(
-        alteration=number[altered.alteration[entries]],
-        choice=altered.choice[entries],
-        option=altered.option[entries],
-        costs=altered.costs[keep],
-        parent=np.where(parent >= 0, number[np.maximum(parent, 0)], -1),
-    )
+    cycles: Cycles | None
 
 
 class _BlockBase(NamedTuple):
     """A block's base chain: the value at the start, its row of ``W``, the row differences
-    of the inner options, and (with end components) its :class:`_Cycles`, the rows its
+    of the inner options, and (with end components) its :class:`Cycles`, the rows its
     fixed inner picks change (live states, groups), and its rows of ``x0`` and ``W`` on
     demand, which value the alterations that close a class
     (:func:`~misdirect.solvers.engines.lowrank_updates.flagged_values`)."""
@@ -256,7 +189,7 @@ class _BlockBase(NamedTuple):
     x_start: float
     w_start: np.ndarray | None
     deltas: RowDeltas
-    cycles: _Cycles | None = None
+    cycles: Cycles | None = None
     fixed_rows: tuple[np.ndarray, np.ndarray] | None = None
     rows: BaseRows | None = None
     steps: float = np.inf  # proven bound on the base chain's expected steps (its conditioning)
@@ -419,17 +352,25 @@ class LowRankEnumeration:
         # with end components: closed classes get an empty row (this extra group) in the base
         self.cycling = bool(instance.cycling.any())
         self.closed_group = chain.transitions.shape[0]
-        # alterations valued one chain each: those that could close a class, whose low-rank
-        # update was ill-conditioned, or that might be the best on an ill-conditioned base
-        self.exact_evaluations = 0
+        # alterations valued one chain each (exactly, :attr:`exact_evaluations`): those that
+        # could close a class, whose low-rank update was ill-conditioned, or that might be the
+        # best on an ill-conditioned base
+        self._exact = ExactChains(instance, self._chain_of)
         self.trap_updates = 0  # alterations that close a class, valued by low rank
         self.opened_blocks = 0  # blocks of alterations that open a base closed class
         self.filtered = 0  # alterations a floor and the gain bound left unvalued
         self._root_lock = threading.Lock()  # the root chain's first-entry gains, once
         self._root_first: EntryGains | None = None
-        # chains valued one by one, [unproven, proven]: where most run too long for a proof,
-        # each is eliminated first and an LU is tried only on those that might be proven
-        self._proofs = [0, 0]
+
+    @property
+    def exact_evaluations(self) -> int:
+        """Alterations valued one chain each, exactly (:mod:`.exact_revaluation`)."""
+        return self._exact.evaluations
+
+    @cached_property
+    def _traps(self) -> TrapSearch:
+        """The closed-class questions of this enumeration's bases (:mod:`.closed_classes`)."""
+        return TrapSearch(self._inside, self._leaks, self.closed_group)
 
     @cached_property
     def _inside(self) -> sp.csr_matrix:
@@ -461,35 +402,7 @@ class LowRankEnumeration:
         (:func:`~misdirect.solvers.engines.closed_classes.unsafe_options`)."""
         if not self.cycling:
             return base_groups, option_groups, None
-        repeated = (np.repeat(r, g.shape[1]) for r, g in zip(regions, option_groups, strict=True))
-        inner_rows = (
-            np.concatenate([np.zeros(0, dtype=np.int64), *repeated]),
-            np.concatenate([np.zeros(0, dtype=np.int64), *(g.ravel() for g in option_groups)]),
-        )
-        classes = closed_classes(self._inside, self._leaks, base_groups, inner_rows, deadline)
-        unsafe = unsafe_options(
-            classes, self._inside, self._leaks, option_groups, base_groups, regions
-        )
-        closed_base = np.where(classes.closed, self.closed_group, base_groups)
-        option_groups = [
-            np.where(g == base_groups[region][:, None], closed_base[region][:, None], g)
-            for g, region in zip(option_groups, regions, strict=True)
-        ]
-        return closed_base, option_groups, (classes, unsafe)
-
-    @staticmethod
-    def _cycles(
-        closing: tuple[ClosedClasses, np.ndarray] | None,
-        base_groups: np.ndarray,
-        deltas: RowDeltas,
-        inner_rows: np.ndarray,
-    ) -> _Cycles | None:
-        """The :class:`_Cycles` of a base: its row slots' live states (``inner_rows``: the
-        live state of each column of ``W``) and new groups, as ``deltas`` lists them."""
-        if closing is None:
-            return None
-        slots = deltas.column[:-1]  # without the pad
-        return _Cycles(closing[0], base_groups, closing[1], inner_rows[slots], deltas.group[:-1])
+        return self._traps.closing(base_groups, option_groups, regions, deadline)
 
     @cached_property
     def _live_node(self) -> np.ndarray:
@@ -712,45 +625,20 @@ class LowRankEnumeration:
         self, found: Enumerated, steps: float, deadline: Deadline, floor: float | None = None
     ) -> Enumerated:
         """``found`` with every alteration that may be the best within some budget valued
-        exactly, when its base chains are so ill-conditioned (left after up to ``steps``
-        expected steps) that low-rank values may be off by more than near-ties allow
-        (:func:`~misdirect.solvers.engines.lowrank_updates.update_error`, ``M``).
-
-        Those are the alterations within ``2M`` of the best value at their cost or less: any
-        other is at least ``2M`` below one of them, so, off by at most ``M`` each way, below
-        its exact value. With ``floor`` (the run answers for its top budget only, and only
-        about what may reach the floor), also not those more than ``2M`` below it. Those the
-        deadline leaves are unvalued (cost ``inf``), as a block cut short leaves them: their
-        budgets are not proven. One of cost 0 is kept, unverified, whatever the deadline: it
-        fits every budget, so budget 0 always has an answer (the unaltered alteration is
-        re-valued exactly by the front door); alone at cost 0 it proves budget 0 unranked."""
-        top_value = self.instance.problem.objective.max_value
-        margin = update_error(steps, top_value)
-        precise = margin <= tolerance.slack(top_value, rel=tolerance.NEAR_TIE) / 10
-        if precise or not found.values.size:
-            return found
-        costs, values = found.costs, found.values
-        order = np.lexsort((-values, costs))  # by cost, the best first among equal costs
-        best_so_far = np.maximum.accumulate(values[order])
-        candidates = order[values[order] >= best_so_far - 2 * margin]
-        candidates = candidates[np.isfinite(costs[candidates])]
-        if floor is not None:
-            least = floor - 2 * margin - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
-            candidates = candidates[values[candidates] >= least]
-        unevaluated = found.unevaluated
-        free = costs <= found.scale.cap(0.0)
-        # an unverified free alteration competes at every budget; alone, not at budget 0
-        free_open = float(costs[~free].min(initial=np.inf)) if free.sum() == 1 else 0.0
-        for index in candidates[np.argsort(-values[candidates], kind="stable")].tolist():
-            if deadline.expired():
-                if free[index]:
-                    unevaluated = min(unevaluated, free_open)
-                    continue
-                unevaluated = min(unevaluated, float(costs[index]))
-                costs[index] = np.inf
-                continue
-            values[index] = min(max(self._exact_value(found.picks(index)), 0.0), top_value)
-            self.exact_evaluations += 1
+        exactly when its base chains (up to ``steps`` expected steps) are too ill-conditioned
+        for its low-rank values to rank it
+        (:func:`~misdirect.solvers.engines.exact_revaluation.guard_ill_conditioned`)."""
+        unevaluated = guard_ill_conditioned(
+            found.costs,
+            found.values,
+            found.unevaluated,
+            found.scale,
+            steps,
+            self.instance.problem.objective.max_value,
+            lambda index: self._exact.value(found.picks(index)),
+            deadline,
+            floor,
+        )
         return dataclasses.replace(found, unevaluated=unevaluated)
 
     def _outer_blocks(
@@ -822,34 +710,14 @@ class LowRankEnumeration:
 
     def _keeps_classes(
         self,
-        cycles: _Cycles,
+        cycles: Cycles,
         table: RowDeltas,
         fixed: list[tuple[int, int]],
         slots: np.ndarray,
     ) -> bool:
         """Whether the kept basis's chain with the options ``fixed`` (their row ``slots``)
-        has exactly the basis's closed classes: none of them changes a row of one (which may
-        open it), and the trap search from their changed rows finds no new one. Then the
-        basis updated in low rank is the block's base, and a class closed by an inner
-        alteration holds one of its changed rows, as the block's trap search assumes. An
-        option that only *may* close a class rarely does (on the drones among patrolling
-        agents, the search's subtrees fixed such options hundreds of times, each a new base
-        solve)."""
-        if not any(cycles.unsafe[j, k] for j, k in fixed):
-            return True
-        opens = _opening(cycles, table)
-        if any(opens[j, k] for j, k in fixed):
-            return False
-        traps = closing_alterations(
-            self._inside,
-            self._leaks,
-            cycles.classes,
-            cycles.base_groups,
-            np.array([0, slots.size]),
-            cycles.slot_state[slots],
-            cycles.slot_group[slots],
-        )
-        return not bool(traps.closes[0])
+        has exactly the basis's closed classes (:meth:`.TrapSearch.keeps_classes`)."""
+        return self._traps.keeps_classes(cycles, table, fixed, slots)
 
     def _solved_base(
         self, chosen: np.ndarray, inner: list[int], deadline: Deadline | None = None
@@ -877,7 +745,7 @@ class LowRankEnumeration:
             x0,
             W,
         )
-        cycles = self._cycles(closing, base_groups, deltas, self.live_index[rows])
+        cycles = TrapSearch.cycles(closing, base_groups, deltas, self.live_index[rows])
         if start < 0:
             return _BlockBase(0.0, None, deltas, cycles, steps=steps)
         if cycles is None:
@@ -914,7 +782,7 @@ class LowRankEnumeration:
             keep_rows=closing is not None,  # rows on demand: only where classes may close
         )
         inner_rows = np.concatenate([np.zeros(0, dtype=np.int64), *regions]).astype(np.int64)
-        cycles = self._cycles(closing, root_groups, basis.options, inner_rows)
+        cycles = TrapSearch.cycles(closing, root_groups, basis.options, inner_rows)
         return _KeptBasis(basis, cycles)
 
     def _rows_within(self, choices: list[int]) -> np.ndarray:
@@ -939,7 +807,7 @@ class LowRankEnumeration:
         With ``floor``, those proven to be worth less are left out first (:meth:`_filtered`).
 
         With end components, the alterations taking an option that may close a class are
-        searched for a trap first (:func:`closing_alterations`). The batch then values every
+        searched for a trap first (:meth:`.TrapSearch.search`). The batch then values every
         alteration but those that close one and their extensions (it builds each from its
         parent, and must not divide by a singular system); :meth:`_value_flagged` values
         those after it. If the deadline cuts the trap search, the risky options change no row
@@ -968,8 +836,8 @@ class LowRankEnumeration:
                 unsafe = base.cycles.unsafe[:, : usable.shape[1]]
                 deltas = deltas._replace(flat_length=np.where(unsafe, 0, deltas.flat_length))
             elif trap.closes.any():
-                in_batch = ~_with_extensions(altered.parent, trap.flagged[trap.closes])
-                batch = _restricted(altered, in_batch)
+                in_batch = ~with_extensions(altered.parent, trap.flagged[trap.closes])
+                batch = altered.restricted(in_batch)
             else:
                 trap = None  # no class closes: the batch values every alteration
         inner_costs = altered.costs if trap is None else altered.costs.copy()  # cut in place
@@ -1022,17 +890,14 @@ class LowRankEnumeration:
         deadline: Deadline,
     ) -> tuple[AlteredEntries, np.ndarray | None]:
         """``altered`` without the alterations that cannot reach ``floor``, and which of those
-        kept may reach it. By the first-entry gain bound
-        (:mod:`~misdirect.solvers.engines.entry_gain`), each is worth at most the block's
-        base chain's value plus its altered regions' gains, and at most the unaltered chain's
-        value plus the gains of every region it alters there, counted on first entries only
-        (:meth:`_root_gains`; tighter where runs circle back). Those within a
-        near-tie of ``floor`` may (the cheaper of tied ones wins); every parent of one that
-        may is kept too (the updates build each alteration from its parent), but need not be
-        valued exactly. A small block is left whole (None): the gains cost about one solve
-        of the base chain."""
+        kept may reach it (:func:`~misdirect.solvers.engines.entry_gain.floor_filter`). By the
+        first-entry gain bound (:mod:`~misdirect.solvers.engines.entry_gain`), each is worth
+        at most the block's base chain's value plus its altered regions' gains, and at most
+        the unaltered chain's value plus the gains of every region it alters there, counted on
+        first entries only (:meth:`_root_gains`; tighter where runs circle back). A small block
+        is left whole (None): the gains cost about one solve of the base chain."""
         count = len(altered.costs)
-        if count < max(FILTER_FROM, FILTER_PER_STATE * int(self.instance.live.sum())):
+        if not worth_filtering(count, int(self.instance.live.sum())):
             return altered, None
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
@@ -1041,22 +906,9 @@ class LowRankEnumeration:
         # and from the root chain, whose gains count first entries only
         root = self._root_gains(deadline).also_altering(np.flatnonzero(picked))
         bound = np.minimum(bound, root.bounds(altered.alteration, regions, count))
-        reaches = bound >= floor - tolerance.slack(floor, rel=tolerance.NEAR_TIE)
-        keep = reaches.copy()
-        keep[0] = True  # the base itself: every alteration's ancestor
-        marked = keep
-        while True:  # every ancestor of one kept (as deep as the budget allows)
-            parents = altered.parent[marked]
-            parents = parents[(parents >= 0) & ~keep[np.maximum(parents, 0)]]
-            if not parents.size:
-                break
-            keep[parents] = True
-            marked = np.zeros(count, dtype=bool)
-            marked[parents] = True
-        self.filtered += int(count - keep.sum())
-        if keep.all():
-            return altered, reaches
-        return _restricted(altered, keep), reaches[keep]
+        kept = floor_filter(altered, bound, floor)
+        self.filtered += kept.dropped
+        return kept.altered, kept.reaches
 
     def _root_gains(self, deadline: Deadline) -> EntryGains:
         """The gains of every choice on the unaltered chain, each on its first entry only
@@ -1126,93 +978,21 @@ class LowRankEnumeration:
             return np.full(1, np.inf), np.zeros(1), altered, 0.0
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        value = self._exact_value(picked)
-        self.exact_evaluations += 1
+        value = self._exact.value(picked)
         return altered.costs, np.array([value]), altered, np.inf
 
-    def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> _Trap:
-        """The alterations of a block that may close a class or open one, with every extension
-        of those (the batch leaves them all out), their row slots, and which of them may close
-        a class (``closes``; None when ``deadline`` cut the search short: ``flagged`` then
-        lists every alteration that takes an unsafe option)."""
-        cycles, table = base.cycles, base.deltas
-        assert cycles is not None
-        n_alterations = altered.costs.size
-        risky = _taking(altered, cycles.unsafe)
-        candidates = np.flatnonzero(risky)
-        entries = np.flatnonzero(risky[altered.alteration])  # grouped by alteration
-        counts = np.bincount(altered.alteration[entries], minlength=n_alterations)[candidates]
-        start = np.concatenate([[0], np.cumsum(counts)])
-        closing = np.zeros(candidates.size, dtype=bool)
-        for lo in range(0, candidates.size, TRAP_BATCH):
-            if deadline.expired():
-                none = np.zeros(0, dtype=np.int64)
-                return _Trap(candidates, none, none, none, None)
-            hi = min(lo + TRAP_BATCH, candidates.size)
-            part = entries[start[lo] : start[hi]]
-            closing[lo:hi] = may_close(
-                self._inside,
-                self._leaks,
-                cycles.classes,
-                cycles.base_groups,
-                (start[lo : hi + 1] - start[lo], altered.choice[part], altered.option[part]),
-                (table.flat_start, table.flat_length),
-                (cycles.slot_state, cycles.slot_group),
-                base.fixed_rows,
-            )
-        # an option that changes a row of a base closed class may open it: its alterations are
-        # valued apart (_value_flagged)
-        opens = _opening(cycles, table)
-        roots = np.union1d(candidates[closing], np.flatnonzero(_taking(altered, opens) & risky))
-        flagged = np.flatnonzero(_with_extensions(altered.parent, roots))
-        return self._traps_of(flagged, altered, base, deadline)
-
-    def _traps_of(
-        self, flagged: np.ndarray, altered: AlteredEntries, base: _BlockBase, deadline: Deadline
-    ) -> _Trap:
-        """The trap search's details for the alterations ``flagged`` (few: those that may close
-        or open a class, and their extensions): their row slots, which of them may close a
-        class, and the changed rows found trapped."""
-        cycles, table = base.cycles, base.deltas
-        assert cycles is not None
-        entries = np.flatnonzero(np.isin(altered.alteration, flagged))
-        choice, option = altered.choice[entries], altered.option[entries]
-        lengths = table.flat_length[choice, option]
-        slots = np.repeat(table.flat_start[choice, option], lengths) + rank_in_group(lengths)
-        owner = np.searchsorted(flagged, np.repeat(altered.alteration[entries], lengths))
-        counts = np.bincount(owner, minlength=flagged.size)
-        start = np.concatenate([[0], np.cumsum(counts)])
-        closes = np.zeros(flagged.size, dtype=bool)
-        emptied = np.zeros(slots.size, dtype=bool)
-        for lo in range(0, flagged.size, TRAP_BATCH):
-            if deadline.expired():
-                return _Trap(flagged, slots, owner, counts, None)
-            hi = min(lo + TRAP_BATCH, flagged.size)
-            part = slots[start[lo] : start[hi]]
-            traps = closing_alterations(
-                self._inside,
-                self._leaks,
-                cycles.classes,
-                cycles.base_groups,
-                start[lo : hi + 1] - start[lo],
-                cycles.slot_state[part],
-                cycles.slot_group[part],
-                base.fixed_rows,
-            )
-            closes[lo:hi] = traps.closes
-            emptied[start[lo] : start[hi]] = traps.emptied
-        # one that changes a row of a closed class may open it: valued exactly too
-        touched = cycles.classes.closed[cycles.slot_state[slots]]
-        touched = np.bincount(owner, weights=touched, minlength=flagged.size) > 0
-        closes |= touched
-        return _Trap(flagged, slots, owner, counts, closes, touched, emptied)
+    def _trap_search(self, altered: AlteredEntries, base: _BlockBase, deadline: Deadline) -> Trap:
+        """The block's trap search (:meth:`.TrapSearch.search`): the alterations the batch
+        must leave out, as they may close or open a class."""
+        assert base.cycles is not None
+        return self._traps.search(altered, base.cycles, base.deltas, base.fixed_rows, deadline)
 
     def _value_flagged(
         self,
         found: np.ndarray,
         inner_costs: np.ndarray,
         altered: AlteredEntries,
-        trap: _Trap,
+        trap: Trap,
         base: _BlockBase,
         block: tuple[list[int], np.ndarray, list[int]],
         inner_run: tuple[float, bool],
@@ -1235,7 +1015,7 @@ class LowRankEnumeration:
             return float(altered.costs[cut].min(initial=np.inf))
         assert trap.touched is not None and trap.emptied is not None
         # the batch left out those that close a class and their extensions
-        left_out = _with_extensions(altered.parent, flagged[trap.closes])[flagged]
+        left_out = with_extensions(altered.parent, flagged[trap.closes])[flagged]
         exact = trap.touched.copy()
         cut_at = np.inf
         if base.w_start is not None and base.rows is not None:
@@ -1270,16 +1050,12 @@ class LowRankEnumeration:
         outer, outer_pick, inner = block
         picked = np.zeros(len(self.observations), dtype=np.int64)
         picked[outer] = outer_pick
-        cut_at = np.inf
-        for index in indices[np.isfinite(inner_costs[indices])].tolist():
-            if deadline.expired():
-                cut_at = min(cut_at, float(inner_costs[index]))
-                inner_costs[index] = np.inf
-                continue
+
+        def value_of(index: int) -> float:
             picked[inner] = altered.picks(index, len(inner))
-            found[index] = self._exact_value(picked)
-            self.exact_evaluations += 1
-        return cut_at
+            return self._exact.value(picked)
+
+        return value_one_chain_each(indices, found, inner_costs, value_of, deadline)
 
     def _value_opening(
         self,
@@ -1308,7 +1084,7 @@ class LowRankEnumeration:
             return np.inf, np.zeros(0, dtype=np.int64)
         outer, outer_pick, inner = block
         budget, compiled = inner_run
-        opens = _opening(cycles, table)
+        opens = opening(cycles, table)
         entries = np.flatnonzero(
             np.isin(altered.alteration, indices) & opens[altered.choice, altered.option]
         )
@@ -1382,7 +1158,7 @@ class LowRankEnumeration:
         self,
         found: np.ndarray,
         inner_costs: np.ndarray,
-        trap: _Trap,
+        trap: Trap,
         chosen: np.ndarray,
         base: _BlockBase,
         deadline: Deadline,
@@ -1414,34 +1190,6 @@ class LowRankEnumeration:
         cut_at = float(inner_costs[cut].min(initial=np.inf))
         inner_costs[cut] = np.inf
         return cut_at
-
-    def _exact_value(self, picked: np.ndarray) -> float:
-        """Exact value at the start of the alteration taking option ``picked[i]`` of every
-        choice ``i``: its chain within the choice product, solved as the least fixed point
-        (past about 10^14 steps, unproven: the jump chain's value, in doubles; the search
-        only ranks by it, and what is printed is evaluated again). Once most chains valued
-        so far were unproven, each is eliminated first, in one order computed for all, and
-        one that runs too long for a proof is not given an LU."""
-        chain = self.instance.chain
-        unproven, proven = self._proofs
-        found = reach_probability_bounded(
-            self._chain_of(picked),
-            chain.target,
-            chain.initial,
-            blocks=chain.node,
-            value=chain.target_value,
-            extended_jump=False,
-            elimination_rank=self._elimination_rank if unproven > 2 * proven + 8 else None,
-        )
-        self._proofs[bool(np.isfinite(found.error))] += 1  # a count: a lost update is harmless
-        return found.value
-
-    @cached_property
-    def _elimination_rank(self) -> np.ndarray:
-        """A fill-reducing order of the product states, for every alteration's chain: the
-        unaltered chain's (an alteration changes a few rows; the pattern of all of them
-        together fills far more)."""
-        return fill_reducing_rank(self._chain_of(np.zeros(len(self.observations), dtype=np.int64)))
 
     @cached_property
     def _unaltered_policy(self) -> np.ndarray:

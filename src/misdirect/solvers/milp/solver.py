@@ -51,7 +51,7 @@ from misdirect.core.memory import check_memory
 from misdirect.core.model import Problem
 from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, report
+from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
@@ -67,7 +67,7 @@ from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import MilpStats
-from misdirect.solvers.status import Status
+from misdirect.solvers.status import Status, StopReason
 
 # Bytes a backend takes per non-zero on top of the model (its copy, presolve, the LP's
 # row-wise copy, factors): HiGHS took 254 on the paper's MILP of a 14x14 sensor grid; the lower
@@ -170,7 +170,7 @@ class MilpSolver:
         progress: ProgressCallback | None = None,
         deadline: Deadline | None = None,
     ) -> list[Solution]:
-        deadline = deadline or Deadline(self.options.time_limit)
+        deadline = method_deadline(deadline, self.options.time_limit)
         # the values' scale: the relaxation's bound on the optimum, and on every state's value,
         # at the largest budget (a decoy behind a branch of 1e-10 has values of 1e-10, below
         # HiGHS's tolerances), in the time the schedule gives it
@@ -338,6 +338,7 @@ class MilpSolver:
             upper_bound=upper_bound,
             stats=stats,
             notes=notes,
+            stop_reason=StopReason.of(status, deadline.cancelled),
         )
 
 
