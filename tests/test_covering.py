@@ -142,3 +142,25 @@ def test_the_root_of_a_turn_back_grid_is_covered():
     assert stats.covers == 1 and stats.root_cover_bound is not None
     assert optimum.probability <= stats.root_cover_bound < 0.9
     assert optimum.probability <= answer.upper_bound <= stats.root_cover_bound
+
+
+def test_an_open_budget_says_what_holds_its_bound_up(monkeypatch):
+    """``weakest_bound``: ``time`` where the root was never bounded, null once certified, and
+    on a node-limited search without covers whichever of ``relaxation`` and ``proof`` its
+    counts say (a proof that fell back to 1.0 is counted in ``trivial_bounds``)."""
+    from misdirect.solvers.deadline import Deadline
+
+    problem = sensor_grid(10, 12, goal="inside")
+    expired = BranchAndBoundSolver(SolveOptions()).solve(problem, [2.0], deadline=Deadline(0.0))
+    assert expired[0].status != Status.OPTIMAL
+    assert expired[0].stats.weakest_bound == "time"
+    certified = BranchAndBoundSolver(SolveOptions()).solve(problem, [1.0])[0]
+    assert certified.status == Status.OPTIMAL and certified.stats.weakest_bound is None
+    monkeypatch.setattr(CoverRule, "applies", staticmethod(lambda cycling: False))
+    open_ = BranchAndBoundSolver(SolveOptions(), max_nodes=1).solve(problem, [2.0])[0]
+    stats = open_.stats
+    assert open_.status != Status.OPTIMAL and stats.covers == 0
+    if stats.weakest_bound == "proof":
+        assert stats.trivial_bounds > 0 and open_.upper_bound >= 1 - 1e-6
+    else:
+        assert stats.weakest_bound == "relaxation"

@@ -419,7 +419,7 @@ class _Search(IncumbentSearch):
         self.strength: np.ndarray | None = None
         self.node_seconds = 0.0  # the last node bound's time
         self.union_seconds: float | None = None  # a cover's time per union, once measured
-        self.covers = self.cover_unions = self.cover_pruned = 0
+        self.covers = self.cover_unions = self.cover_pruned = self.covers_given_up = 0
         self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
         mdp = relax.mdp
@@ -494,7 +494,7 @@ class _Search(IncumbentSearch):
         covered_at = node.covered_at
         rule = self.cover_rule
         if rule is not None and rule.due(node.remaining, node.covered_at):
-            cover = self._cover(node, rule, deadline)
+            cover = self._cover(node, rule, bound, deadline)
             if cover is not None:
                 covered_at = node.remaining
                 bound = min(bound, cover)
@@ -509,8 +509,11 @@ class _Search(IncumbentSearch):
             child = _Node((*node.picks, int(k)), remaining, bound, policy, covered_at)
             self.stack.append(child)
 
-    def _cover(self, node: _Node, rule: CoverRule, deadline: Deadline | None) -> float | None:
-        """``node``'s covering bound, where ``rule`` finds groups the time left pays for."""
+    def _cover(
+        self, node: _Node, rule: CoverRule, bound: float, deadline: Deadline | None
+    ) -> float | None:
+        """``node``'s covering bound, where ``rule`` finds groups the time left pays for and
+        it comes out below ``bound`` (the node's per-state bound)."""
         relax = self.relax
         assert self.strength is not None
         level = len(node.picks)
@@ -539,8 +542,9 @@ class _Search(IncumbentSearch):
         if groups is None:
             return None
         began = time.perf_counter()
-        found = covering_bound(relax, groups, node.remaining, fixed, deadline)
+        found = covering_bound(relax, groups, node.remaining, fixed, deadline, give_up_at=bound)
         if found is None:
+            self.covers_given_up += 1
             return None
         self.union_seconds = (time.perf_counter() - began) / max(len(found.unions), 1)
         self.covers += 1
@@ -582,7 +586,9 @@ class _Search(IncumbentSearch):
             covers=self.covers,
             cover_unions=self.cover_unions,
             cover_pruned=self.cover_pruned,
+            covers_given_up=self.covers_given_up,
             root_cover_bound=self.root_cover_bound,
+            weakest_bound=None if status == Status.OPTIMAL else self._weakest(proofs[1]),
         )
         return Solution(
             budget=self.budget,
@@ -592,6 +598,18 @@ class _Search(IncumbentSearch):
             upper_bound=self.open_bound(),
             stats=stats,
         )
+
+    def _weakest(self, trivial_bounds: int) -> str:
+        """What holds an open budget's bound up, for a user to tell "no proof yet" from "no
+        bound known": ``time`` (the root was never bounded), ``proof`` (the bound is the
+        objective's largest value and some node's proof fell back to it although its
+        relaxation's value lay below) or ``relaxation`` (the relaxations' own values)."""
+        if self.root_bound is None:
+            return "time"
+        top = self.relax.problem.objective.max_value
+        if trivial_bounds and self.open_bound() >= top * (1 - tolerance.PROOF_COLLAPSE):
+            return "proof"
+        return "relaxation"
 
 
 def _strengths(curve: _Curve) -> np.ndarray:

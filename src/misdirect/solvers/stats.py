@@ -80,11 +80,15 @@ class BranchAndBoundStats(MethodStats):
     collapsed_proofs: int = 0
     collapsed_proven: int = 0
     # covering bounds (solvers/engines/covering.py): nodes covered, the unions' relaxations
-    # solved for them, nodes the cover pruned where the per-state bound did not, and the root's
+    # solved for them, nodes the cover pruned where the per-state bound did not, covers given
+    # up, and the root's
     covers: int = 0
     cover_unions: int = 0
     cover_pruned: int = 0
+    covers_given_up: int = 0  # covers stopped at a union no better than the per-state bound
     root_cover_bound: float | None = None
+    # an open budget's: what holds its bound up, "relaxation", "proof" or "time" (None: closed)
+    weakest_bound: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         shown = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "segment"}

@@ -143,13 +143,16 @@ def covering_bound(
     cap: float,
     fixed: Mapping[int, int] | None = None,
     deadline: Deadline | None = None,
+    give_up_at: float = np.inf,
 ) -> CoverBound | None:
     """The covering bound of the node that fixes choice ``i`` to option ``fixed[i]`` (choice
     indices of the alteration space) with the budget left as ``cap`` (a
     :meth:`~misdirect.core.tolerance.CostScale.cap`, less what the fixed options spent), the
     undecided choices split into ``groups`` (every undecided choice with an affordable option
     in one of them); None where the cover would take more than
-    :data:`MAX_UNIONS` unions. Raises
+    :data:`MAX_UNIONS` unions, or once a union's bound reaches ``give_up_at`` (a bound the
+    caller has already: the cover could not beat it; the unions go strongest groups first, so
+    such a union tends to come early). Raises
     :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once ``deadline`` has passed."""
     fixed = dict(fixed or {})
     first, cost = relax.first_option, relax.option_cost
@@ -187,6 +190,8 @@ def covering_bound(
                 bound = basis.bound(free, cap, deadline)
             else:
                 bound = _relaxation(relax, free, cap, fixed, deadline)
+            if bound >= give_up_at:
+                return None
             unions.append((chosen, bound))
     unions.sort(key=lambda item: -item[1])
     return CoverBound(max((b for _, b in unions), default=-np.inf), unions)
