@@ -19,7 +19,13 @@ from misdirect.cli.common import (
     print_notes,
     wrote,
 )
-from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
+from misdirect.cli.options import (
+    AttackerBudgetOption,
+    JsonOption,
+    ProblemSource,
+    problem_input,
+)
+from misdirect.cli.pictures import CoordinatesOption
 from misdirect.core.model import quoted_name
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
@@ -51,17 +57,25 @@ def audit(
     ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
+    coordinates: CoordinatesOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
     criticality and single-sensor value, and the online attacker's value."""
+    from misdirect.core.grid import state_cells
     from misdirect.defence import audit as run_audit
     from misdirect.distributed import connect
 
     check_workers(workers)
     check_budget(budget, "--budget")
     check_seconds(time_limit)
+    if coordinates is not None and output is None:
+        raise ProblemError(
+            "places the states on -o DIR's map.png: give -o DIR", field="--coordinates"
+        )
     problem = source.load()  # first: a file that does not load leaves no folder behind
+    if coordinates is not None:
+        state_cells(problem, coordinates)  # a wrong --coordinates fails before the audit
     if output is not None:
         prepare_output_dir(output, field="-o")  # before the audit's minutes
     with connect(cluster, workers) as pool:
@@ -70,7 +84,7 @@ def audit(
     if output is not None:
         from misdirect.report.defence import write_audit_report
 
-        written = [str(p) for p in write_audit_report(problem, result, output)]
+        written = [str(p) for p in write_audit_report(problem, result, output, coordinates)]
     if as_json:
         print_json(json_output.audit(result, written=written))
         return
