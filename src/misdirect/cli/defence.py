@@ -23,6 +23,7 @@ from misdirect.cli.options import (
     AttackerBudgetOption,
     JsonOption,
     ProblemSource,
+    one_budget,
     problem_input,
 )
 from misdirect.cli.pictures import CoordinatesOption
@@ -67,7 +68,7 @@ def audit(
     from misdirect.distributed import connect
 
     check_workers(workers)
-    check_budget(budget, "--budget")
+    attacker_budget = one_budget(budget, "audit")
     check_seconds(time_limit)
     if coordinates is not None and output is None:
         raise ProblemError(
@@ -79,7 +80,7 @@ def audit(
     if output is not None:
         prepare_output_dir(output, field="-o")  # before the audit's minutes
     with connect(cluster, workers) as pool:
-        result = run_audit(problem, budget=budget, time_limit=time_limit, pool=pool)
+        result = run_audit(problem, budget=attacker_budget, time_limit=time_limit, pool=pool)
     written: list[str] = []
     if output is not None:
         from misdirect.report.defence import write_audit_report
@@ -205,7 +206,7 @@ def harden(
 
     check_workers(workers)
     check_budget(protect_budget, "--protect-budget")
-    check_budget(budget, "--budget")
+    attacker_budget = one_budget(budget, "harden")
     check_seconds(time_limit)
     costs = parse_protect_costs(protect_cost)
     problem = source.load()  # first: a file that does not load leaves no folder behind
@@ -216,7 +217,7 @@ def harden(
             result = run_harden(
                 problem,
                 protect_budget=protect_budget,
-                budget=budget,
+                budget=attacker_budget,
                 protect_costs=costs,
                 time_limit=time_limit,
                 pool=pool,
