@@ -1,9 +1,11 @@
-"""Issue 53, the budget flag: audit/harden --budget written as solve's (a number, range or
-list), a range or list of several budgets refused by name."""
+"""Issue 53, item 9 and the budget flag: solve's footer in words a user understands,
+--verbose shown as one flag, and audit/harden --budget written as solve's (a number, range or
+list) with a range or list of several budgets refused by name."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -13,6 +15,27 @@ from misdirect.cli import app
 
 runner = CliRunner()
 TINY = str(Path(__file__).resolve().parents[1] / "examples" / "tiny.yaml")
+
+
+def test_solve_footer_explains_its_counts():
+    result = runner.invoke(app, ["solve", TINY, "--budget", "0..2", "--method", "incremental"])
+    assert result.exit_code == 0, result.output
+    footer = " ".join(result.stdout.split())  # rich wraps the line
+    for jargon in ("inner observations", "outer observations", "factorisations"):
+        assert jargon not in footer
+    assert "sensors valued by low-rank updates of a base chain 1" in footer
+    assert "base chains solved 1" in footer and "alterations valued 2" in footer
+    # --json keeps the counters' own names
+    document = runner.invoke(app, ["solve", TINY, "--method", "incremental", "--json"])
+    stats = json.loads(document.stdout)["stats"]
+    assert {"factorisations", "inner_observations", "outer_observations"} <= set(stats)
+
+
+def test_verbose_is_one_flag_in_help():
+    result = runner.invoke(app, ["solve", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    assert "--no-verbose" not in result.stdout
+    assert re.search(r"--verbose\s+MILP: show the solver's log", result.stdout)
 
 
 @pytest.mark.parametrize("command", [["audit"], ["harden", "--protect-budget", "1"]])

@@ -242,7 +242,9 @@ def solve(
             "above its value is reported as gap_limit, not optimal."
         ),
     ] = None,
-    verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
+    verbose: Annotated[
+        bool, typer.Option("--verbose", help="MILP: show the solver's log on stdout.")
+    ] = False,
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
     ] = False,
@@ -509,8 +511,27 @@ def _solve_summary(result: SolveResult) -> list[str]:
         ]
     else:
         counts = stats.to_dict().items()
-        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in counts if isinstance(v, int)]
+        parts += [_count_words(k, v) for k, v in counts if isinstance(v, int)]
     return parts
+
+
+# The methods' counters in words a reader of the footer understands (the --json output keeps
+# the counters' own names); a counter not listed is shown by its name.
+COUNT_WORDS = {
+    "evaluations": "alterations valued {:,}",
+    "alterations_within_budget": "alterations within the budget {:,}",
+    "relevant_observations": "sensors that can change the answer {:,}",
+    "factorisations": "base chains solved {:,} (one per reading of the enumerated sensors)",
+    "inner_observations": "sensors valued by low-rank updates of a base chain {:,}",
+    "outer_observations": "sensors enumerated {:,} (each of their readings solves a base chain)",
+    "policy_evaluations": "relaxations solved {:,}",
+    "pruned": "nodes pruned by their bound {:,}",
+}
+
+
+def _count_words(key: str, value: int) -> str:
+    words = COUNT_WORDS.get(key)
+    return words.format(value) if words else f"{key.replace('_', ' ')} {value:,}"
 
 
 def _method_stats(stats: MethodStats) -> MethodStats:
