@@ -20,7 +20,7 @@ CoordinatesOption = Annotated[
         "first across) or a regular expression with two groups on the state names, e.g. "
         "'cell(\\d+)_(\\d+)'. Default: states named (x,y), or a PRISM model's x and y. States "
         "without coordinates are left out (the caption counts them); states sharing a cell "
-        "are added up.",
+        "are drawn together (visits added up, the map's largest criticality).",
         show_default=False,
     ),
 ]

@@ -3,8 +3,8 @@
 The paper-grid and sensor-grid scenarios, the drone scenario and grid maps name their states
 ``"(x,y)"``. PRISM models name them by their variables' values (``x=1,y=2``, or Storm's
 ``[x=1 & y=2]``): a model with exactly two integer variables ``x`` and ``y`` is placed by them
-without being asked, and ``coordinates`` (``--coordinates``) places any other model, by two variable names
-(``"col,row"``) or a regular expression with two groups on the state names
+without being asked, and ``coordinates`` (``--coordinates``) places any other model, by two
+variable names (``"col,row"``) or a regular expression with two groups on the state names
 (``"cell(\\d+)_(\\d+)"``). :func:`state_cells` is the one place this is decided;
 ``show``, ``audit``'s map and ``simulate``'s picture all use it.
 
