@@ -93,10 +93,11 @@ RENAMED_FLAGS = {"n": "--size", "path": "-o", "output": "-o", "prop": "--props"}
 # the file written, reproduce's and sweep's folder, the pool, PAYNT's constants and property
 PARAMETER_FIELDS = frozenset(
     {"path", "output", "out", "cluster", "workers", "constants", "prop", "n", "observations"}
+    | {"coordinates"}
 )
 
 # parameters a library message sets to a value to suggest it (try method="milp")
-ASSIGNED = ("method", "solver", "formulation", "output")
+ASSIGNED = ("method", "solver", "formulation", "output", "coordinates")
 _ASSIGNMENT = re.compile(r"\b(" + "|".join(ASSIGNED) + r')="([^"]*)"')
 
 

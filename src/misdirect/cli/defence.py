@@ -19,7 +19,14 @@ from misdirect.cli.common import (
     print_notes,
     wrote,
 )
-from misdirect.cli.options import AttackerBudgetOption, JsonOption, ProblemSource, problem_input
+from misdirect.cli.options import (
+    AttackerBudgetOption,
+    JsonOption,
+    ProblemSource,
+    one_budget,
+    problem_input,
+)
+from misdirect.cli.pictures import CoordinatesOption
 from misdirect.core.model import quoted_name
 from misdirect.errors import ProblemError
 from misdirect.io.files import prepare_output_dir
@@ -51,26 +58,34 @@ def audit(
     ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
+    coordinates: CoordinatesOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
     criticality and single-sensor value, and the online attacker's value."""
+    from misdirect.core.grid import state_cells
     from misdirect.defence import audit as run_audit
     from misdirect.distributed import connect
 
     check_workers(workers)
-    check_budget(budget, "--budget")
+    attacker_budget = one_budget(budget, "audit")
     check_seconds(time_limit)
+    if coordinates is not None and output is None:
+        raise ProblemError(
+            "places the states on -o DIR's map.png: give -o DIR", field="--coordinates"
+        )
     problem = source.load()  # first: a file that does not load leaves no folder behind
+    if coordinates is not None:
+        state_cells(problem, coordinates)  # a wrong --coordinates fails before the audit
     if output is not None:
         prepare_output_dir(output, field="-o")  # before the audit's minutes
     with connect(cluster, workers) as pool:
-        result = run_audit(problem, budget=budget, time_limit=time_limit, pool=pool)
+        result = run_audit(problem, budget=attacker_budget, time_limit=time_limit, pool=pool)
     written: list[str] = []
     if output is not None:
         from misdirect.report.defence import write_audit_report
 
-        written = [str(p) for p in write_audit_report(problem, result, output)]
+        written = [str(p) for p in write_audit_report(problem, result, output, coordinates)]
     if as_json:
         print_json(json_output.audit(result, written=written))
         return
@@ -191,7 +206,7 @@ def harden(
 
     check_workers(workers)
     check_budget(protect_budget, "--protect-budget")
-    check_budget(budget, "--budget")
+    attacker_budget = one_budget(budget, "harden")
     check_seconds(time_limit)
     costs = parse_protect_costs(protect_cost)
     problem = source.load()  # first: a file that does not load leaves no folder behind
@@ -202,7 +217,7 @@ def harden(
             result = run_harden(
                 problem,
                 protect_budget=protect_budget,
-                budget=budget,
+                budget=attacker_budget,
                 protect_costs=costs,
                 time_limit=time_limit,
                 pool=pool,

@@ -146,7 +146,14 @@ FormulationOption = Annotated[
     ),
 ]
 AttackerBudgetOption = Annotated[
-    float | None, typer.Option(help="Attacker's budget B (default: the file's).")
+    str | None,
+    typer.Option(
+        "--budget",
+        "--budgets",
+        help="Attacker's budget B, one number (default: the file's); the answer covers every "
+        "budget up to it. Written as solve's --budget, but a range or list is refused.",
+        show_default=False,
+    ),
 ]
 
 
@@ -489,3 +496,19 @@ def _budget_range(text: str, cap: float | None) -> list[float]:
     if top < high:
         parsed.append(float(high))
     return parsed
+
+
+def one_budget(text: str | None, command: str) -> float | None:
+    """``--budget`` of a command that answers one budget (``audit``, ``harden``): read as
+    solve's (:func:`parse_budgets`), a range or list of more than one budget refused."""
+    parsed = parse_budgets(text, cap=0.0)  # a long range stays two budgets, not millions
+    if parsed is None:
+        return None
+    if len(set(parsed)) > 1:
+        raise ProblemError(
+            f"{command} answers one budget B (and every budget below it on the way), got "
+            f"{text!r}; give one number, e.g. --budget {parsed[-1]:g} (solve takes a range "
+            "or a list)",
+            field="--budget",
+        )
+    return parsed[0]

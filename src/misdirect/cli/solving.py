@@ -48,6 +48,12 @@ from misdirect.cli.options import (
     parse_budgets,
     problem_input,
 )
+from misdirect.cli.pictures import (
+    CoordinatesOption,
+    PictureOption,
+    check_picture_suffix,
+    picture_cells,
+)
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.evaluate import Evaluation, decoy_probability
 from misdirect.core.evaluate import evaluate as evaluate_alteration
@@ -236,7 +242,9 @@ def solve(
             "above its value is reported as gap_limit, not optimal."
         ),
     ] = None,
-    verbose: Annotated[bool, typer.Option(help="MILP: show the solver's log on stdout.")] = False,
+    verbose: Annotated[
+        bool, typer.Option("--verbose", help="MILP: show the solver's log on stdout.")
+    ] = False,
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="No progress or hand-over lines on stderr.")
     ] = False,
@@ -503,8 +511,27 @@ def _solve_summary(result: SolveResult) -> list[str]:
         ]
     else:
         counts = stats.to_dict().items()
-        parts += [f"{k.replace('_', ' ')} {v:,}" for k, v in counts if isinstance(v, int)]
+        parts += [_count_words(k, v) for k, v in counts if isinstance(v, int)]
     return parts
+
+
+# The methods' counters in words a reader of the footer understands (the --json output keeps
+# the counters' own names); a counter not listed is shown by its name.
+COUNT_WORDS = {
+    "evaluations": "alterations valued {:,}",
+    "alterations_within_budget": "alterations within the budget {:,}",
+    "relevant_observations": "sensors that can change the answer {:,}",
+    "factorisations": "base chains solved {:,} (one per reading of the enumerated sensors)",
+    "inner_observations": "sensors valued by low-rank updates of a base chain {:,}",
+    "outer_observations": "sensors enumerated {:,} (each of their readings solves a base chain)",
+    "policy_evaluations": "relaxations solved {:,}",
+    "pruned": "nodes pruned by their bound {:,}",
+}
+
+
+def _count_words(key: str, value: int) -> str:
+    words = COUNT_WORDS.get(key)
+    return words.format(value) if words else f"{key.replace('_', ' ')} {value:,}"
 
 
 def _method_stats(stats: MethodStats) -> MethodStats:
@@ -530,6 +557,8 @@ def simulate(
         ),
     ] = None,
     samples: Annotated[int, typer.Option(help="Runs to write with --trajectories.")] = 10,
+    picture: PictureOption = None,
+    coordinates: CoordinatesOption = None,
     as_json: JsonOption = False,
 ) -> None:
     """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
@@ -547,12 +576,28 @@ def simulate(
     check_range("--seed", seed, 0, MAX_SEED)
     if trajectories is not None:
         check_output_path(trajectories, field="--trajectories")
+    if picture is not None:
+        check_output_path(picture, field="--picture")
+        check_picture_suffix(picture, "--picture")
+    elif coordinates is not None:
+        raise ProblemError(
+            "places the states of --picture's drawing: give --picture FILE", field="--coordinates"
+        )
     problem = source.load()
     alpha = alteration(problem, alter, alteration_file, at_budget)
+    cells = None
+    if picture is not None:  # before the runs: a model without coordinates fails at once
+        cells = picture_cells(problem, coordinates)
     record = samples if trajectories is not None else 0
     began = time.perf_counter()
     result = run_simulation(
-        problem, alpha, runs=runs, seed=seed, max_steps=max_steps, record=record
+        problem,
+        alpha,
+        runs=runs,
+        seed=seed,
+        max_steps=max_steps,
+        record=record,
+        count_visits=picture is not None,
     )
     exact = decoy_probability(problem.unweighted(), alpha)  # a run hits a decoy or not
     payload = json_output.simulation(
@@ -563,16 +608,30 @@ def simulate(
         seed=seed,
         max_steps=max_steps,
         time_s=time.perf_counter() - began,
-        written=[] if trajectories is None else [trajectories],
+        written=[p for p in (trajectories, picture) if p is not None],
     )
     if trajectories is not None:
         _write_trajectories(result.trajectories, trajectories)
+    if picture is not None and cells is not None and result.visits is not None:
+        from misdirect.report.figures import draw_grid
+
+        draw_grid(
+            problem,
+            alpha,
+            cells,
+            picture,
+            visits=result.visits / runs,
+            visits_label=f"simulated visits per run ({runs:,} runs)",
+            note=f"colours: {runs:,} simulated runs, seed {seed}; Pr values exact",
+        )
     if as_json:
         print_json(payload)
     else:
         _print_simulation(payload, result, max_steps)
         if trajectories is not None:
             wrote(f"wrote {trajectories} (the first {min(samples, runs):,} runs, step by step)")
+        if picture is not None:
+            wrote(f"wrote {picture} (simulated visits per cell)")
 
 
 def _write_trajectories(rows: Iterable[Sequence[Any]], path: Path) -> None:
@@ -691,14 +750,18 @@ def show(
     alter: AlterOption = None,
     alteration_file: AlterationFileOption = None,
     at_budget: AtBudgetOption = None,
+    coordinates: CoordinatesOption = None,
     as_json: JsonOption = False,
 ) -> None:
-    """Draw a problem under an alteration: a heat map for grid worlds, else the chain (dot)."""
+    """Draw a problem under an alteration: a heat map of the visits for a model with
+    coordinates (grid worlds, PRISM models with x and y, or --coordinates), else the chain
+    (dot)."""
     from misdirect.report.show import draw
 
     check_output_path(output)
     problem = source.load()
-    written = draw(problem, alteration(problem, alter, alteration_file, at_budget), output)
+    alpha = alteration(problem, alter, alteration_file, at_budget)
+    written = draw(problem, alpha, output, coordinates)
     if as_json:
         print_json(json_output.written_files("show", [written], problem=problem.name))
     else:

@@ -52,6 +52,8 @@ class Simulation:
     decoys: dict[str, int] = field(default_factory=dict)  # decoy state -> runs that ended there
     trajectories: list[tuple[int, int, str, str, str, str]] = field(default_factory=list)
     # (run, step, state, memory node, observation received, action) for the recorded runs
+    visits: np.ndarray | None = field(default=None, compare=False, repr=False)
+    # (|S|,) steps taken from each state over all runs (count_visits=True), else None
 
     def confidence_interval(self, z: float = 1.96) -> tuple[float, float]:
         """Wilson score interval for the decoy frequency (z = 1.96: 95 %)."""
@@ -90,6 +92,7 @@ def simulate(
     seed: int = 0,
     max_steps: int = 10_000,
     record: int = 0,
+    count_visits: bool = False,
 ) -> Simulation:
     """Monte-Carlo runs of the attacked robot, straight from the POMDP and the controller.
 
@@ -110,6 +113,9 @@ def simulate(
         Steps after which a run still going counts as ``unfinished``.
     record : int
         Keep the first ``record`` runs step by step (``Simulation.trajectories``).
+    count_visits : bool
+        Count the steps taken from each state over all runs (``Simulation.visits``; divided
+        by ``runs``, the simulated counterpart of the expected visits).
 
     Returns
     -------
@@ -156,6 +162,7 @@ def simulate(
     can_stop = _can_stop(problem, alpha, stop)  # over product states s * |N| + n
     trapped_at = np.zeros(runs, dtype=bool)
     trajectories: list[tuple[int, int, str, str, str, str]] = []
+    visits = np.zeros(pomdp.n_states, dtype=np.int64) if count_visits else None
     for step in range(max_steps + 1):
         here = state[live]
         done = stop[here]
@@ -179,6 +186,8 @@ def simulate(
         live = live[~(done | stuck)]
         if live.size == 0 or step == max_steps:
             break
+        if visits is not None:
+            np.add.at(visits, state[live], 1)
         seen = alpha[pomdp.observation_of[state[live]]]
         move = controller.move[node[live], seen]
         entry = controller.move_ptr[move]
@@ -217,6 +226,7 @@ def simulate(
         trapped=int(trapped_at.sum()),
         decoys={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(problem.decoy)},
         trajectories=sorted(trajectories),
+        visits=visits,
     )
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from misdirect.core.grid import GridCells
 from misdirect.core.model import Problem, format_alteration
 from misdirect.defence import AuditResult, HardenResult
 from misdirect.io.files import write_output
@@ -159,10 +160,12 @@ def sensors_figure(result: AuditResult):
     return fig
 
 
-def map_figure(problem: Problem, result: AuditResult):
+def map_figure(problem: Problem, result: AuditResult, cells: GridCells | None = None):
     """The grid with every sensor's cells coloured by its criticality, on a log scale (a
     criticality of 0.001 is not drawn as 0). Cells that read the blank ``b`` (no sensor) are
-    drawn apart, not as a sensor; cells no alteration may touch are hatched."""
+    drawn apart, not as a sensor; cells no alteration may touch are hatched. ``cells``: where
+    each state is drawn (default: the problem's own coordinates); a cell several states share
+    shows the largest criticality among them, states without coordinates are left out."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,12 +173,14 @@ def map_figure(problem: Problem, result: AuditResult):
     from matplotlib.colors import ListedColormap, LogNorm
     from matplotlib.patches import Patch
 
-    from misdirect.core.grid import grid_cells
+    from misdirect.core.grid import state_cells
     from misdirect.io.grid_map import BLANK_OBSERVATION
-    from misdirect.report.figures import grid_arrays, grid_frame, mark_cell
+    from misdirect.report.figures import WALL_FILL, grid_arrays, grid_frame, mark_cell
 
-    cells = grid_cells(problem)
+    if cells is None:
+        cells = state_cells(problem)
     assert cells is not None
+    xy, placed = cells.xy, cells.placed
     pomdp = problem.pomdp
     by_name = {s.observation: s.criticality for s in result.sensors}
     names = np.array(pomdp.observations)[pomdp.observation_of]
@@ -183,10 +188,10 @@ def map_figure(problem: Problem, result: AuditResult):
     blank = (names == BLANK_OBSERVATION) & ~stop
     per_state = np.array([by_name.get(n, np.nan) for n in names], dtype=float)
     per_state[stop | blank] = np.nan
-    values, walls = grid_arrays(problem, cells, per_state)
-    blank_cells, _ = grid_arrays(problem, cells, np.where(blank, 1.0, np.nan))
+    values, walls = grid_arrays(problem, cells, per_state, how="max")
+    blank_cells, _ = grid_arrays(problem, cells, np.where(blank, 1.0, np.nan), how="max")
     listed = np.array([by_name.get(n) is not None for n in names]) & ~stop & ~blank
-    listed_cells, _ = grid_arrays(problem, cells, np.where(listed, 1.0, np.nan))
+    listed_cells, _ = grid_arrays(problem, cells, np.where(listed, 1.0, np.nan), how="max")
     height, width = values.shape
     scale = 0.9 * max(3.0, min(10.0, 10.0 * max(width, height) / 12)) / max(width, height)
     fig, ax = plt.subplots(figsize=(max(5.5, width * scale + 2.4), max(4.2, height * scale + 2.2)))
@@ -208,7 +213,7 @@ def map_figure(problem: Problem, result: AuditResult):
     layers = [
         (zero, "#e6e6e6"),
         (np.isfinite(blank_cells), "#dfe8f2"),
-        (walls, "#4d4d4d"),
+        (walls, WALL_FILL),
     ]
     for mask, colour in layers:
         ax.imshow(
@@ -220,18 +225,18 @@ def map_figure(problem: Problem, result: AuditResult):
         )
     # cells whose reading no alteration may change (the start's, protected ones): hatched
     locked = ~np.isfinite(listed_cells) & ~np.isfinite(blank_cells) & ~walls
-    stops, _ = grid_arrays(problem, cells, np.where(stop, 1.0, np.nan))
+    stops, _ = grid_arrays(problem, cells, np.where(stop, 1.0, np.nan), how="max")
     for y, x in np.argwhere(locked & ~np.isfinite(stops)):
         ax.add_patch(
             plt.Rectangle((x - 0.5, y - 0.5), 1, 1, fill=False, hatch="//", color="0.6", lw=0)
         )
-    grid_frame(ax, width, height)
+    grid_frame(ax, width, height, cells.origin)
     if len(result.sensors) <= 40:
         for s in result.sensors:
             if s.observation == BLANK_OBSERVATION:
                 continue
             o = pomdp.observations.index(s.observation)
-            where = cells[(pomdp.observation_of == o) & ~stop]
+            where = xy[(pomdp.observation_of == o) & ~stop & placed]
             if where.size:
                 x, y = where[0].tolist()
                 ax.text(x, y + 0.3, s.observation, ha="center", va="center", fontsize=9)
@@ -240,31 +245,35 @@ def map_figure(problem: Problem, result: AuditResult):
     marks += [(g, "G", "darkgreen") for g in goals]
     marks += [(d, "X", "crimson") for d in np.flatnonzero(problem.decoy)]
     for state, text, colour in marks:
-        mark_cell(ax, tuple(cells[state].tolist()), text, colour)
+        if placed[state]:
+            mark_cell(ax, tuple(xy[state].tolist()), text, colour)
     handles = [
         Patch(facecolor="#e6e6e6", edgecolor="0.7", label="criticality 0"),
         Patch(facecolor="#dfe8f2", edgecolor="0.7", label=f"no sensor (reads {BLANK_OBSERVATION})"),
         Patch(facecolor="white", edgecolor="0.6", hatch="//", label="not alterable"),
+        Patch(facecolor=WALL_FILL, edgecolor="0.7", label="wall: no state in this cell"),
     ]
     if blank.any() and BLANK_OBSERVATION in by_name:
         handles[1].set_label(
             f"no sensor (reads {BLANK_OBSERVATION}; criticality {by_name[BLANK_OBSERVATION]:.3g})"
         )
     fig.legend(handles=handles, loc="lower center", ncols=3, fontsize=9, frameon=False)
+    caption = cells.caption()
     ax.set_title(
         f"{result.problem}: sensor criticality at budget {result.budget:g}\n"
-        "(drop of the attacker's optimum when the sensor is protected)",
+        "(drop of the attacker's optimum when the sensor is protected)"
+        + (f"\n{caption}" if caption else ""),
         fontsize=10,
     )
     ax.tick_params(labelsize=9)
     bar = fig.colorbar(image, ax=ax, fraction=0.046 * height / width, pad=0.04)
     bar.set_label("criticality (log scale)", fontsize=9)
     bar.ax.tick_params(labelsize=9)
-    fig.subplots_adjust(bottom=0.14)
+    fig.subplots_adjust(bottom=0.18)
     return fig
 
 
-def report_text(result: AuditResult) -> str:
+def report_text(result: AuditResult, drawn: bool | None = None) -> str:
     """report.md: what the attacker can do, which sensors matter, what an online attacker adds."""
     lines = [
         f"# Sensor audit: {result.problem}",
@@ -344,25 +353,32 @@ def report_text(result: AuditResult) -> str:
     lines += [
         "",
         "Files: curve.csv, sensors.csv, curve.png, sensors.png"
-        + (", map.png" if result.grid else "")
+        + (", map.png" if (result.grid if drawn is None else drawn) else "")
         + f". Computed in {result.time_s:.2f} s.",
         "",
     ]
     return "\n".join(lines)
 
 
-def write_audit_report(problem: Problem, result: AuditResult, out: Path) -> list[Path]:
-    """Write every file of the report into the folder ``out`` (which must exist)."""
+def write_audit_report(
+    problem: Problem, result: AuditResult, out: Path, coordinates: str | None = None
+) -> list[Path]:
+    """Write every file of the report into the folder ``out`` (which must exist); the map
+    when the states have coordinates (their own, or ``coordinates``:
+    :func:`~misdirect.core.grid.state_cells`)."""
+    from misdirect.core.grid import state_cells
+
     out = Path(out)
+    cells = state_cells(problem, coordinates)
     written = [
         write_output(out / "curve.csv", _csv(curve_rows(result), CURVE_FIELDS)),
         write_output(out / "sensors.csv", _csv(sensor_rows(result), SENSOR_FIELDS)),
         _save(curve_figure(result), out / "curve.png"),
         _save(sensors_figure(result), out / "sensors.png"),
     ]
-    if result.grid:
-        written.append(_save(map_figure(problem, result), out / "map.png"))
-    written.append(write_output(out / "report.md", report_text(result)))
+    if cells is not None:
+        written.append(_save(map_figure(problem, result, cells), out / "map.png"))
+    written.append(write_output(out / "report.md", report_text(result, drawn=cells is not None)))
     return written
 
 

@@ -23,6 +23,7 @@ from matplotlib.patches import Patch, Rectangle
 from matplotlib.typing import LineStyleType
 
 from misdirect.core.evaluate import evaluate
+from misdirect.core.grid import GridCells
 from misdirect.core.grid import grid_cells as grid_cells  # re-exported: now lives in core.grid
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.io.files import write_output
@@ -46,12 +47,14 @@ def save(fig: plt.Figure, stem: Path, formats: Sequence[str] = (".png", ".svg"))
     return paths
 
 
-def grid_frame(ax, width: int, height: int) -> None:
-    """Cells as unit squares centred on integer (x, y), x East and y North, with a light grid."""
+def grid_frame(ax, width: int, height: int, origin: tuple[int, int] = (0, 0)) -> None:
+    """Cells as unit squares centred on integer (x, y), x East and y North, with a light grid;
+    the ticks read ``origin`` plus the column (row) when the picture does not start at 0."""
     ax.set_xlim(-0.5, width - 0.5)
     ax.set_ylim(-0.5, height - 0.5)
-    ax.set_xticks(range(width))
-    ax.set_yticks(range(height))
+    step_x, step_y = max(1, width // 25), max(1, height // 25)  # at most about 25 tick labels
+    ax.set_xticks(range(0, width, step_x), [str(origin[0] + v) for v in range(0, width, step_x)])
+    ax.set_yticks(range(0, height, step_y), [str(origin[1] + v) for v in range(0, height, step_y)])
     ax.set_xticks(np.arange(-0.5, width), minor=True)
     ax.set_yticks(np.arange(-0.5, height), minor=True)
     ax.grid(which="minor", color="0.6", linewidth=0.5)
@@ -481,47 +484,96 @@ def scalability_panels(
     return save(fig, stem, formats)
 
 
+def as_grid_cells(cells: GridCells | np.ndarray) -> GridCells:
+    """``(|S|, 2)`` coordinates (every state placed, as :func:`grid_cells` returns them) or
+    :class:`GridCells` as :class:`GridCells`."""
+    if isinstance(cells, GridCells):
+        return cells
+    xy = np.asarray(cells, dtype=np.int64)
+    return GridCells(xy=xy, placed=np.ones(len(xy), dtype=bool), origin=(0, 0), how="(x,y) names")
+
+
 def grid_arrays(
-    problem: Problem, cells: np.ndarray, per_state: np.ndarray
+    problem: Problem,
+    cells: GridCells | np.ndarray,
+    per_state: np.ndarray,
+    how: str = "sum",
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(values, walls)``, both ``(height, width)`` indexed ``[y, x]``: ``per_state`` placed
-    at each state's cell (NaN where no state is), and the mask of cells that are no state
-    (walls). Width and height are those of the cells the states occupy."""
-    width, height = (int(v) for v in cells.max(axis=0) + 1)
-    values = np.full((height, width), np.nan)
-    values[cells[:, 1], cells[:, 0]] = per_state
+    at each state's cell (NaN where no state is, or where every state's value is NaN), and the
+    mask of cells that are no state (walls). Width and height are those of the cells the states
+    occupy; states without coordinates are left out. Several states in one cell (the memory-free
+    variables of a PRISM model, say) are aggregated: their values added up (``how="sum"``: visits,
+    as the visits of a state's memory nodes are) or the largest taken (``how="max"``)."""
+    grid = as_grid_cells(cells)
+    values_in = np.asarray(per_state, dtype=float)
+    xy = grid.xy[grid.placed]
+    per = values_in[grid.placed]
+    width, height = (int(v) for v in xy.max(axis=0) + 1)
     walls = np.ones((height, width), dtype=bool)
-    walls[cells[:, 1], cells[:, 0]] = False
+    walls[xy[:, 1], xy[:, 0]] = False
+    finite = ~np.isnan(per)
+    values = np.full((height, width), -np.inf if how == "max" else 0.0)
+    if how == "max":
+        np.maximum.at(values, (xy[finite, 1], xy[finite, 0]), per[finite])
+    elif how == "sum":
+        np.add.at(values, (xy[finite, 1], xy[finite, 0]), per[finite])
+    else:
+        raise ValueError(f"how: 'sum' or 'max', not {how!r}")
+    counted = np.zeros((height, width), dtype=bool)
+    counted[xy[finite, 1], xy[finite, 0]] = True
+    values[~counted] = np.nan
     return values, walls
 
 
-def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray):
-    """The attack on a grid world: expected visits per cell (heat map), walls, sensor regions
-    (hatched when altered), start S, every goal G and every decoy X."""
+WALL_FILL = (
+    "#8c9db0"  # slate: a colour of neither the heat maps (yellow-red-black, reds) nor blanks
+)
+UNVISITED_FILL = "white"
+VISITS_MAP = "magma_r"  # light: few visits, dark: many
+
+
+def grid_figure(
+    problem: Problem,
+    alteration: AlterationArray,
+    cells: GridCells | np.ndarray,
+    visits: np.ndarray | None = None,
+    visits_label: str = "expected visits per cell",
+    note: str = "",
+):
+    """The attack on a grid world: visits per cell (heat map: expected ones, or ``visits``
+    per state, as a simulation counts them), walls, sensor regions (hatched when altered),
+    start S, every goal G and every decoy X, with a legend that says what each colour means.
+    States without coordinates are left out and counted under the title."""
     import matplotlib
 
     matplotlib.use("Agg")  # no display needed
     import matplotlib.pyplot as plt
     from matplotlib.colors import ListedColormap, LogNorm, Normalize
-    from matplotlib.patches import Rectangle
+    from matplotlib.patches import Patch, Rectangle
 
+    grid = as_grid_cells(cells)
     pomdp = problem.pomdp
     report = evaluate(problem, alteration)
-    visits, walls = grid_arrays(problem, cells, report.expected_visits)
-    height, width = visits.shape
-    positive = visits[visits > 0]
+    per_state = report.expected_visits if visits is None else visits
+    visits_grid, walls = grid_arrays(problem, grid, per_state)
+    height, width = visits_grid.shape
+    positive = visits_grid[visits_grid > 0]
     norm = (
         LogNorm(vmin=max(positive.min(), 1e-4), vmax=max(positive.max(), 1e-4 * 1.01))
         if positive.size
         else Normalize(0.0, 1.0)
     )
     scale = 0.9 * max(3.0, min(10.0, 10.0 * max(width, height) / 12)) / max(width, height)
-    fig, ax = plt.subplots(figsize=(max(4.5, width * scale + 1.8), max(3.5, height * scale + 1.6)))
+    fig, ax = plt.subplots(
+        figsize=(max(5.5, width * scale + 2.4), max(4.5, height * scale + 2.6)),
+        layout="constrained",
+    )
     extent = (-0.5, width - 0.5, -0.5, height - 0.5)
     image = ax.imshow(
-        np.where(visits > 0, visits, np.nan),
+        np.where(visits_grid > 0, visits_grid, np.nan),
         origin="lower",
-        cmap="magma_r",
+        cmap=VISITS_MAP,
         norm=norm,
         extent=extent,
         interpolation="nearest",
@@ -530,21 +582,25 @@ def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray
     wall_layer = ax.imshow(
         np.ma.masked_array(np.ones(walls.shape), mask=~walls),
         origin="lower",
-        cmap=ListedColormap(["#4d4d4d"]),
+        cmap=ListedColormap([WALL_FILL]),
         extent=extent,
         interpolation="nearest",
     )
     wall_layer.set_label("walls")
-    grid_frame(ax, width, height)
+    grid_frame(ax, width, height, grid.origin)
 
+    xy, placed = grid.xy, grid.placed
     changed = problem.changed_observations(alteration)
     stop = pomdp.absorbing | problem.decoy
-    sensor_states = (np.array(pomdp.observations)[pomdp.observation_of] != "b") & ~stop
+    sensor_states = (np.array(pomdp.observations)[pomdp.observation_of] != "b") & ~stop & placed
     sensor_ids = list(dict.fromkeys(pomdp.observation_of[sensor_states].tolist()))
-    for k, o in enumerate(sensor_ids):
+    outlined = len(sensor_ids) <= 40 and width * height <= 10_000
+    any_altered = False
+    for k, o in enumerate(sensor_ids if outlined else []):
         name = pomdp.observations[o]
         altered = name in changed
-        where = cells[sensor_states & (pomdp.observation_of == o)]
+        any_altered |= altered
+        where = np.unique(xy[sensor_states & (pomdp.observation_of == o)], axis=0)
         for x, y in where.tolist():
             ax.add_patch(
                 Rectangle(
@@ -572,25 +628,77 @@ def grid_figure(problem: Problem, alteration: AlterationArray, cells: np.ndarray
     decoys = np.flatnonzero(problem.decoy)
     marks: list[tuple[int | np.integer, str, str]] = [(pomdp.initial_state, "S", "black")]
     marks += [(g, "G", "darkgreen") for g in goals] + [(d, "X", "crimson") for d in decoys]
+    marked: set[tuple[int, int, str]] = set()
     for state, text, colour in marks:
-        mark_cell(ax, tuple(cells[state].tolist()), text, colour)
+        if not placed[state]:
+            continue
+        cell = tuple(xy[state].tolist())
+        if (*cell, text) not in marked:  # several states of one cell: one letter
+            marked.add((*cell, text))
+            mark_cell(ax, cell, text, colour)
     goal_probability = sum(report.outcomes.get(pomdp.states[g], 0.0) for g in goals)
     changes = ", ".join(f"{o}→{t}" for o, t in changed.items()) or "no alteration"
+    caption = "; ".join(part for part in (note, grid.caption()) if part)
     ax.set_title(
         f"{problem.title}: {changes} (cost {report.cost:g})\n"
-        f"Pr(decoy) = {report.probability:.3f}, Pr(goal) = {goal_probability:.3f}\n"
-        "S start, G goal, X decoy, dark grey: wall, hatched: altered sensor",
+        f"Pr(decoy) = {report.probability:.3f}, Pr(goal) = {goal_probability:.3f}"
+        + (f"\n{caption}" if caption else ""),
         fontsize=8,
     )
+    handles = [
+        Patch(facecolor=WALL_FILL, edgecolor="0.6", label="wall: no state in this cell"),
+        Patch(
+            facecolor=UNVISITED_FILL,
+            edgecolor="0.6",
+            label="white: no step taken (never visited, or G/X: runs end there)",
+        ),
+        Patch(
+            facecolor=plt.get_cmap(VISITS_MAP)(0.85),
+            edgecolor="0.6",
+            label="darker: more visits (scale on the right)",
+        ),
+        Line2D([], [], linestyle="none", marker="$S$", color="black", label="S start"),
+        Line2D([], [], linestyle="none", marker="$G$", color="darkgreen", label="G goal"),
+        Line2D([], [], linestyle="none", marker="$X$", color="crimson", label="X decoy"),
+    ]
+    if outlined and sensor_ids:
+        handles.append(
+            Patch(facecolor="none", edgecolor=SENSOR_COLOURS[0], label="outline: sensor region")
+        )
+    if any_altered:
+        handles.append(
+            Patch(
+                facecolor="none",
+                edgecolor=SENSOR_COLOURS[0],
+                hatch="//",
+                linewidth=2,
+                label="hatched: altered sensor (o1→o2: o1 now reports o2)",
+            )
+        )
+    fig.legend(
+        handles=handles,
+        loc="outside lower center",
+        ncols=3,
+        fontsize=7,
+        frameon=False,
+    )
     ratio = height / width  # keeps the colour bar as tall as the grid, whatever its shape
-    fig.colorbar(image, ax=ax, fraction=0.046 * ratio, pad=0.04, label="expected visits per cell")
+    fig.colorbar(
+        image, ax=ax, fraction=0.046 * ratio, pad=0.04, label=f"{visits_label} (darker: more)"
+    )
     return fig
 
 
 def draw_grid(
-    problem: Problem, alteration: AlterationArray, cells: np.ndarray, output: Path
+    problem: Problem,
+    alteration: AlterationArray,
+    cells: GridCells | np.ndarray,
+    output: Path,
+    **options,
 ) -> Path:
-    fig = grid_figure(problem, alteration, cells)
+    """:func:`grid_figure` written to ``output`` (``options``: its ``visits``,
+    ``visits_label`` and ``note``)."""
+    fig = grid_figure(problem, alteration, cells, **options)
     try:  # atomic, like every output: a temporary file beside it, then os.replace
         write_output(output, lambda path: fig.savefig(path, dpi=150, bbox_inches="tight"))
     finally:

@@ -1,15 +1,17 @@
 """``misdirect show``: one picture of a problem under an alteration.
 
 Grid worlds (every state named ``"(x,y)"``, as the paper-grid scenario and grid maps name
-them) are drawn as the attack heat map of ``misdirect reproduce``; any other problem is written
-as the product chain in graphviz ``dot``, as long as it is small enough to read.
+them; a PRISM model with integer variables ``x`` and ``y``; any model whose states
+``coordinates`` places, see :func:`misdirect.core.grid.state_cells`) are drawn as a heat map of
+the visits; any other problem is written as the product chain in graphviz ``dot``, as long as
+it is small enough to read.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from misdirect.core.grid import grid_cells
+from misdirect.core.grid import GridCells, state_cells
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.core.product import build_product
 from misdirect.errors import ProblemError
@@ -20,9 +22,16 @@ MAX_DOT_STATES = 200
 PICTURE_SUFFIXES = (".png", ".svg", ".pdf")
 
 
-def draw(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
+def draw(
+    problem: Problem,
+    alteration: AlterationArray,
+    output: Path,
+    coordinates: str | None = None,
+    **options,
+) -> Path:
+    """Write the picture (``.png/.svg/.pdf``: a grid world's heat map, ``options`` those of
+    :func:`~misdirect.report.figures.grid_figure`) or the product chain (``.dot``)."""
     suffix = output.suffix.lower()
-    cells = grid_cells(problem)
     if suffix == ".dot":
         return _write_dot(problem, alteration, output)
     if suffix not in PICTURE_SUFFIXES:
@@ -31,13 +40,23 @@ def draw(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
             f"{', '.join(PICTURE_SUFFIXES)} or .dot",
             field="output",
         )
+    return draw_grid(problem, alteration, require_cells(problem, coordinates), output, **options)
+
+
+def require_cells(problem: Problem, coordinates: str | None) -> GridCells:
+    """The cells of the states (:func:`~misdirect.core.grid.state_cells`), or the error that
+    says how to give them."""
+    cells = state_cells(problem, coordinates)
     if cells is None:
         raise ProblemError(
-            "only grid worlds (states named '(x,y)') are drawn as pictures; "
-            'write the product chain with output="chain.dot" instead',
+            "only models with coordinates are drawn as pictures: states named '(x,y)', PRISM "
+            'models with integer variables x and y, or give them: coordinates="col,row" '
+            "(two integer variables) or a regular expression with two groups on the state "
+            "names (like 'cell(\\d+)_(\\d+)'); or write the product chain with "
+            'output="chain.dot"',
             field="output",
         )
-    return draw_grid(problem, alteration, cells, output)
+    return cells
 
 
 def _write_dot(problem: Problem, alteration: AlterationArray, output: Path) -> Path:
