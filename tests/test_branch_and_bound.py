@@ -289,3 +289,30 @@ def test_a_segment_root_bound_with_every_option_affordable_bounds_every_budget(c
     else:
         assert curve.every_budget_bound == np.inf
         assert curve.bounded(open_answer).upper_bound == 1.0
+
+
+def test_a_budget_alone_gets_a_cheap_greedy_answer():
+    """Issue 53: a budget asked alone under a short limit printed less than a smaller budget's
+    optimum (budget 5 of a 40x40 grid below budget 3's). The greedy climb it now starts with
+    takes the first improving move a step, one or two exact values each: from the unaltered
+    chain of the 32-sensor grid it reaches the budget-2 optimum, which the low-rank
+    enumeration certifies, with fewer exact values than a climb that tries every ranked
+    candidate at each step would take."""
+    from misdirect.core.attack import prepare
+    from misdirect.scenarios.sensor_grid import sensor_grid
+    from misdirect.solvers.branch_and_bound import GREEDY_TRIES, _hill_climb
+    from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+    problem = sensor_grid(40, 32)
+    optimum = solve(problem, method="incremental", budgets=[2.0]).curve[0]
+    assert optimum.status == "optimal"
+    instance = prepare(problem, 5.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    start = (0,) * len(relax.order)
+    before = relax.evaluations
+    picks, value = _hill_climb(relax, start, relax.value_of(start), 5.0, first_improvement=True)
+    assert value >= optimum.probability * (1 - 1e-9)
+    assert value == pytest.approx(relax.value_of(picks), rel=1e-12)
+    altered = sum(k != 0 for k in picks)
+    # a best-improvement step values its chain and every one of its GREEDY_TRIES candidates
+    assert relax.evaluations - before < (GREEDY_TRIES + 1) * (altered + 1)

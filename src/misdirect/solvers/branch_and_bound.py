@@ -229,13 +229,11 @@ class BranchAndBoundSolver:
         # a good incumbent before the search: the previous budget's, improved locally
         if search.best_value < 0:
             search.incumbent.offer_exact(search.best_picks)
-        climbed = _hill_climb(
-            relax,
-            search.best_picks,
-            search.best_value,
-            budget,
-            schedule.climb(deadline, step.left),
-        )
+        climb = schedule.climb(deadline, step.left)
+        climbed = (search.best_picks, search.best_value)
+        if curve.incumbent is None:  # no smaller budget's answer to start from: greedy first
+            climbed = _hill_climb(relax, *climbed, budget, climb, first_improvement=True)
+        climbed = _hill_climb(relax, *climbed, budget, climb)
         search.incumbent.offer(*climbed)
         limit = schedule.per_state_search(
             deadline,
@@ -656,13 +654,18 @@ def _hill_climb(
     budget: float,
     deadline: Deadline | None = None,
     tries: int = GREEDY_TRIES,
+    *,
+    first_improvement: bool = False,
 ) -> tuple[tuple[int, ...], float]:
     """Hill-climb from ``picks`` by changing one observation at a time within ``budget``.
 
     Candidates are ranked by a first-order estimate of their gain (the expected visits of
     the states they change times the one-step advantage of their group under the current
     values), and only the ``tries`` best are evaluated exactly: a good incumbent early,
-    for the pruning and for answers cut short by the time limit.
+    for the pruning and for answers cut short by the time limit. ``first_improvement``:
+    each step takes the first candidate that improves (one or two exact values a step, not
+    ``tries``): the cheap greedy answer of a budget solved without a smaller one before it,
+    so that a short time limit does not leave it below what a smaller budget attains.
     """
     chain, live = relax.chain, relax.live
     if not live.any() or not relax.order or not live[chain.initial]:
@@ -679,6 +682,8 @@ def _hill_climb(
             found = relax.value_of(candidate)
             if tolerance.better(found, best[0], rel=tolerance.PRUNE):
                 best = (found, candidate)
+                if first_improvement:
+                    break
         if best[1] is picks:
             return picks, value
         value, picks = best
