@@ -124,3 +124,33 @@ def test_auto_enumerates_the_small_budgets_of_a_cycling_curve(monkeypatch):
         assert mine.status == "optimal"
         assert mine.probability == pytest.approx(best.probability, abs=1e-12)
     assert any(n and "budgets up to 1 enumerated" in n for n in notes)
+
+
+def test_the_stage_that_certified_a_handed_over_budget_is_named():
+    """Issue 53: "certified by incremental (… the enumeration of it would not fit the time
+    left, so branch-and-bound)". The enumeration stopped with a loose bound, branch-and-bound
+    finished the budget, and the exact value lay an ulp above its bound, so the bound was not
+    the combined one and the credit went to the enumeration. The stage that finished is
+    named, and so is the one whose bound is smaller where neither finished."""
+    from misdirect.solvers.auto import _better
+    from misdirect.solvers.base import Solution
+    from misdirect.solvers.status import Status
+
+    value = 0.2063575515173952
+    above = np.nextafter(value, 1.0)  # the front door's exact value of the same alteration
+    alteration = np.zeros(3, dtype=np.int64)
+
+    def point(status, bound, method):
+        return Solution(1.0, alteration, value, status, bound, certified_by=method)
+
+    def exact(_):
+        return above
+
+    first = point(Status.TIME_LIMIT, 0.899, "incremental")
+    second = point(Status.OPTIMAL, value, "branch-and-bound")
+    answer = _better(exact, first, second, "the enumeration would not fit, so branch-and-bound")
+    assert answer.status == Status.OPTIMAL and answer.certified_by == "branch-and-bound"
+    # neither finished, but the second's bound proves the value: it certified it
+    second = point(Status.TIME_LIMIT, value, "branch-and-bound")
+    answer = _better(exact, first, second, "why")
+    assert answer.certified_by == "branch-and-bound"

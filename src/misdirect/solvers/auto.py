@@ -584,8 +584,15 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
     stats = AutoStats(_answer(pick.stats), why, (first.stats, second.stats))
     # a stage that finished the budget finished it; else the last stage's stop is the answer's
     stop = StopReason.FINISHED if finished else second.stop_reason or first.stop_reason
-    # the stage whose bound closed the gap certified it; otherwise the one whose answer it is
-    closer = second if second.upper_bound is not None and second.upper_bound == bound else pick
+    # the stage that finished the budget, or whose bound closed the gap, certified it (the
+    # exact value may lie an ulp above its bound: compare the bounds, not the bound to it);
+    # otherwise the one whose answer it is
+    if finished:
+        closer = second if second.status == Status.OPTIMAL else first
+    else:
+        closer = min(
+            (first, second), key=lambda s: np.inf if s.upper_bound is None else s.upper_bound
+        )
     return Solution(
         budget=pick.budget,
         alteration=pick.alteration,
@@ -593,7 +600,7 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         status=status,
         upper_bound=bound,
         stats=stats,
-        certified_by=(closer if proven else pick).certified_by or "auto",
+        certified_by=(closer if finished or proven else pick).certified_by or "auto",
         notes={**first.notes, **second.notes},  # what each method said of its answer or bound
         stop_reason=stop,
     )
