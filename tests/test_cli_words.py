@@ -63,3 +63,18 @@ def test_audit_budget_syntax_errors_are_solves(text):
     result = runner.invoke(app, ["audit", TINY, "--budget", text, "--json"])
     assert result.exit_code == 2, result.output
     assert json.loads(result.stdout)["error"]["field"] == "--budget"
+
+
+def test_a_footer_leaves_out_what_the_run_did_not_do():
+    """Branch-and-bound on the paper's grid (no end components: no covers, no collapsed
+    proofs) shows its nodes but not the counters of the covers it never tried; --json keeps
+    them, at 0."""
+    args = ["solve", "--scenario", "paper-grid", "--budget", "1", "--method", "branch-and-bound"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    footer = " ".join(result.stdout.split())
+    assert "nodes" in footer
+    for quiet in ("cover", "collapsed"):
+        assert quiet not in footer
+    stats = json.loads(runner.invoke(app, [*args, "--json"]).stdout)["stats"]
+    assert stats["covers"] == 0 and stats["collapsed_proofs"] == 0

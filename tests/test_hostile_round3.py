@@ -202,3 +202,30 @@ def test_too_little_address_space_is_one_line_not_an_import_traceback(tmp_path):
         assert done.returncode == 1
         assert done.stderr.startswith("error: misdirect could not start")
         assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_thread_that_cannot_start_is_one_line_not_an_internal_error(tmp_path, monkeypatch):
+    """Under the same address-space limit, a command that got past its imports failed to
+    start a thread (its stack did not fit) and said "internal error: RuntimeError: can't
+    start new thread". It is the same want of resources as at import: said so, exit 1; any
+    other RuntimeError is still an internal error."""
+    from typer.testing import CliRunner
+
+    import misdirect.cli.models as models
+    from misdirect.cli import app
+
+    def no_thread(*args, **kwargs):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(models, "random_problem", no_thread)
+    result = CliRunner().invoke(app, ["scenario", "random", "-o", str(tmp_path / "r.yaml")])
+    assert result.exit_code == 1
+    assert "misdirect could not start a thread" in result.output
+    assert "internal error" not in result.output and "ulimit -v" in result.output
+
+    def a_bug(*args, **kwargs):
+        raise RuntimeError("something else")
+
+    monkeypatch.setattr(models, "random_problem", a_bug)
+    result = CliRunner().invoke(app, ["scenario", "random", "-o", str(tmp_path / "r.yaml")])
+    assert result.exit_code == 1 and "internal error: RuntimeError: something else" in result.output

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import wraps
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -407,25 +407,40 @@ def handle_errors(command: Callable[..., None], name: str | None = None) -> Call
                 1,
                 as_json,
             )
+        except RuntimeError as error:
+            if "can't start new thread" not in str(error):
+                _internal(error, as_json)
+            # a thread's stack did not fit the address space left (ulimit -v): as at import
+            fail(
+                f"misdirect could not start a thread: {error} (too little memory or address "
+                "space? check `ulimit -v`)",
+                1,
+                as_json,
+            )
         except OSError as error:  # an I/O failure no check foresaw (a disk filling up, ...)
             where = f"{error.filename}: " if error.filename else ""
             fail(f"{where}{error.strerror or error}", 1, as_json)
         except Exception as error:  # a bug: keep the traceback behind an opt-in
-            if os.environ.get("MISDIRECT_DEBUG"):
-                raise
-            fail(
-                f"internal error: {type(error).__name__}: {error} "
-                "(set MISDIRECT_DEBUG=1 for the traceback)",
-                1,
-                as_json,
-            )
+            _internal(error, as_json)
 
     return wrapper
 
 
+def _internal(error: Exception, as_json: bool | str) -> NoReturn:
+    """A bug: one line, the traceback behind MISDIRECT_DEBUG=1."""
+    if os.environ.get("MISDIRECT_DEBUG"):
+        raise error
+    fail(
+        f"internal error: {type(error).__name__}: {error} "
+        "(set MISDIRECT_DEBUG=1 for the traceback)",
+        1,
+        as_json,
+    )
+
+
 def fail(
     message: str, code: int, as_json: bool | str, *, more: Sequence[str] = (), **context: Any
-) -> None:
+) -> NoReturn:
     """One error line on stderr (and the error document on stdout with --json: ``as_json``
     is then the command's name), then exit; ``more``: further problems of the same input,
     one line each."""

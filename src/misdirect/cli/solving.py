@@ -511,7 +511,11 @@ def _solve_summary(result: SolveResult) -> list[str]:
         ]
     else:
         counts = stats.to_dict().items()
-        parts += [_count_words(k, v) for k, v in counts if isinstance(v, int)]
+        parts += [
+            _count_words(k, v)
+            for k, v in counts
+            if isinstance(v, int) and not (v == 0 and k in QUIET_WHEN_NONE)
+        ]
     return parts
 
 
@@ -526,6 +530,19 @@ COUNT_WORDS = {
     "outer_observations": "sensors enumerated {:,} (each of their readings solves a base chain)",
     "policy_evaluations": "relaxations solved {:,}",
     "pruned": "nodes pruned by their bound {:,}",
+    "covers": "nodes covered (bounded by sensor groups) {:,}",
+    "cover_unions": "relaxations solved for the covers {:,}",
+    "cover_pruned": "nodes pruned by a cover {:,}",
+    "covers_given_up": "covers given up {:,}",
+}
+# counters of what only some runs do: left out of the footer where they count nothing
+QUIET_WHEN_NONE = {
+    "covers",
+    "cover_unions",
+    "cover_pruned",
+    "covers_given_up",
+    "collapsed_proofs",
+    "collapsed_proven",
 }
 
 
