@@ -24,7 +24,13 @@ from misdirect.cli.common import check_range, flag
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import ProblemError, ProblemsError
 from misdirect.io.model_problem import problem_from_model, with_controller
-from misdirect.io.problem_file import load_problem, model_kind
+from misdirect.io.problem_file import (
+    CONSISTENCY,
+    load_problem,
+    model_kind,
+    monitored,
+    read_monitor,
+)
 from misdirect.io.storm_names import valuation_name
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solvers.milp.solver import FORMULATIONS
@@ -93,6 +99,25 @@ TerminalFromOption = Annotated[
         help="With a PRISM/DRN model: PAYNT's property, e.g. 'P=? [F \"goal\"]'; its "
         "target states are built terminal, as PAYNT builds the model.",
         show_default=False,
+    ),
+]
+MonitorOption = Annotated[
+    str | None,
+    typer.Option(
+        "--monitor",
+        help="Watch the robot's readings: consistency (its plausibility check: an alarm on a "
+        "reading no state it could be in emits) or a YAML file of an automaton (states, "
+        "initial, alarm, transitions); replaces the file's monitor. The value becomes "
+        "Pr(reach decoy before the alarm); the alarm is the outcome 'alarm' (docs/stealth.md).",
+        show_default=False,
+    ),
+]
+StealthOption = Annotated[
+    bool,
+    typer.Option(
+        "--stealth",
+        help="Maximise Pr(reach decoy before any alarm): the same as giving a monitor; "
+        "without one (--monitor, or the file's monitor:) the consistency monitor.",
     ),
 ]
 ScenarioOption = Annotated[
@@ -171,6 +196,8 @@ class ProblemSource:
     values: str | None
     capacity: float | None
     seed: int
+    monitor: str | None = None
+    stealth: bool = False
 
     def load(self) -> Problem:
         if (self.file is None) == (self.scenario is None):
@@ -183,9 +210,21 @@ class ProblemSource:
         kind = model_kind(self.file) if self.file is not None else None
         self.check_model_flags(kind)
         try:
-            return self._load(kind)
+            problem = self._load(kind)
+            return self._watched(problem, given=kind is None and self.file is not None)
         except ProblemError as error:
             raise with_flag_sources(error) from None
+
+    def _watched(self, problem: Problem, *, given: bool) -> Problem:
+        """The problem under ``--monitor`` (a problem file had it applied in place of its
+        own: ``given``), or under the consistency monitor for ``--stealth`` without one."""
+        if self.monitor is not None and not given:
+            spec, where = read_monitor(self.monitor)
+            return monitored(problem, spec, source=where, field="")
+        if self.stealth and problem.alarm_state is None:
+            spec, where = read_monitor(CONSISTENCY)
+            return monitored(problem, spec, source="stealth", field="")
+        return problem
 
     def model_flags(self) -> dict[str, str | None]:
         """The flags that describe a PRISM or DRN model given as FILE, by parameter name."""
@@ -236,7 +275,7 @@ class ProblemSource:
                 terminal_from=self.terminal_from,
             )
         if self.file is not None:
-            return load_problem(self.file, controller=self.controller)
+            return load_problem(self.file, controller=self.controller, monitor=self.monitor)
         problem = self._scenario()
         if self.controller is not None:
             problem = with_controller(problem, self.controller)
@@ -254,7 +293,16 @@ class ProblemSource:
 
 
 # the settings of misdirect.io.model_problem, which errors name as their source, as flags
-_SETTINGS = ("decoy", "goal", "constants", "terminal_from", "controller", "budget")
+_SETTINGS = (
+    "decoy",
+    "goal",
+    "constants",
+    "terminal_from",
+    "controller",
+    "budget",
+    "monitor",
+    "stealth",
+)
 
 
 def with_flag_sources(error: ProblemError) -> ProblemError:
@@ -288,6 +336,8 @@ _OPTIONS = (
     _keyword("values", ValuesOption, None),
     _keyword("capacity", CapacityOption, None),
     _keyword("seed", SeedOption, 0),
+    _keyword("monitor", MonitorOption, None),
+    _keyword("stealth", StealthOption, False),
 )
 assert [p.name for p in (_FILE, *_OPTIONS)] == [f.name for f in fields(ProblemSource)]
 

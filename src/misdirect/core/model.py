@@ -677,7 +677,7 @@ class Problem:
             return ()
         sink = self.pomdp.states[self.alarm_state]
         return (
-            f"watched by the {self.monitor} monitor: the value is Pr(reach a decoy before the "
+            f"watched by a monitor ({self.monitor}): the value is Pr(reach a decoy before the "
             f"alarm); a run the alarm catches ends in {sink!r}",
         )
 

@@ -122,10 +122,10 @@ class Monitor:
         state_names = list(states)
         index = {s: i for i, s in enumerate(state_names)}
         if not state_names:
-            problem("a monitor needs at least one state", f"{field}.states")
+            problem("a monitor needs at least one state", _at(field, "states"))
         for i, s in enumerate(state_names):
             if state_names.index(s) != i:
-                problem(f"state {s!r} is listed twice", f"{field}.states")
+                problem(f"state {s!r} is listed twice", _at(field, "states"))
         obs_index = {o: i for i, o in enumerate(observations)}
         act_index = {a: i for i, a in enumerate(actions)}
         n_m, n_o, n_a = len(state_names), len(obs_index), len(act_index)
@@ -134,32 +134,31 @@ class Monitor:
             if s in index:
                 alarm_mask[index[s]] = True
             else:
-                problem(
-                    f"unknown alarm state {s!r} (states: {_preview(state_names)})", f"{field}.alarm"
-                )
+                known = _preview(state_names)
+                problem(f"unknown alarm state {s!r} (states: {known})", _at(field, "alarm"))
         start = index.get(initial, -1)
         if start < 0:
             problem(
                 f"unknown initial state {initial!r} (states: {_preview(state_names)})",
-                f"{field}.initial",
+                _at(field, "initial"),
             )
         elif alarm_mask[start]:
             problem(
                 f"the initial state {initial!r} raises the alarm: every run would be caught "
                 "before it starts",
-                f"{field}.initial",
+                _at(field, "initial"),
             )
         check_memory(
             float(n_m) * n_o * n_a * _TABLE_BYTES * 3,
             f"a monitor table of {n_m:,} states x {n_o:,} readings x {n_a:,} actions",
-            field=f"{field}.states",
+            field=_at(field, "states"),
         )
         # each (state, reading, action): the best priority seen and the next state it gives
         best = np.full((n_m, n_o, n_a), -1, dtype=np.int8)
         target = np.full((n_m, n_o, n_a), -1, dtype=np.int32)
         source = np.full((n_m, n_o, n_a), -1, dtype=np.int32)  # the transition that set it
         for i, t in enumerate(transitions):
-            where = f"{field}.transitions[{i}]"
+            where = _at(field, f"transitions[{i}]")
             found = len(problems)
             m = index.get(t.state, -1)
             if m < 0:
@@ -171,7 +170,7 @@ class Monitor:
             acts = _guard(t.action, act_index, "action", actions, where, problems)
             if len(problems) > found or readings is None or acts is None:
                 continue
-            level = 2 * (t.reading != WILDCARD) + (t.action != WILDCARD)
+            level = 2 * (_listed(t.reading) != [WILDCARD]) + (_listed(t.action) != [WILDCARD])
             cells = np.ix_([m], readings, acts)
             here_best, here_target = best[cells], target[cells]
             clash = (here_best == level) & (here_target != to)
@@ -199,7 +198,7 @@ class Monitor:
                     f"incomplete: no transition of state {state_names[m]!r} reads "
                     f"{observations[o]!r} with action {actions[a]!r}{more}; add one, or a "
                     'catch-all with reading "*"',
-                    f"{field}.transitions",
+                    _at(field, "transitions"),
                 )
         if problems:
             raise ProblemsError.of(problems)
@@ -224,9 +223,12 @@ def _guard(
     problems: list[ProblemError],
 ) -> list[int] | None:
     """A guard's readings (or actions) as indices: ``"*"`` all of them."""
-    if value == WILDCARD:
-        return list(range(len(names)))
     listed = [value] if isinstance(value, str) else list(value)
+    if WILDCARD in listed:
+        if len(listed) > 1:
+            problems.append(ProblemError(f'"*" is any {kind}: give it alone', field=where))
+            return None
+        return list(range(len(names)))
     if not listed:
         problems.append(ProblemError(f"an empty {kind} list", field=where))
         return None
@@ -237,6 +239,16 @@ def _guard(
             ProblemError(f"unknown {kind} {v!r} ({known}: {_preview(names)})", field=where)
         )
     return None if unknown else sorted({index[v] for v in listed})
+
+
+def _listed(value: str | Sequence[str]) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
+
+
+def _at(field: str, inside: str) -> str:
+    """``inside`` within ``field`` (``monitor.transitions[0]``; ``transitions[0]`` at the top of
+    a monitor's own file)."""
+    return f"{field}.{inside}" if field else inside
 
 
 def _preview(names: Iterable[str], limit: int = 8) -> str:
@@ -275,7 +287,7 @@ def consistency_monitor(
     pomdp, controller = problem.pomdp, problem.controller
     n_s, n_o, n_a = pomdp.n_states, pomdp.n_observations, pomdp.n_actions
     if max_states < 1:
-        raise ProblemError(f"must be at least 1, got {max_states}", field=f"{field}.max_states")
+        raise ProblemError(f"must be at least 1, got {max_states}", field=_at(field, "max_states"))
     # the actions the controller may play on each reading (in some node)
     played = np.zeros((n_o, n_a), dtype=bool)
     owner, action, _, _ = controller.move_entries(controller.move.T.ravel())
@@ -304,7 +316,7 @@ def consistency_monitor(
                             "(monitor: {consistency: {max_states: N}} in the problem file, "
                             "consistency_monitor(problem, max_states=N)) or give a smaller "
                             "monitor",
-                            field=f"{field}.max_states",
+                            field=_at(field, "max_states"),
                         )
                     k = known[after] = len(supports)
                     supports.append(after)
@@ -317,7 +329,7 @@ def consistency_monitor(
     check_memory(
         float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
         f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
-        field=f"{field}.max_states",
+        field=_at(field, "max_states"),
     )
     table = np.stack(rows).astype(np.int32)
     table[table < 0] = n_m  # the alarm state
@@ -505,7 +517,7 @@ def monitor_from_spec(problem: Problem, spec: Any, *, field: str = "monitor") ->
         cap = DEFAULT_MAX_STATES
         if isinstance(consistency, dict):
             cap = int(consistency.get("max_states", cap))
-        return consistency_monitor(problem, max_states=cap, field=f"{field}.consistency")
+        return consistency_monitor(problem, max_states=cap, field=_at(field, "consistency"))
     return Monitor.from_transitions(
         states=spec.get("states") or [],
         initial=spec.get("initial", ""),
@@ -521,6 +533,6 @@ def monitor_from_spec(problem: Problem, spec: Any, *, field: str = "monitor") ->
         ],
         observations=problem.pomdp.observations,
         actions=problem.pomdp.actions,
-        name=str(spec.get("name") or "monitor"),
+        name=str(spec.get("name") or "automaton"),
         field=field,
     )
