@@ -157,6 +157,7 @@ class Monitor:
         best = np.full((n_m, n_o, n_a), -1, dtype=np.int8)
         target = np.full((n_m, n_o, n_a), -1, dtype=np.int32)
         source = np.full((n_m, n_o, n_a), -1, dtype=np.int32)  # the transition that set it
+        doubtful = np.zeros(n_m, dtype=bool)  # a state with a transition left unresolved
         for i, t in enumerate(transitions):
             where = _at(field, f"transitions[{i}]")
             found = len(problems)
@@ -169,6 +170,8 @@ class Monitor:
             readings = _guard(t.reading, obs_index, "reading", observations, where, problems)
             acts = _guard(t.action, act_index, "action", actions, where, problems)
             if len(problems) > found or readings is None or acts is None:
+                if m >= 0:
+                    doubtful[m] = True
                 continue
             level = 2 * (_listed(t.reading) != [WILDCARD]) + (_listed(t.action) != [WILDCARD])
             cells = np.ix_([m], readings, acts)
@@ -184,13 +187,16 @@ class Monitor:
                     f"{state_names[int(here_target[0, o, a])]!r}",
                     where,
                 )
+                doubtful[m] = True
                 continue
             better = here_best < level
             best[cells] = np.where(better, level, here_best)
             target[cells] = np.where(better, to, here_target)
             source[cells] = np.where(better, i, source[cells])
-        if not problems:
-            missing = np.argwhere((target < 0) & ~alarm_mask[:, None, None])
+        # incompleteness, where it is sure: not in states with a transition in doubt
+        checked = ~alarm_mask & ~doubtful
+        if n_m:
+            missing = np.argwhere((target < 0) & checked[:, None, None])
             if missing.size:
                 m, o, a = (int(k) for k in missing[0])
                 more = f" (and {len(missing) - 1:,} more)" if len(missing) > 1 else ""
