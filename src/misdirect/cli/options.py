@@ -2,7 +2,8 @@
 
 A command that reads a problem is decorated with :func:`problem_input`: it declares only its
 own options and a ``source: ProblemSource`` parameter; the decorator adds the problem FILE
-argument and the ``--scenario --size --weights --values --capacity --seed`` options to the
+argument, the ``--monitor --stealth`` options and the ``--scenario --size --weights --values
+--capacity --seed`` options to the
 signature typer reads, and hands the command their values as one :class:`ProblemSource`.
 """
 
@@ -190,14 +191,14 @@ class ProblemSource:
     goal: str | None
     constants: str | None
     terminal_from: str | None
+    monitor: str | None
+    stealth: bool
     scenario: Scenario | None
     size: int
     weights: str | None
     values: str | None
     capacity: float | None
     seed: int
-    monitor: str | None = None
-    stealth: bool = False
 
     def load(self) -> Problem:
         if (self.file is None) == (self.scenario is None):
@@ -330,14 +331,14 @@ _OPTIONS = (
     _keyword("goal", GoalOption, None),
     _keyword("constants", ConstantsOption, None),
     _keyword("terminal_from", TerminalFromOption, None),
+    _keyword("monitor", MonitorOption, None),
+    _keyword("stealth", StealthOption, False),
     _keyword("scenario", ScenarioOption, None),
     _keyword("size", SizeOption, 5),
     _keyword("weights", WeightsOption, None),
     _keyword("values", ValuesOption, None),
     _keyword("capacity", CapacityOption, None),
     _keyword("seed", SeedOption, 0),
-    _keyword("monitor", MonitorOption, None),
-    _keyword("stealth", StealthOption, False),
 )
 assert [p.name for p in (_FILE, *_OPTIONS)] == [f.name for f in fields(ProblemSource)]
 
