@@ -2,7 +2,8 @@
 
 A command that reads a problem is decorated with :func:`problem_input`: it declares only its
 own options and a ``source: ProblemSource`` parameter; the decorator adds the problem FILE
-argument and the ``--scenario --size --weights --values --capacity --seed`` options to the
+argument, the ``--monitor --stealth`` options and the ``--scenario --size --weights --values
+--capacity --seed`` options to the
 signature typer reads, and hands the command their values as one :class:`ProblemSource`.
 """
 
@@ -24,7 +25,13 @@ from misdirect.cli.common import check_range, flag
 from misdirect.core.model import AlterationArray, Problem
 from misdirect.errors import ProblemError, ProblemsError
 from misdirect.io.model_problem import problem_from_model, with_controller
-from misdirect.io.problem_file import load_problem, model_kind
+from misdirect.io.problem_file import (
+    CONSISTENCY,
+    load_problem,
+    model_kind,
+    monitored,
+    read_monitor,
+)
 from misdirect.io.storm_names import valuation_name
 from misdirect.scenarios import knapsack, paper_grid, random_problem
 from misdirect.solvers.milp.solver import FORMULATIONS
@@ -93,6 +100,25 @@ TerminalFromOption = Annotated[
         help="With a PRISM/DRN model: PAYNT's property, e.g. 'P=? [F \"goal\"]'; its "
         "target states are built terminal, as PAYNT builds the model.",
         show_default=False,
+    ),
+]
+MonitorOption = Annotated[
+    str | None,
+    typer.Option(
+        "--monitor",
+        help="Watch the robot's readings: consistency (its plausibility check: an alarm on a "
+        "reading no state it could be in emits) or a YAML file of an automaton (states, "
+        "initial, alarm, transitions); replaces the file's monitor. The value becomes "
+        "Pr(reach decoy before the alarm); the alarm is the outcome 'alarm' (docs/stealth.md).",
+        show_default=False,
+    ),
+]
+StealthOption = Annotated[
+    bool,
+    typer.Option(
+        "--stealth",
+        help="Maximise Pr(reach decoy before any alarm): the same as giving a monitor; "
+        "without one (--monitor, or the file's monitor:) the consistency monitor.",
     ),
 ]
 ScenarioOption = Annotated[
@@ -172,6 +198,8 @@ class ProblemSource:
     goal: str | None
     constants: str | None
     terminal_from: str | None
+    monitor: str | None
+    stealth: bool
     scenario: Scenario | None
     size: int
     weights: str | None
@@ -190,9 +218,21 @@ class ProblemSource:
         kind = model_kind(self.file) if self.file is not None else None
         self.check_model_flags(kind)
         try:
-            return self._load(kind)
+            problem = self._load(kind)
+            return self._watched(problem, given=kind is None and self.file is not None)
         except ProblemError as error:
             raise with_flag_sources(error) from None
+
+    def _watched(self, problem: Problem, *, given: bool) -> Problem:
+        """The problem under ``--monitor`` (a problem file had it applied in place of its
+        own: ``given``), or under the consistency monitor for ``--stealth`` without one."""
+        if self.monitor is not None and not given:
+            spec, where = read_monitor(self.monitor)
+            return monitored(problem, spec, source=where, field="")
+        if self.stealth and problem.alarm_state is None:
+            spec, where = read_monitor(CONSISTENCY)
+            return monitored(problem, spec, source="stealth", field="")
+        return problem
 
     def model_flags(self) -> dict[str, str | None]:
         """The flags that describe a PRISM or DRN model given as FILE, by parameter name."""
@@ -243,7 +283,7 @@ class ProblemSource:
                 terminal_from=self.terminal_from,
             )
         if self.file is not None:
-            return load_problem(self.file, controller=self.controller)
+            return load_problem(self.file, controller=self.controller, monitor=self.monitor)
         problem = self._scenario()
         if self.controller is not None:
             problem = with_controller(problem, self.controller)
@@ -261,7 +301,16 @@ class ProblemSource:
 
 
 # the settings of misdirect.io.model_problem, which errors name as their source, as flags
-_SETTINGS = ("decoy", "goal", "constants", "terminal_from", "controller", "budget")
+_SETTINGS = (
+    "decoy",
+    "goal",
+    "constants",
+    "terminal_from",
+    "controller",
+    "budget",
+    "monitor",
+    "stealth",
+)
 
 
 def with_flag_sources(error: ProblemError) -> ProblemError:
@@ -289,6 +338,8 @@ _OPTIONS = (
     _keyword("goal", GoalOption, None),
     _keyword("constants", ConstantsOption, None),
     _keyword("terminal_from", TerminalFromOption, None),
+    _keyword("monitor", MonitorOption, None),
+    _keyword("stealth", StealthOption, False),
     _keyword("scenario", ScenarioOption, None),
     _keyword("size", SizeOption, 5),
     _keyword("weights", WeightsOption, None),

@@ -125,6 +125,8 @@ class Evaluation:
     decoy_states: frozenset[str] = frozenset()  # the decoy states: outcomes of kind decoy
     # the value with no alteration, when it was computed (``evaluate --json`` does)
     baseline_value: float | None = None
+    # a monitored problem's alarm sink (the outcome of kind "alarm"), else None
+    alarm_state: str | None = None
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -185,16 +187,28 @@ class Evaluation:
 
     def outcome_list(self, *, all_outcomes: bool = False) -> list[dict[str, Any]]:
         """:attr:`outcomes` (or :attr:`all_outcomes`) as the JSON lists them: ``kind``
-        (decoy, or goal for another absorbing state), ``state`` and ``probability``; the
+        (decoy, alarm for a monitor's alarm, or goal for another absorbing state), ``state``
+        and ``probability``; the
         runs never absorbed, if any, as kind ``trapped`` with no state."""
         ends = self.all_outcomes if all_outcomes else self.outcomes
         listed: list[dict[str, Any]] = [
-            {"kind": "decoy" if s in self.decoy_states else "goal", "state": s, "probability": p}
-            for s, p in ends.items()
+            {"kind": self._kind(s), "state": s, "probability": p} for s, p in ends.items()
         ]
         if self.never_absorbed > 0:
             listed.append({"kind": "trapped", "state": None, "probability": self.never_absorbed})
         return listed
+
+    def _kind(self, state: str) -> str:
+        if state in self.decoy_states:
+            return "decoy"
+        return "alarm" if state == self.alarm_state else "goal"
+
+    @property
+    def alarm_probability(self) -> float | None:
+        """Pr(the monitor raises the alarm first) of a monitored problem, else None."""
+        if self.alarm_state is None:
+            return None
+        return self.outcomes.get(self.alarm_state, 0.0)
 
     def to_dict(self, *, all_outcomes: bool = False) -> dict[str, Any]:
         """The evaluation as ``evaluate --json`` writes it (``misdirect-result/1``, the
@@ -367,4 +381,5 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
         problem=problem.name,
         budget=problem.budget,
         decoy_states=frozenset(names[s] for s in np.flatnonzero(objective.target)),
+        alarm_state=None if problem.alarm_state is None else names[problem.alarm_state],
     )

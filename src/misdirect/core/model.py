@@ -582,6 +582,10 @@ class Problem:
     # doubts the reader had about the input (a PAYNT controller made for another build of the
     # model): every result about this problem repeats them
     warnings: tuple[str, ...] = ()
+    # a monitored problem (misdirect.core.monitor.with_monitor): the absorbing state a run
+    # enters when the monitor raises the alarm, and the monitor's name
+    alarm_state: int | None = None
+    monitor: str = ""
 
     def __repr__(self) -> str:
         pomdp = self.pomdp
@@ -657,12 +661,24 @@ class Problem:
         """What every result about this problem says beside its numbers, though nothing is
         wrong: a robot that starts in a decoy state scores at once, whatever it reads."""
         s0 = self.pomdp.initial_state
+        watched = self._monitor_note()
         if not self.decoy[s0]:
-            return self._shared_initial_observation()
+            return (*watched, *self._shared_initial_observation())
         score = float(self.objective.value[s0])
         return (
+            *watched,
             f"the initial state {self.pomdp.states[s0]!r} is a decoy: every run scores "
             f"{score:g} at once, whatever the robot reads, so no alteration changes the value",
+        )
+
+    def _monitor_note(self) -> tuple[str, ...]:
+        """A monitored problem says what its value means (docs/stealth.md)."""
+        if self.alarm_state is None:
+            return ()
+        sink = self.pomdp.states[self.alarm_state]
+        return (
+            f"watched by a monitor ({self.monitor}): the value is Pr(reach a decoy before the "
+            f"alarm); a run the alarm catches ends in {sink!r}",
         )
 
     def _shared_initial_observation(self) -> tuple[str, ...]:

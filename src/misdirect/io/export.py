@@ -242,14 +242,18 @@ def _renamed(shown: tuple[str, ...], pattern: re.Pattern[str], names: list[str])
 
 def chain_labels(problem: Problem, world_state: np.ndarray, initial: int) -> dict[str, np.ndarray]:
     """The product states each label holds: ``init`` (the start), ``decoy`` (a decoy world
-    state) and ``absorbing`` (an absorbing world state: the run has ended)."""
+    state), ``absorbing`` (an absorbing world state: the run has ended) and, for a monitored
+    problem, ``alarm`` (the monitor raised the alarm: the run has ended outside the decoy)."""
     init = np.zeros(world_state.size, dtype=bool)
     init[initial] = True
-    return {
+    labels = {
         "init": init,
         "decoy": np.asarray(problem.decoy, dtype=bool)[world_state],
         "absorbing": problem.pomdp.absorbing[world_state],
     }
+    if problem.alarm_state is not None:  # a monitored problem: where its alarm ends a run
+        labels["alarm"] = world_state == problem.alarm_state
+    return labels
 
 
 def chain_state_names(problem: Problem, world_state: np.ndarray, node: np.ndarray) -> list[str]:

@@ -37,6 +37,7 @@ from misdirect.core import tolerance
 from misdirect.core.alterations import max_alteration_cost
 from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
+from misdirect.core.monitor import DEFAULT_MAX_STATES, monitor_from_spec, with_monitor
 from misdirect.core.objective import DecoySet
 from misdirect.errors import MAX_REPORTED, ProblemError, ProblemsError
 from misdirect.io.export import with_exported_names
@@ -393,6 +394,95 @@ class DeceptionSpec(_Strict):
     cost: CostSpec = Field(default_factory=CostSpec)
 
 
+class ConsistencySpec(_Strict):
+    max_states: int = Field(
+        default=DEFAULT_MAX_STATES,
+        ge=1,
+        description="the most belief supports the monitor may have (an error past it)",
+    )
+
+
+def _one_or_many(value: Any) -> Any:
+    """A guard: one name is a list of one (``"*"``: any)."""
+    return value if isinstance(value, list) else [value]
+
+
+Guard = Annotated[
+    list[Name],
+    BeforeValidator(_one_or_many),
+    Field(min_length=1),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "string", "minLength": 1},
+                {"type": "integer"},
+                {
+                    "type": "array",
+                    "minItems": 1,
+                    "items": {"anyOf": [{"type": "string", "minLength": 1}, {"type": "integer"}]},
+                },
+            ]
+        }
+    ),
+]
+
+
+class MonitorTransitionSpec(_Strict):
+    """In ``state``, on ``reading`` (and ``action``), go to ``next``. A named reading beats
+    ``"*"`` (any other reading), then a named action beats ``"*"``."""
+
+    state: Name
+    reading: Guard = Field(
+        description='the reading (what the robot receives), a list of them, or "*"'
+    )
+    action: Guard = Field(
+        default_factory=lambda: [WILDCARD],
+        description='the action the robot plays on that reading, a list, or "*" (default)',
+    )
+    next: Name
+
+
+class MonitorSpec(_Strict):
+    """A monitor: ``consistency: true`` (the robot's plausibility check) or an automaton
+    (``states``, ``initial``, ``alarm``, ``transitions``). With a monitor the value is
+    Pr(reach a decoy before the alarm) (docs/stealth.md)."""
+
+    name: str | None = Field(default=None, description="what reports call the monitor")
+    consistency: bool | ConsistencySpec | None = Field(
+        default=None,
+        description="the robot's plausibility check: an alarm on a reading no state of the "
+        "belief support emits; true, or {max_states: N}",
+    )
+    states: list[Name] | None = Field(default=None, min_length=1)
+    initial: Name | None = None
+    alarm: list[Name] | None = Field(default=None, description="the states that raise the alarm")
+    transitions: list[MonitorTransitionSpec] | None = Field(default=None, min_length=1)
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> MonitorSpec:
+        automaton = {
+            "states": self.states,
+            "initial": self.initial,
+            "alarm": self.alarm,
+            "transitions": self.transitions,
+        }
+        given = [key for key, value in automaton.items() if value is not None]
+        if self.consistency not in (None, False):
+            if given:
+                raise ValueError(
+                    f"give consistency or an automaton, not both (remove {', '.join(given)})"
+                )
+            return self
+        missing = [key for key, value in automaton.items() if value is None]
+        if missing:
+            raise ValueError(f"an automaton needs {', '.join(missing)} (or give consistency: true)")
+        return self
+
+    def document(self) -> dict[str, Any]:
+        """The monitor as plain data (:func:`misdirect.core.monitor.monitor_from_spec`)."""
+        return self.model_dump(exclude_none=True)
+
+
 class ProblemFileV1(_Strict):
     """A misdirect problem: POMDP, controller, and what the attacker may do."""
 
@@ -403,6 +493,11 @@ class ProblemFileV1(_Strict):
     grid: GridSpec | None = None
     controller: AnyControllerSpec
     deception: DeceptionSpec
+    monitor: MonitorSpec | None = Field(
+        default=None,
+        description="a monitor watching the robot's readings: the value becomes "
+        "Pr(reach a decoy before the alarm)",
+    )
 
 
 # -- reading ------------------------------------------------------------------------------------
@@ -554,7 +649,12 @@ def _check_key_names(document: dict) -> None:
         )
 
 
-def load_problem(path: str | Path, *, controller: str | Path | None = None) -> Problem:
+def load_problem(
+    path: str | Path,
+    *,
+    controller: str | Path | None = None,
+    monitor: str | Path | MonitorSpec | None = None,
+) -> Problem:
     """Read and check a problem file (YAML or JSON; docs/problem-format.md).
 
     Parameters
@@ -565,6 +665,10 @@ def load_problem(path: str | Path, *, controller: str | Path | None = None) -> P
     controller : str or Path, optional
         A controller file to use instead of the file's own: PAYNT's ``.fsc.json``, or a YAML
         file of rules (relative to the working directory, not to the problem file).
+    monitor : str, Path or MonitorSpec, optional
+        A monitor to use instead of the file's own ``monitor:`` (:func:`read_monitor`:
+        ``"consistency"`` or a YAML file of an automaton); with one, the value is
+        Pr(reach a decoy before the alarm).
 
     Returns
     -------
@@ -590,11 +694,78 @@ def load_problem(path: str | Path, *, controller: str | Path | None = None) -> P
         replaced = controller_document(controller)
         spec = spec.model_copy(update={"controller": _controller_spec(replaced, controller)})
     try:
-        return compile_problem(spec, source=str(path))
+        problem = compile_problem(spec, source=str(path))
     except ProblemError as error:
         if controller is not None:
             error = controller_error(error, str(controller))
         raise error.located(str(path)) from None
+    if monitor is not None:
+        given, where = read_monitor(monitor)
+        return monitored(problem, given, source=where, field="")
+    if spec.monitor is not None:
+        return monitored(problem, spec.monitor, source=str(path))
+    return problem
+
+
+# -- monitors -----------------------------------------------------------------------------------
+
+CONSISTENCY = "consistency"
+
+
+def read_monitor(value: str | Path | MonitorSpec) -> tuple[MonitorSpec, str]:
+    """A monitor as given on a command line or to :func:`load_problem`, and what its errors
+    name: ``"consistency"`` (the robot's plausibility check), a YAML or JSON file holding an
+    automaton (``states``, ``initial``, ``alarm``, ``transitions``, as under ``monitor:`` in a
+    problem file) or a problem file whose monitor is taken, or a :class:`MonitorSpec`."""
+    if isinstance(value, MonitorSpec):
+        return value, "monitor"
+    if str(value) == CONSISTENCY:
+        return MonitorSpec(consistency=True), "monitor"
+    path = Path(value)
+    if not path.exists():
+        raise ProblemError(
+            f"file not found: {path} (give consistency or a monitor file)", source="monitor"
+        )
+    check_input_file(path, source="monitor")
+    document = _read_document(path)
+    if isinstance(document, dict) and "format" in document and "monitor" in document:
+        document = document["monitor"]  # another problem file's monitor
+    return parse_monitor(document, source=str(path)), str(path)
+
+
+def parse_monitor(document: Any, *, source: str, field: str = "") -> MonitorSpec:
+    """A monitor's document validated (every schema error at once, each naming ``source``
+    and its field)."""
+    if not isinstance(document, dict):
+        raise ProblemError(
+            "expected a monitor: a mapping with states, initial, alarm and transitions, or "
+            "consistency: true",
+            source=source,
+            field=field or None,
+        )
+    try:
+        return MonitorSpec.model_validate(document)
+    except ValidationError as error:
+        found = [
+            ProblemError(
+                error_reason(item),
+                source=source,
+                field=".".join(part for part in (field, error_field(item["loc"])) if part) or None,
+            )
+            for item in error.errors()
+        ]
+        raise ProblemsError.of(found) from None
+
+
+def monitored(
+    problem: Problem, spec: MonitorSpec, *, source: str | None, field: str = "monitor"
+) -> Problem:
+    """``problem`` watched by the monitor ``spec`` describes (:func:`misdirect.core.monitor.
+    with_monitor`); errors name ``source`` and the field."""
+    try:
+        return with_monitor(problem, monitor_from_spec(problem, spec.document(), field=field))
+    except ProblemError as error:
+        raise error.located(source) if source is not None else error from None
 
 
 _RULES_SUFFIXES = (".yaml", ".yml")
@@ -719,9 +890,13 @@ def problem_from_dict(
     """
     where = source if base_dir is None else str(Path(base_dir) / source)
     try:
-        return compile_problem(parse_spec(dict(document)), source=where)
+        spec = parse_spec(dict(document))
+        problem = compile_problem(spec, source=where)
     except ProblemError as error:
         raise error.located(source) from None
+    if spec.monitor is not None:
+        return monitored(problem, spec.monitor, source=source)
+    return problem
 
 
 class _Found:

@@ -1,0 +1,544 @@
+"""Monitors: automata that read what the robot receives, and the problem they watch over.
+
+A :class:`Monitor` is a deterministic, complete automaton over the robot's *readings* (the
+observation it receives, altered or not) and, optionally, the action it plays on that reading.
+Some of its states raise the alarm. :func:`with_monitor` folds it into the problem, exactly:
+
+* the controller becomes the product controller over reachable pairs ``(n, m)`` of a memory
+  node and a monitor state: in ``(n, m)`` reading ``o`` it draws ``(a, n')`` from the
+  controller's move ``μ(n, o)`` and goes to ``(n', τ(m, o, a))``;
+* an entry whose monitor successor ``τ(m, o, a)`` is an alarm state plays, instead of ``a``, a
+  new action that moves every non-absorbing world state to a new absorbing, non-decoy sink
+  state ``alarm``, with the same probability.
+
+A run of the monitored problem is a run of the original one, step for step, until the monitor
+raises the alarm; it then ends in ``alarm``. So its Pr(reach decoy) is Pr(reach a decoy before
+any alarm) of the original problem under the same alteration, and its Pr(reach ``alarm``) is
+the probability the alarm is raised first. The alteration space is unchanged: the observations,
+the cost model and the initial observation are the original ones (the sink emits the initial
+observation, which is never altered, and is absorbing: nothing the attacker may choose reads
+it). Every method, certificate, export and report of the monitored problem therefore answers
+the stealth question, with nothing of its own.
+
+Conventions: the monitor reads the reading of the step's world state; a run that is in a decoy
+state has already scored, and one in an absorbing state has ended (no alarm is raised there).
+The monitor's initial state reads the initial observation like every other.
+
+:func:`consistency_monitor` builds the robot's own plausibility check: its state is the
+support of the robot's belief (the world states it could be in, given its model, its
+readings and its actions), and the alarm is raised on a reading that no state of the support
+emits. It is built on demand, over the supports reachable from ``{s0}``, within a cap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from misdirect.core.memory import check_memory
+from misdirect.core.model import Controller, Pomdp, Problem
+from misdirect.core.objective import DecoySet
+from misdirect.errors import ProblemError, ProblemsError
+
+WILDCARD = "*"
+ALARM = "alarm"  # the sink state's name (made unique against the model's states)
+ALARM_ACTION = "alarm"  # the action into it (made unique against the model's actions)
+DEFAULT_MAX_STATES = 10_000  # the consistency monitor's cap on belief supports
+
+# bytes per monitor table entry (int32) kept while a monitor is built and folded in
+_TABLE_BYTES = 4
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One transition of a user's monitor: in ``state``, on a reading among ``reading`` (a
+    name, a list of names, or ``"*"``: any other reading) and an action among ``action``
+    (likewise; ``"*"`` by default), go to ``next``."""
+
+    state: str
+    reading: str | Sequence[str]
+    next: str
+    action: str | Sequence[str] = WILDCARD
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Monitor:
+    """A deterministic, complete automaton over the robot's readings and actions.
+
+    ``next_state[m, o, a]`` is the state after reading ``o`` and playing ``a`` in state ``m``;
+    ``alarm[m]`` marks the states that raise the alarm (entering one ends the run; their own
+    rows are never read). Build one with :meth:`from_transitions` (a user's automaton, checked)
+    or :func:`consistency_monitor`; fold it into a problem with :func:`with_monitor`.
+    """
+
+    name: str
+    states: tuple[str, ...]
+    initial: int
+    alarm: np.ndarray  # (M,) bool
+    next_state: np.ndarray  # (M, |Ω|, |A|) int32
+    observations: tuple[str, ...]
+    actions: tuple[str, ...]
+
+    def __repr__(self) -> str:
+        return (
+            f"Monitor({self.name!r}: {self.n_states} states, "
+            f"{int(self.alarm.sum())} raising the alarm)"
+        )
+
+    @property
+    def n_states(self) -> int:
+        return len(self.states)
+
+    @classmethod
+    def from_transitions(
+        cls,
+        *,
+        states: Sequence[str],
+        initial: str,
+        alarm: Iterable[str],
+        transitions: Sequence[Transition],
+        observations: Sequence[str],
+        actions: Sequence[str],
+        name: str = "monitor",
+        field: str = "monitor",
+    ) -> Monitor:
+        """A user's automaton over the given readings and actions, checked.
+
+        A transition naming its reading beats one whose reading is ``"*"``; among those,
+        one naming its action beats one whose action is ``"*"``. Where the best matches of
+        a (state, reading, action) disagree on the next state, the monitor is
+        nondeterministic; where none matches a state that is not an alarm state, it is
+        incomplete. Every problem (unknown names, nondeterminism, incompleteness) is reported
+        at once, each naming ``field`` and the place in it.
+        """
+        problems: list[ProblemError] = []
+
+        def problem(reason: str, where: str) -> None:
+            problems.append(ProblemError(reason, field=where))
+
+        state_names = list(states)
+        index = {s: i for i, s in enumerate(state_names)}
+        if not state_names:
+            problem("a monitor needs at least one state", _at(field, "states"))
+        for i, s in enumerate(state_names):
+            if state_names.index(s) != i:
+                problem(f"state {s!r} is listed twice", _at(field, "states"))
+        obs_index = {o: i for i, o in enumerate(observations)}
+        act_index = {a: i for i, a in enumerate(actions)}
+        n_m, n_o, n_a = len(state_names), len(obs_index), len(act_index)
+        alarm_mask = np.zeros(n_m, dtype=bool)
+        for s in alarm:
+            if s in index:
+                alarm_mask[index[s]] = True
+            else:
+                known = _preview(state_names)
+                problem(f"unknown alarm state {s!r} (states: {known})", _at(field, "alarm"))
+        start = index.get(initial, -1)
+        if start < 0:
+            problem(
+                f"unknown initial state {initial!r} (states: {_preview(state_names)})",
+                _at(field, "initial"),
+            )
+        elif alarm_mask[start]:
+            problem(
+                f"the initial state {initial!r} raises the alarm: every run would be caught "
+                "before it starts",
+                _at(field, "initial"),
+            )
+        check_memory(
+            float(n_m) * n_o * n_a * _TABLE_BYTES * 3,
+            f"a monitor table of {n_m:,} states x {n_o:,} readings x {n_a:,} actions",
+            field=_at(field, "states"),
+        )
+        # each (state, reading, action): the best priority seen and the next state it gives
+        best = np.full((n_m, n_o, n_a), -1, dtype=np.int8)
+        target = np.full((n_m, n_o, n_a), -1, dtype=np.int32)
+        source = np.full((n_m, n_o, n_a), -1, dtype=np.int32)  # the transition that set it
+        doubtful = np.zeros(n_m, dtype=bool)  # a state with a transition left unresolved
+        for i, t in enumerate(transitions):
+            where = _at(field, f"transitions[{i}]")
+            found = len(problems)
+            m = index.get(t.state, -1)
+            if m < 0:
+                problem(f"unknown state {t.state!r} (states: {_preview(state_names)})", where)
+            to = index.get(t.next, -1)
+            if to < 0:
+                problem(f"unknown next state {t.next!r} (states: {_preview(state_names)})", where)
+            readings = _guard(t.reading, obs_index, "reading", observations, where, problems)
+            acts = _guard(t.action, act_index, "action", actions, where, problems)
+            if len(problems) > found or readings is None or acts is None:
+                if m >= 0:
+                    doubtful[m] = True
+                continue
+            level = 2 * (_listed(t.reading) != [WILDCARD]) + (_listed(t.action) != [WILDCARD])
+            cells = np.ix_([m], readings, acts)
+            here_best, here_target = best[cells], target[cells]
+            clash = (here_best == level) & (here_target != to)
+            if clash.any():
+                _, o, a = (int(k[0]) for k in np.nonzero(clash))
+                other = int(source[cells][0, o, a])
+                problem(
+                    f"nondeterministic: in state {t.state!r} reading "
+                    f"{observations[readings[o]]!r} with action {actions[acts[a]]!r} it goes "
+                    f"to {state_names[to]!r} and, by transitions[{other}], to "
+                    f"{state_names[int(here_target[0, o, a])]!r}",
+                    where,
+                )
+                doubtful[m] = True
+                continue
+            better = here_best < level
+            best[cells] = np.where(better, level, here_best)
+            target[cells] = np.where(better, to, here_target)
+            source[cells] = np.where(better, i, source[cells])
+        # incompleteness, where it is sure: not in states with a transition in doubt
+        checked = ~alarm_mask & ~doubtful
+        if n_m:
+            missing = np.argwhere((target < 0) & checked[:, None, None])
+            if missing.size:
+                m, o, a = (int(k) for k in missing[0])
+                more = f" (and {len(missing) - 1:,} more)" if len(missing) > 1 else ""
+                problem(
+                    f"incomplete: no transition of state {state_names[m]!r} reads "
+                    f"{observations[o]!r} with action {actions[a]!r}{more}; add one, or a "
+                    'catch-all with reading "*"',
+                    _at(field, "transitions"),
+                )
+        if problems:
+            raise ProblemsError.of(problems)
+        target[alarm_mask] = np.arange(n_m, dtype=np.int32)[alarm_mask, None, None]
+        return cls(
+            name=name,
+            states=tuple(state_names),
+            initial=start,
+            alarm=alarm_mask,
+            next_state=target,
+            observations=tuple(observations),
+            actions=tuple(actions),
+        )
+
+
+def _guard(
+    value: str | Sequence[str],
+    index: dict[str, int],
+    kind: str,
+    names: Sequence[str],
+    where: str,
+    problems: list[ProblemError],
+) -> list[int] | None:
+    """A guard's readings (or actions) as indices: ``"*"`` all of them."""
+    listed = [value] if isinstance(value, str) else list(value)
+    if WILDCARD in listed:
+        if len(listed) > 1:
+            problems.append(ProblemError(f'"*" is any {kind}: give it alone', field=where))
+            return None
+        return list(range(len(names)))
+    if not listed:
+        problems.append(ProblemError(f"an empty {kind} list", field=where))
+        return None
+    unknown = [v for v in listed if v not in index]
+    for v in unknown:
+        known = "observations" if kind == "reading" else "actions"
+        problems.append(
+            ProblemError(f"unknown {kind} {v!r} ({known}: {_preview(names)})", field=where)
+        )
+    return None if unknown else sorted({index[v] for v in listed})
+
+
+def _listed(value: str | Sequence[str]) -> list[str]:
+    return [value] if isinstance(value, str) else list(value)
+
+
+def _at(field: str, inside: str) -> str:
+    """``inside`` within ``field`` (``monitor.transitions[0]``; ``transitions[0]`` at the top of
+    a monitor's own file)."""
+    return f"{field}.{inside}" if field else inside
+
+
+def _preview(names: Iterable[str], limit: int = 8) -> str:
+    names = list(names)
+    shown = ", ".join(names[:limit])
+    return shown + (f", … ({len(names)} in all)" if len(names) > limit else "")
+
+
+# -- the consistency monitor --------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class ConsistencyMonitor(Monitor):
+    """The robot's plausibility check; ``supports[m]`` is the set of world states state ``m``
+    predicts (the robot could be in, before its next reading), as sorted indices."""
+
+    supports: tuple[tuple[int, ...], ...] = ()
+
+
+def consistency_monitor(
+    problem: Problem, *, max_states: int = DEFAULT_MAX_STATES, field: str = "monitor"
+) -> ConsistencyMonitor:
+    """The robot's own plausibility check: an alarm when a reading is impossible.
+
+    Its state is the belief support predicted for the next step: the world states the robot
+    could be in given its model (the POMDP as the problem states it, its initial state known),
+    the readings it received and the actions it played. In state ``P`` reading ``o`` and
+    playing ``a``: the support becomes ``Q = {s ∈ P : O(s) = o}``, and the next state is
+    ``post(Q, a) = {s' : P(s, a, s') > 0 for some s ∈ Q}``; where ``Q`` is empty, no state the
+    robot could be in emits ``o``, and the alarm is raised.
+
+    Built over the supports reachable from ``{s0}`` under every reading and every action the
+    controller may play on it; more than ``max_states`` supports raise a
+    :class:`~misdirect.errors.ProblemError` naming the cap.
+    """
+    pomdp, controller = problem.pomdp, problem.controller
+    n_s, n_o, n_a = pomdp.n_states, pomdp.n_observations, pomdp.n_actions
+    if max_states < 1:
+        raise ProblemError(f"must be at least 1, got {max_states}", field=_at(field, "max_states"))
+    # the actions the controller may play on each reading (in some node)
+    played = np.zeros((n_o, n_a), dtype=bool)
+    owner, action, _, _ = controller.move_entries(controller.move.T.ravel())
+    played[owner // controller.n_nodes, action] = True
+    emits = np.zeros((n_o, n_s), dtype=bool)
+    emits[pomdp.observation_of, np.arange(n_s)] = True
+    transitions = pomdp.transitions.tocsr()
+    supports: list[tuple[int, ...]] = [(pomdp.initial_state,)]
+    known = {supports[0]: 0}
+    rows: list[np.ndarray] = []  # per support: (|Ω|, |A|) next support (-1: alarm)
+    at = 0
+    while at < len(supports):
+        support = np.array(supports[at], dtype=np.int64)
+        row = np.full((n_o, n_a), -1, dtype=np.int64)
+        for o in np.unique(pomdp.observation_of[support]).tolist():
+            consistent = support[emits[o, support]]
+            for a in np.flatnonzero(played[o]).tolist():
+                block = transitions[a * n_s + consistent]
+                after = tuple(np.unique(block.indices).tolist())
+                k = known.get(after)
+                if k is None:
+                    if len(supports) >= max_states:
+                        raise ProblemError(
+                            f"the consistency monitor needs more than {max_states:,} belief "
+                            f"supports (the cap) on {pomdp.n_states:,} states; raise the cap "
+                            "(monitor: {consistency: {max_states: N}} in the problem file, "
+                            "consistency_monitor(problem, max_states=N)) or give a smaller "
+                            "monitor",
+                            field=_at(field, "max_states"),
+                        )
+                    k = known[after] = len(supports)
+                    supports.append(after)
+                row[o, a] = k
+            # actions the controller never plays on o: any state will do (never read)
+            row[o, ~played[o]] = at
+        rows.append(row)
+        at += 1
+    n_m = len(supports)
+    check_memory(
+        float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
+        f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
+        field=_at(field, "max_states"),
+    )
+    table = np.stack(rows).astype(np.int32)
+    table[table < 0] = n_m  # the alarm state
+    table = np.concatenate([table, np.full((1, n_o, n_a), n_m, dtype=np.int32)])
+    alarm = np.zeros(n_m + 1, dtype=bool)
+    alarm[n_m] = True
+    return ConsistencyMonitor(
+        name="consistency",
+        states=(*(f"b{k}" for k in range(n_m)), ALARM),
+        initial=0,
+        alarm=alarm,
+        next_state=table,
+        observations=pomdp.observations,
+        actions=pomdp.actions,
+        supports=tuple(supports),
+    )
+
+
+# -- the monitored problem ----------------------------------------------------------------------
+
+
+def _fresh(name: str, taken: Iterable[str]) -> str:
+    taken = set(taken)
+    candidate, k = name, 1
+    while candidate in taken:
+        candidate, k = f"{name}_{k}", k + 1
+    return candidate
+
+
+def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
+    """The problem whose Pr(reach decoy) is Pr(reach a decoy before the monitor's alarm).
+
+    The controller becomes the product of the controller and the monitor over reachable
+    pairs; the world gets an absorbing, non-decoy state ``alarm`` and an action into it, which
+    the product controller plays where the monitor raises the alarm (the module's docstring
+    says why the reduction is exact). The observations, costs and budget are unchanged, so an
+    alteration of the problem is an alteration of the monitored one, at the same cost.
+
+    Parameters
+    ----------
+    problem : Problem
+        The problem to watch over (one without a monitor).
+    monitor : Monitor
+        An automaton over the problem's observations and actions (:meth:`Monitor.
+        from_transitions`, :func:`consistency_monitor`).
+
+    Returns
+    -------
+    Problem
+        The monitored problem; ``alarm_state`` is the sink's index, ``monitor`` the
+        monitor's name.
+
+    Examples
+    --------
+    >>> from misdirect.scenarios import paper_grid
+    >>> problem = paper_grid(5)
+    >>> watched = with_monitor(problem, consistency_monitor(problem))
+    >>> watched.pomdp.states[watched.alarm_state]
+    'alarm'
+    """
+    if problem.alarm_state is not None:
+        raise ProblemError(
+            f"the problem is already watched by the monitor {problem.monitor!r}; give one "
+            "monitor (an automaton can read what both would)",
+            field="monitor",
+        )
+    pomdp, controller = problem.pomdp, problem.controller
+    if monitor.observations != pomdp.observations or monitor.actions != pomdp.actions:
+        raise ProblemError(
+            "the monitor reads other observations or actions than the problem's; build it "
+            "over the problem's (Monitor.from_transitions(observations=..., actions=...))",
+            field="monitor",
+        )
+    sink = pomdp.n_states
+    alarm_action = pomdp.n_actions
+    nodes, entries = _product_controller(controller, monitor, alarm_action)
+    n_o = pomdp.n_observations
+    cell, action, next_node, probability = entries
+    product = Controller.from_entries(
+        nodes=tuple(f"({controller.nodes[n]}, {monitor.states[m]})" for n, m in nodes),
+        initial_node=0,
+        n_observations=n_o,
+        node=cell // n_o,
+        observation=cell % n_o,
+        action=action,
+        next_node=next_node,
+        probability=probability,
+    )
+    world = _with_sink(pomdp)
+    decoy = np.append(np.asarray(problem.decoy, dtype=bool), False)
+    sets = tuple(
+        DecoySet(d.name, d.weight, np.append(np.asarray(d.states, dtype=bool), False))
+        for d in problem.decoy_sets
+    )
+    return replace(
+        problem,
+        pomdp=world,
+        controller=product,
+        decoy=decoy,
+        decoy_sets=sets,
+        alarm_state=sink,
+        monitor=monitor.name,
+    )
+
+
+def _product_controller(
+    controller: Controller, monitor: Monitor, alarm_action: int
+) -> tuple[list[tuple[int, int]], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The product's nodes ``(n, m)`` reachable from ``(n0, m0)`` under any reading, and its
+    entries ``(cell = node * |Ω| + o, action, next node, probability)``."""
+    n_o = len(monitor.observations)
+    n_m = monitor.n_states
+    start = (controller.initial_node, monitor.initial)
+    index = {start[0] * n_m + start[1]: 0}
+    nodes = [start]
+    cells, actions, nexts, probabilities = [], [], [], []
+    frontier = [0]
+    readings = np.arange(n_o)
+    while frontier:
+        batch = np.array(frontier, dtype=np.int64)
+        frontier = []
+        node_n = np.array([nodes[k][0] for k in batch.tolist()], dtype=np.int64)
+        node_m = np.array([nodes[k][1] for k in batch.tolist()], dtype=np.int64)
+        # every (product node, reading) of the batch, and its controller move's entries
+        pn, po = np.repeat(node_n, n_o), np.tile(readings, batch.size)
+        pm, pk = np.repeat(node_m, n_o), np.repeat(batch, n_o)
+        owner, action, next_n, probability = controller.entries(pn, po)
+        next_m = monitor.next_state[pm[owner], po[owner], action].astype(np.int64)
+        caught = monitor.alarm[next_m]
+        # an alarm entry plays the alarm action and stays (the run ends in the sink)
+        keys = next_n * n_m + next_m
+        stay = pk[owner]
+        targets = np.empty(owner.size, dtype=np.int64)
+        for i in np.flatnonzero(~caught).tolist():
+            key = int(keys[i])
+            k = index.get(key)
+            if k is None:
+                k = index[key] = len(nodes)
+                nodes.append((int(next_n[i]), int(next_m[i])))
+                frontier.append(k)
+            targets[i] = k
+        targets[caught] = stay[caught]
+        cells.append(pk[owner] * n_o + po[owner])
+        actions.append(np.where(caught, alarm_action, action))
+        nexts.append(targets)
+        probabilities.append(probability)
+    return nodes, (
+        np.concatenate(cells),
+        np.concatenate(actions),
+        np.concatenate(nexts),
+        np.concatenate(probabilities),
+    )
+
+
+def _with_sink(pomdp: Pomdp) -> Pomdp:
+    """The world with an absorbing state ``alarm`` (emitting the initial observation, which
+    is never altered) and an action that moves every non-absorbing state into it."""
+    n_s, n_a = pomdp.n_states, pomdp.n_actions
+    coo = pomdp.transitions.tocoo()
+    live = np.flatnonzero(~pomdp.absorbing)
+    action = np.concatenate([coo.row // n_s, np.full(live.size, n_a)])
+    source = np.concatenate([coo.row % n_s, live])
+    target = np.concatenate([coo.col, np.full(live.size, n_s)])
+    probability = np.concatenate([coo.data, np.ones(live.size)])
+    return Pomdp.from_triplets(
+        states=(*pomdp.states, _fresh(ALARM, pomdp.states)),
+        actions=(*pomdp.actions, _fresh(ALARM_ACTION, pomdp.actions)),
+        observations=pomdp.observations,
+        initial_state=pomdp.initial_state,
+        observation_of=np.append(pomdp.observation_of, pomdp.initial_observation),
+        action=action.astype(np.int64),
+        source=source.astype(np.int64),
+        target=target.astype(np.int64),
+        probability=probability,
+        absorbing=np.append(pomdp.absorbing, True),
+    )
+
+
+def monitor_from_spec(problem: Problem, spec: Any, *, field: str = "monitor") -> Monitor:
+    """A monitor from its description as plain data (a problem file's ``monitor:``, already
+    validated): ``{"consistency": true | {"max_states": N}}`` or ``{"states", "initial",
+    "alarm", "transitions": [{"state", "reading", "action", "next"}]}``."""
+    consistency = spec.get("consistency")
+    if consistency is not None and consistency is not False:
+        cap = DEFAULT_MAX_STATES
+        if isinstance(consistency, dict):
+            cap = int(consistency.get("max_states", cap))
+        return consistency_monitor(problem, max_states=cap, field=_at(field, "consistency"))
+    return Monitor.from_transitions(
+        states=spec.get("states") or [],
+        initial=spec.get("initial", ""),
+        alarm=spec.get("alarm") or [],
+        transitions=[
+            Transition(
+                state=t["state"],
+                reading=t["reading"],
+                next=t["next"],
+                action=t.get("action", WILDCARD) if t.get("action") is not None else WILDCARD,
+            )
+            for t in spec.get("transitions") or []
+        ],
+        observations=problem.pomdp.observations,
+        actions=problem.pomdp.actions,
+        name=str(spec.get("name") or "automaton"),
+        field=field,
+    )
