@@ -23,7 +23,9 @@ from misdirect.defence import (
     OnlineAttack,
     audit,
     harden,
+    RobustResult,
     online_attack_value,
+    robust_controller,
 )
 from misdirect.errors import MisdirectError, OptionError, ProblemError, SolverError
 from misdirect.io.exact_model import ExactModel, ExactValue, exact_model
@@ -57,6 +59,7 @@ __all__ = [
     "ProblemError",
     "ProductChain",
     "ProgressCallback",
+    "RobustResult",
     "Simulation",
     "SolveOptions",
     "SolveResult",
@@ -73,6 +76,7 @@ __all__ = [
     "online_attack_value",
     "problem_from_dict",
     "problem_from_model",
+    "robust_controller",
     "scenarios",
     "shared_preparation",
     "simulate",

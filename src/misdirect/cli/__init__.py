@@ -81,7 +81,9 @@ app = typer.Typer(
 scenario_app = typer.Typer(help="Write a generated problem file.", no_args_is_help=True, cls=Group)
 app.add_typer(scenario_app, name="scenario")
 controller_app = typer.Typer(
-    help="The robot's controller: synthesize it with PAYNT.", no_args_is_help=True, cls=Group
+    help="The robot's controller: synthesize it with PAYNT, or a robust one.",
+    no_args_is_help=True,
+    cls=Group,
 )
 app.add_typer(controller_app, name="controller")
 
@@ -117,6 +119,7 @@ _add(scenario_app, models.scenario_sensor_grid, "sensor-grid")
 _add(scenario_app, models.scenario_drone, "drone")
 _add(scenario_app, models.scenario_random, "random")
 _add(controller_app, models.controller_synthesize, "synthesize")
+_add(controller_app, defence.controller_robust, "robust")
 
 
 def _version(value: bool) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -12,6 +14,7 @@ from rich.table import Table
 from misdirect.cli.cluster import ClusterOption, WorkersOption, check_workers
 from misdirect.cli.common import (
     check_budget,
+    check_range,
     check_seconds,
     fmt_alteration,
     out,
@@ -29,11 +32,12 @@ from misdirect.cli.options import (
 from misdirect.cli.pictures import CoordinatesOption
 from misdirect.core.model import quoted_name
 from misdirect.errors import ProblemError
-from misdirect.io.files import prepare_output_dir
+from misdirect.io.files import check_output_path, prepare_output_dir, write_output
 from misdirect.report import json_output
 
 if TYPE_CHECKING:
     from misdirect.defence import AuditResult, HardenResult
+    from misdirect.defence.robust import RobustResult
 
 
 # -- audit --------------------------------------------------------------------------------------
@@ -277,3 +281,103 @@ def _print_harden(result: HardenResult) -> None:
             "attacker can alter costs no more)"
         )
     print_notes(result.notes)
+
+
+# -- controller robust --------------------------------------------------------------------------
+
+
+class RobustObjective(StrEnum):
+    decoy = "decoy"
+    goal = "goal"
+
+
+@problem_input
+def controller_robust(
+    source: ProblemSource,
+    output: Annotated[
+        Path,
+        typer.Option(
+            "--output",
+            "-o",
+            help="PAYNT .fsc.json to write: the robust controller (loads back with --controller).",
+        ),
+    ],
+    budget: AttackerBudgetOption = None,
+    memory: Annotated[
+        int, typer.Option("--memory", help="Memory nodes of the controllers searched.")
+    ] = 1,
+    objective: Annotated[
+        RobustObjective,
+        typer.Option(
+            help="decoy: minimise the worst-case Pr(decoy); goal: maximise the worst-case "
+            "Pr(goal) (an absorbing state that is not a decoy)."
+        ),
+    ] = RobustObjective.decoy,
+    time_limit: Annotated[
+        float | None,
+        typer.Option(help="Seconds for the search; then the best controller with its bounds."),
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """The deterministic controller that holds up best against every alteration within budget
+    B (constraint generation: an exact master over the class, misdirect.solve as the oracle),
+    with its certified worst case and the baselines' (docs/robust.md)."""
+    from misdirect.defence.robust import robust_controller
+    from misdirect.io.paynt import controller_to_paynt
+
+    check_output_path(output)
+    check_range("--memory", memory, 1, 8)
+    attacker_budget = one_budget(budget, "controller robust")
+    check_seconds(time_limit)
+    problem = source.load()
+    result = robust_controller(
+        problem,
+        attacker_budget,
+        memory=memory,
+        objective=objective.value,
+        time_limit=time_limit,
+    )
+    document = controller_to_paynt(result.controller, problem.pomdp)
+    write_output(output, json.dumps(document, indent=1) + "\n")
+    if as_json:
+        print_json(
+            json_output.written_files("controller robust", [output], robust=result.to_dict())
+        )
+        return
+    _print_robust(result)
+    wrote(f"wrote {output} ({result.controller.n_nodes} nodes)")
+
+
+def _print_robust(result: RobustResult) -> None:
+    what = "Pr(decoy)" if result.objective == "decoy" else "Pr(goal)"
+    table = Table(title=escape(f"{result.problem}: robust controller at budget {result.budget:g}"))
+    for column in ("controller", f"nominal {what}", f"worst-case {what}", "certified", "attack"):
+        table.add_column(column, justify="left" if column == "controller" else "right")
+    table.add_row(
+        "robust",
+        f"{result.nominal:.6f}",
+        f"{result.worst_case:.6f}",
+        "yes" if result.rounds and result.rounds[-1].certified else "no",
+        fmt_alteration(result.alteration),
+    )
+    for b in result.baselines:
+        table.add_row(
+            escape(b.name),
+            f"{b.nominal:.6f}",
+            f"{b.worst_case:.6f}",
+            "yes" if b.certified else "no",
+            fmt_alteration(b.alteration),
+        )
+    out.print(table)
+    bounds = (
+        "no proven bounds"
+        if result.lower is None or result.upper is None
+        else f"min-max in [{result.lower:.6f}, {result.upper:.6f}] (gap {result.gap:.2g})"
+    )
+    status = "optimal" if result.optimal else "not proven optimal"
+    out.print(
+        f"{status} · {bounds} · |K| {result.k_size} · {len(result.rounds)} rounds · "
+        f"stopped: {escape(result.stop_reason)} · {result.time_s:.2f} s",
+        highlight=False,
+    )
+    print_notes(list(result.notes))

@@ -20,7 +20,8 @@ This package is the public face; its modules, one concept each:
 * ``mdp`` — maximal reachability by policy iteration, and the budgeted MDP;
 * ``online`` — the online attacker;
 * ``audit`` — the audit;
-* ``harden`` — hardening and its hitting-set lower bound.
+* ``harden`` — hardening and its hitting-set lower bound;
+* ``robust`` — robust controller synthesis by constraint generation (docs/robust.md).
 """
 
 from misdirect.defence.attack import alterable_sensors, protect
@@ -35,12 +36,14 @@ from misdirect.defence.results import (
     OnlineAttack,
     SensorAudit,
 )
+from misdirect.defence.robust import RobustResult, robust_controller
 
 __all__ = [
     "AuditResult",
     "HardenPoint",
     "HardenResult",
     "OnlineAttack",
+    "RobustResult",
     "SensorAudit",
     "alterable_sensors",
     "audit",
@@ -51,4 +54,5 @@ __all__ = [
     "online_attack_value",
     "protect",
     "protection_costs",
+    "robust_controller",
 ]
