@@ -34,6 +34,7 @@ DATA = Path(__file__).resolve().parent / "data"
 MODEL = DATA / "patrol.prism"
 RULES = DATA / "patrol.rules.yaml"
 GOAL = '"goal"'
+FLAGS = ["--controller", str(RULES), "--goal", GOAL]
 runner = CliRunner()
 
 # the model's labels, by the state's variables (tests/data/patrol.prism)
@@ -179,8 +180,7 @@ def test_solve_certifies_the_brute_force_optimum(tmp_path, base, alterations, pr
     )
     result = runner.invoke(
         app,
-        ["solve", str(MODEL), "--controller", str(RULES), "--goal", GOAL]
-        + ["--property", prop, "--budget", "1", "--json"],
+        ["solve", str(MODEL), *FLAGS, "--property", prop, "--budget", "1", "--json"],
     )
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)
@@ -239,8 +239,7 @@ def test_the_problem_file_field_is_the_flag(tmp_path):
     by_file = runner.invoke(app, ["solve", str(path), "--json"])
     by_flags = runner.invoke(
         app,
-        ["solve", str(MODEL), "--controller", str(RULES), "--goal", GOAL]
-        + ["--property", prop, "--budget", "1", "--json"],
+        ["solve", str(MODEL), *FLAGS, "--property", prop, "--budget", "1", "--json"],
     )
     assert by_file.exit_code == 0, by_file.output
     assert json.loads(by_file.stdout)["value"] == json.loads(by_flags.stdout)["value"]
