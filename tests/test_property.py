@@ -189,7 +189,7 @@ def test_solve_certifies_the_brute_force_optimum(tmp_path, base, alterations, pr
     assert best > evaluate(_with(prop), base.identity()).probability  # the attack matters
 
 
-@pytest.mark.parametrize("method", ["exhaustive", "incremental", "branch-and-bound"])
+@pytest.mark.parametrize("method", ["exhaustive", "incremental", "branch-and-bound", "milp"])
 def test_every_method_agrees(method):
     from misdirect import solve
 
@@ -252,6 +252,21 @@ def test_the_problem_file_field_is_the_flag(tmp_path):
     result = runner.invoke(app, ["evaluate", str(path), "--json"])
     assert result.exit_code != 0
     assert "deception.property" in result.stdout and "target is not the decoy" in result.stdout
+
+
+def test_convert_writes_the_property(tmp_path):
+    prop = PROPERTIES[6]
+    out = tmp_path / "patrol.yaml"
+    result = runner.invoke(
+        app, ["convert", str(MODEL), *FLAGS, "--property", prop, "--budget", "1", "-o", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    assert yaml.safe_load(out.read_text())["deception"]["property"] == prop
+    by_file = runner.invoke(app, ["solve", str(out), "--json"])
+    by_flags = runner.invoke(
+        app, ["solve", str(MODEL), *FLAGS, "--property", prop, "--budget", "1", "--json"]
+    )
+    assert json.loads(by_file.stdout)["value"] == json.loads(by_flags.stdout)["value"]
 
 
 def test_a_bounded_property_and_a_monitor_end_at_the_first_alarm(tmp_path):
