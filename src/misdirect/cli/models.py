@@ -392,7 +392,7 @@ def _problem_file_of_flags(
     from misdirect.io.problem_file import problem_document_text
 
     problem = source.load()  # every mistake is reported against its flag, before writing
-    assert source.file is not None and source.controller is not None and source.decoy is not None
+    assert source.file is not None and source.controller is not None  # and a decoy or property
     document = model_document(
         source.file,
         controller=source.controller,

@@ -102,6 +102,16 @@ TerminalFromOption = Annotated[
         show_default=False,
     ),
 ]
+PropertyOption = Annotated[
+    str | None,
+    typer.Option(
+        "--property",
+        help="With a PRISM/DRN model: the objective as a PRISM property, 'P=? [F \"decoy\"]', "
+        '\'P=? [!"avoid" U "decoy"]\' or \'P=? [F<=k "decoy"]\'; its target is the decoy '
+        "(--decoy may be left out).",
+        show_default=False,
+    ),
+]
 MonitorOption = Annotated[
     str | None,
     typer.Option(
@@ -198,6 +208,7 @@ class ProblemSource:
     goal: str | None
     constants: str | None
     terminal_from: str | None
+    property: str | None
     monitor: str | None
     stealth: bool
     scenario: Scenario | None
@@ -229,7 +240,7 @@ class ProblemSource:
         if self.monitor is not None and not given:
             spec, where = read_monitor(self.monitor)
             return monitored(problem, spec, source=where, field="")
-        if self.stealth and problem.alarm_state is None:
+        if self.stealth and not problem.monitor:
             spec, where = read_monitor(CONSISTENCY)
             return monitored(problem, spec, source="stealth", field="")
         return problem
@@ -241,6 +252,7 @@ class ProblemSource:
             "goal": self.goal,
             "constants": self.constants,
             "terminal_from": self.terminal_from,
+            "property": self.property,
         }
 
     def check_model_flags(self, kind: str | None) -> None:
@@ -255,7 +267,11 @@ class ProblemSource:
                 )
                 for option, value, what in (
                     ("--controller", self.controller, "the robot's controller (PAYNT's .fsc.json)"),
-                    ("--decoy", self.decoy, "the decoy states, a label or an expression"),
+                    (
+                        "--decoy",
+                        self.decoy if self.property is None else self.property,
+                        "the decoy states, a label or an expression (or --property)",
+                    ),
                 )
                 if value is None
             ]
@@ -273,7 +289,7 @@ class ProblemSource:
 
     def _load(self, kind: str | None) -> Problem:
         if self.file is not None and kind is not None:
-            assert self.controller is not None and self.decoy is not None  # checked
+            assert self.controller is not None  # checked, and --decoy or --property
             return problem_from_model(
                 self.file,
                 controller=self.controller,
@@ -281,6 +297,7 @@ class ProblemSource:
                 goal=self.goal,
                 constants=self.constants,
                 terminal_from=self.terminal_from,
+                property=self.property,
             )
         if self.file is not None:
             return load_problem(self.file, controller=self.controller, monitor=self.monitor)
@@ -306,6 +323,7 @@ _SETTINGS = (
     "goal",
     "constants",
     "terminal_from",
+    "property",
     "controller",
     "budget",
     "monitor",
@@ -338,6 +356,7 @@ _OPTIONS = (
     _keyword("goal", GoalOption, None),
     _keyword("constants", ConstantsOption, None),
     _keyword("terminal_from", TerminalFromOption, None),
+    _keyword("property", PropertyOption, None),
     _keyword("monitor", MonitorOption, None),
     _keyword("stealth", StealthOption, False),
     _keyword("scenario", ScenarioOption, None),

@@ -586,6 +586,10 @@ class Problem:
     # enters when the monitor raises the alarm, and the monitor's name
     alarm_state: int | None = None
     monitor: str = ""
+    # a PRISM property as the objective (misdirect.core.objective_property.with_property): its
+    # text, and its step bound (a counter folded in; a run past it ends in alarm_state)
+    reach_property: str = ""
+    step_bound: int | None = None
 
     def __repr__(self) -> str:
         pomdp = self.pomdp
@@ -673,13 +677,23 @@ class Problem:
 
     def _monitor_note(self) -> tuple[str, ...]:
         """A monitored problem says what its value means (docs/stealth.md)."""
+        notes: list[str] = []
+        if self.reach_property:
+            notes.append(f"the objective is the property {self.reach_property}")
         if self.alarm_state is None:
-            return ()
+            return tuple(notes)
         sink = self.pomdp.states[self.alarm_state]
-        return (
-            f"watched by a monitor ({self.monitor}): the value is Pr(reach a decoy before the "
-            f"alarm); a run the alarm catches ends in {sink!r}",
-        )
+        if self.step_bound is not None:
+            notes.append(
+                f"a run still outside the decoy after {self.step_bound} "
+                f"step{'s' * (self.step_bound != 1)} ends in {sink!r}"
+            )
+        if self.monitor:
+            notes.append(
+                f"watched by a monitor ({self.monitor}): the value is Pr(reach a decoy before "
+                f"the alarm); a run the alarm catches ends in {sink!r}"
+            )
+        return tuple(notes)
 
     def _shared_initial_observation(self) -> tuple[str, ...]:
         """The initial observation is never altered, so neither is any other state that emits

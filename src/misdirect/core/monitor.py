@@ -396,21 +396,49 @@ def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
     >>> watched.pomdp.states[watched.alarm_state]
     'alarm'
     """
-    if problem.alarm_state is not None:
+    if problem.monitor:
         raise ProblemError(
             f"the problem is already watched by the monitor {problem.monitor!r}; give one "
             "monitor (an automaton can read what both would)",
             field="monitor",
         )
+    folded = fold_monitor(problem, monitor)
+    return replace(folded, monitor=monitor.name)
+
+
+def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
+    """``problem`` with ``monitor`` folded into its controller, as :func:`with_monitor` does,
+    without naming it. A problem that already has an alarm sink (a step bound,
+    :func:`misdirect.core.objective_property.within_steps`, or a monitor) keeps it: the new
+    monitor's alarm ends the run in the same sink, so the run ends at the first alarm of
+    either. The monitor reads the problem's own actions (not the alarm action, on which it
+    stays where it is: the run has ended)."""
     pomdp, controller = problem.pomdp, problem.controller
-    if monitor.observations != pomdp.observations or monitor.actions != pomdp.actions:
+    watched = problem.alarm_state is not None
+    actions = pomdp.actions[:-1] if watched else pomdp.actions
+    if monitor.observations != pomdp.observations or monitor.actions not in (
+        actions,
+        pomdp.actions,
+    ):
         raise ProblemError(
             "the monitor reads other observations or actions than the problem's; build it "
             "over the problem's (Monitor.from_transitions(observations=..., actions=...))",
             field="monitor",
         )
-    sink = pomdp.n_states
-    alarm_action = pomdp.n_actions
+    if watched:
+        sink = problem.alarm_state
+        alarm_action = pomdp.n_actions - 1  # _with_sink puts it last
+        table = monitor.next_state
+        if monitor.actions == actions:  # on the alarm action: stay (never read again)
+            stay = np.broadcast_to(
+                np.arange(monitor.n_states, dtype=np.int32)[:, None, None],
+                (monitor.n_states, pomdp.n_observations, 1),
+            )
+            table = np.concatenate([table, stay], axis=2)
+        monitor = replace(monitor, next_state=table, actions=pomdp.actions)
+    else:
+        sink = pomdp.n_states
+        alarm_action = pomdp.n_actions
     nodes, entries = _product_controller(controller, monitor, alarm_action)
     n_o = pomdp.n_observations
     cell, action, next_node, probability = entries
@@ -424,6 +452,8 @@ def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
         next_node=next_node,
         probability=probability,
     )
+    if watched:
+        return replace(problem, controller=product)
     world = _with_sink(pomdp)
     decoy = np.append(np.asarray(problem.decoy, dtype=bool), False)
     sets = tuple(
@@ -437,7 +467,6 @@ def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
         decoy=decoy,
         decoy_sets=sets,
         alarm_state=sink,
-        monitor=monitor.name,
     )
 
 

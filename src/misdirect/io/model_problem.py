@@ -78,11 +78,12 @@ def model_document(
     model: str | Path,
     *,
     controller: str | Path,
-    decoy: str,
+    decoy: str | None = None,
     goal: str | None = None,
     constants: str | None = None,
     terminal_from: str | None = None,
     budget: float | None = None,
+    property: str | None = None,
     kind: str | None = None,
     relative_to: Path | None = None,
 ) -> dict[str, Any]:
@@ -90,7 +91,8 @@ def model_document(
 
     File names are written relative to ``relative_to`` (the folder the document is written
     to), or absolute. ``goal`` is the file's ``pomdp.terminal``; a setting not given is left
-    out, so the file's defaults apply (budget 0, every alteration costing 1)."""
+    out, so the file's defaults apply (budget 0, every alteration costing 1). ``property``
+    (the file's ``deception.property``) names the decoy when ``decoy`` is not given."""
     kind = kind or model_kind(model) or "prism"
     pomdp: dict[str, Any] = {kind: relative_path(model, relative_to)}
     if constants is not None:
@@ -99,7 +101,11 @@ def model_document(
         pomdp["terminal"] = goal
     if terminal_from is not None:
         pomdp["terminal_from"] = terminal_from
-    deception: dict[str, Any] = {"decoy": decoy_document(decoy)}
+    deception: dict[str, Any] = {}
+    if decoy is not None:
+        deception["decoy"] = decoy_document(decoy)
+    if property is not None:
+        deception["property"] = property
     if budget is not None:
         deception["budget"] = budget
     return {
@@ -117,6 +123,7 @@ _SOURCES = (
     ("pomdp.terminal_from", "terminal_from"),
     ("pomdp.terminal", "goal"),
     ("deception.decoy", "decoy"),
+    ("deception.property", "property"),
     ("deception.budget", "budget"),
 )
 
@@ -132,7 +139,9 @@ def _attributed(error: ProblemError, model: str, controller: str) -> ProblemErro
     for prefix, name in _SOURCES:
         if field == prefix or field.startswith(prefix + ".") or field.startswith(prefix + "["):
             # the flag's own text is the place: deception.decoy.label says no more than it
-            inside = None if name == "decoy" else field[len(prefix) :].lstrip(".") or None
+            inside = (
+                None if name in ("decoy", "property") else field[len(prefix) :].lstrip(".") or None
+            )
             return ProblemError(error.reason, source=name, field=inside)
     if field.startswith("controller"):  # a rules controller: its own file
         return controller_error(error, controller)
@@ -145,11 +154,12 @@ def problem_from_model(
     model: str | Path,
     *,
     controller: str | Path,
-    decoy: str,
+    decoy: str | None = None,
     goal: str | None = None,
     constants: str | None = None,
     terminal_from: str | None = None,
     budget: float | None = None,
+    property: str | None = None,
 ) -> Problem:
     """The problem of a PRISM or DRN model, a controller and a decoy, as the problem file of
     :func:`model_document` gives it (needs ``misdirect[storm]``).
@@ -160,8 +170,9 @@ def problem_from_model(
         A PRISM POMDP (``.prism``, ``.nm``, ``.pm``) or a DRN file (``.drn``).
     controller : str or Path
         PAYNT's ``.fsc.json`` (or a YAML file of rules).
-    decoy : str
-        A state label (``bad``), or a state expression (``x = 3 & y > 2``).
+    decoy : str, optional
+        A state label (``bad``), or a state expression (``x = 3 & y > 2``); needed unless
+        ``property`` names the decoy.
     goal : str, optional
         States that end the run (``pomdp.terminal``): Storm builds them terminal, as PAYNT
         builds its model with its property's target.
@@ -171,6 +182,10 @@ def problem_from_model(
         PAYNT's property (``P=? [F "goal"]``): its target states are built terminal.
     budget : float, optional
         The attacker's budget (default the file format's, 0).
+    property : str, optional
+        The objective as a PRISM property, whose target is the decoy: ``P=? [F "decoy"]``,
+        ``P=? [!"avoid" U "decoy"]``, ``P=? [F<=k "decoy"]``, ``P=? [a U<=k b]``
+        (:mod:`misdirect.core.objective_property`).
 
     Raises
     ------
@@ -187,6 +202,7 @@ def problem_from_model(
         constants=constants,
         terminal_from=terminal_from,
         budget=budget,
+        property=property,
         kind=kind,
     )
     try:

@@ -39,6 +39,7 @@ from misdirect.core.memory import check_memory
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem, factored_entries
 from misdirect.core.monitor import DEFAULT_MAX_STATES, monitor_from_spec, with_monitor
 from misdirect.core.objective import DecoySet
+from misdirect.core.objective_property import ReachProperty, with_property
 from misdirect.errors import MAX_REPORTED, ProblemError, ProblemsError
 from misdirect.io.export import with_exported_names
 from misdirect.io.files import (
@@ -56,6 +57,7 @@ from misdirect.io.paynt import (
     unmet_rule_warning,
 )
 from misdirect.io.storm import StormPomdp, load_storm_pomdp
+from misdirect.io.storm_expressions import reachability
 from misdirect.io.storm_guard import run_isolated
 
 FORMAT = "misdirect/v1"
@@ -389,6 +391,14 @@ class DeceptionSpec(_Strict):
         description="decoy states, {label: ...} or {expression: ...}, or weighted decoy sets "
         "{name: weight} (name: a label or a state) or {name: {weight, states|label|expression}}; "
         "grid maps mark decoy cells in the map instead",
+    )
+    property: str | None = Field(
+        default=None,
+        min_length=1,
+        description="the objective as a PRISM property over a PRISM or DRN model: "
+        '\'P=? [F "decoy"]\', \'P=? [!"avoid" U "decoy"]\', \'P=? [F<=k "decoy"]\' or '
+        "'P=? [a U<=k b]'; its target is the decoy (decoy may then be left out, or must name "
+        "the same states)",
     )
     budget: Budget = 0.0
     cost: CostSpec = Field(default_factory=CostSpec)
@@ -1080,6 +1090,20 @@ def _compile_decoy(
     return decoy
 
 
+def _compile_property(text: str, world: Any, condition) -> ReachProperty:
+    """The problem file's ``deception.property`` over a Storm model, as a
+    :class:`~misdirect.core.objective_property.ReachProperty`."""
+    field = "deception.property"
+    assert isinstance(world, StormPomdp) and world.parse_property is not None
+    assert condition is not None
+    parts = reachability(world.parse_property(text, field), text, field)
+    target = condition(parts.target, field)
+    if not target.any():
+        raise ProblemError(f"no state satisfies the target {parts.target!r}", field=field)
+    stay = None if parts.stay is None else condition(parts.stay, field)
+    return ReachProperty(text=text, target=target, stay=stay, bound=parts.bound)
+
+
 def compile_problem(spec: ProblemFileV1, *, source: str | None = None) -> Problem:
     """Resolve names and check consistency; returns the array model.
 
@@ -1109,7 +1133,14 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     known: Pomdp | _Names  # the model, or only an explicit model's names when it has problems
     if (spec.pomdp is None) == (spec.grid is None):
         raise ProblemError("give exactly one of pomdp (explicit lists) or grid (a map)")
-    world: GridWorld | StormPomdp
+    reach: ReachProperty | None = None  # the objective, given as a PRISM property
+    world: GridWorld | StormPomdp | None = None
+    if spec.deception.property is not None and not isinstance(spec.pomdp, StormPomdpSpec):
+        raise ProblemError(
+            "a property needs a PRISM or DRN model (pomdp: {prism: ...} or {drn: ...}); "
+            "for other models, list the decoy states",
+            field="deception.property",
+        )
     if spec.grid is not None:
         if spec.deception.decoy is not None:
             raise ProblemError(
@@ -1165,7 +1196,11 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
                 pomdp = _compile_pomdp(spec.pomdp, names, observation_of)
             known = names if pomdp is None else pomdp
         with found.check():
-            if isinstance(spec.deception.decoy, dict):
+            if spec.deception.property is not None:
+                reach = _compile_property(spec.deception.property, world, condition)
+            if reach is not None and spec.deception.decoy is None:
+                decoy = reach.target
+            elif isinstance(spec.deception.decoy, dict):
                 decoy, decoy_sets = _compile_weighted_decoys(
                     spec.deception.decoy, known, labels, condition
                 )
@@ -1202,6 +1237,11 @@ def _compile_problem(spec: ProblemFileV1, source: str | None) -> Problem:
     )
     # checked once here, so the file is named: every solve, audit and harden adds them up
     max_alteration_cost(problem)
+    if reach is not None:
+        try:
+            problem = with_property(problem, reach)
+        except ProblemError as error:
+            raise ProblemError(error.reason, field="deception.property") from None
     if paynt is not None:
         terminal_given = isinstance(spec.pomdp, StormPomdpSpec) and (
             spec.pomdp.terminal is not None or spec.pomdp.terminal_from is not None

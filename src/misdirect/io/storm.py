@@ -20,6 +20,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -82,6 +83,8 @@ class StormPomdp:
     # the same model as PAYNT builds it (PAYNT's observation numbering and action labels),
     # built on demand: only PAYNT controllers need it
     paynt_view: Callable[[], PayntView] | None = field(default=None, compare=False)
+    # a property's text (text, field) -> Storm's formula, parsed against the model
+    parse_property: Callable[[str, str], Any] | None = field(default=None, compare=False)
 
 
 def load_stormpy(field: str):
@@ -162,7 +165,12 @@ def load_storm_pomdp(
             terminal_from=terminal_from,
         )
 
-    return dataclasses.replace(world, paynt_view=paynt_view)
+    program_or_none = program
+
+    def read_property(text: str, where: str) -> Any:
+        return parse_property(stormpy, program_or_none, text, where)
+
+    return dataclasses.replace(world, paynt_view=paynt_view, parse_property=read_property)
 
 
 def _no_initial_state(path: Path, field: str) -> ProblemError:

@@ -279,3 +279,98 @@ def label_condition(labels: dict[str, np.ndarray]) -> Callable[[str, str], np.nd
         return value.copy()
 
     return condition
+
+
+# -- properties as objectives -------------------------------------------------------------------
+
+# what may be the objective, said in every refusal
+_SUPPORTED = (
+    "supported: P=? [F target], P=? [stay U target], P=? [F<=k target], P=? [stay U<=k target] "
+    "(target and stay: labels or state expressions)"
+)
+# a path or an operator inside a state formula, as Storm prints it (labels stripped first)
+_NESTED = re.compile(
+    r"(?<![\w.])(?:[FGXU](?=\s|<|>|\[)|W(?=\s)|P\s*(?:max|min)?\s*(?:=\?|[<>])|R\s*[\[{=<>])"
+)
+
+
+@dataclass(frozen=True)
+class Reachability:
+    """A property ``P=? [stay U<=bound target]`` as its parts' texts (``stay`` None:
+    ``true``; ``bound`` None: unbounded), each a state condition of the model."""
+
+    target: str
+    stay: str | None
+    bound: int | None
+
+
+def _refuse(text: str, what: str, field: str) -> ProblemError:
+    return ProblemError(
+        f"{text!r}: {what} is not supported as the objective; {_SUPPORTED}", field=field
+    )
+
+
+def _state_formula(formula, text: str, field: str) -> str | None:
+    """The state formula's text (None: ``true``), refused when it holds a path formula or
+    an operator (a nested property)."""
+    shown = str(formula).strip()
+    if _NESTED.search(re.sub(r'"[^"]*"', '""', shown)):
+        raise _refuse(text, "a nested property (a path formula inside a state formula)", field)
+    return None if shown == "true" else shown
+
+
+def reachability(formula, text: str, field: str) -> Reachability:
+    """The parts of a property Storm parsed (:func:`parse_property`), or an error naming what
+    is not supported (rewards, Pmin, probability bounds, multi-objective, nested properties,
+    G, X, lower step bounds). A strict step bound ``F<k`` is ``F<=k-1``; ``Pmax=?`` is
+    ``P=?`` (the controller is fixed: the chain has no choice to optimise)."""
+    if formula.is_multi_objective_formula:
+        raise _refuse(text, "a multi-objective property", field)
+    if formula.is_reward_operator_formula:
+        raise _refuse(text, "a reward property (R)", field)
+    if not formula.is_probability_operator_formula:
+        raise _refuse(text, "a property that is not P=? [...]", field)
+    if formula.has_bound:
+        raise _refuse(text, "a probability bound (P>p, P<p: give P=?)", field)
+    if formula.has_optimality_type:
+        direction = str(formula.optimality_type).rsplit(".", 1)[-1]
+        if direction == "MINIMIZE":
+            raise _refuse(
+                text, "Pmin (the attacker maximises; the robot's controller is fixed)", field
+            )
+        # Pmax=? is P=? here: the controller is fixed, the chain is a chain
+    path = formula.subformula
+    if path.is_eventually_formula:
+        return Reachability(_required(path.subformula, text, field), None, None)
+    if path.is_bounded_until_formula:
+        shown = str(path)
+        if path.has_lower_bound:
+            raise _refuse(text, "a lower step bound (F>=k, F[a,b])", field)
+        bound_expression = path.upper_bound_expression
+        try:
+            bound = bound_expression.evaluate_as_int()
+        except Exception:
+            raise _refuse(
+                text, f"the step bound {bound_expression} (not an integer)", field
+            ) from None
+        if re.search(r"U<(?!=)", shown):  # strict: within k - 1 steps
+            bound -= 1
+        if bound < 0:
+            raise ProblemError(f"{text!r}: the step bound is below 0", field=field)
+        left = _state_formula(path.left_subformula, text, field)
+        return Reachability(_required(path.right_subformula, text, field), left, bound)
+    if path.is_until_formula:
+        left = _state_formula(path.left_subformula, text, field)
+        return Reachability(_required(path.right_subformula, text, field), left, None)
+    shown = str(path).strip()
+    kind = {"G": "G (globally)", "X": "X (next)", "W": "W (weak until)"}.get(
+        shown[:1], "this path formula"
+    )
+    raise _refuse(text, kind, field)
+
+
+def _required(formula, text: str, field: str) -> str:
+    target = _state_formula(formula, text, field)
+    if target is None:
+        raise ProblemError(f"{text!r}: the target is every state (true)", field=field)
+    return target
