@@ -440,3 +440,16 @@ def test_an_unknown_initial_state_does_not_hide_the_other_problems(tmp_path):
         ("controller.rules[0].action", "b"),
     ]:
         assert any(where in p and repr(name) in p for p in problems), (where, problems)
+
+
+def test_controller_robust_follows_the_schema(tmp_path):
+    """`controller robust --json` (issue 54) has its own branch: the bounds it proves, the
+    rounds, and the controller file it wrote."""
+    output = tmp_path / "robust.fsc.json"
+    document = run(
+        "controller", "robust", str(EXAMPLES / "trap.yaml"), "--budget", "1", "-o", str(output)
+    )
+    robust = document["robust"]
+    assert document["written"] == [str(output)] and output.exists()
+    assert robust["lower_bound"] <= robust["upper_bound"]
+    assert robust["optimal"] == (robust["gap"] == 0)
