@@ -17,6 +17,12 @@
 * ``entry_gain``: the first-entry gain bound, and the enumeration's floor filter built on it.
 * ``exact_revaluation``: the enumeration's exact-valuation guard (alterations its low-rank
   values cannot vouch for, valued on their own chains).
+* ``end_components`` and ``transient``: the proof on the MDP with its end components
+  collapsed, and policy iteration without end components (LU, Woodbury, potentials).
+* ``covering``: the covering bound of a node (unions of sensor groups its budget can touch),
+  and the rule for when a search covers one.
+* ``kept_basis``: the per-state relaxation of many free sets at one node, on the node's base
+  chain reduced to its undecided sensors' states.
 
 Engines import no method; methods import engines, never each other (tests/test_layers.py).
 """
