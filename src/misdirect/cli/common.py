@@ -21,7 +21,8 @@ from typing import Any, NoReturn
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, Progress, ProgressColumn, Task, TextColumn, TimeElapsedColumn
+from rich.text import Text
 
 from misdirect.core.model import format_alteration
 from misdirect.errors import (
@@ -457,6 +458,32 @@ def fail(
 # -- progress -----------------------------------------------------------------------------------
 
 
+PHASES = {  # a solver's stage names, as a phase on the bar
+    "loading": "loading the problem",
+    "product": "building the product chain",
+    "bounds": "bounds",
+    "enumeration": "enumerating alterations",
+}
+
+
+def eta(seconds: float) -> str:
+    """A time left, rounded as an estimate is: "about 3 s", "about 2 min", "about 1.5 h"."""
+    if seconds < 60:
+        return f"about {max(round(seconds), 1)} s"
+    if seconds < 3600:
+        return f"about {round(seconds / 60)} min"
+    return f"about {seconds / 3600:.1f} h"
+
+
+class _Count(ProgressColumn):
+    """done/total, nothing for a phase without a count."""
+
+    def render(self, task: Task) -> Text:
+        if task.total is None:
+            return Text("")
+        return Text(f"{int(task.completed):,}/{int(task.total):,}")
+
+
 class ProgressBars:
     """Progress bars on stderr, one per named task; silent under --json or without a terminal."""
 
@@ -472,7 +499,7 @@ class ProgressBars:
         self.bar = Progress(
             TextColumn("{task.description:<20}"),
             BarColumn(),
-            TextColumn("{task.completed}/{task.total}"),
+            _Count(),
             TimeElapsedColumn(),
             TextColumn("{task.fields[detail]}"),
             console=err,
@@ -490,18 +517,30 @@ class ProgressBars:
         stage: str | None = None,
         detail: str | None = None,
         note: str | None = None,
+        rate: float | None = None,
     ) -> None:
+        """Show a report: a bar of ``done``/``total``, or, for a phase without a count
+        (``total`` 0 with a ``stage``), the phase's name on a bar without an end; a ``rate``
+        (steps a second) gives the detail the rate and an estimate of the time left."""
         assert self.bar is not None
         if note:
             self.bar.console.print(f"[dim]{escape(note)}[/]", highlight=False)
-        if total <= 0:
+        if total <= 0 and stage is None:
             return
         if name not in self.tasks:
-            self.tasks[name] = self.bar.add_task(name, total=total, detail="")
-        description = name if stage is None else f"{name}: {stage}"
+            self.tasks[name] = self.bar.add_task(name, total=None, detail="")
+        description = name if stage is None else f"{name}: {PHASES.get(stage, stage)}"
+        if rate is not None and rate > 0 and total > 0:
+            detail = f"{rate:,.0f}/s, {eta(max(total - done, 0) / rate)} left"
+        elif total <= 0 and detail is None:
+            detail = ""  # a new phase: the last phase's detail no longer holds
         fields: dict[str, Any] = {} if detail is None else {"detail": detail}  # a bar column
         self.bar.update(
-            self.tasks[name], completed=done, total=total, description=description, **fields
+            self.tasks[name],
+            completed=done,
+            total=total if total > 0 else None,
+            description=description,
+            **fields,
         )
 
     def task(self, name: str) -> Callable[..., None]:

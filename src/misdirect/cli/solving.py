@@ -273,7 +273,10 @@ def solve(
     check_seconds(time_limit)
     if output is not None:
         check_output_path(output, field="-o")
-    problem = source.load()
+    with ProgressBars(enabled=not quiet, transient=True) as bars:
+        if bars:  # the first phase, before the solver's own: reading and building the problem
+            bars.track("solving", 0, 0, stage="loading")
+        problem = source.load()
     requested = parse_budgets(budget, cap=max_alteration_cost(problem))
     if requested is not None:
         problem = problem.with_budget(max(requested))

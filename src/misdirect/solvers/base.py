@@ -6,6 +6,7 @@ exactly with the evaluator, so no number a user sees depends on a solver's arith
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Protocol
@@ -25,7 +26,11 @@ class ProgressCallback(Protocol):
 
     ``detail`` is a short status line (incumbent, bound, gap, rate); ``note`` a hand-over worth
     a line of its own (e.g. "branch-and-bound hit its node limit at budget 4: the MILP takes
-    over").
+    over"); ``rate`` steps done per second, where a stage measures one (the enumeration:
+    alterations valued a second), for a watcher to estimate the time left. A stage with
+    ``total`` 0 is a phase without a count ("product": building the product chain,
+    "bounds"). ``rate`` is passed only to a callback that takes it (a ``rate`` parameter or
+    ``**kwargs``), so a callback written before it keeps working.
     """
 
     def __call__(
@@ -36,6 +41,7 @@ class ProgressCallback(Protocol):
         stage: str | None = None,
         detail: str | None = None,
         note: str | None = None,
+        rate: float | None = None,
     ) -> None: ...
 
 
@@ -92,10 +98,28 @@ def report(
     stage: str | None = None,
     detail: str | None = None,
     note: str | None = None,
+    rate: float | None = None,
 ) -> None:
-    """Call ``progress`` if there is one (solvers report through this, never directly)."""
-    if progress is not None:
+    """Call ``progress`` if there is one (solvers report through this, never directly);
+    ``rate`` only where the callback takes it (:class:`ProgressCallback`)."""
+    if progress is None:
+        return
+    if rate is not None and _takes_rate(progress):
+        progress(done, total, stage=stage, detail=detail, note=note, rate=rate)
+    else:
         progress(done, total, stage=stage, detail=detail, note=note)
+
+
+def _takes_rate(progress: Callable[..., None]) -> bool:
+    """Whether ``progress`` accepts a ``rate`` keyword (callbacks older than it do not)."""
+    try:
+        parameters = inspect.signature(progress).parameters.values()
+    except (TypeError, ValueError):  # a callable without a signature: keep to the old call
+        return False
+    return any(
+        p.kind == p.VAR_KEYWORD or (p.name == "rate" and p.kind != p.POSITIONAL_ONLY)
+        for p in parameters
+    )
 
 
 DEFAULT_THREADS = 2  # both cores of the machines misdirect is tuned for

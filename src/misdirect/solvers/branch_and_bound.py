@@ -154,6 +154,7 @@ class BranchAndBoundSolver:
         docstring)."""
         deadline = method_deadline(deadline, self.options.time_limit)
         instance = prepare(problem, max(budgets))
+        report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         curve = _Curve(
             instance,

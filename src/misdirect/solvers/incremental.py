@@ -28,7 +28,13 @@ from misdirect.core.attack import prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.solvers import schedule
-from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, thread_count
+from misdirect.solvers.base import (
+    ProgressCallback,
+    Solution,
+    method_deadline,
+    report,
+    thread_count,
+)
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
@@ -99,6 +105,8 @@ class IncrementalSolver:
         chosen = [_covering(runs, b) for b in budgets]
         complete = [found.complete_for(b) for b, found in zip(budgets, chosen, strict=True)]
         # the relaxation at the largest budget bounds every smaller one too
+        if not all(complete):
+            report(progress, 0, 0, stage="bounds")  # the relaxation bounds what was not valued
         relaxed = (
             None
             if all(complete)

@@ -24,7 +24,7 @@ from misdirect.core.model import Alteration, AlterationArray, Problem, format_al
 from misdirect.core.tables import dataframe, short_float
 from misdirect.errors import OptionError, ProblemError
 from misdirect.solvers import get_solver
-from misdirect.solvers.base import ProgressCallback, Solution
+from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.certification import (
     CurvePoint,
     Evidence,
@@ -541,6 +541,8 @@ def solve(
     solutions: list[Solution] | None = None
     try:
         with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
+            # the first phase, until the method reports its own: the product chain's build
+            report(progress, 0, 0, stage="product")
             solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
     except DeadlineExpiredError:  # cut before the method had anything
         pass

@@ -510,6 +510,11 @@ class LowRankEnumeration:
             else self._per_block(inner_space, top, outer_costs, self.max_evaluations),
             share,
         )
+        # the enumeration's progress: alterations valued of those within ``top``, and the rate
+        space, limit = self.instance.space, self.max_evaluations
+        total = 0 if progress is None else space.count_within(top, limit)
+        started = time.perf_counter()
+        report(progress, 0, total, stage="enumeration")
         for outer_pick, outer_cost in zip(outer_table, outer_costs, strict=True):
             remaining = scale.remaining(top, outer_cost)
             if blocks and (
@@ -538,7 +543,9 @@ class LowRankEnumeration:
             values.append(found)
             blocks.append((outer_pick, altered))
             pace.record(began, outcome.factored, len(inner_costs))
-            report(progress, len(blocks), len(outer_costs), stage="incremental")
+            seconds = time.perf_counter() - started
+            rate = evaluations / seconds if evaluations and seconds > 0 else None
+            report(progress, evaluations, total, stage="enumeration", rate=rate)
             if outcome.cut_first:
                 break
         done = len(blocks)
