@@ -468,7 +468,10 @@ def solve(
     progress : callable, optional
         Called as ``progress(done, total, stage=..., detail=..., note=...)`` while solving:
         ``done`` of ``total`` steps of ``stage`` (a method's name), ``detail`` a short status
-        line (incumbent, bound, gap), ``note`` a hand-over worth a line of its own. It is
+        line (incumbent, bound, gap), ``note`` a hand-over worth a line of its own; a stage
+        with ``total`` 0 is a phase without a count ("product", "bounds"), and the
+        "enumeration" stage counts alterations valued, with ``rate=`` (a second) for a
+        callback that takes it (a ``rate`` parameter or ``**kwargs``). It is
         called from the solving thread; keep it quick. See
         :class:`~misdirect.solvers.base.ProgressCallback`.
 
