@@ -97,6 +97,7 @@ def test_a_choice_left_out_of_every_group_is_refused():
 
 
 covered: dict[int, int] = {}  # per case below: nodes its search covered
+SEARCH_CASES = 16
 
 
 @pytest.fixture
@@ -106,7 +107,7 @@ def covers_everywhere(monkeypatch):
     monkeypatch.setattr(CoverRule, "applies", staticmethod(lambda cycling: True))
 
 
-@pytest.mark.parametrize("case", range(16))
+@pytest.mark.parametrize("case", range(SEARCH_CASES))
 def test_branch_and_bound_with_covers_finds_the_optimum(case, covers_everywhere):
     """Every answer of a search that prunes by covers is the brute force's optimum, and its
     bound lies above it, on random problems whose controllers loop, with unequal costs."""
@@ -124,7 +125,7 @@ def test_branch_and_bound_with_covers_finds_the_optimum(case, covers_everywhere)
 
 def test_some_of_those_searches_covered_a_node():
     """The test above is not vacuous: covers ran in some of its searches."""
-    if len(covered) < 16:
+    if len(covered) < SEARCH_CASES:
         pytest.skip("runs after the searches above")
     assert sum(covered.values()) > 0
 
