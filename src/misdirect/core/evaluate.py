@@ -16,6 +16,7 @@ import numpy as np
 from misdirect.core import tolerance
 from misdirect.core.keywords import checked_keywords
 from misdirect.core.model import AlterationArray, Problem
+from misdirect.core.notebook import Shown
 from misdirect.core.product import ProductChain, build_product
 from misdirect.core.reachability import (
     UNIT_ROUNDOFF,
@@ -67,7 +68,7 @@ def _decoy_value(problem: Problem, chain: ProductChain) -> Bounded:
 
 
 @dataclass(frozen=True)
-class Evaluation:
+class Evaluation(Shown):
     """Everything known about one alteration, computed exactly (:func:`evaluate`).
 
     ``outcomes`` lists the decoy and absorbing states a run can end in first, with non-zero
@@ -135,14 +136,8 @@ class Evaluation:
         names = [self.state_names[s] for s in self.terminal_states]
         return dict(zip(names, values, strict=True))
 
-    def _repr_html_(self) -> str:
-        """The evaluation in a notebook: the value, the alteration and where runs end."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
     def _view(self) -> View:
+        """The evaluation in a notebook: the value, the alteration and where runs end."""
         from misdirect.core import notebook as nb
         from misdirect.core.objective import LABELS
 

@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
 from misdirect.core import tolerance
+from misdirect.core.notebook import Shown
 from misdirect.core.objective import DecoySet, Objective
 from misdirect.errors import ProblemError
 
@@ -536,7 +537,7 @@ class CostModel:
 
 
 @dataclass(frozen=True, eq=False, repr=False)
-class Problem:
+class Problem(Shown):
     """One OSA_DGM instance: maximise Pr(reach decoy) over alterations with cost ≤ budget.
 
     With ``decoy_sets`` (weighted decoys) the objective is the expected weight of the first
@@ -599,15 +600,8 @@ class Problem:
             f"budget {self.budget:g})"
         )
 
-    def _repr_html_(self) -> str:
-        """The problem in a notebook: its sizes, names, decoys, costs and budget."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
     def _view(self) -> View:
-        """What a notebook shows of the problem (:mod:`misdirect.core.notebook`)."""
+        """The problem in a notebook: its sizes, names, decoys, costs and budget."""
         from misdirect.core import notebook as nb
 
         pomdp, controller, cost = self.pomdp, self.controller, self.cost

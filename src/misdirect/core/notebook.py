@@ -75,6 +75,21 @@ class View:
 # -- building cells --------------------------------------------------------------------------
 
 
+class Shown:
+    """What a notebook shows of an object, by its :class:`View` (``_view``): Jupyter asks for
+    ``_repr_html_``, renderers without HTML for ``_repr_markdown_``. A base of every result
+    and of the problem."""
+
+    def _view(self) -> View:
+        raise NotImplementedError
+
+    def _repr_html_(self) -> str:
+        return self._view().html()
+
+    def _repr_markdown_(self) -> str:
+        return self._view().markdown()
+
+
 def number(value: float | None, digits: int = 6) -> Cell:
     """A value to ``digits`` decimals (as the CLI prints it); ``None`` as an em dash."""
     return Cell("—" if value is None else f"{value:.{digits}f}", number=True)

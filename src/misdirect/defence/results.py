@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from misdirect.core import tolerance
 from misdirect.core.model import format_alteration
+from misdirect.core.notebook import Shown
 from misdirect.core.objective import LABELS
 from misdirect.core.tables import dataframe, short_float
 from misdirect.solvers.run import BudgetResult, curve_fields, curve_table
@@ -93,7 +94,7 @@ class SensorAudit:
 
 
 @dataclass(frozen=True, repr=False)
-class AuditResult:
+class AuditResult(Shown):
     """Which sensors are weak, for the attacker's budget ``B`` (:func:`misdirect.audit`).
 
     ``curve`` holds the attacker's optimum at every budget up to ``B``; ``status``,
@@ -175,15 +176,9 @@ class AuditResult:
             f"certified={self.certified})"
         )
 
-    def _repr_html_(self) -> str:
+    def _view(self) -> View:
         """The audit in a notebook: the optimum at ``B``, the sensors by criticality, the
         curve and the online attacker."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
-    def _view(self) -> View:
         from misdirect.core import notebook as nb
 
         facts = [
@@ -322,7 +317,7 @@ class HardenPoint:
 
 
 @dataclass(frozen=True, repr=False)
-class HardenResult:
+class HardenResult(Shown):
     """Which sensors to protect: the protection within ``protect_budget`` (``D``) that
     minimises the attacker's optimum at ``budget`` (``B``) (:func:`misdirect.harden`).
 
@@ -425,15 +420,9 @@ class HardenResult:
             f"value_after={short_float(self.value_after)})"
         )
 
-    def _repr_html_(self) -> str:
+    def _view(self) -> View:
         """The hardening in a notebook: the protection, the attacker's optimum before and
         after, and the trade-off per protection budget."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
-    def _view(self) -> View:
         from misdirect.core import notebook as nb
 
         facts = [

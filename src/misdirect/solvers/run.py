@@ -21,6 +21,7 @@ from misdirect.core.attack import shared_preparation
 from misdirect.core.checkpoint import interruptible
 from misdirect.core.keywords import budget_keyword, checked_keywords
 from misdirect.core.model import Alteration, AlterationArray, Problem, format_alteration
+from misdirect.core.notebook import Shown
 from misdirect.core.tables import dataframe, short_float
 from misdirect.errors import OptionError, ProblemError
 from misdirect.solvers import get_solver
@@ -45,7 +46,7 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True, repr=False)
-class BudgetResult:
+class BudgetResult(Shown):
     """The verified answer for one budget: one point of :attr:`SolveResult.curve`.
 
     Attributes
@@ -115,14 +116,8 @@ class BudgetResult:
             f"upper_bound={short_float(self.upper_bound)})"
         )
 
-    def _repr_html_(self) -> str:
-        """The point in a notebook: status, value, proven bound, gap and the alteration."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
     def _view(self) -> View:
+        """The point in a notebook: status, value, proven bound, gap and the alteration."""
         from misdirect.core import notebook as nb
 
         facts = [
@@ -196,7 +191,7 @@ def curve_fields(points: Sequence[BudgetResult]) -> tuple[list[dict[str, Any]], 
 
 
 @dataclass(frozen=True, repr=False)
-class SolveResult:
+class SolveResult(Shown):
     """What :func:`misdirect.solve` returns: the curve over every budget solved.
 
     The answer is the curve's last point (the largest budget asked for), whose fields the
@@ -282,15 +277,9 @@ class SolveResult:
             f"time_s={self.time_s:.3g})"
         )
 
-    def _repr_html_(self) -> str:
+    def _view(self) -> View:
         """The result in a notebook: the answer, then the curve (per budget its status,
         value, proven bound, gap and alteration), warnings and notes."""
-        return self._view().html()
-
-    def _repr_markdown_(self) -> str:
-        return self._view().markdown()
-
-    def _view(self) -> View:
         from misdirect.core import notebook as nb
         from misdirect.core.objective import LABELS
 
