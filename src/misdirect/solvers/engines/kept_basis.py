@@ -94,8 +94,6 @@ class KeptBasis:
         self.e_states = np.flatnonzero(outside & reaches)
         self.position = np.full(n, -1, dtype=np.int64)
         self.position[self.o_states] = np.arange(self.o_states.size)
-        self.e_position = np.full(n, -1, dtype=np.int64)
-        self.e_position[self.e_states] = np.arange(self.e_states.size)
         self.reduced = self.fallbacks = 0  # relaxations solved on the basis, and without it
         self.usable = self.e_states.size * max(self.o_states.size, 1) <= MAX_KEPT_ENTRIES
         if not self.usable:
@@ -115,8 +113,6 @@ class KeptBasis:
         self.q = rows[:, o].toarray() + self.into_e @ self.first_entry
         self.r = rows @ self.target_value + self.into_e @ self.before
         self.group_owner = self.position[chain.group_state[self.groups]]
-        order = np.lexsort((np.arange(self.groups.size), self.group_owner))
-        self._by_state = order
         counts = np.bincount(self.group_owner, minlength=o.size)
         self._state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         local = np.full(chain.group_state.size, -1, dtype=np.int64)
@@ -133,7 +129,6 @@ class KeptBasis:
             self.usable = False
             return
         self.base_values = self.base_inverse @ self.base_r
-        self._solver: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _options(self, free: Mapping[int, float]) -> np.ndarray:
         """The options a relaxation allows: the decided ones, every option within its cap of
