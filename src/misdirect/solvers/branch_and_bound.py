@@ -521,10 +521,9 @@ class _Search(IncumbentSearch):
         cheapest: dict[int, float] = {}
         for i in relax.order[level:]:
             del fixed[i]
-            options = relax.option_cost[relax.first_option[i] + 1 : relax.first_option[i + 1]]
-            affordable = options[options <= node.remaining]
+            affordable = relax.affordable(i, node.remaining)
             if affordable.size:
-                cheapest[i] = float(affordable.min())
+                cheapest[i] = float(relax.option_cost[relax.first_option[i] + affordable].min())
         scale = relax.space.scale
         seconds_left = None if deadline is None else deadline.remaining()
         per_union = self.union_seconds

@@ -159,8 +159,7 @@ def covering_bound(
     scale = relax.space.scale
 
     def affordable(i: int) -> np.ndarray:
-        options = cost[first[i] + 1 : first[i + 1]]
-        return np.flatnonzero(options <= cap) + 1
+        return relax.affordable(i, cap)
 
     grouped = {i for group in groups for i in group}
     loose = [
@@ -206,17 +205,7 @@ def _relaxation(
 ) -> float:
     """The proven bound of the per-state relaxation with the ``free`` choices free (their
     options within ``cap``), ``fixed`` as fixed and every other choice unaltered."""
-    first = relax.first_option
-    allowed = np.zeros(relax.option_cost.size, dtype=bool)
-    allowed[first[:-1]] = True  # every choice may stay unaltered...
-    for i in free:
-        span = slice(first[i], first[i + 1])
-        allowed[span] = relax.option_cost[span] <= cap
-        allowed[first[i]] = True
-    for i, k in fixed.items():  # ...but a decided one takes its option
-        allowed[first[i] : first[i + 1]] = False
-        allowed[first[i] + k] = True
-    groups = relax.allowed_groups(allowed)
+    groups = relax.allowed_groups(relax.free_options(free, cap, fixed))
     start = relax.best_groups(np.where(groups, 0.0, -np.inf))[0]
     bound, _, _ = relax.optimise(groups, start, deadline)
     return float(bound)

@@ -76,7 +76,7 @@ class KeptBasis:
         undecided_mask[list(undecided)] = True
         in_o = relax.live & (chain.groups_per_state > 1) & undecided_mask[self.state_choice]
         self.o_states = np.flatnonzero(in_o)
-        base_options = self._options({})
+        base_options = relax.free_options((), 0.0, self.fixed)
         self.base_policy = relax.best_groups(
             np.where(relax.allowed_groups(base_options), 0.0, -np.inf)
         )[0]
@@ -130,27 +130,11 @@ class KeptBasis:
             return
         self.base_values = self.base_inverse @ self.base_r
 
-    def _options(self, free: Mapping[int, float]) -> np.ndarray:
-        """The options a relaxation allows: the decided ones, every option within its cap of
-        a ``free`` choice (choice -> cap), and unaltered everywhere else."""
-        relax = self.relax
-        first, cost = relax.first_option, relax.option_cost
-        allowed = np.zeros(cost.size, dtype=bool)
-        allowed[first[:-1]] = True
-        for i, cap in free.items():
-            span = slice(first[i], first[i + 1])
-            allowed[span] = cost[span] <= cap
-            allowed[first[i]] = True
-        for i, k in self.fixed.items():
-            allowed[first[i] : first[i + 1]] = False
-            allowed[first[i] + k] = True
-        return allowed
-
     def bound(self, free: Sequence[int], cap: float, deadline: Deadline | None = None) -> float:
         """The proven bound of the per-state relaxation with the ``free`` choices free (their
         options within ``cap``), the decided ones as decided, every other choice unaltered."""
         relax = self.relax
-        allowed_full = relax.allowed_groups(self._options(dict.fromkeys(free, cap)))
+        allowed_full = relax.allowed_groups(relax.free_options(free, cap, self.fixed))
         penalty = np.where(allowed_full, 0.0, -np.inf)
         found = self._reduced(allowed_full[self.groups]) if self.usable else None
         if found is None:  # the whole chain, as without a kept basis

@@ -19,7 +19,7 @@ every method that needs a proven bound when cut short (:func:`relaxation_bound`)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import cast
 
 import numpy as np
@@ -83,6 +83,28 @@ class PerStateRelaxation:
             allowed[self.first_option[i] : self.first_option[i + 1]] = False
             allowed[self.first_option[i] + k] = True
         return allowed
+
+    def free_options(self, free: Sequence[int], cap: float, fixed: Mapping[int, int]) -> np.ndarray:
+        """Options of a relaxation over choice indices (not a node's order): the ``free``
+        choices' within ``cap``, ``fixed`` choices' own option, and every other choice
+        unaltered (the covering bound's unions)."""
+        first, cost = self.first_option, self.option_cost
+        allowed = np.zeros(cost.size, dtype=bool)
+        allowed[first[:-1]] = True  # every choice may stay unaltered...
+        for i in free:
+            span = slice(first[i], first[i + 1])
+            allowed[span] = cost[span] <= cap
+            allowed[first[i]] = True
+        for i, k in fixed.items():  # ...but a decided one takes its option
+            allowed[first[i] : first[i + 1]] = False
+            allowed[first[i] + k] = True
+        return allowed
+
+    def affordable(self, i: int, cap: float) -> np.ndarray:
+        """The alterations (option indices, 0 being unaltered) of choice ``i`` within
+        ``cap``."""
+        options = self.option_cost[self.first_option[i] + 1 : self.first_option[i + 1]]
+        return np.flatnonzero(options <= cap) + 1
 
     def allowed_groups(self, allowed_options: np.ndarray) -> np.ndarray:
         hits = self.group_options @ allowed_options.astype(np.float64)
