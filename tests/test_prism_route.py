@@ -189,6 +189,23 @@ def test_drn_model_with_the_controller_of_a_problem_file(tmp_path):
     assert solved["value"] == pytest.approx(0.4, abs=1e-12)
 
 
+def test_a_drn_model_takes_a_step_bounded_property(tmp_path):
+    """The trap corridor's decoy is first reached at step 2 (start -> exit -> decoy, 0.4 x
+    0.25; with o1 -> o0 also start -> loop -> decoy, 0.6 x 0.5), never sooner: by hand,
+    F<=1 is 0 whatever the alteration and F<=2 is the unbounded 0.1, or 0.4 altered."""
+    trap = ROOT / "examples" / "trap.yaml"
+    drn = tmp_path / "trap.drn"
+    assert _run("convert", trap, "--to", "drn", "-o", drn).exit_code == 0
+    flags = ["--controller", trap, "--decoy", "decoy", "--budget", "1"]
+    within_one = _json("solve", drn, *flags, "--property", 'P=? [F<=1 "decoy"]')
+    assert within_one["value"] == pytest.approx(0.0, abs=1e-12)
+    within_two = _json("solve", drn, *flags, "--property", 'P=? [F<=2 "decoy"]')
+    assert within_two["alteration"] == {"o1": "o0"}
+    assert within_two["value"] == pytest.approx(0.4, abs=1e-12)
+    plain = _json("evaluate", drn, *flags[:4], "--property", 'P=? [F<=2 "decoy"]')
+    assert plain["value"] == pytest.approx(0.1, abs=1e-12)
+
+
 @pytest.mark.parametrize("command", ["audit", "harden", "simulate", "show"])
 def test_every_problem_command_takes_the_model(tmp_path, command):
     extra = {
