@@ -13,7 +13,12 @@ every budget's status and exact value (to 1e-9) agree. Cases:
   exact evaluation in the same process: the first solve of the process (what a command pays),
   the best of three repeats on the same problem object, and a solve of a new problem object.
 
-Writes compare_trees.json and compare_trees.md under --out.
+* the enumeration with low-rank updates alone (``method="incremental"``, no time limit) on
+  chains with cycles: the 64-sensor turn-back grid's budgets 0..3 (2.7 million alterations)
+  and the 7x7 drone with 2 agents' budgets 0..2: what its kernel costs.
+
+``--only hard,grid,enumeration`` picks kinds. Writes compare_trees.json and compare_trees.md
+under --out.
 """
 
 from __future__ import annotations
@@ -74,6 +79,26 @@ print(json.dumps({"evaluation_s": floor, "first": first / floor, "warm": warm / 
 """
 
 
+ENUMERATION_CASE = r"""
+import json, sys, time
+import misdirect
+from misdirect.scenarios import drone, sensor_grid
+scenario, parameters, top = json.loads(sys.argv[1])
+problem = {"sensor-grid": sensor_grid, "drone": drone}[scenario](**parameters)
+began = time.perf_counter()
+result = misdirect.solve(problem, budgets=range(top + 1), method="incremental")
+wall = time.perf_counter() - began
+points = [[p.status, p.probability, p.upper_bound] for p in result.curve]
+print(json.dumps({"wall_s": wall, "points": points}))
+"""
+ENUMERATION_CASES = [
+    ["sensor-grid", {"n": 40, "sensors": 64, "goal": "inside"}, 3],
+    ["drone", {"n": 7, "agents": 2, "rows": 1}, 2],
+]
+QUICK_ENUMERATION = [["sensor-grid", {"n": 12, "sensors": 16, "goal": "inside"}, 2]]
+KINDS = ("hard", "grid", "enumeration")
+
+
 def _run(code: str, case: list, src: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(src.resolve())}
     done = subprocess.run(
@@ -92,13 +117,16 @@ def _same(a: dict, b: dict) -> bool:
     return ours == theirs
 
 
-def compare(before: Path, after: Path, quick: bool) -> list[dict]:
+def compare(before: Path, after: Path, quick: bool, kinds: tuple[str, ...] = KINDS) -> list[dict]:
     rows = []
     plan = hard_instances.QUICK if quick else hard_instances.FULL
     hard = hard_cases(plan, 60.0, 10.0)[:1] if quick else hard_cases(plan, 60.0, 10.0)
     grids = [speed.QUICK["g1"]] if quick else [speed.FULL["g1"], speed.FULL["g2"]]
+    enumerations = QUICK_ENUMERATION if quick else ENUMERATION_CASES
     cases = [("hard", HARD_CASE, list(c)) for c in hard]
     cases += [("grid", GRID_CASE, list(c)) for c in grids]
+    cases += [("enumeration", ENUMERATION_CASE, c) for c in enumerations]
+    cases = [case for case in cases if case[0] in kinds]
     for index, (kind, code, case) in enumerate(cases):
         order = [("before", before), ("after", after)]
         if index % 2:
@@ -116,7 +144,16 @@ def markdown(rows: list[dict]) -> str:
     lines.append("|---|---|---|---|---|")
     for row in rows:
         a, b = row["before"], row["after"]
-        if row["kind"] == "hard":
+        if row["kind"] == "enumeration":
+            scenario, parameters, top = row["case"]
+            shown = ", ".join(f"{key}={value}" for key, value in parameters.items())
+            name = f"incremental, {scenario}({shown}) B0..{top}"
+            if "wall_s" in a and "wall_s" in b:
+                cells = [f"{a['wall_s']:.1f} s", f"{b['wall_s']:.1f} s"]
+                cells.append(f"{b['wall_s'] / a['wall_s']:.2f}")
+            else:
+                cells = [str(a.get("error", "")), str(b.get("error", "")), ""]
+        elif row["kind"] == "hard":
             n, k, top, seed, limit = row["case"]
             name = f"sensor_grid({n}, {k}, seed={seed}) B0..{top}, limit {limit or 'none'}"
             if "wall_s" in a and "wall_s" in b:
@@ -145,8 +182,15 @@ def main() -> None:
     parser.add_argument("--after", type=Path, default=Path("src"), help="the new tree's src/")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     parser.add_argument("--quick", action="store_true", help="one small case of each kind")
+    parser.add_argument(
+        "--only", default=",".join(KINDS), help=f"kinds of case, of {', '.join(KINDS)}"
+    )
     args = parser.parse_args()
-    rows = compare(args.before, args.after, args.quick)
+    kinds = tuple(kind.strip() for kind in args.only.split(","))
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        parser.error(f"--only: unknown kind {', '.join(unknown)} (of {', '.join(KINDS)})")
+    rows = compare(args.before, args.after, args.quick, kinds)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "compare_trees.json").write_text(json.dumps(rows, indent=2) + "\n")
     (args.out / "compare_trees.md").write_text(markdown(rows))

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from misdirect.core.attack import prepare
+from misdirect.core.blas import one_blas_thread
 from misdirect.scenarios import random_problem
 from misdirect.scenarios.sensor_grid import sensor_grid
 from misdirect.solvers.engines.covering import _relaxation
-from misdirect.solvers.engines.kept_basis import KeptBasis, one_blas_thread
+from misdirect.solvers.engines.kept_basis import KeptBasis
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 

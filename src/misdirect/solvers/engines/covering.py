@@ -33,8 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from misdirect.core.blas import one_blas_thread
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.kept_basis import KeptBasis, one_blas_thread
+from misdirect.solvers.engines.kept_basis import KeptBasis
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_UNIONS = 5_000  # a cover of more unions than this is not tried (each is a relaxation solve)

@@ -20,19 +20,18 @@ proven_bound`, as every bound of the per-state relaxation is: the reduction only
 values, it proves nothing. Where the reduced policy iteration does not settle (a round that
 would strand a state, a singular solve), the relaxation is solved on the whole chain instead.
 
-The dense algebra runs on one BLAS thread (:func:`one_blas_thread`): these matrices are a few
-hundred wide, and OpenBLAS's threads spinning for a core the other worker holds made a 140x140
-solve take 80 ms instead of 0.2 (bench/results/covering).
+The dense algebra runs on one BLAS thread (:func:`~misdirect.core.blas.one_blas_thread`, taken
+by the cover that calls it): these matrices are a few hundred wide, and OpenBLAS's threads
+spinning for a core the other worker holds made a 140x140 solve take 80 ms instead of 0.2
+(bench/results/covering).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from threadpoolctl import threadpool_limits
 
 from misdirect.core import tolerance
 from misdirect.core.model import reachable_from
@@ -42,13 +41,6 @@ from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_ROUNDS = 64  # rounds of the reduced policy iteration before the whole chain takes over
 MAX_KEPT_ENTRIES = 20_000_000  # H (states outside O x states of O) kept at most this large
-
-
-@contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """Dense algebra of a few hundred rows on one BLAS thread (see the module docstring)."""
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
 
 
 class KeptBasis:

@@ -25,6 +25,7 @@ import scipy.sparse as sp
 
 from misdirect.core import tolerance
 from misdirect.core.alterations import AlteredEntries, rank_in_group
+from misdirect.core.blas import one_blas_thread
 from misdirect.core.choice_product import ChoiceProduct
 from misdirect.core.jit import njit
 from misdirect.core.reachability import solve_chain, steps_bound
@@ -351,13 +352,15 @@ def add_corrections(
 
     n_slots = deltas.rhs.size - 1
     batches = list(_batches(order, tree.width[parents], n_children, n_slots, chunk_entries))
-    # the numpy twin holds the GIL: a second thread would only wait for it
-    if threads == 1 or len(batches) == 1 or not compiled:
-        for batch in batches:
-            run(batch)
-    else:  # taken in order, so a cut-short run has still done the smallest alterations
-        with ThreadPoolExecutor(max_workers=threads) as pool:
-            list(pool.map(run, batches))  # LAPACK and numpy's gathers release the GIL
+    # each batch's products are small: OpenBLAS's own threads would only spin beside ours
+    with one_blas_thread():
+        # the numpy twin holds the GIL: a second thread would only wait for it
+        if threads == 1 or len(batches) == 1 or not compiled:
+            for batch in batches:
+                run(batch)
+        else:  # taken in order, so a cut-short run has still done the smallest alterations
+            with ThreadPoolExecutor(max_workers=threads) as pool:
+                list(pool.map(run, batches))  # LAPACK and numpy's gathers release the GIL
     # bordered on an ill-conditioned parent (or Schur complement): each on its own system
     ill = np.flatnonzero(corrected & np.isnan(found))
     if ill.size:
@@ -528,10 +531,11 @@ def _children_of(
     last = tree.first_entry[kids] + tree.depth[kids] - 1
     first = tree.entry_slot[last].astype(np.int64)
     begin = int(first.min(initial=pad))
-    # (A⁻¹ D W(P, c))ᵀ for every column c of a later slot (a child's entry comes after its
-    # parent's, so deep parents need few), one row per column: a child reads its wp numbers
-    # at once. Per column, not per slot: the options of one sensor share their rows' columns,
-    # and later slots' columns form one range, so the gather is a slice of each parent row
+    # A⁻¹ D W(P, c) for every column c of a later slot (a child's entry comes after its
+    # parent's, so deep parents need few). Per column, not per slot: the options of one sensor
+    # share their rows' columns, and later slots' columns form one range, so the gather is a
+    # slice of each parent row. Both operands contiguous, so each product of the stack is one
+    # BLAS call (their transposes made numpy fall back to its own loop, 2x slower)
     later = deltas.column[begin:pad]
     low, high = int(later.min(initial=0)), int(later.max(initial=-1)) + 1
     gathered = deltas.d_w[slots_p.reshape(-1), low:high]
@@ -539,7 +543,7 @@ def _children_of(
     out = np.empty(kids.size)
     (_schur_corrections if compiled else _schur_corrections_numpy)(
         slots_p,
-        np.matmul(np.swapaxes(gathered, 1, 2), np.swapaxes(inverse, 1, 2)),
+        np.matmul(inverse, gathered),
         low,
         y,
         s_p,
@@ -582,8 +586,8 @@ def _schur_corrections(
 ) -> None:  # pragma: no cover (compiled; its results are tested against dense solves)
     """Per child ``c`` (parent ``p = local[c]``, last entry's slots ``first[c]`` onwards,
     ``width[c]`` of them): ``out[c] = s_P + grad · S⁻¹ right`` of :func:`_children_of`. With
-    ``reach[p]`` the rows ``(A⁻¹ D W(P, c))ᵀ`` of the columns ``c`` from ``low`` on,
-    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][column(E) − low]ᵀ``, so the signs cancel:
+    ``reach[p]`` the columns ``A⁻¹ D W(P, c)`` of the columns ``c`` from ``low`` on,
+    ``Y = A⁻¹ F_PE = −G`` for ``G = reach[p][:, column(E) − low]``, so the signs cancel:
     ``S = F_EE − D W(E, P) G``. Padded parent slots have zero
     rows, columns and weights.
 
@@ -594,8 +598,11 @@ def _schur_corrections(
     wp = slots_p.shape[1]
     widest = max(1, width.max()) if width.size else 1
     g = np.empty((widest, wp))  # Gᵀ = (A⁻¹ D W(P, E))ᵀ, one row per slot of E
+    g_weight = np.empty(widest)  # G's columns times the parent's weights
     row_p = np.empty(wp)  # D W(i, P) of one row i of E
     columns_p = np.empty(wp, dtype=np.int64)
+    weight_p = np.empty(wp)
+    columns_e = np.full(widest, -1, dtype=np.int64)  # the columns G was gathered for
     schur = np.empty((widest, widest))
     right = np.empty(widest)
     grad = np.empty(widest)
@@ -612,19 +619,26 @@ def _schur_corrections(
             parent = p
             for j in range(wp):
                 columns_p[j] = column[slots_p[p, j]]
+                weight_p[j] = weight[slots_p[p, j]]
+            columns_e[:] = -1
+        # the options of one sensor share their rows' columns, so siblings share G: gathered
+        # again only where the columns differ
         for e in range(w):
-            for j in range(wp):
-                g[e, j] = reach[p, column[f + e] - low, j]
+            if columns_e[e] != column[f + e]:
+                columns_e[e] = column[f + e]
+                h = 0.0
+                for j in range(wp):
+                    g[e, j] = reach[p, j, column[f + e] - low]
+                    h += g[e, j] * weight_p[j]
+                g_weight[e] = h
         for i in range(w):
             row = f + i
             r = rhs[row]
-            h = weight[row]
             for j in range(wp):
                 row_p[j] = d_w[row, columns_p[j]]
                 r += row_p[j] * y[p, j]
-                h += g[i, j] * weight[slots_p[p, j]]
             right[i] = r
-            grad[i] = h
+            grad[i] = weight[row] + g_weight[i]
             for e in range(w):
                 v = -d_w[row, column[f + e]]
                 if i == e:
@@ -695,7 +709,7 @@ def _schur_corrections_numpy(
         pick = np.flatnonzero(width == w)
         p = local[pick]
         rows = first[pick, None] + np.arange(w)  # an entry's slots are consecutive
-        g = reach[p[:, None], column[rows] - low]  # Gᵀ, (children, w, wp)
+        g = reach[p[:, None], :, column[rows] - low]  # Gᵀ, (children, w, wp)
         row_p = d_w[rows[:, :, None], columns_p[p][:, None, :]]  # D W(E, P)
         schur = np.eye(w) - d_w[rows[:, :, None], column[rows][:, None, :]]
         schur -= np.matmul(row_p, np.swapaxes(g, 1, 2))

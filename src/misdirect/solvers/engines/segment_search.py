@@ -31,9 +31,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from misdirect.core import tolerance
+from misdirect.core.blas import one_blas_thread
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.segment_relaxation import Layer, SegmentRelaxation
@@ -239,7 +239,7 @@ class SegmentSearch(IncumbentSearch):
             ]
             # one BLAS thread per worker: OpenBLAS's own threads would spin on the cores the
             # workers need
-            with threadpool_limits(limits=1, user_api="blas"):
+            with one_blas_thread():
                 for thread in threads:
                     thread.start()
                 for thread in threads:
