@@ -17,7 +17,9 @@ every budget's status and exact value (to 1e-9) agree. Cases:
   chains with cycles: the 64-sensor turn-back grid's budgets 0..3 (2.7 million alterations)
   and the 7x7 drone with 2 agents' budgets 0..2: what its kernel costs.
 
-``--only hard,grid,enumeration`` picks kinds. Writes compare_trees.json and compare_trees.md
+* the C2 drones (``bench/hard_instances.py``'s chains with cycles) under ``auto`` at 60 s.
+
+``--only hard,grid,enumeration,drones`` picks kinds. Writes compare_trees.json and compare_trees.md
 under --out.
 """
 
@@ -79,6 +81,18 @@ print(json.dumps({"evaluation_s": floor, "first": first / floor, "warm": warm / 
 """
 
 
+DRONE_CASE = r"""
+import json, sys, time
+import misdirect
+from misdirect.scenarios import drone
+label, scenario, parameters, top = json.loads(sys.argv[1])
+problem = drone(**parameters)
+began = time.perf_counter()
+result = misdirect.solve(problem, budgets=range(top + 1), time_limit=60.0)
+wall = time.perf_counter() - began
+points = [[p.status, p.probability, p.upper_bound] for p in result.curve]
+print(json.dumps({"wall_s": wall, "points": points}))
+"""
 ENUMERATION_CASE = r"""
 import json, sys, time
 import misdirect
@@ -96,7 +110,7 @@ ENUMERATION_CASES = [
     ["drone", {"n": 7, "agents": 2, "rows": 1}, 2],
 ]
 QUICK_ENUMERATION = [["sensor-grid", {"n": 12, "sensors": 16, "goal": "inside"}, 2]]
-KINDS = ("hard", "grid", "enumeration")
+KINDS = ("hard", "grid", "enumeration", "drones")
 
 
 def _run(code: str, case: list, src: Path) -> dict:
@@ -126,6 +140,7 @@ def compare(before: Path, after: Path, quick: bool, kinds: tuple[str, ...] = KIN
     cases = [("hard", HARD_CASE, list(c)) for c in hard]
     cases += [("grid", GRID_CASE, list(c)) for c in grids]
     cases += [("enumeration", ENUMERATION_CASE, c) for c in enumerations]
+    cases += [("drones", DRONE_CASE, list(c)) for c in plan["c2"]]
     cases = [case for case in cases if case[0] in kinds]
     for index, (kind, code, case) in enumerate(cases):
         order = [("before", before), ("after", after)]
@@ -144,10 +159,14 @@ def markdown(rows: list[dict]) -> str:
     lines.append("|---|---|---|---|---|")
     for row in rows:
         a, b = row["before"], row["after"]
-        if row["kind"] == "enumeration":
-            scenario, parameters, top = row["case"]
-            shown = ", ".join(f"{key}={value}" for key, value in parameters.items())
-            name = f"incremental, {scenario}({shown}) B0..{top}"
+        if row["kind"] in ("enumeration", "drones"):
+            if row["kind"] == "drones":
+                label, scenario, parameters, top = row["case"]
+                name = f"auto, 60 s, {label} B0..{top}"
+            else:
+                scenario, parameters, top = row["case"]
+                shown = ", ".join(f"{key}={value}" for key, value in parameters.items())
+                name = f"incremental, {scenario}({shown}) B0..{top}"
             if "wall_s" in a and "wall_s" in b:
                 cells = [f"{a['wall_s']:.1f} s", f"{b['wall_s']:.1f} s"]
                 cells.append(f"{b['wall_s'] / a['wall_s']:.2f}")
