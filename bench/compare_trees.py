@@ -109,7 +109,7 @@ ENUMERATION_CASES = [
     ["sensor-grid", {"n": 40, "sensors": 64, "goal": "inside"}, 3],
     ["drone", {"n": 7, "agents": 2, "rows": 1}, 2],
 ]
-QUICK_ENUMERATION = [["sensor-grid", {"n": 12, "sensors": 16, "goal": "inside"}, 2]]
+QUICK_ENUMERATION = [["sensor-grid", {"n": 8, "sensors": 6, "goal": "inside"}, 2]]
 KINDS = ("hard", "grid", "enumeration", "drones")
 
 

@@ -153,7 +153,7 @@ def test_compare_trees_finds_a_tree_equal_to_itself(tmp_path):
         capture_output=True,
     )
     rows = json.loads((tmp_path / "compare_trees.json").read_text())
-    assert {row["kind"] for row in rows} == {"hard", "grid"}
+    assert {row["kind"] for row in rows} == {"hard", "grid", "enumeration", "drones"}
     assert all(row["same_answers"] for row in rows)
     assert "same statuses and values" in (tmp_path / "compare_trees.md").read_text()
 
