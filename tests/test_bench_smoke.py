@@ -216,3 +216,28 @@ def test_covering_benchmark_reduced_mode(tmp_path):
         assert row["covering_bound"] <= row["all_free_bound"] + 1e-12
     assert rows[0]["covering_bound"] >= rows[0]["optimum"] * (1 - 1e-9)
     assert rows[1]["covering_bound"] >= rows[0]["covering_bound"] * (1 - 1e-9)  # more budget
+
+
+def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
+    """bench/enumeration_kernel.py --quick: the kernel it times is the one that valued the
+    alterations (it counted every alteration within budget 2 of an 8-sensor grid, each an
+    alteration of at most 2 sensors), and the answer is the exhaustive search's."""
+    from misdirect import solve
+    from misdirect.core.attack import prepare
+    from misdirect.scenarios.sensor_grid import sensor_grid
+
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "enumeration_kernel.py"), "--quick"]
+        + ["--out", str(tmp_path)],  # noqa: RUF005 (two lines of one command)
+        check=True,
+        capture_output=True,
+    )
+    row = json.loads((tmp_path / "enumeration_kernel.json").read_text())
+    problem = sensor_grid(10, 8, goal="inside")
+    space = prepare(problem, 2).space
+    listed = space.within(2.0, limit=100_000)
+    assert listed is not None
+    assert 0 < row["alterations"] <= len(listed[1])
+    exact = solve(problem, budgets=[0, 1, 2], method="exhaustive")
+    assert row["value"] == pytest.approx(exact.probability, abs=1e-9)
+    assert row["kernel_gflops"] > 0 and row["peak_gflops"] > 0
