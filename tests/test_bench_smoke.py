@@ -227,8 +227,11 @@ def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
     from misdirect.scenarios.sensor_grid import sensor_grid
 
     subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "enumeration_kernel.py"), "--quick"]
-        + ["--out", str(tmp_path)],  # noqa: RUF005 (two lines of one command)
+        [
+            sys.executable,
+            str(ROOT / "bench" / "enumeration_kernel.py"),
+            *("--quick", "--out", str(tmp_path)),
+        ],
         check=True,
         capture_output=True,
     )
