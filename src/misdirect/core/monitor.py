@@ -441,6 +441,7 @@ def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
         alarm_action = pomdp.n_actions
     nodes, entries = _product_controller(controller, monitor, alarm_action)
     n_o = pomdp.n_observations
+    nodes, entries = _merge_bisimilar(nodes, entries, n_o, alarm_action)
     cell, action, next_node, probability = entries
     product = Controller.from_entries(
         nodes=tuple(f"({controller.nodes[n]}, {monitor.states[m]})" for n, m in nodes),
@@ -517,6 +518,66 @@ def _product_controller(
         np.concatenate(nexts),
         np.concatenate(probabilities),
     )
+
+
+def _merge_bisimilar(
+    nodes: list[tuple[int, int]],
+    entries: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    n_o: int,
+    alarm_action: int,
+) -> tuple[list[tuple[int, int]], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The product controller with bisimilar nodes merged (Moore's partition refinement).
+
+    Two nodes are bisimilar when, for every reading, they play each action with the same
+    probability into successors that are bisimilar again; an alarm entry's successor does not
+    matter (the run ends). Such nodes give every run the same distribution of actions, so the
+    chain's value under every alteration is the same with one node in place of the other,
+    while the product chain every solver factorises shrinks: on the paper's grid with the
+    consistency monitor, many (node, belief support) pairs differ only in supports that no
+    reading tells apart. Each class keeps its first node (the initial node stays node 0)."""
+    cell, action, next_node, probability = entries
+    n_nodes = len(nodes)
+    if n_nodes < 2:
+        return nodes, entries
+    owner = cell // n_o
+    reading = cell % n_o
+    caught = action == alarm_action
+    classes = np.zeros(n_nodes, dtype=np.int64)
+    n_classes = 1
+    while True:
+        # an entry's part of its node's signature: (reading, action, successor's class), the
+        # entries of one node sharing it summed; an alarm entry's successor is none (-1)
+        successor = np.where(caught, -1, classes[next_node])
+        code = (reading * (alarm_action + 1) + action) * (n_classes + 1) + successor + 1
+        pair, inverse = np.unique(owner * (code.max() + 1) + code, return_inverse=True)
+        mass = np.bincount(inverse.reshape(-1), weights=probability, minlength=pair.size)
+        pair_owner, pair_code = np.divmod(pair, code.max() + 1)
+        counts = np.bincount(pair_owner, minlength=n_nodes)
+        slot = np.arange(pair.size) - np.repeat(np.cumsum(counts) - counts, counts)
+        rows = np.full((n_nodes, 1 + 2 * int(counts.max())), -1.0)
+        rows[:, 0] = classes
+        rows[pair_owner, 1 + 2 * slot] = pair_code
+        rows[pair_owner, 2 + 2 * slot] = mass
+        _, renumbered = np.unique(rows, axis=0, return_inverse=True)
+        classes = renumbered.reshape(-1).astype(np.int64)
+        count = int(classes.max()) + 1
+        if count == n_classes:
+            break
+        n_classes = count
+    # number the classes by their first node, so that the initial node's class is 0
+    first_node = np.full(n_classes, n_nodes, dtype=np.int64)
+    np.minimum.at(first_node, classes, np.arange(n_nodes))
+    rank = np.empty(n_classes, dtype=np.int64)
+    rank[np.argsort(first_node)] = np.arange(n_classes)
+    classes = rank[classes]
+    if n_classes == n_nodes:
+        return nodes, entries
+    keep_nodes = np.sort(first_node)
+    kept = np.isin(owner, keep_nodes)
+    cell, action, next_node, probability = (a[kept] for a in (cell, action, next_node, probability))
+    cell = classes[cell // n_o] * n_o + cell % n_o
+    next_node = classes[next_node]
+    return [nodes[k] for k in keep_nodes.tolist()], (cell, action, next_node, probability)
 
 
 def _with_sink(pomdp: Pomdp) -> Pomdp:
