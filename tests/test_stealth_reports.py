@@ -273,3 +273,114 @@ def test_merging_bisimilar_nodes_keeps_every_value():
         assert merged_report.alarm_probability == pytest.approx(
             raw_report.alarm_probability, abs=1e-12
         )
+
+
+# -- audit and harden: the monitor against protection -------------------------------------------
+
+
+def _protected(problem, sensors):
+    """``problem`` with ``sensors`` (names) unalterable, built here from the cost model."""
+    from dataclasses import replace
+
+    index = [problem.pomdp.observations.index(o) for o in sensors]
+    cost = replace(problem.cost, protected=problem.cost.protected | frozenset(index))
+    return replace(problem, cost=cost)
+
+
+def _optimum(problem, budget):
+    result = misdirect.solve(problem, budgets=[budget])
+    assert str(result.status) == "optimal"
+    return result.probability
+
+
+@pytest.fixture(scope="module")
+def grid_pair():
+    """The paper's grid, and the same watched by the consistency monitor; the monitored
+    problem is built here and also with_monitor's (they must agree)."""
+    problem = paper_grid(5)
+    return problem, with_monitor(problem, consistency_monitor(problem))
+
+
+def _check_rows(comparison, plain, watched, budget, protection, both):
+    rows = {row.defence: row for row in comparison.rows}
+    assert list(rows) == ["nothing", "monitor", "protection", "monitor and protection"]
+    expected = {
+        "nothing": _optimum(plain, budget),
+        "monitor": _optimum(watched, budget),
+        "protection": _optimum(_protected(plain, protection), budget),
+        "monitor and protection": _optimum(_protected(watched, both), budget),
+    }
+    for defence, value in expected.items():
+        row = rows[defence]
+        assert row.probability == pytest.approx(value, abs=1e-9), defence
+        assert row.status == "optimal"
+        # how often the monitor catches the reply: evaluated here on the monitored problem
+        caught = misdirect.evaluate(watched, row.alteration).alarm_probability
+        assert row.alarm_probability == pytest.approx(caught, abs=1e-9), defence
+    assert rows["protection"].protection == protection
+    assert rows["monitor and protection"].protection == both
+    assert rows["monitor"].monitor == "consistency" and rows["nothing"].monitor is None
+    return rows
+
+
+def test_audit_compares_the_monitor_with_protecting_the_most_critical_sensor(grid_pair):
+    plain, watched = grid_pair
+    report = misdirect.audit(watched, budget=1)
+    comparison = report.monitor_comparison
+    assert comparison is not None and comparison.budget == 1
+    # the sensor to protect: the one whose protection lowers the unmonitored optimum the
+    # most, found here by solving every single protection
+    sensors = list(plain.pomdp.observations)
+    drops = {o: _optimum(_protected(plain, [o]), 1) for o in sensors}
+    best = min(drops, key=lambda o: (drops[o], o))
+    rows = _check_rows(comparison, plain, watched, 1, [best], [best])
+    assert rows["protection"].probability == pytest.approx(drops[best], abs=1e-9)
+    assert rows["monitor"].probability == pytest.approx(report.probability, abs=1e-12)
+    assert misdirect.audit(plain, budget=1).monitor_comparison is None
+
+
+def test_harden_compares_the_monitor_with_the_best_protection(grid_pair):
+    plain, watched = grid_pair
+    plan = misdirect.harden(watched, protect_budget=1, budget=1)
+    comparison = plan.monitor_comparison
+    assert comparison is not None
+    # the best single protection with and without the monitor, by solving every one here
+    sensors = list(plain.pomdp.observations)
+    alone = {o: _optimum(_protected(plain, [o]), 1) for o in sensors}
+    watched_alone = {o: _optimum(_protected(watched, [o]), 1) for o in sensors}
+    rows = _check_rows(
+        comparison, plain, watched, 1, plan_protection(comparison, "protection"), plan.protection
+    )
+    assert rows["protection"].probability == pytest.approx(min(alone.values()), abs=1e-9)
+    assert rows["monitor and protection"].probability == pytest.approx(
+        min(watched_alone.values()), abs=1e-9
+    )
+    assert rows["monitor and protection"].probability == pytest.approx(plan.value, abs=1e-12)
+
+
+def plan_protection(comparison, defence):
+    return comparison.row(defence).protection
+
+
+def test_audit_and_harden_cli_show_the_comparison(tmp_path):
+    from result_schema import checked
+
+    base = ["--scenario", "paper-grid", "--budget", "1", "--stealth"]
+    audit = runner.invoke(app, ["audit", *base, "--json"])
+    assert audit.exit_code == 0, audit.output
+    document = checked(audit.stdout)
+    rows = document["monitor_comparison"]["rows"]
+    assert [r["defence"] for r in rows][:2] == ["nothing", "monitor"]
+    assert rows[0]["value"] == pytest.approx(0.719924, abs=1e-6)  # the paper's budget-1 optimum
+    assert rows[1]["value"] == pytest.approx(0.6479029686743, abs=1e-9)  # docs/stealth.md
+    harden = runner.invoke(
+        app, ["harden", *base, "--protect-budget", "1", "-o", str(tmp_path / "h")]
+    )
+    assert harden.exit_code == 0, harden.output
+    assert "add the monitor (consistency) or protect sensors?" in " ".join(harden.output.split())
+    assert "The monitor against protection" in (tmp_path / "h" / "report.md").read_text()
+    plain = runner.invoke(
+        app,
+        ["harden", "--scenario", "paper-grid", "--budget", "1", "--protect-budget", "0", "--json"],
+    )
+    assert checked(plain.stdout)["monitor_comparison"] is None

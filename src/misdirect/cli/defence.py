@@ -37,6 +37,7 @@ from misdirect.report import json_output
 
 if TYPE_CHECKING:
     from misdirect.defence import AuditResult, HardenResult
+    from misdirect.defence.results import MonitorComparison
     from misdirect.defence.robust import RobustResult
 
 
@@ -94,6 +95,7 @@ def audit(
         print_json(json_output.audit(result, written=written))
         return
     _print_audit(result)
+    _print_comparison(result.monitor_comparison)
     if output is not None:
         wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 
@@ -143,6 +145,47 @@ def _print_audit(result: AuditResult) -> None:
         parts.insert(0, f"B solved as {result.budget_clamped_to:g} (no alteration costs more)")
     out.print(" · ".join(parts), highlight=False)
     print_notes(result.notes)
+
+
+def _print_comparison(comparison: MonitorComparison | None) -> None:
+    """With a monitor: the attacker's optimum at B under no defence, the monitor, the
+    protection and both, one row each (docs/stealth.md)."""
+    if comparison is None:
+        return
+    table = Table(
+        title=escape(
+            f"add the monitor ({comparison.monitor}) or protect sensors? the attacker's "
+            f"optimum at budget {comparison.budget:g}"
+        )
+    )
+    columns = ("defence", "protect", "cost", "attacker's optimum", "status", "caught", "reply")
+    for column in columns:
+        left = column in ("defence", "protect", "reply")
+        table.add_column(column, justify="left" if left else "right", overflow="fold")
+    labels = {
+        "nothing": "nothing",
+        "monitor": "monitor",
+        "protection": "protection",
+        "monitor and protection": "monitor + protection",
+    }
+    for row in comparison.rows:
+        table.add_row(
+            labels[row.defence],
+            escape(", ".join(map(quoted_name, row.protection)) or "-"),
+            f"{row.protection_cost:g}",
+            f"{row.probability:.6f}",
+            row.status,
+            f"{row.alarm_probability:.6f}",
+            fmt_alteration(row.alteration),
+        )
+    out.print(table)
+    out.print(
+        escape(
+            f"{comparison.why} · caught: Pr(the monitor raises the alarm) under the "
+            "attacker's reply (without the monitor: were it added)"
+        ),
+        highlight=False,
+    )
 
 
 # -- harden -------------------------------------------------------------------------------------
@@ -239,6 +282,7 @@ def harden(
         print_json(json_output.harden(result, written=written))
     else:
         _print_harden(result)
+        _print_comparison(result.monitor_comparison)
         if output is not None:
             wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 

@@ -755,9 +755,7 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
     verdict = "inside" if payload["exact_within_interval"] else "[red]outside[/]"
     finished = result.runs - result.trapped - result.unfinished - result.alarms
     caught = (
-        f" · caught on reading {result.alarm_mean_step:.2f} on average"
-        if result.alarms
-        else ""
+        f" · caught on reading {result.alarm_mean_step:.2f} on average" if result.alarms else ""
     )
     out.print(
         f"alteration {fmt_alteration(payload['alteration'])} · mean steps "

@@ -403,7 +403,7 @@ def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
             field="monitor",
         )
     folded = fold_monitor(problem, monitor)
-    return replace(folded, monitor=monitor.name)
+    return replace(folded, monitor=monitor.name, unwatched=problem)
 
 
 def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
