@@ -67,7 +67,9 @@ def audit(
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
-    criticality and single-sensor value, and the online attacker's value."""
+    criticality and single-sensor value, and the online attacker's value. With a monitor
+    (--monitor, --stealth): also the optimum without it, with it, with the most critical
+    sensor protected, and with both."""
     from misdirect.core.grid import state_cells
     from misdirect.defence import audit as run_audit
     from misdirect.distributed import connect
@@ -247,7 +249,9 @@ def harden(
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors to protect: the set within cost D that minimises the attacker's optimum
-    at budget B (exact min-max), with the trade-off over every protection budget up to D."""
+    at budget B (exact min-max), with the trade-off over every protection budget up to D.
+    With a monitor (--monitor, --stealth): also the optimum without it, with it, with the
+    best protection without it, and with both."""
     from misdirect.defence import harden as run_harden
     from misdirect.distributed import connect
 

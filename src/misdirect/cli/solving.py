@@ -585,7 +585,8 @@ def simulate(
     as_json: JsonOption = False,
 ) -> None:
     """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
-    not decoy) or trapped (it can no longer stop), with 95 % intervals."""
+    not decoy), caught by a monitor's alarm (--monitor, --stealth) or trapped (it can no
+    longer stop), with 95 % intervals."""
     from misdirect.core.simulate import simulate as run_simulation
 
     for option, value, least, most in (
