@@ -235,12 +235,14 @@ def simulate(
     finished = stopped_at >= 0
     ended = np.bincount(stopped_at[finished], minlength=pomdp.n_states)
     goals = pomdp.absorbing & ~problem.decoy
+    # a monitored problem's alarm sink is a kind of its own; a run caught on its k-th
+    # reading enters it at step k (the alarm action's step)
     sink = problem.alarm_state
-    caught = finished & (stopped_at == (-2 if sink is None else sink))
+    caught = np.zeros(runs, dtype=bool)
     if sink is not None:
+        caught = finished & (stopped_at == sink)
         goals[sink] = False
     finished &= ~caught  # the mean length is over runs that ended in a decoy or goal
-    # a run caught on its k-th reading enters the sink at step k (the alarm action's step)
     return Simulation(
         runs=runs,
         decoy_hits=int(ended[problem.decoy].sum()),
