@@ -377,6 +377,10 @@ def test_audit_and_harden_cli_show_the_comparison(tmp_path):
         app, ["harden", *base, "--protect-budget", "1", "-o", str(tmp_path / "h")]
     )
     assert harden.exit_code == 0, harden.output
+    as_json = runner.invoke(app, ["harden", *base, "--protect-budget", "1", "--json"])
+    assert as_json.exit_code == 0, as_json.output
+    rows = checked(as_json.stdout)["monitor_comparison"]["rows"]
+    assert rows[-1]["defence"] == "monitor and protection" and rows[-1]["protection"] == ["o1"]
     assert "add the monitor (consistency) or protect sensors?" in " ".join(harden.output.split())
     assert "The monitor against protection" in (tmp_path / "h" / "report.md").read_text()
     plain = runner.invoke(
