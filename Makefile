@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/proofs_on_cycles.py --out $(BENCH_OUT)
 	$(BIN)/python bench/covering_bound.py --out $(BENCH_OUT)
 	$(BIN)/python bench/enumeration_kernel.py --out $(BENCH_OUT)
+	$(BIN)/python bench/stealth_speed.py --out $(BENCH_OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -244,3 +244,19 @@ def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
     exact = solve(problem, budgets=[0, 1, 2], method="exhaustive")
     assert row["value"] == pytest.approx(exact.probability, abs=1e-9)
     assert row["kernel_gflops"] > 0 and row["peak_gflops"] > 0
+
+
+def test_stealth_speed_quick_mode(tmp_path):
+    """bench/stealth_speed.py --quick: it runs and writes its three files, and the monitored
+    paper grid's budget-0/1 values are the stealthy ones of docs/stealth.md (no timing)."""
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "stealth_speed.py"), "--quick", "--out", tmp_path],
+        check=True,
+        capture_output=True,
+    )
+    document = json.loads((tmp_path / "stealth_speed.json").read_text())
+    grid = next(row for row in document["rows"] if row["goal"] == "T1")
+    assert grid["watched"]["values"] == pytest.approx([0.084957, 0.647903], abs=1e-6)
+    assert grid["plain"]["values"] == pytest.approx([0.084957, 0.719924], abs=1e-6)
+    assert (tmp_path / "stealth_speed.csv").exists()
+    assert "Stealth speed" in (tmp_path / "stealth_speed.md").read_text()

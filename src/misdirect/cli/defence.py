@@ -37,6 +37,7 @@ from misdirect.report import json_output
 
 if TYPE_CHECKING:
     from misdirect.defence import AuditResult, HardenResult
+    from misdirect.defence.results import MonitorComparison
     from misdirect.defence.robust import RobustResult
 
 
@@ -66,7 +67,9 @@ def audit(
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors are weak: the attacker's optimum for every budget up to B, each sensor's
-    criticality and single-sensor value, and the online attacker's value."""
+    criticality and single-sensor value, and the online attacker's value. With a monitor
+    (--monitor, --stealth): also the optimum without it, with it, with the most critical
+    sensor protected, and with both."""
     from misdirect.core.grid import state_cells
     from misdirect.defence import audit as run_audit
     from misdirect.distributed import connect
@@ -94,6 +97,7 @@ def audit(
         print_json(json_output.audit(result, written=written))
         return
     _print_audit(result)
+    _print_comparison(result.monitor_comparison)
     if output is not None:
         wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 
@@ -143,6 +147,47 @@ def _print_audit(result: AuditResult) -> None:
         parts.insert(0, f"B solved as {result.budget_clamped_to:g} (no alteration costs more)")
     out.print(" · ".join(parts), highlight=False)
     print_notes(result.notes)
+
+
+def _print_comparison(comparison: MonitorComparison | None) -> None:
+    """With a monitor: the attacker's optimum at B under no defence, the monitor, the
+    protection and both, one row each (docs/stealth.md)."""
+    if comparison is None:
+        return
+    table = Table(
+        title=escape(
+            f"add the monitor ({comparison.monitor}) or protect sensors? the attacker's "
+            f"optimum at budget {comparison.budget:g}"
+        )
+    )
+    columns = ("defence", "protect", "cost", "attacker's optimum", "status", "caught", "reply")
+    for column in columns:
+        left = column in ("defence", "protect", "reply")
+        table.add_column(column, justify="left" if left else "right", overflow="fold")
+    labels = {
+        "nothing": "nothing",
+        "monitor": "monitor",
+        "protection": "protection",
+        "monitor and protection": "monitor + protection",
+    }
+    for row in comparison.rows:
+        table.add_row(
+            labels[row.defence],
+            escape(", ".join(map(quoted_name, row.protection)) or "-"),
+            f"{row.protection_cost:g}",
+            f"{row.probability:.6f}",
+            row.status,
+            f"{row.alarm_probability:.6f}",
+            fmt_alteration(row.alteration),
+        )
+    out.print(table)
+    out.print(
+        escape(
+            f"{comparison.why} · caught: Pr(the monitor raises the alarm) under the "
+            "attacker's reply (without the monitor: were it added)"
+        ),
+        highlight=False,
+    )
 
 
 # -- harden -------------------------------------------------------------------------------------
@@ -204,7 +249,9 @@ def harden(
     as_json: JsonOption = False,
 ) -> None:
     """Which sensors to protect: the set within cost D that minimises the attacker's optimum
-    at budget B (exact min-max), with the trade-off over every protection budget up to D."""
+    at budget B (exact min-max), with the trade-off over every protection budget up to D.
+    With a monitor (--monitor, --stealth): also the optimum without it, with it, with the
+    best protection without it, and with both."""
     from misdirect.defence import harden as run_harden
     from misdirect.distributed import connect
 
@@ -239,6 +286,7 @@ def harden(
         print_json(json_output.harden(result, written=written))
     else:
         _print_harden(result)
+        _print_comparison(result.monitor_comparison)
         if output is not None:
             wrote(f"wrote {len(written)} files to {output}/: {', '.join(_names(written))}")
 

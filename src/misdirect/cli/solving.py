@@ -185,6 +185,9 @@ def _print_evaluation(
         table.add_row(f"  first hits {escape(state)}", f"{probability:.6f}")
     if result.never_absorbed > 0:
         table.add_row("  never absorbed", f"{result.never_absorbed:.6f}")
+    for observation, reading, probability in result.alarm_readings():
+        read = reading if reading == observation else f"{observation} read as {reading}"
+        table.add_row(f"  alarm raised on {escape(read)}", f"{probability:.6f}")
     table.add_row(
         "product chain",
         f"{result.product_states:,} states, "
@@ -582,7 +585,8 @@ def simulate(
     as_json: JsonOption = False,
 ) -> None:
     """Run the attacked robot many times: how often it ends in a decoy, in a goal (absorbing,
-    not decoy) or trapped (it can no longer stop), with 95 % intervals."""
+    not decoy), caught by a monitor's alarm (--monitor, --stealth) or trapped (it can no
+    longer stop), with 95 % intervals."""
     from misdirect.core.simulate import simulate as run_simulation
 
     for option, value, least, most in (
@@ -732,6 +736,7 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
         "goal": "goal (absorbing, not decoy)",
         "trapped": "trapped: never stops",
         "unfinished": f"unfinished after {max_steps:,} steps",
+        "alarm": "alarm (monitor)",
     }
     for name, row in payload["totals"].items():
         if name in ("trapped", "unfinished") and row["runs"] == 0:
@@ -749,10 +754,13 @@ def _print_simulation(payload: dict[str, Any], result: Simulation, max_steps: in
         )
     out.print(table)
     verdict = "inside" if payload["exact_within_interval"] else "[red]outside[/]"
-    finished = result.runs - result.trapped - result.unfinished
+    finished = result.runs - result.trapped - result.unfinished - result.alarms
+    caught = (
+        f" · caught on reading {result.alarm_mean_step:.2f} on average" if result.alarms else ""
+    )
     out.print(
         f"alteration {fmt_alteration(payload['alteration'])} · mean steps "
-        f"{result.mean_steps:.2f} (over the {finished:,} finished runs, decoy or goal) · "
+        f"{result.mean_steps:.2f} (over the {finished:,} finished runs, decoy or goal){caught} · "
         f"exact Pr(decoy) {payload['value']:.6f} ({verdict} the interval)",
         highlight=False,
     )

@@ -68,6 +68,26 @@ def _decoy_value(problem: Problem, chain: ProductChain) -> Bounded:
 
 
 @dataclass(frozen=True)
+class AlarmSource:
+    """Where a monitor raises the alarm: in world state ``state`` (which emits
+    ``observation``), on the ``reading`` the robot receives there, with ``probability`` (the
+    probability that the run is caught there, summed over the robot's memory)."""
+
+    state: str
+    observation: str
+    reading: str
+    probability: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "observation": self.observation,
+            "reading": self.reading,
+            "probability": self.probability,
+        }
+
+
+@dataclass(frozen=True)
 class Evaluation(Shown):
     """Everything known about one alteration, computed exactly (:func:`evaluate`).
 
@@ -128,6 +148,9 @@ class Evaluation(Shown):
     baseline_value: float | None = None
     # a monitored problem's alarm sink (the outcome of kind "alarm"), else None
     alarm_state: str | None = None
+    # where the alarm is raised: per world state the robot is in when its reading raises it,
+    # with that reading and the probability (they sum to alarm_probability), largest first
+    alarm_sources: tuple[AlarmSource, ...] = ()
 
     @property
     def all_outcomes(self) -> dict[str, float]:
@@ -177,8 +200,24 @@ class Evaluation(Shown):
             if self.decoy_sets
             else []
         )
+        alarms = [
+            nb.Table(
+                ("state", "observation", "reading", "probability"),
+                [
+                    (
+                        nb.text(a.state),
+                        nb.text(a.observation),
+                        nb.text(a.reading),
+                        nb.number(a.probability),
+                    )
+                    for a in self.alarm_sources
+                ],
+                "where the alarm is raised",
+            )
+        ]
+        tables = [ends, *(alarms if self.alarm_sources else []), *sets]
         title = f"{self.problem or 'problem'}: evaluation"
-        return nb.View(title, facts, [ends, *sets], [*self.warnings, *self.notes])
+        return nb.View(title, facts, tables, [*self.warnings, *self.notes])
 
     def outcome_list(self, *, all_outcomes: bool = False) -> list[dict[str, Any]]:
         """:attr:`outcomes` (or :attr:`all_outcomes`) as the JSON lists them: ``kind``
@@ -197,6 +236,16 @@ class Evaluation(Shown):
         if state in self.decoy_states:
             return "decoy"
         return "alarm" if state == self.alarm_state else "goal"
+
+    def alarm_readings(self) -> list[tuple[str, str, float]]:
+        """Where the alarm fires, by reading: ``(observation, reading, probability)``, the
+        states of one observation read alike added up, largest first (they sum to
+        :attr:`alarm_probability`)."""
+        by: dict[tuple[str, str], float] = {}
+        for source in self.alarm_sources:
+            key = (source.observation, source.reading)
+            by[key] = by.get(key, 0.0) + source.probability
+        return sorted(((o, r, p) for (o, r), p in by.items()), key=lambda t: (-t[2], t[:2]))
 
     @property
     def alarm_probability(self) -> float | None:
@@ -223,6 +272,11 @@ class Evaluation(Shown):
             "error_bound": self.error_bound,
             "outcomes": self.outcome_list(all_outcomes=all_outcomes),
             **({"decoy_sets": self.decoy_sets} if self.decoy_sets else {}),
+            **(
+                {"alarms": [source.to_dict() for source in self.alarm_sources]}
+                if self.alarm_state is not None
+                else {}
+            ),
             "product_states": self.product_states,
             "product_transitions": self.product_transitions,
             "time_s": self.time_s,
@@ -353,6 +407,7 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
     entered = terminal_states[first_entry[terminal_states] > 0]
     outcomes = dict(zip([names[s] for s in entered], first_entry[entered].tolist(), strict=True))
     visits = np.bincount(chain.world_state, weights=occ.visits, minlength=pomdp.n_states)
+    sources = _alarm_sources(problem, chain, occ.visits, alpha)
     cost = problem.alteration_cost(alpha)
     return Evaluation(
         probability=probability,
@@ -377,4 +432,31 @@ def evaluate(problem: Problem, alteration: AlterationArray | None = None) -> Eva
         budget=problem.budget,
         decoy_states=frozenset(names[s] for s in np.flatnonzero(objective.target)),
         alarm_state=None if problem.alarm_state is None else names[problem.alarm_state],
+        alarm_sources=sources,
+    )
+
+
+def _alarm_sources(
+    problem: Problem, chain: ProductChain, visits: np.ndarray, alpha: np.ndarray
+) -> tuple[AlarmSource, ...]:
+    """Where the alarm fires: the mass a run sends into the alarm sink from each world state
+    (expected visits of each product state times its probability of moving into the sink,
+    summed over memory nodes), non-zero only, largest first. Their sum is the first-entry
+    probability of the sink: the same occupation measure gives both."""
+    sink = problem.alarm_state
+    if sink is None:
+        return ()
+    into = np.asarray(chain.matrix[:, chain.world_state == sink].sum(axis=1)).ravel()
+    flow = np.bincount(chain.world_state, weights=visits * into, minlength=problem.pomdp.n_states)
+    pomdp = problem.pomdp
+    order = np.flatnonzero(flow > 0)
+    order = order[np.argsort(-flow[order], kind="stable")]
+    return tuple(
+        AlarmSource(
+            state=pomdp.states[s],
+            observation=pomdp.observations[pomdp.observation_of[s]],
+            reading=pomdp.observations[alpha[pomdp.observation_of[s]]],
+            probability=float(flow[s]),
+        )
+        for s in order.tolist()
     )

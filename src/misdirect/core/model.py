@@ -591,6 +591,8 @@ class Problem(Shown):
     # text, and its step bound (a counter folded in; a run past it ends in alarm_state)
     reach_property: str = ""
     step_bound: int | None = None
+    # the problem before with_monitor folded the monitor in (Problem.without_monitor)
+    unwatched: Problem | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
         pomdp = self.pomdp
@@ -712,6 +714,16 @@ class Problem(Shown):
 
     def with_budget(self, budget: float) -> Problem:
         return replace(self, budget=float(budget))
+
+    def without_monitor(self) -> Problem:
+        """The problem as it was before :func:`~misdirect.core.monitor.with_monitor` folded
+        its monitor in, with this one's costs, protected sensors and budget (the alteration
+        space is the same): what a defender compares the monitor with."""
+        if self.unwatched is None:
+            raise ProblemError(
+                "the problem is not watched by a monitor (with_monitor)", field="monitor"
+            )
+        return replace(self.unwatched, cost=self.cost, budget=self.budget)
 
     def unweighted(self) -> Problem:
         """The same problem scoring 1 for every decoy state: Pr(reach any decoy)."""

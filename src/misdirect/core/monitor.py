@@ -32,6 +32,7 @@ emits. It is built on demand, over the supports reachable from ``{s0}``, within 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -298,46 +299,71 @@ def consistency_monitor(
     played = np.zeros((n_o, n_a), dtype=bool)
     owner, action, _, _ = controller.move_entries(controller.move.T.ravel())
     played[owner // controller.n_nodes, action] = True
-    emits = np.zeros((n_o, n_s), dtype=bool)
-    emits[pomdp.observation_of, np.arange(n_s)] = True
     transitions = pomdp.transitions.tocsr()
+    indptr, indices = transitions.indptr.astype(np.int64), transitions.indices.astype(np.int64)
     supports: list[tuple[int, ...]] = [(pomdp.initial_state,)]
     known = {supports[0]: 0}
-    rows: list[np.ndarray] = []  # per support: (|Ω|, |A|) next support (-1: alarm)
-    at = 0
-    while at < len(supports):
-        support = np.array(supports[at], dtype=np.int64)
-        row = np.full((n_o, n_a), -1, dtype=np.int64)
-        for o in np.unique(pomdp.observation_of[support]).tolist():
-            consistent = support[emits[o, support]]
-            for a in np.flatnonzero(played[o]).tolist():
-                block = transitions[a * n_s + consistent]
-                after = tuple(np.unique(block.indices).tolist())
-                k = known.get(after)
-                if k is None:
-                    if len(supports) >= max_states:
-                        raise ProblemError(
-                            f"the consistency monitor needs more than {max_states:,} belief "
-                            f"supports (the cap) on {pomdp.n_states:,} states; raise the cap "
-                            "(monitor: {consistency: {max_states: N}} in the problem file, "
-                            "consistency_monitor(problem, max_states=N)) or give a smaller "
-                            "monitor",
-                            field=_at(field, "max_states"),
-                        )
-                    k = known[after] = len(supports)
-                    supports.append(after)
-                row[o, a] = k
-            # actions the controller never plays on o: any state will do (never read)
-            row[o, ~played[o]] = at
-        rows.append(row)
-        at += 1
+    rows: list[np.ndarray] = []  # per level: (supports, |Ω|, |A|) next support (-1: alarm)
+    first = 0
+    while first < len(supports):
+        # one breadth-first level at once: every (support, reading, action) of the level,
+        # new supports numbered in the order (support, reading, action), as one at a time would
+        last = len(supports)
+        level = supports[first:last]
+        lengths = np.fromiter((len(p) for p in level), dtype=np.int64, count=len(level))
+        owner = np.repeat(np.arange(len(level), dtype=np.int64), lengths)
+        state = np.fromiter(
+            itertools.chain.from_iterable(level), dtype=np.int64, count=int(lengths.sum())
+        )
+        reading = pomdp.observation_of[state].astype(np.int64)
+        which, action = np.nonzero(played[reading])  # (state of the level, action) pairs
+        group = (owner[which] * n_o + reading[which]) * n_a + action
+        row_of = action * n_s + state[which]
+        starts, counts = indptr[row_of], indptr[row_of + 1] - indptr[row_of]
+        at = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
+        pairs = np.unique(np.repeat(group, counts) * n_s + indices[at])
+        keys, targets = np.divmod(pairs, n_s)
+        groups = np.unique(group)  # every (support, reading, action), successors or none
+        cut = np.searchsorted(keys, groups, side="left")
+        end = np.searchsorted(keys, groups, side="right")
+        table = np.full((len(level), n_o, n_a), -1, dtype=np.int64)
+        present = np.unique(owner * n_o + reading)  # a support's own readings
+        p_owner, p_reading = np.divmod(present, n_o)
+        # actions the controller never plays on a reading: any state will do (never read)
+        unplayed = ~played[p_reading]
+        table[p_owner[:, None], p_reading[:, None], np.arange(n_a)] = np.where(
+            unplayed, (p_owner + first)[:, None], -1
+        )
+        listed = targets.tolist()
+        found = np.empty(groups.size, dtype=np.int64)
+        for i, (lo, hi) in enumerate(zip(cut.tolist(), end.tolist(), strict=True)):
+            after = tuple(listed[lo:hi])
+            k = known.get(after)
+            if k is None:
+                if len(supports) >= max_states:
+                    raise ProblemError(
+                        f"the consistency monitor needs more than {max_states:,} belief "
+                        f"supports (the cap) on {pomdp.n_states:,} states; raise the cap "
+                        "(monitor: {consistency: {max_states: N}} in the problem file, "
+                        "consistency_monitor(problem, max_states=N)) or give a smaller "
+                        "monitor",
+                        field=_at(field, "max_states"),
+                    )
+                k = known[after] = len(supports)
+                supports.append(after)
+            found[i] = k
+        g_rest, g_action = np.divmod(groups, n_a)
+        g_owner, g_reading = np.divmod(g_rest, n_o)
+        table[g_owner, g_reading, g_action] = found
+        rows.append(table)
+        first = last
     n_m = len(supports)
     check_memory(
         float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
         f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
         field=_at(field, "max_states"),
     )
-    table = np.stack(rows).astype(np.int32)
+    table = np.concatenate(rows).astype(np.int32)
     table[table < 0] = n_m  # the alarm state
     table = np.concatenate([table, np.full((1, n_o, n_a), n_m, dtype=np.int32)])
     alarm = np.zeros(n_m + 1, dtype=bool)
@@ -403,7 +429,7 @@ def with_monitor(problem: Problem, monitor: Monitor) -> Problem:
             field="monitor",
         )
     folded = fold_monitor(problem, monitor)
-    return replace(folded, monitor=monitor.name)
+    return replace(folded, monitor=monitor.name, unwatched=problem)
 
 
 def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
@@ -441,6 +467,7 @@ def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
         alarm_action = pomdp.n_actions
     nodes, entries = _product_controller(controller, monitor, alarm_action)
     n_o = pomdp.n_observations
+    nodes, entries = _merge_bisimilar(nodes, entries, n_o, alarm_action)
     cell, action, next_node, probability = entries
     product = Controller.from_entries(
         nodes=tuple(f"({controller.nodes[n]}, {monitor.states[m]})" for n, m in nodes),
@@ -517,6 +544,66 @@ def _product_controller(
         np.concatenate(nexts),
         np.concatenate(probabilities),
     )
+
+
+def _merge_bisimilar(
+    nodes: list[tuple[int, int]],
+    entries: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    n_o: int,
+    alarm_action: int,
+) -> tuple[list[tuple[int, int]], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The product controller with bisimilar nodes merged (Moore's partition refinement).
+
+    Two nodes are bisimilar when, for every reading, they play each action with the same
+    probability into successors that are bisimilar again; an alarm entry's successor does not
+    matter (the run ends). Such nodes give every run the same distribution of actions, so the
+    chain's value under every alteration is the same with one node in place of the other,
+    while the product chain every solver factorises shrinks: on the paper's grid with the
+    consistency monitor, many (node, belief support) pairs differ only in supports that no
+    reading tells apart. Each class keeps its first node (the initial node stays node 0)."""
+    cell, action, next_node, probability = entries
+    n_nodes = len(nodes)
+    if n_nodes < 2:
+        return nodes, entries
+    owner = cell // n_o
+    reading = cell % n_o
+    caught = action == alarm_action
+    classes = np.zeros(n_nodes, dtype=np.int64)
+    n_classes = 1
+    while True:
+        # an entry's part of its node's signature: (reading, action, successor's class), the
+        # entries of one node sharing it summed; an alarm entry's successor is none (-1)
+        successor = np.where(caught, -1, classes[next_node])
+        code = (reading * (alarm_action + 1) + action) * (n_classes + 1) + successor + 1
+        pair, inverse = np.unique(owner * (code.max() + 1) + code, return_inverse=True)
+        mass = np.bincount(inverse.reshape(-1), weights=probability, minlength=pair.size)
+        pair_owner, pair_code = np.divmod(pair, code.max() + 1)
+        counts = np.bincount(pair_owner, minlength=n_nodes)
+        slot = np.arange(pair.size) - np.repeat(np.cumsum(counts) - counts, counts)
+        rows = np.full((n_nodes, 1 + 2 * int(counts.max())), -1.0)
+        rows[:, 0] = classes
+        rows[pair_owner, 1 + 2 * slot] = pair_code
+        rows[pair_owner, 2 + 2 * slot] = mass
+        _, renumbered = np.unique(rows, axis=0, return_inverse=True)
+        classes = renumbered.reshape(-1).astype(np.int64)
+        count = int(classes.max()) + 1
+        if count == n_classes:
+            break
+        n_classes = count
+    # number the classes by their first node, so that the initial node's class is 0
+    first_node = np.full(n_classes, n_nodes, dtype=np.int64)
+    np.minimum.at(first_node, classes, np.arange(n_nodes))
+    rank = np.empty(n_classes, dtype=np.int64)
+    rank[np.argsort(first_node)] = np.arange(n_classes)
+    classes = rank[classes]
+    if n_classes == n_nodes:
+        return nodes, entries
+    keep_nodes = np.sort(first_node)
+    kept = np.isin(owner, keep_nodes)
+    cell, action, next_node, probability = (a[kept] for a in (cell, action, next_node, probability))
+    cell = classes[cell // n_o] * n_o + cell % n_o
+    next_node = classes[next_node]
+    return [nodes[k] for k in keep_nodes.tolist()], (cell, action, next_node, probability)
 
 
 def _with_sink(pomdp: Pomdp) -> Pomdp:

@@ -22,7 +22,7 @@ from misdirect.core.product import full_product_matrix
 @dataclass(frozen=True)
 class Simulation:
     """Outcome counts of ``runs`` simulated runs (:func:`simulate`); they add up to ``runs``:
-    ``decoy_hits + sum(absorbed) + trapped + unfinished``.
+    ``decoy_hits + sum(absorbed) + alarms + trapped + unfinished``.
 
     Attributes
     ----------
@@ -31,11 +31,19 @@ class Simulation:
     decoy_hits : int
         Runs that ended in a decoy state (``decoys`` splits them by state).
     absorbed : dict of str to int
-        Runs that stopped in each absorbing non-decoy (goal) state.
+        Runs that stopped in each absorbing non-decoy (goal) state; a monitored problem's
+        alarm sink is not among them (``alarms``).
     unfinished : int
         Runs still going after ``max_steps``.
     mean_steps : float
         Mean length of the runs that stopped in a decoy or goal state.
+    alarms : int
+        Runs a monitor (or a step bound) ended by raising the alarm; 0 on a problem without.
+    alarm_mean_step : float
+        Mean number of readings a caught run received, the one that raised the alarm
+        included (1: caught on its first reading); NaN when no run was caught.
+    alarm_state : str or None
+        The monitored problem's alarm sink, None without a monitor.
     trapped : int
         Runs stopped where no decoy or goal state is reachable any more.
     trajectories : list of tuple
@@ -54,6 +62,9 @@ class Simulation:
     # (run, step, state, memory node, observation received, action) for the recorded runs
     visits: np.ndarray | None = field(default=None, compare=False, repr=False)
     # (|S|,) steps taken from each state over all runs (count_visits=True), else None
+    alarms: int = 0  # runs ended by the monitor's alarm (a monitored problem only)
+    alarm_mean_step: float = float("nan")  # mean readings received by a caught run
+    alarm_state: str | None = None  # the monitored problem's alarm sink
 
     def confidence_interval(self, z: float = 1.96) -> tuple[float, float]:
         """Wilson score interval for the decoy frequency (z = 1.96: 95 %)."""
@@ -72,6 +83,11 @@ class Simulation:
             "trapped": self.trapped,
             "unfinished": self.unfinished,
             "mean_steps": self.mean_steps,
+            **(
+                {"alarms": self.alarms, "alarm_mean_step": self.alarm_mean_step}
+                if self.alarm_state is not None
+                else {}
+            ),
         }
 
 
@@ -97,7 +113,9 @@ def simulate(
     """Monte-Carlo runs of the attacked robot, straight from the POMDP and the controller.
 
     An independent check of :func:`evaluate`: it never builds the product chain the exact
-    value comes from. A run stops in a decoy or absorbing state.
+    value comes from. A run stops in a decoy or absorbing state; on a monitored problem
+    (:func:`misdirect.core.monitor.with_monitor`) a run the alarm ends is counted apart
+    (``alarms``), with the mean reading it is caught on.
 
     Parameters
     ----------
@@ -217,16 +235,27 @@ def simulate(
     finished = stopped_at >= 0
     ended = np.bincount(stopped_at[finished], minlength=pomdp.n_states)
     goals = pomdp.absorbing & ~problem.decoy
+    # a monitored problem's alarm sink is a kind of its own; a run caught on its k-th
+    # reading enters it at step k (the alarm action's step)
+    sink = problem.alarm_state
+    caught = np.zeros(runs, dtype=bool)
+    if sink is not None:
+        caught = finished & (stopped_at == sink)
+        goals[sink] = False
+    finished &= ~caught  # the mean length is over runs that ended in a decoy or goal
     return Simulation(
         runs=runs,
         decoy_hits=int(ended[problem.decoy].sum()),
         absorbed={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(goals)},
-        unfinished=int((~finished & ~trapped_at).sum()),
+        unfinished=int((~finished & ~caught & ~trapped_at).sum()),
         mean_steps=float(steps[finished].mean()) if finished.any() else float("nan"),
         trapped=int(trapped_at.sum()),
         decoys={pomdp.states[s]: int(ended[s]) for s in np.flatnonzero(problem.decoy)},
         trajectories=sorted(trajectories),
         visits=visits,
+        alarms=int(caught.sum()),
+        alarm_mean_step=float(steps[caught].mean()) if caught.any() else float("nan"),
+        alarm_state=None if sink is None else pomdp.states[sink],
     )
 
 

@@ -26,8 +26,18 @@ from misdirect.defence.attack import (
     shared_deadline,
     solve_many,
 )
+from misdirect.defence.monitoring import (
+    BOTH,
+    MONITOR,
+    NOTHING,
+    PROTECTION,
+    compare_defences,
+    most_critical,
+    protection_words,
+    split_monitor,
+)
 from misdirect.defence.online import online_attack_value
-from misdirect.defence.results import AuditResult, OnlineAttack, SensorAudit
+from misdirect.defence.results import AuditResult, MonitorComparison, OnlineAttack, SensorAudit
 from misdirect.errors import ProblemError, SolverError
 from misdirect.solvers.certification import Evidence
 from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError
@@ -112,6 +122,7 @@ def audit(
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)
+    problem, plain = split_monitor(problem)
     asked = attacker_budget(problem, one_budget_keyword("audit", budget, budgets))
     # past the most expensive complete alteration every budget affords the same: work at it
     budget, clamped_from = clamp_budget(asked, max_alteration_cost(problem))
@@ -127,7 +138,16 @@ def audit(
         evidence = _single_sensor_evidence(curve_result, cheapest, singles, problem.cost.scale)
         curve_result = recertify(curve_result, problem, evidence)
         optimum = attack_of(curve_result.curve[-1], problem)
-        rows = _sensor_rows(problem, budget, optimum, singles, clock, method, baseline, pool)
+        rows, re_solved = _sensor_rows(
+            problem, budget, optimum, singles, clock, method, baseline, pool
+        )
+        comparison = (
+            None
+            if plain is None
+            else _monitor_comparison(
+                problem, plain.with_budget(budget), budget, optimum, re_solved, clock, method, pool
+            )
+        )
     notes = _not_certified(optimum, curve_result, budget) + listing
     online, note = _online_value(problem, asked, optimum, clock)
     if online is None:
@@ -153,6 +173,51 @@ def audit(
         grid=grid_cells(problem) is not None,
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else budget,
+        monitor_comparison=comparison,
+    )
+
+
+def _monitor_comparison(
+    watched: Problem,
+    plain: Problem,
+    budget: float,
+    optimum: Attack,
+    re_solved: dict[int, Attack],
+    clock: Deadline,
+    method: str,
+    pool: TaskPool | None,
+) -> MonitorComparison:
+    """The monitor against protecting one sensor, at ``budget``: the sensor is the one whose
+    protection lowers the optimum *without* the monitor the most (what a defender without a
+    monitor would protect first). The monitored answers come from the audit: its optimum, and
+    its re-solve with that sensor protected (or the optimum itself, when its attack leaves the
+    sensor alone)."""
+    [nothing] = solve_many([plain], budget, clock, method)
+    protection, solved = most_critical(plain, budget, nothing, clock, method, pool)
+    known = {NOTHING: nothing, MONITOR: optimum}
+    if not protection:  # no attack at all without the monitor: protection changes nothing
+        known[PROTECTION] = nothing
+    for o in protection:
+        known[PROTECTION] = solved[o]
+        if o in re_solved:
+            known[BOTH] = re_solved[o]
+        elif o not in optimum.changed:
+            known[BOTH] = optimum
+    names = plain.pomdp.observations
+    why = (
+        f"protect {protection_words(names, protection)}: the one sensor whose protection "
+        "lowers the optimum without the monitor the most"
+    )
+    return compare_defences(
+        watched,
+        plain,
+        budget,
+        protection=protection,
+        known=known,
+        why=why,
+        clock=clock,
+        method=method,
+        pool=pool,
     )
 
 
@@ -287,8 +352,9 @@ def _sensor_rows(
     method: str,
     baseline: float,
     pool: TaskPool | None = None,
-) -> list[SensorAudit]:
-    """One row per sensor alterable within ``budget``, the most critical first."""
+) -> tuple[list[SensorAudit], dict[int, Attack]]:
+    """One row per sensor alterable within ``budget``, the most critical first, and the
+    optimum re-solved with each sensor of the optimal attack protected."""
     sensors = list(singles)
     names = problem.pomdp.observations
     needs = [o for o in sensors if o in optimum.changed]
@@ -320,7 +386,7 @@ def _sensor_rows(
             )
         )
     rows.sort(key=lambda r: (-r.criticality, -r.single_probability, r.observation))
-    return rows
+    return rows, re_solved
 
 
 def _criticality(optimum: Attack, protected: Attack | None) -> tuple[float, float]:

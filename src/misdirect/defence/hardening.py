@@ -29,7 +29,16 @@ from misdirect.defence.attack import (
     solve_at,
     solve_many,
 )
-from misdirect.defence.results import HardenPoint, HardenResult
+from misdirect.defence.monitoring import (
+    BOTH,
+    MONITOR,
+    NOTHING,
+    PROTECTION,
+    compare_defences,
+    protection_words,
+    split_monitor,
+)
+from misdirect.defence.results import HardenPoint, HardenResult, MonitorComparison
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.pool import TaskPool
@@ -214,6 +223,7 @@ def harden(
     """
     started = time.perf_counter()
     clock = shared_deadline(time_limit, deadline, cancel)
+    problem, plain = split_monitor(problem)
     if not (math.isfinite(protect_budget) and protect_budget >= 0):
         raise ProblemError(
             f"must be a non-negative number, got {protect_budget}", field="protect_budget"
@@ -239,6 +249,9 @@ def harden(
     final = curve[-1]
     before = search.attack(frozenset())
     notes = search.notes() + listing
+    comparison = None
+    if plain is not None:
+        comparison = _monitor_comparison(search, plain.with_budget(budget), d_cap, best)
     names = problem.pomdp.observations
     listed = {names[o]: float(costs[o]) for o in alterable_sensors(problem, budget)}
     return HardenResult(
@@ -265,6 +278,42 @@ def harden(
         protect_budget_clamped_from=d_clamped_from,
         protect_budget_clamped_to=None if d_clamped_from is None else d_cap,
         objective=problem.objective.kind,
+        monitor_comparison=comparison,
+    )
+
+
+def _monitor_comparison(
+    search: _Search, plain: Problem, d: float, best: frozenset[int]
+) -> MonitorComparison:
+    """The monitor against protection within ``d``: the best protection without the
+    monitor (a search of its own on ``plain``, sharing the clock and the costs) and, with the
+    monitor, the hardening's own answer ``best``."""
+    alone = _Search(plain, search.budget, search.costs, search.clock, search.method, search.pool)
+    chosen = alone.best_within(d, frozenset())
+    names = plain.pomdp.observations
+    proven = alone.complete and alone.certified
+    why = (
+        f"within protection budget {d:g}: the best protection without the monitor "
+        f"({protection_words(names, chosen)}), and with it ({protection_words(names, best)})"
+        + ("" if proven else "; the first is the best found, not proven (time or solver limit)")
+    )
+    known = {
+        NOTHING: alone.attack(frozenset()),
+        PROTECTION: alone.attack(chosen),
+        MONITOR: search.attack(frozenset()),
+        BOTH: search.attack(best),
+    }
+    return compare_defences(
+        search.problem,
+        plain,
+        search.budget,
+        protection=chosen,
+        both=best,
+        costs=search.costs,
+        known=known,
+        why=why,
+        clock=search.clock,
+        method=search.method,
     )
 
 

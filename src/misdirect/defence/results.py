@@ -58,6 +58,93 @@ class OnlineAttack:
 
 
 @dataclass(frozen=True)
+class DefenceOption:
+    """One row of :class:`MonitorComparison`: the attacker's optimum at ``B`` under one
+    defence (nothing, the monitor, protected sensors, or both)."""
+
+    defence: str  # "nothing", "monitor", "protection" or "monitor and protection"
+    monitor: str | None  # the monitor's name in place, None without one
+    protection: list[str]  # the protected sensors, in the problem's order
+    protection_cost: float
+    probability: float  # exact value of the attacker's best reply
+    upper_bound: float  # proven bound on the attacker's optimum under this defence
+    status: str  # of that optimum: optimal when certified
+    alteration: dict[str, str]  # the attacker's best reply
+    # Pr(the monitor raises the alarm) under that reply, with the monitor in place (on the
+    # rows without it: how often the monitor would catch the reply, were it added)
+    alarm_probability: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """As a row of the JSON ``monitor_comparison.rows``."""
+        return {
+            "defence": self.defence,
+            "monitor": self.monitor,
+            "protection": self.protection,
+            "protection_cost": self.protection_cost,
+            "status": self.status,
+            "value": self.probability,
+            "upper_bound": self.upper_bound,
+            "alteration": self.alteration,
+            "alarm_probability": self.alarm_probability,
+        }
+
+
+@dataclass(frozen=True)
+class MonitorComparison:
+    """ "Add this monitor" against "protect these sensors", at one attacker budget ``B``: the
+    attacker's certified optimum with no defence, with the monitor, with the protection, and
+    with both (:func:`misdirect.defence.monitoring.compare_defences`)."""
+
+    monitor: str  # the monitor's name
+    budget: float  # the attacker's budget B
+    rows: list[DefenceOption]
+    why: str  # how the protection was chosen
+
+    def row(self, defence: str) -> DefenceOption:
+        """The row of one defence (``nothing``, ``monitor``, ``protection``, ``monitor and
+        protection``)."""
+        return next(r for r in self.rows if r.defence == defence)
+
+    def to_dict(self) -> dict[str, Any]:
+        """As the JSON ``monitor_comparison`` of audit and harden."""
+        return {
+            "monitor": self.monitor,
+            "budget": self.budget,
+            "protection_chosen": self.why,
+            "rows": [row.to_dict() for row in self.rows],
+        }
+
+    def table(self) -> Any:
+        """The rows in a notebook table."""
+        from misdirect.core import notebook as nb
+
+        return nb.Table(
+            ("defence", "protect", "cost", "attacker's optimum", "status", "Pr(alarm)", "reply"),
+            [
+                (
+                    nb.text(_defence_label(r)),
+                    nb.names(r.protection, empty="nothing"),
+                    nb.amount(r.protection_cost),
+                    nb.number(r.probability),
+                    nb.text(r.status),
+                    nb.number(r.alarm_probability),
+                    nb.changes(r.alteration),
+                )
+                for r in self.rows
+            ],
+            f"the monitor against protection, at budget {self.budget:g}",
+        )
+
+
+def _defence_label(row: DefenceOption) -> str:
+    if row.defence == "monitor":
+        return f"monitor {row.monitor}"
+    if row.defence == "monitor and protection":
+        return f"monitor {row.monitor} + protection"
+    return row.defence
+
+
+@dataclass(frozen=True)
 class SensorAudit:
     """One sensor the attacker could alter within the budget."""
 
@@ -158,6 +245,8 @@ class AuditResult(Shown):
     # B above the most expensive complete alteration: B asked, and the cost worked at instead
     budget_clamped_from: float | None = None
     budget_clamped_to: float | None = None
+    # with a monitor: the attacker's optimum without it, with it, with protection and both
+    monitor_comparison: MonitorComparison | None = None
 
     @property
     def objective_label(self) -> str:
@@ -215,7 +304,10 @@ class AuditResult(Shown):
         if self.online_budgeted_note:
             notes.append(self.online_budgeted_note)
         curve = curve_table(self.curve, caption="the attacker's optimum per budget")
-        return nb.View(f"{self.problem or 'problem'}: audit", facts, [sensors, curve], notes)
+        tables = [sensors, curve]
+        if self.monitor_comparison is not None:
+            tables.insert(0, self.monitor_comparison.table())
+        return nb.View(f"{self.problem or 'problem'}: audit", facts, tables, notes)
 
     def to_dataframe(self) -> Any:
         """The sensors as a ``pandas.DataFrame``, one row per alterable sensor, most critical
@@ -259,6 +351,9 @@ class AuditResult(Shown):
                 "upper_bounds_offline": self.online.unlimited_probability
                 >= self.probability - tolerance.CERTIFY,
             },
+            "monitor_comparison": None
+            if self.monitor_comparison is None
+            else self.monitor_comparison.to_dict(),
             "warnings": [],
             "notes": list(self.notes),
         }
@@ -390,6 +485,8 @@ class HardenResult(Shown):
     protect_budget_clamped_from: float | None = None
     protect_budget_clamped_to: float | None = None
     objective: str = "probability"  # or "expected_decoy_weight" (weighted decoy sets)
+    # with a monitor: the attacker's optimum without it, with it, with protection and both
+    monitor_comparison: MonitorComparison | None = None
 
     @property
     def value(self) -> float:
@@ -454,7 +551,10 @@ class HardenResult(Shown):
             "the best protection per protection budget",
         )
         title = f"{self.problem or 'problem'}: hardening"
-        return nb.View(title, facts, [curve], self.notes)
+        tables = [curve]
+        if self.monitor_comparison is not None:
+            tables.insert(0, self.monitor_comparison.table())
+        return nb.View(title, facts, tables, self.notes)
 
     def to_dataframe(self) -> Any:
         """The trade-off curve as a ``pandas.DataFrame``: one row per protection budget
@@ -496,6 +596,9 @@ class HardenResult(Shown):
             "time_s": self.time_s,
             "curve": [point.to_dict() for point in self.curve],
             "stats": {"solves": self.solves, "nodes": self.nodes, "pruned": self.pruned},
+            "monitor_comparison": None
+            if self.monitor_comparison is None
+            else self.monitor_comparison.to_dict(),
             "warnings": [],
             "notes": list(self.notes),
         }

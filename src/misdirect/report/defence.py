@@ -16,6 +16,7 @@ import numpy as np
 from misdirect.core.grid import GridCells
 from misdirect.core.model import Problem, format_alteration
 from misdirect.defence import AuditResult, HardenResult
+from misdirect.defence.results import MonitorComparison
 from misdirect.io.files import write_output
 
 CURVE_FIELDS = ["budget", "probability", "upper_bound", "status", "cost", "alteration"]
@@ -348,6 +349,7 @@ def report_text(result: AuditResult, drawn: bool | None = None) -> str:
             )
         else:
             lines.append(f"* budgeted variant not computed: {result.online_budgeted_note}")
+    lines += comparison_lines(result.monitor_comparison)
     if result.notes:
         lines += ["", "## Notes", ""] + [f"* {note}" for note in result.notes]
     lines += [
@@ -425,6 +427,30 @@ def tradeoff_figure(result: HardenResult):
     return fig
 
 
+def comparison_lines(comparison: MonitorComparison | None) -> list[str]:
+    """The report's section "The monitor against protection" (none without a monitor)."""
+    if comparison is None:
+        return []
+    lines = [
+        "",
+        "## The monitor against protection",
+        "",
+        f"The attacker's optimum at B = {comparison.budget:g} under each defence; caught: "
+        f"Pr(the monitor {comparison.monitor} raises the alarm) under the attacker's reply "
+        f"(on the rows without it: were it added). {comparison.why}.",
+        "",
+        "| defence | protect | cost | attacker's optimum | status | caught | reply |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in comparison.rows:
+        lines.append(
+            f"| {row.defence} | {', '.join(row.protection) or 'nothing'} | "
+            f"{row.protection_cost:g} | {row.probability:.9f} | {row.status} | "
+            f"{row.alarm_probability:.6f} | {format_alteration(row.alteration)} |"
+        )
+    return lines
+
+
 def harden_report_text(result: HardenResult) -> str:
     """report.md of ``harden -o DIR``: the protection, and the trade-off over D."""
     lines = [
@@ -450,6 +476,7 @@ def harden_report_text(result: HardenResult) -> str:
             f"{p.protection_cost:g} | {p.probability:.9f} | {p.lower_bound:.9f} | "
             f"{format_alteration(p.attack)} | {p.status} |"
         )
+    lines += comparison_lines(result.monitor_comparison)
     if result.notes:
         lines += ["", "## Notes", ""] + [f"* {note}" for note in result.notes]
     lines += [

@@ -12,6 +12,7 @@ once; a document here adds the schema, the command and the files written.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
 from functools import cache
@@ -158,6 +159,12 @@ def simulation(
         "trapped": counted("trapped", None, result.trapped),
         "unfinished": counted("unfinished", None, result.unfinished),
     }
+    monitored: dict[str, Any] = {}
+    if result.alarm_state is not None:  # a monitored problem: the alarm is a kind of its own
+        ends.append(counted("alarm", result.alarm_state, result.alarms))
+        totals["alarm"] = counted("alarm", None, result.alarms)
+        caught = result.alarm_mean_step
+        monitored["alarm_mean_step"] = None if math.isnan(caught) else caught
     low, high = totals["decoy"]["interval_95"]
     return document(
         "simulate",
@@ -172,6 +179,7 @@ def simulation(
         totals=totals,
         exact_within_interval=bool(low <= exact <= high),
         mean_steps_finished=result.mean_steps,
+        **monitored,
         time_s=time_s,
         written=written,
         warnings=problem.warnings,
