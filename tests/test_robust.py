@@ -258,8 +258,10 @@ def test_adjoint_gradient_matches_finite_differences(seed, objective):
     from misdirect.defence.robust import _target_and_worth, objective_value
     from misdirect.defence.robust_gradient import ChainModel, softmax, softmax_backward
 
-    problem = absorbed_problem(seed, 1.0) if seed % 2 else random_problem(
-        seed, states=6, actions=2, observations=3, nodes=1, budget=1.0
+    problem = (
+        absorbed_problem(seed, 1.0)
+        if seed % 2
+        else random_problem(seed, states=6, actions=2, observations=3, nodes=1, budget=1.0)
     )
     target, worth = _target_and_worth(problem, objective)
     model = ChainModel(problem.pomdp, target, worth, 2)
@@ -368,7 +370,9 @@ def test_randomized_controller_round_trip_and_storm(tmp_path, suffix):
     alter = [f"{problem.pomdp.observations[o]}={problem.pomdp.observations[t]}"
              for o, t in enumerate(alpha) if o != t]  # fmt: skip
     flags = [item for a in alter for item in ("--alter", a)]
-    run = runner.invoke(app, ["evaluate", str(path), "--controller", str(written), *flags, "--json"])
+    run = runner.invoke(
+        app, ["evaluate", str(path), "--controller", str(written), *flags, "--json"]
+    )
     assert run.exit_code == 0, run.output
     assert json.loads(run.output)["value"] == pytest.approx(
         decoy_probability(chosen, alpha), abs=1e-12

@@ -354,6 +354,10 @@ def controller_robust(
     check_output_path(output)
     check_range("--memory", memory, 1, 8)
     check_range("--restarts", restarts, 1, 1000)
+    if min_goal is not None:
+        if not randomized or objective != RobustObjective.decoy:
+            raise ProblemError("needs --randomized and --objective decoy", field="--min-goal")
+        check_range("--min-goal", min_goal, 0, 1)
     attacker_budget = one_budget(budget, "controller robust")
     check_seconds(time_limit)
     problem = source.load()

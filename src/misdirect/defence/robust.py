@@ -601,7 +601,9 @@ def robust_controller(
         K, then the other objective's nominal value (for decoy, a higher Pr(goal); for goal, a
         lower Pr(decoy))."""
         other = "goal" if objective == "decoy" else "decoy"
-        nominal = objective_value(replace(problem, controller=controller), other, problem.identity())
+        nominal = objective_value(
+            replace(problem, controller=controller), other, problem.identity()
+        )
         short = 0.0 if min_goal is None else max(min_goal - nominal, 0.0)
         return short, worst_over_k(controller), -sense * nominal
 
@@ -768,7 +770,11 @@ def best_blind(problem: Problem, objective: str, min_goal: float | None = None) 
         candidate = replace(problem, controller=controller)
         value = sense * objective_value(candidate, objective, problem.identity())
         short = round(_shortfall(problem, controller, min_goal), 12)
-        return short, round(value, 12), -sense * objective_value(candidate, other, problem.identity())
+        return (
+            short,
+            round(value, 12),
+            -sense * objective_value(candidate, other, problem.identity()),
+        )
 
     return min(blind_controllers(problem), key=key)
 

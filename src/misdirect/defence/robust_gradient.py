@@ -71,9 +71,7 @@ class ChainModel:
     Product index ``position(s) * k + n`` over the world states that can reach the target
     (non-target, non-absorbing); ``x`` on the target is its worth, elsewhere 0."""
 
-    def __init__(
-        self, pomdp: Pomdp, target: np.ndarray, worth: np.ndarray, memory: int
-    ) -> None:
+    def __init__(self, pomdp: Pomdp, target: np.ndarray, worth: np.ndarray, memory: int) -> None:
         self.k, self.n_actions, self.n_obs = memory, pomdp.n_actions, pomdp.n_observations
         self.obs = np.asarray(pomdp.observation_of, dtype=np.int64)
         n_s = pomdp.n_states
@@ -99,9 +97,7 @@ class ChainModel:
         position[solve] = np.arange(int(solve.sum()))
         self.n = int(solve.sum()) * memory
         self.start_world = int(pomdp.initial_state)
-        self.start = (
-            int(position[self.start_world]) * memory if solve[self.start_world] else -1
-        )
+        self.start = int(position[self.start_world]) * memory if solve[self.start_world] else -1
         self.start_value = float(worth[self.start_world]) if target[self.start_world] else 0.0
         keep = solve[source] & (solve[dest] | target[dest])
         action, source, dest, prob = action[keep], source[keep], dest[keep], prob[keep]
@@ -178,7 +174,9 @@ def softmax(theta: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
     return np.asarray((e / e.sum(axis=-1, keepdims=True)).reshape(-1))
 
 
-def softmax_backward(mu: np.ndarray, grad_mu: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+def softmax_backward(
+    mu: np.ndarray, grad_mu: np.ndarray, shape: tuple[int, int, int]
+) -> np.ndarray:
     """∂/∂θ from ∂/∂μ through the softmax of each (node, reading)."""
     m, g = mu.reshape(shape), grad_mu.reshape(shape)
     return np.asarray((m * (g - (m * g).sum(axis=-1, keepdims=True))).reshape(-1))
@@ -219,7 +217,9 @@ def logits_of(mu: np.ndarray) -> np.ndarray:
     """Logits within the bounds whose softmax is closest to μ (its largest entries at the
     upper bound, zeros at the lower)."""
     floor = math.exp(-2 * LOGIT_BOUND)
-    return np.asarray(np.clip(np.log(np.maximum(mu, floor)) + LOGIT_BOUND, -LOGIT_BOUND, LOGIT_BOUND))
+    return np.asarray(
+        np.clip(np.log(np.maximum(mu, floor)) + LOGIT_BOUND, -LOGIT_BOUND, LOGIT_BOUND)
+    )
 
 
 def pruned(mu: np.ndarray, level: float, shape: tuple[int, int, int]) -> np.ndarray:
@@ -283,21 +283,22 @@ class GradientMaster:
             ]
         )
 
-    def starts(self) -> list[np.ndarray]:
-        """The previous round's answer, the uniform controller, the given one and the best
-        observation-blind one (when they are in the class: the answer is then never worse than
-        these baselines over K), then seeded random logits; ``restarts`` in all, or more when
-        the fixed ones are more."""
+    def starts(self) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        """(logits, the exact μ started from or None): the previous round's answer, the
+        uniform controller, the given one and the best observation-blind one (when in the
+        class; their exact μ is a candidate too, so the answer is never worse than these
+        baselines over K), then seeded random logits; ``restarts`` in all, or more when the
+        fixed ones are more."""
         size = self.model.size
-        out: list[np.ndarray] = []
+        out: list[tuple[np.ndarray, np.ndarray | None]] = []
         if self.warm is not None:
-            out.append(self.warm)
-        out.append(np.zeros(size))
+            out.append((self.warm, None))
+        out.append((np.zeros(size), None))
         for mu in (self.given, self.blind):
             if mu is not None:
-                out.append(logits_of(mu))
+                out.append((logits_of(mu), mu))
         while len(out) < self.restarts:
-            out.append(self.rng.normal(0.0, 1.5, size))
+            out.append((self.rng.normal(0.0, 1.5, size), None))
         return out
 
     def _descend(
@@ -309,7 +310,9 @@ class GradientMaster:
         for temperature, rho in zip(TEMPERATURES, FLOOR_WEIGHTS, strict=True):
             tau = temperature * scale
 
-            def smooth_max(th: np.ndarray) -> tuple[float, np.ndarray]:
+            def smooth_max(
+                th: np.ndarray, tau: float = tau, rho: float = rho
+            ) -> tuple[float, np.ndarray]:
                 mu = softmax(th, shape)
                 vals = np.empty(len(indices))
                 grads = np.empty((len(indices), model.size))
@@ -356,15 +359,18 @@ class GradientMaster:
         softmax controller and its pruned versions."""
         best: tuple[tuple[float, float, float], Controller, np.ndarray] | None = None
         iterations = looked = 0
-        for theta0 in self.starts():
+        for theta0, exact in self.starts():
             if deadline.expired() and best is not None:
                 break
             theta, nit = self._descend(theta0, alterations, deadline)
             iterations += nit
             looked += 1
             mu = softmax(theta, self.shape)
-            for candidate in (mu, *(pruned(mu, level, self.shape) for level in PRUNE_LEVELS)):
-                controller = controller_of(candidate, self.model.k, self.model.n_obs, self.model.n_actions)
+            offered = [mu, *(pruned(mu, level, self.shape) for level in PRUNE_LEVELS)]
+            for candidate in offered if exact is None else [exact, *offered]:
+                controller = controller_of(
+                    candidate, self.model.k, self.model.n_obs, self.model.n_actions
+                )
                 score = exact_worst(controller)
                 if best is None or better(score, best[0]):
                     best = (score, controller, theta)
@@ -378,5 +384,3 @@ class GradientMaster:
             iterations=iterations,
             finished=True,
         )
-
-

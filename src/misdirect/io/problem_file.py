@@ -1595,7 +1595,7 @@ def controller_to_document(controller: Controller, pomdp: Pomdp) -> dict[str, An
 def problem_to_document(problem: Problem) -> dict[str, Any]:
     """The explicit ``misdirect/v1`` document of ``problem`` (loads back to the same model)."""
     pomdp, controller = problem.pomdp, problem.controller
-    states, actions, obs, nodes = pomdp.states, pomdp.actions, pomdp.observations, controller.nodes
+    states, actions, obs = pomdp.states, pomdp.actions, pomdp.observations
     coo = pomdp.transitions.tocoo()
     act, src = np.divmod(coo.row, pomdp.n_states)
     keep = ~pomdp.absorbing[src]
