@@ -27,6 +27,11 @@ Bounds, with ``V*`` the min–max (``"decoy"``) or max–min (``"goal"``) over t
   attacker could make the robot receive); where it cannot be ruled out, the lower bound is
   not proven and the result says so.
 
+With ``randomized=True`` the master is :class:`~misdirect.defence.robust_gradient.
+GradientMaster` instead: randomized controllers with ``memory`` nodes, a local search by exact
+adjoint gradients. It proves no bound (``master_bound`` is None, no gap); the oracle's side
+(the certified worst case of the controller returned) holds as above.
+
 Every value reported is re-evaluated through :func:`misdirect.core.evaluate.decoy_value` (the
 project's exact evaluation); the master's own batched solves only rank candidates.
 """
