@@ -289,7 +289,7 @@ def test_adjoint_gradient_matches_finite_differences(seed, objective):
 
 
 @pytest.mark.parametrize("objective", ["decoy", "goal"])
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(3))
 def test_gradient_master_reports_only_certified_worst_cases(seed, objective):
     problem = absorbed_problem(seed, 1.0)
     result = misdirect.robust_controller(
@@ -316,10 +316,18 @@ def test_gradient_master_reports_only_certified_worst_cases(seed, objective):
     assert result.gap is None and not result.optimal
     document = result.to_dict()
     assert document["randomized"] and document["master_bound"] is None
-    # the robust controller is no worse than the blind one (a start of the master)
-    blind = misdirect.robust_controller(problem, 1.0, objective=objective).baselines[1]
-    sense = 1.0 if objective == "decoy" else -1.0
-    assert sense * result.worst_case <= sense * blind.worst_case + 1e-9
+    # no worse than the best observation-blind controller (an incumbent of the loop), whose
+    # worst case is its nominal value, by brute force over the constant controllers
+    from misdirect.defence.robust import blind_controllers
+
+    blind = [
+        goal_probability(replace(problem, controller=c), problem.identity())
+        for c in blind_controllers(problem)
+    ]
+    if objective == "decoy":
+        assert result.worst_case <= min(1.0 - g for g in blind) + 1e-9  # every run absorbed
+    else:
+        assert result.worst_case >= max(blind) - 1e-9
 
 
 def test_gradient_master_floor_on_goal():

@@ -51,7 +51,13 @@ from misdirect.core import tolerance
 from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Controller, Problem
 from misdirect.defence.attack import Attack, attack_of, attacker_budget, shared_deadline
-from misdirect.defence.robust_gradient import ChainModel, GradientMaster, better, mu_of
+from misdirect.defence.robust_gradient import (
+    ChainModel,
+    GradientMaster,
+    better,
+    controller_of,
+    mu_of,
+)
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.run import solve
@@ -583,7 +589,7 @@ def robust_controller(
             raise ProblemError(
                 f"the exact master would enumerate {count:,} controllers ({n_actions} actions x "
                 f"{memory} nodes per cell, {cells.size} cells), more than {MAX_CANDIDATES:,}; "
-                "use the randomized master (randomized=True, --randomized) for larger classes",
+                "larger classes need the randomized master (docs/robust.md)",
                 field="memory",
             )
         evaluator = _Evaluator(problem, objective, memory)
@@ -612,6 +618,17 @@ def robust_controller(
         short = 0.0 if min_goal is None else max(min_goal - nominal, 0.0)
         return short, worst_over_k(controller), -sense * nominal
 
+    if gradient is not None:
+        # the baselines in the class are the incumbents the rounds must beat: the answer is
+        # then never worse than they are (certified), even when the time runs out
+        for mu in (gradient.blind, gradient.given):
+            if mu is None or deadline.expired():
+                continue
+            incumbent = controller_of(mu, memory, n_obs, n_actions)
+            held = _oracle(problem, incumbent, objective, budget, deadline.remaining())
+            score = (_shortfall(problem, incumbent, min_goal), sense * held.bound)
+            if held.certified and (best is None or better(score, best[0])):
+                best = (score, incumbent, held)
     for _ in range(rounds_cap):
         round_began = time.perf_counter()
         iterations = 0
