@@ -597,8 +597,8 @@ def robust_controller(
     deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
     rounds: list[RobustRound] = []
-    # ((shortfall below the floor, sense * bound), controller, worst)
-    best: tuple[tuple[float, float], Controller, _Worst] | None = None
+    # ((shortfall below the floor, sense * bound, tie-break), controller, worst)
+    best: tuple[tuple[float, float, float], Controller, _Worst] | None = None
     master_bound = -math.inf  # sense * the master's value: a bound from below in sense terms
     stop = "time limit"
     notes: list[str] = []
@@ -607,16 +607,30 @@ def robust_controller(
         candidate = replace(problem, controller=controller)
         return max(sense * objective_value(candidate, objective, a) for a in alterations)
 
-    def ranked(controller: Controller) -> tuple[float, float, float]:
-        """The gradient master's exact ranking: the shortfall below the floor, the worst over
-        K, then the other objective's nominal value (for decoy, a higher Pr(goal); for goal, a
-        lower Pr(decoy))."""
+    def nominal_rank(controller: Controller) -> tuple[float, float]:
+        """The shortfall below the floor (the floor is on Pr(goal), with the decoy objective
+        only), and the other objective's nominal value as a tie-break (for decoy, a higher
+        Pr(goal) is better; for goal, a lower Pr(decoy))."""
         other = "goal" if objective == "decoy" else "decoy"
         nominal = objective_value(
             replace(problem, controller=controller), other, problem.identity()
         )
         short = 0.0 if min_goal is None else max(min_goal - nominal, 0.0)
-        return short, worst_over_k(controller), -sense * nominal
+        return short, -sense * nominal
+
+    def ranked(controller: Controller) -> tuple[float, float, float]:
+        """The gradient master's exact ranking: the shortfall, the worst over K, the
+        tie-break."""
+        short, tie = nominal_rank(controller)
+        return short, worst_over_k(controller), tie
+
+    def certified_rank(controller: Controller, held: _Worst) -> tuple[float, float, float]:
+        """How the loop keeps its best: the shortfall, the certified bound, and (gradient
+        master) the tie-break."""
+        if gradient is None:
+            return 0.0, sense * held.bound, 0.0
+        short, tie = nominal_rank(controller)
+        return short, sense * held.bound, tie
 
     if gradient is not None:
         # the baselines in the class are the incumbents the rounds must beat: the answer is
@@ -626,7 +640,7 @@ def robust_controller(
                 continue
             incumbent = controller_of(mu, memory, n_obs, n_actions)
             held = _oracle(problem, incumbent, objective, budget, deadline.remaining())
-            score = (_shortfall(problem, incumbent, min_goal), sense * held.bound)
+            score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
                 best = (score, incumbent, held)
     for _ in range(rounds_cap):
@@ -662,7 +676,7 @@ def robust_controller(
                 iterations=iterations,
             )
         )
-        score = (_shortfall(problem, controller, min_goal), sense * worst.bound)
+        score = certified_rank(controller, worst)
         if best is None or better(score, best[0]):
             best = (score, controller, worst)
         if (
