@@ -311,6 +311,7 @@ def test_gradient_master_reports_only_certified_worst_cases(seed, objective):
     for r in result.rounds:  # every round's worst case too, for the controller of that round
         assert r.certified
         assert r.worst_case == pytest.approx(r.oracle_bound, abs=1e-9)
+    assert result.certified
     assert result.master == "gradient"
     assert result.master_bound is None
     assert result.gap is None and not result.optimal

@@ -396,7 +396,7 @@ def _print_robust(result: RobustResult) -> None:
         "robust",
         f"{result.nominal:.6f}",
         f"{result.worst_case:.6f}",
-        "yes" if result.rounds and result.rounds[-1].certified else "no",
+        "yes" if result.certified else "no",
         fmt_alteration(result.alteration),
     )
     for b in result.baselines:

@@ -154,6 +154,7 @@ class RobustResult:
     restarts: int | None = None  # the gradient master's starts per round
     nominal_goal: float | None = None  # Pr(goal) with no alteration
     min_goal: float | None = None  # the floor asked for on the nominal Pr(goal)
+    certified: bool = False  # the oracle proved ``worst_case`` for ``controller``
 
     @property
     def gap(self) -> float | None:
@@ -173,6 +174,7 @@ class RobustResult:
             "memory": self.memory,
             "worst_case": self.worst_case,
             "worst_case_bound": self.worst_case_bound,
+            "certified": self.certified,
             "alteration": self.alteration,
             "nominal": self.nominal,
             "nominal_goal": self.nominal_goal,
@@ -764,6 +766,7 @@ def robust_controller(
         restarts=restarts if gradient is not None else None,
         nominal_goal=nominal_goal,
         min_goal=min_goal,
+        certified=worst.certified,
     )
 
 
