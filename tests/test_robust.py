@@ -286,6 +286,12 @@ def test_adjoint_gradient_matches_finite_differences(seed, objective):
         numeric[i] = (up - down) / (2 * step)
     assert np.abs(numeric).max() > 1e-4  # the check has something to check
     np.testing.assert_allclose(grad, numeric, atol=1e-8)
+    # the Krylov solves of large chains give the same value and gradient
+    krylov = ChainModel(problem.pomdp, target, worth, 2, direct_limit=0)
+    k_value, k_grad = krylov.value_and_gradient(mu, krylov.cell_index(alpha))
+    assert k_value == pytest.approx(value, abs=1e-9)
+    assert k_grad is not None
+    np.testing.assert_allclose(k_grad, grad_mu, atol=1e-8)
 
 
 @pytest.mark.parametrize("objective", ["decoy", "goal"])

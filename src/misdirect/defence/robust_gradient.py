@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import minimize
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import bicgstab, gmres, splu
 
 from misdirect.core import tolerance
 from misdirect.core.model import Controller, Pomdp
@@ -43,6 +43,10 @@ LOGIT_BOUND = 8.0  # |θ| at most this: no probability below about e^-16 / (|A| 
 TEMPERATURES = (0.05, 0.01, 0.002, 0.0005)  # τ of the smooth maximum, relative to the values'
 # scale, tightened in turn (each stage starts where the previous one ended)
 ITERATIONS_PER_STAGE = 150  # L-BFGS-B iterations per temperature
+DIRECT_LIMIT = 20_000  # product states up to which the chains are solved by a sparse LU; beyond,
+# by BiCGSTAB (an LU of a 100,000-state grid-like chain fills in for minutes)
+KRYLOV_ITERATIONS = 10_000  # BiCGSTAB iterations at most per solve
+
 ExactWorst = Callable[[Controller], tuple[float, float, float]]
 """The loop's exact ranking of a candidate, compared in order (smaller is better): how far its
 nominal Pr(goal) falls short of the floor (0 without one), ``sense ·`` its worst value over K,
@@ -71,7 +75,15 @@ class ChainModel:
     Product index ``position(s) * k + n`` over the world states that can reach the target
     (non-target, non-absorbing); ``x`` on the target is its worth, elsewhere 0."""
 
-    def __init__(self, pomdp: Pomdp, target: np.ndarray, worth: np.ndarray, memory: int) -> None:
+    def __init__(
+        self,
+        pomdp: Pomdp,
+        target: np.ndarray,
+        worth: np.ndarray,
+        memory: int,
+        direct_limit: int = DIRECT_LIMIT,
+    ) -> None:
+        self.direct_limit = direct_limit  # product states up to which a sparse LU is used
         self.k, self.n_actions, self.n_obs = memory, pomdp.n_actions, pomdp.n_observations
         self.obs = np.asarray(pomdp.observation_of, dtype=np.int64)
         n_s = pomdp.n_states
@@ -151,19 +163,38 @@ class ChainModel:
         )
         system = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
         rhs = np.bincount(self.b_row, weights=self.b_w * mu[b_index], minlength=self.n)
-        lu = splu(system)
-        x = lu.solve(rhs)
-        value = float(x[self.start])
-        if not gradient:
-            return value, None
         unit = np.zeros(self.n)
         unit[self.start] = 1.0
-        lam = lu.solve(unit, trans="T")
+        if self.n > self.direct_limit:  # an LU's fill-in would be too large: Krylov solves
+            x = _krylov(system.tocsr(), rhs)
+            value = float(x[self.start])
+            if not gradient:
+                return value, None
+            lam = _krylov(system.T.tocsr(), unit)
+        else:
+            lu = splu(system)
+            x = lu.solve(rhs)
+            value = float(x[self.start])
+            if not gradient:
+                return value, None
+            lam = lu.solve(unit, trans="T")
         grad = np.bincount(
             m_index, weights=lam[self.m_row] * self.m_p * x[self.m_col], minlength=self.size
         )
         grad += np.bincount(b_index, weights=lam[self.b_row] * self.b_w, minlength=self.size)
         return value, grad
+
+
+def _krylov(system: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
+    """``system⁻¹ rhs`` by BiCGSTAB (I - Q of an absorbing chain: it converges without a
+    preconditioner in practice), GMRES where BiCGSTAB breaks down (it does on small chains);
+    the answer as it stands if neither converges (the values only rank candidates)."""
+    x, info = bicgstab(system, rhs, rtol=tolerance.GRADIENT_SOLVE, maxiter=KRYLOV_ITERATIONS)
+    if info != 0:
+        x, _ = gmres(
+            system, rhs, rtol=tolerance.GRADIENT_SOLVE, restart=50, maxiter=KRYLOV_ITERATIONS
+        )
+    return np.asarray(x)
 
 
 def softmax(theta: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
@@ -242,6 +273,10 @@ def better(score: tuple[float, ...], incumbent: tuple[float, ...]) -> bool:
     return False
 
 
+class _OutOfTimeError(Exception):
+    """The deadline passed during an L-BFGS-B stage."""
+
+
 class GradientMaster:
     """The randomized master: a local search, several starts, over ``k``-node controllers."""
 
@@ -309,10 +344,16 @@ class GradientMaster:
         iterations = 0
         for temperature, rho in zip(TEMPERATURES, FLOOR_WEIGHTS, strict=True):
             tau = temperature * scale
+            lowest: list[tuple[float, np.ndarray]] = []  # the best point this stage evaluated
 
             def smooth_max(
-                th: np.ndarray, tau: float = tau, rho: float = rho
+                th: np.ndarray,
+                tau: float = tau,
+                rho: float = rho,
+                lowest: list[tuple[float, np.ndarray]] = lowest,
             ) -> tuple[float, np.ndarray]:
+                if deadline.expired():  # L-BFGS-B has no deadline: stop it from inside
+                    raise _OutOfTimeError
                 mu = softmax(th, shape)
                 vals = np.empty(len(indices))
                 grads = np.empty((len(indices), model.size))
@@ -332,18 +373,25 @@ class GradientMaster:
                     if short > 0 and g_goal is not None:
                         value += rho * short * short
                         grad_mu = grad_mu - 2.0 * rho * short * g_goal
+                if not lowest or value < lowest[0][0]:
+                    lowest[:] = [(value, np.array(th))]
                 return value, softmax_backward(mu, grad_mu, shape)
 
             if deadline.expired():
                 break
-            result = minimize(
-                smooth_max,
-                theta,
-                jac=True,
-                method="L-BFGS-B",
-                bounds=[(-LOGIT_BOUND, LOGIT_BOUND)] * theta.size,
-                options={"maxiter": ITERATIONS_PER_STAGE},
-            )
+            try:
+                result = minimize(
+                    smooth_max,
+                    theta,
+                    jac=True,
+                    method="L-BFGS-B",
+                    bounds=[(-LOGIT_BOUND, LOGIT_BOUND)] * theta.size,
+                    options={"maxiter": ITERATIONS_PER_STAGE},
+                )
+            except _OutOfTimeError:
+                if lowest:
+                    theta = lowest[0][1]
+                break
             theta, iterations = result.x, iterations + int(result.nit)
         return theta, iterations
 
