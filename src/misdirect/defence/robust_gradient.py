@@ -45,7 +45,8 @@ TEMPERATURES = (0.05, 0.01, 0.002, 0.0005)  # τ of the smooth maximum, relative
 ITERATIONS_PER_STAGE = 150  # L-BFGS-B iterations per temperature
 DIRECT_LIMIT = 20_000  # product states up to which the chains are solved by a sparse LU; beyond,
 # by BiCGSTAB (an LU of a 100,000-state grid-like chain fills in for minutes)
-KRYLOV_ITERATIONS = 10_000  # BiCGSTAB iterations at most per solve
+KRYLOV_ITERATIONS = 2_000  # Krylov iterations at most per solve
+GMRES_RESTART = 50
 
 ExactWorst = Callable[[Controller], tuple[float, float, float]]
 """The loop's exact ranking of a candidate, compared in order (smaller is better): how far its
@@ -192,7 +193,11 @@ def _krylov(system: sp.csr_matrix, rhs: np.ndarray) -> np.ndarray:
     x, info = bicgstab(system, rhs, rtol=tolerance.GRADIENT_SOLVE, maxiter=KRYLOV_ITERATIONS)
     if info != 0:
         x, _ = gmres(
-            system, rhs, rtol=tolerance.GRADIENT_SOLVE, restart=50, maxiter=KRYLOV_ITERATIONS
+            system,
+            rhs,
+            rtol=tolerance.GRADIENT_SOLVE,
+            restart=GMRES_RESTART,
+            maxiter=KRYLOV_ITERATIONS // GMRES_RESTART,  # restart cycles
         )
     return np.asarray(x)
 
@@ -416,6 +421,8 @@ class GradientMaster:
             mu = softmax(theta, self.shape)
             offered = [mu, *(pruned(mu, level, self.shape) for level in PRUNE_LEVELS)]
             for candidate in offered if exact is None else [exact, *offered]:
+                if best is not None and deadline.expired():
+                    break
                 controller = controller_of(
                     candidate, self.model.k, self.model.n_obs, self.model.n_actions
                 )
