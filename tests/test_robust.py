@@ -236,3 +236,201 @@ def test_cli_writes_a_controller_that_loads_back(tmp_path, objective):
     plain = runner.invoke(app, ["controller", "robust", str(path), "--budget", "1", "-o", str(fsc)])
     assert plain.exit_code == 0, plain.output
     assert "robust" in plain.output
+
+
+# -- the randomized (gradient) master -----------------------------------------------------------
+
+
+def softmax_controller(problem: Problem, memory: int, seed: int):
+    """A random full-support ``memory``-node controller, with its flat μ and logits."""
+    from misdirect.defence.robust_gradient import controller_of, softmax
+
+    pomdp = problem.pomdp
+    shape = (memory, pomdp.n_observations, pomdp.n_actions * memory)
+    theta = np.random.default_rng(seed).normal(0.0, 1.5, int(np.prod(shape)))
+    mu = softmax(theta, shape)
+    return controller_of(mu, memory, pomdp.n_observations, pomdp.n_actions), mu, theta, shape
+
+
+@pytest.mark.parametrize("objective", ["decoy", "goal"])
+@pytest.mark.parametrize("seed", range(3))
+def test_adjoint_gradient_matches_finite_differences(seed, objective):
+    from misdirect.defence.robust import _target_and_worth, objective_value
+    from misdirect.defence.robust_gradient import ChainModel, softmax, softmax_backward
+
+    problem = (
+        absorbed_problem(seed, 1.0)
+        if seed % 2
+        else random_problem(seed, states=6, actions=2, observations=3, nodes=1, budget=1.0)
+    )
+    target, worth = _target_and_worth(problem, objective)
+    model = ChainModel(problem.pomdp, target, worth, 2)
+    controller, mu, theta, shape = softmax_controller(problem, 2, seed)
+    rng = np.random.default_rng(100 + seed)
+    alpha = rng.integers(0, problem.pomdp.n_observations, problem.pomdp.n_observations)
+    alpha[problem.pomdp.initial_observation] = problem.pomdp.initial_observation
+    index = model.cell_index(alpha)
+    value, grad_mu = model.value_and_gradient(mu, index)
+    assert grad_mu is not None
+    # the value is the project's exact evaluation of the same controller
+    candidate = replace(problem, controller=controller)
+    assert value == pytest.approx(objective_value(candidate, objective, alpha), abs=1e-12)
+    grad = softmax_backward(mu, grad_mu, shape)
+    step = 1e-6
+    numeric = np.empty_like(theta)
+    for i in range(theta.size):
+        e = np.zeros_like(theta)
+        e[i] = step
+        up = model.value_and_gradient(softmax(theta + e, shape), index, False)[0]
+        down = model.value_and_gradient(softmax(theta - e, shape), index, False)[0]
+        numeric[i] = (up - down) / (2 * step)
+    assert np.abs(numeric).max() > 1e-4  # the check has something to check
+    np.testing.assert_allclose(grad, numeric, atol=1e-8)
+    # the Krylov solves of large chains give the same value and gradient
+    krylov = ChainModel(problem.pomdp, target, worth, 2, direct_limit=0)
+    k_value, k_grad = krylov.value_and_gradient(mu, krylov.cell_index(alpha))
+    assert k_value == pytest.approx(value, abs=1e-9)
+    assert k_grad is not None
+    np.testing.assert_allclose(k_grad, grad_mu, atol=1e-8)
+
+
+@pytest.mark.parametrize("objective", ["decoy", "goal"])
+@pytest.mark.parametrize("seed", range(3))
+def test_gradient_master_reports_only_certified_worst_cases(seed, objective):
+    problem = absorbed_problem(seed, 1.0)
+    result = misdirect.robust_controller(
+        problem, 1.0, memory=2, objective=objective, randomized=True, restarts=2, seed=seed,
+        baselines=False,
+    )  # fmt: skip
+    chosen = replace(problem, controller=result.controller)
+    alphas = list(alterations_within(problem, 1.0))
+    if objective == "decoy":
+        brute = max(decoy_probability(chosen, a) for a in alphas)
+        assert result.upper == pytest.approx(brute, abs=1e-9)  # the oracle's side: a bound
+        assert result.lower is None
+    else:
+        brute = min(goal_probability(chosen, a) for a in alphas)
+        assert result.lower == pytest.approx(brute, abs=1e-9)
+        assert result.upper is None
+    assert result.worst_case == pytest.approx(brute, abs=1e-9)
+    assert result.worst_case_bound == pytest.approx(brute, abs=1e-9)
+    for r in result.rounds:  # every round's worst case too, for the controller of that round
+        assert r.certified
+        assert r.worst_case == pytest.approx(r.oracle_bound, abs=1e-9)
+    assert result.certified
+    assert result.master == "gradient"
+    assert result.master_bound is None
+    assert result.gap is None and not result.optimal
+    document = result.to_dict()
+    assert document["randomized"] and document["master_bound"] is None
+    # no worse than the best observation-blind controller (an incumbent of the loop), whose
+    # worst case is its nominal value, by brute force over the constant controllers
+    from misdirect.defence.robust import blind_controllers
+
+    blind = [
+        goal_probability(replace(problem, controller=c), problem.identity())
+        for c in blind_controllers(problem)
+    ]
+    if objective == "decoy":
+        assert result.worst_case <= min(1.0 - g for g in blind) + 1e-9  # every run absorbed
+    else:
+        assert result.worst_case >= max(blind) - 1e-9
+
+
+def test_gradient_master_floor_on_goal():
+    """With a floor the blind controller meets, the answer meets it (the blind one is a start)
+    and its worst case is certified."""
+    problem = absorbed_problem(1, 1.0)
+    from misdirect.defence.robust import blind_controllers
+
+    floor = max(
+        goal_probability(replace(problem, controller=c), problem.identity())
+        for c in blind_controllers(problem)
+    )
+    result = misdirect.robust_controller(
+        problem, 1.0, memory=2, randomized=True, restarts=2, min_goal=floor
+    )
+    chosen = replace(problem, controller=result.controller)
+    assert result.nominal_goal == pytest.approx(goal_probability(chosen, problem.identity()))
+    assert result.nominal_goal >= floor - 1e-9
+    brute = max(decoy_probability(chosen, a) for a in alterations_within(problem, 1.0))
+    assert result.worst_case == pytest.approx(brute, abs=1e-9)
+    with pytest.raises(misdirect.ProblemError):
+        misdirect.robust_controller(problem, 1.0, min_goal=0.5)  # exact master: no floor
+    with pytest.raises(misdirect.ProblemError):
+        misdirect.robust_controller(problem, 1.0, randomized=True, min_goal=1.5)
+
+
+@pytest.mark.parametrize("suffix", [".fsc.json", ".yaml"])
+def test_randomized_controller_round_trip_and_storm(tmp_path, suffix):
+    """A full-support randomized controller written in PAYNT's format and in misdirect's rules
+    loads back with --controller to the same numbers, and Storm checks the induced chain."""
+    stormpy = pytest.importorskip("stormpy")
+    from misdirect.io.paynt import controller_to_paynt
+    from misdirect.io.problem_file import controller_to_document, problem_document_text
+
+    problem = absorbed_problem(3, 1.0)
+    controller, *_ = softmax_controller(problem, 2, 7)
+    assert not controller.is_deterministic
+    path = tmp_path / "p.yaml"
+    write_problem(problem, path)
+    written = tmp_path / f"c{suffix}"
+    if suffix == ".yaml":
+        written.write_text(problem_document_text(controller_to_document(controller, problem.pomdp)))
+    else:
+        written.write_text(json.dumps(controller_to_paynt(controller, problem.pomdp)))
+    alpha = np.array([1, 0, 2, 3])  # a -> b, b -> a (the initial reading a stays: state s0)
+    alpha[problem.pomdp.initial_observation] = problem.pomdp.initial_observation
+    chosen = replace(problem, controller=controller)
+    alter = [f"{problem.pomdp.observations[o]}={problem.pomdp.observations[t]}"
+             for o, t in enumerate(alpha) if o != t]  # fmt: skip
+    flags = [item for a in alter for item in ("--alter", a)]
+    run = runner.invoke(
+        app, ["evaluate", str(path), "--controller", str(written), *flags, "--json"]
+    )
+    assert run.exit_code == 0, run.output
+    assert json.loads(run.output)["value"] == pytest.approx(
+        decoy_probability(chosen, alpha), abs=1e-12
+    )
+    chain = tmp_path / "chain.drn"
+    run = runner.invoke(
+        app,
+        ["export-chain", str(path), "--controller", str(written), *flags, "-o", str(chain),
+         "--json"],
+    )  # fmt: skip
+    assert run.exit_code == 0, run.output
+    model = stormpy.build_model_from_drn(str(chain))
+    formula = stormpy.parse_properties('P=? [F "decoy"]')[0]
+    storm = stormpy.model_checking(model, formula).get_value(model.initial_states[0])
+    assert storm == pytest.approx(decoy_probability(chosen, alpha), abs=1e-6)
+
+
+def test_cli_randomized_writes_a_controller_that_loads_back(tmp_path):
+    problem = absorbed_problem(0, 1.0)
+    path = tmp_path / "p.yaml"
+    write_problem(problem, path)
+    for name in ("r.fsc.json", "r.yaml"):
+        out = tmp_path / name
+        run = runner.invoke(
+            app,
+            ["controller", "robust", str(path), "--budget", "1", "--memory", "2",
+             "--randomized", "--restarts", "2", "--seed", "3", "-o", str(out), "--json"],
+        )  # fmt: skip
+        assert run.exit_code == 0, run.output
+        robust = json.loads(run.output)["robust"]
+        assert robust["master"] == "gradient" and robust["master_bound"] is None
+        solved = runner.invoke(
+            app, ["solve", str(path), "--controller", str(out), "--budget", "1", "--json"]
+        )
+        assert solved.exit_code == 0, solved.output
+        final = json.loads(solved.output)["curve"][-1]
+        assert final["value"] == pytest.approx(robust["worst_case"], abs=1e-9)
+        loaded = runner.invoke(app, ["evaluate", str(path), "--controller", str(out), "--json"])
+        assert json.loads(loaded.output)["value"] == pytest.approx(robust["nominal"], abs=1e-9)
+    bad = runner.invoke(
+        app,
+        ["controller", "robust", str(path), "--budget", "1", "--min-goal", "0.5",
+         "-o", str(tmp_path / "x.fsc.json")],
+    )  # fmt: skip
+    assert bad.exit_code == 2
+    assert "Traceback" not in bad.output

@@ -347,7 +347,8 @@ def controller_robust(
         typer.Option(
             "--output",
             "-o",
-            help="PAYNT .fsc.json to write: the robust controller (loads back with --controller).",
+            help="The robust controller to write: PAYNT's .fsc.json, or misdirect's rules "
+            "when the name ends in .yaml/.yml (either loads back with --controller).",
         ),
     ],
     budget: AttackerBudgetOption = None,
@@ -361,20 +362,50 @@ def controller_robust(
             "Pr(goal) (an absorbing state that is not a decoy)."
         ),
     ] = RobustObjective.decoy,
+    randomized: Annotated[
+        bool,
+        typer.Option(
+            "--randomized",
+            help="Search randomized controllers by gradient (a local search: the worst case "
+            "is certified, the controller's optimality is not); default: deterministic ones, "
+            "by exact enumeration.",
+        ),
+    ] = False,
+    min_goal: Annotated[
+        float | None,
+        typer.Option(
+            help="--randomized with --objective decoy: a floor on the nominal Pr(goal); the "
+            "controller found is ranked first by meeting it."
+        ),
+    ] = None,
+    restarts: Annotated[
+        int,
+        typer.Option(help="--randomized: starts of the gradient search per round."),
+    ] = 4,
+    seed: Annotated[
+        int, typer.Option(help="Seed of --randomized's random starts (and of the random scenario).")
+    ] = 0,
     time_limit: Annotated[
         float | None,
         typer.Option(help="Seconds for the search; then the best controller with its bounds."),
     ] = None,
     as_json: JsonOption = False,
 ) -> None:
-    """The deterministic controller that holds up best against every alteration within budget
-    B (constraint generation: an exact master over the class, misdirect.solve as the oracle),
-    with its certified worst case and the baselines' (docs/robust.md)."""
+    """The controller that holds up best against every alteration within budget B (constraint
+    generation: a master over the class, deterministic by exact enumeration or --randomized by
+    gradient, misdirect.solve as the certified oracle), with its certified worst case and the
+    baselines' (docs/robust.md)."""
     from misdirect.defence.robust import robust_controller
     from misdirect.io.paynt import controller_to_paynt
+    from misdirect.io.problem_file import controller_to_document, problem_document_text
 
     check_output_path(output)
     check_range("--memory", memory, 1, 8)
+    check_range("--restarts", restarts, 1, 1000)
+    if min_goal is not None:
+        if not randomized or objective != RobustObjective.decoy:
+            raise ProblemError("needs --randomized and --objective decoy", field="--min-goal")
+        check_range("--min-goal", min_goal, 0, 1)
     attacker_budget = one_budget(budget, "controller robust")
     check_seconds(time_limit)
     problem = source.load()
@@ -383,10 +414,18 @@ def controller_robust(
         attacker_budget,
         memory=memory,
         objective=objective.value,
+        randomized=randomized,
+        restarts=restarts,
+        seed=seed,
+        min_goal=min_goal,
         time_limit=time_limit,
     )
-    document = controller_to_paynt(result.controller, problem.pomdp)
-    write_output(output, json.dumps(document, indent=1) + "\n")
+    if output.suffix.lower() in (".yaml", ".yml"):
+        rules = controller_to_document(result.controller, problem.pomdp)
+        write_output(output, problem_document_text(rules))
+    else:
+        document = controller_to_paynt(result.controller, problem.pomdp)
+        write_output(output, json.dumps(document, indent=1) + "\n")
     if as_json:
         print_json(
             json_output.written_files("controller robust", [output], robust=result.to_dict())
@@ -405,7 +444,7 @@ def _print_robust(result: RobustResult) -> None:
         "robust",
         f"{result.nominal:.6f}",
         f"{result.worst_case:.6f}",
-        "yes" if result.rounds and result.rounds[-1].certified else "no",
+        "yes" if result.certified else "no",
         fmt_alteration(result.alteration),
     )
     for b in result.baselines:
@@ -423,6 +462,12 @@ def _print_robust(result: RobustResult) -> None:
         else f"min-max in [{result.lower:.6f}, {result.upper:.6f}] (gap {result.gap:.2g})"
     )
     status = "optimal" if result.optimal else "not proven optimal"
+    if result.master == "gradient":
+        status = "randomized (gradient master: worst case certified, optimality not claimed)"
+        bounds = (
+            f"best certified {'upper' if result.objective == 'decoy' else 'lower'} bound "
+            f"{result.upper if result.objective == 'decoy' else result.lower}"
+        )
     out.print(
         f"{status} · {bounds} · |K| {result.k_size} · {len(result.rounds)} rounds · "
         f"stopped: {escape(result.stop_reason)} · {result.time_s:.2f} s",

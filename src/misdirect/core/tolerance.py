@@ -103,6 +103,11 @@ KRYLOV_RTOL = 1e-13
 """The first refinement round's inner Krylov solve shrinks the residual this much (relative):
 later rounds aim only at the rounding floor, which is all a proof can use."""
 
+GRADIENT_SOLVE = 1e-10
+"""The relative residual of the Krylov solves of the randomized robust master on chains too
+large for a sparse LU (:mod:`misdirect.defence.robust_gradient`). Its values only rank
+candidates (every number reported is re-evaluated exactly), so it needs no proof."""
+
 PAYNT_STOCHASTIC = 1e-6
 """A distribution read from PAYNT's output sums to 1 within this: its probabilities are floats
 from model checking, not numbers as written, so :data:`STOCHASTIC` is too tight for them."""

@@ -27,6 +27,11 @@ Bounds, with ``V*`` the min–max (``"decoy"``) or max–min (``"goal"``) over t
   attacker could make the robot receive); where it cannot be ruled out, the lower bound is
   not proven and the result says so.
 
+With ``randomized=True`` the master is :class:`~misdirect.defence.robust_gradient.
+GradientMaster` instead: randomized controllers with ``memory`` nodes, a local search by exact
+adjoint gradients. It proves no bound (``master_bound`` is None, no gap); the oracle's side
+(the certified worst case of the controller returned) holds as above.
+
 Every value reported is re-evaluated through :func:`misdirect.core.evaluate.decoy_value` (the
 project's exact evaluation); the master's own batched solves only rank candidates.
 """
@@ -46,6 +51,13 @@ from misdirect.core import tolerance
 from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Controller, Problem
 from misdirect.defence.attack import Attack, attack_of, attacker_budget, shared_deadline
+from misdirect.defence.robust_gradient import (
+    ChainModel,
+    GradientMaster,
+    better,
+    controller_of,
+    mu_of,
+)
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.run import solve
@@ -53,6 +65,7 @@ from misdirect.solvers.run import solve
 OBJECTIVES = ("decoy", "goal")
 MAX_CANDIDATES = 5_000_000  # controllers the exact master enumerates at most
 _BATCH = 2048  # candidates solved at once (each a dense product chain)
+GRADIENT_ROUNDS = 50  # rounds of the gradient master at most, by default
 
 
 @dataclass(frozen=True)
@@ -65,8 +78,9 @@ class RobustRound:
     oracle_bound: float  # the oracle's proven bound on that controller's worst case
     certified: bool  # the oracle proved its answer optimal
     alteration: dict[str, str]
-    candidates: int  # controllers the master looked at
+    candidates: int  # controllers the master looked at (gradient master: its starts)
     time_s: float
+    iterations: int = 0  # the gradient master's optimiser iterations (0 for the exact master)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -77,6 +91,7 @@ class RobustRound:
             "certified": self.certified,
             "alteration": self.alteration,
             "candidates": self.candidates,
+            "iterations": self.iterations,
             "time_s": self.time_s,
         }
 
@@ -92,11 +107,13 @@ class Baseline:
     bound: float  # the oracle's proven bound on the worst case
     certified: bool
     alteration: dict[str, str]
+    nominal_goal: float | None = None  # Pr(goal) with no alteration
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
             "nominal": self.nominal,
+            "nominal_goal": self.nominal_goal,
             "worst_case": self.worst_case,
             "bound": self.bound,
             "certified": self.certified,
@@ -131,6 +148,13 @@ class RobustResult:
     time_s: float
     stop_reason: str
     notes: tuple[str, ...] = ()
+    master: str = "exact"  # "exact" (enumeration) or "gradient" (randomized, no bound)
+    master_bound: float | None = None  # the master's side of the bounds (None: gradient)
+    seed: int | None = None  # the gradient master's seed
+    restarts: int | None = None  # the gradient master's starts per round
+    nominal_goal: float | None = None  # Pr(goal) with no alteration
+    min_goal: float | None = None  # the floor asked for on the nominal Pr(goal)
+    certified: bool = False  # the oracle proved ``worst_case`` for ``controller``
 
     @property
     def gap(self) -> float | None:
@@ -150,29 +174,46 @@ class RobustResult:
             "memory": self.memory,
             "worst_case": self.worst_case,
             "worst_case_bound": self.worst_case_bound,
+            "certified": self.certified,
             "alteration": self.alteration,
             "nominal": self.nominal,
+            "nominal_goal": self.nominal_goal,
+            "min_goal": self.min_goal,
             "lower_bound": self.lower,
             "upper_bound": self.upper,
             "gap": self.gap,
             "optimal": self.optimal,
             "k_size": self.k_size,
+            "master": self.master,
+            "master_bound": self.master_bound,
+            "randomized": self.master == "gradient",
+            "seed": self.seed,
+            "restarts": self.restarts,
             "rounds": [r.to_dict() for r in self.rounds],
             "baselines": [b.to_dict() for b in self.baselines],
-            "controller": {
-                "nodes": list(self.controller.nodes),
-                "action": _named_table(self.controller, "action"),
-                "update": _named_table(self.controller, "update"),
-            },
+            "controller": controller_dict(self.controller),
             "time_s": self.time_s,
             "stop_reason": self.stop_reason,
             "notes": list(self.notes),
         }
 
 
-def _named_table(controller: Controller, what: str) -> list[list[int]]:
-    table = controller.action if what == "action" else controller.update
-    return np.asarray(table).tolist()
+def controller_dict(controller: Controller) -> dict[str, Any]:
+    """The controller in the JSON output: the tables ``action``/``update`` of a deterministic
+    one; ``moves[node][reading]`` = ``[[action, next node, probability], ...]`` otherwise."""
+    out: dict[str, Any] = {
+        "nodes": list(controller.nodes),
+        "deterministic": controller.is_deterministic,
+    }
+    if controller.is_deterministic:
+        out["action"] = np.asarray(controller.action).tolist()
+        out["update"] = np.asarray(controller.update).tolist()
+        return out
+    out["moves"] = [
+        [[list(entry) for entry in controller.move_table(int(m))] for m in row]
+        for row in controller.move
+    ]
+    return out
 
 
 # -- the objective on the product chain ---------------------------------------------------------
@@ -438,12 +479,17 @@ def robust_controller(
     *,
     memory: int = 1,
     objective: str = "decoy",
+    randomized: bool = False,
+    restarts: int = 4,
+    seed: int = 0,
+    min_goal: float | None = None,
     time_limit: float | None = None,
     baselines: bool = True,
-    max_rounds: int = 1000,
+    max_rounds: int | None = None,
 ) -> RobustResult:
-    """The deterministic controller with ``memory`` nodes that holds up best against every
-    alteration within ``budget``, by constraint generation with an exact master.
+    """The controller with ``memory`` nodes that holds up best against every alteration
+    within ``budget``, by constraint generation: a master over the class against a finite set
+    ``K`` of alterations, :func:`misdirect.solve` as the certified oracle.
 
     Parameters
     ----------
@@ -452,17 +498,34 @@ def robust_controller(
     budget : float, optional
         The attacker's budget ``B`` (default: the problem's).
     memory : int
-        Memory nodes of the controllers searched (deterministic; node ``n0`` is initial).
+        Memory nodes of the controllers searched (node ``n0`` is initial).
     objective : {"decoy", "goal"}
         ``"decoy"``: minimise the worst-case Pr(decoy) (the expected decoy weight with weighted
         decoys); ``"goal"``: maximise the worst-case Pr(goal), a goal being an absorbing state
         that is neither a decoy nor an alarm.
+    randomized : bool
+        False: deterministic controllers, the exact master (enumeration; the min–max is
+        bounded from both sides). True: randomized controllers, the gradient master
+        (:mod:`misdirect.defence.robust_gradient`; a local search: the worst case of the
+        controller returned is certified, its optimality is not, and the master proves no
+        bound, ``master_bound`` is None).
+    restarts : int
+        The gradient master's starts per round (the previous round's answer, the uniform
+        controller, the given one when it has ``memory`` nodes, then seeded random ones).
+    seed : int
+        The gradient master's seed (its random starts).
+    min_goal : float, optional
+        ``"decoy"`` with ``randomized``: a floor ``q`` on the nominal Pr(goal). The master
+        penalises falling short of it and ranks a controller meeting it above any that does
+        not; the result says whether the controller returned meets it (``nominal_goal``).
     time_limit : float, optional
-        Seconds for the loop (the master's enumeration and the oracle's solves); then the best
-        controller so far with the bounds proven so far.
+        Seconds for the loop (the master and the oracle's solves); then the best controller so
+        far with the bounds proven so far.
     baselines : bool
         Also compute the given controller's and the best observation-blind controller's
         certified worst cases.
+    max_rounds : int, optional
+        Rounds at most (default 1000 for the exact master, 50 for the gradient master).
 
     Returns
     -------
@@ -471,7 +534,7 @@ def robust_controller(
         oracle's proven bound on it, its nominal value, the bounds on the min–max and their
         gap, the rounds, and the baselines. For ``"decoy"`` ``lower`` is the master's value over
         ``K`` and ``upper`` the best oracle bound; for ``"goal"`` the other way round (module
-        docstring).
+        docstring). The gradient master gives only the oracle's side.
     """
     began = time.perf_counter()
     if objective not in OBJECTIVES:
@@ -480,40 +543,127 @@ def robust_controller(
         )
     if not (isinstance(memory, int) and memory >= 1):
         raise ProblemError(f"must be a whole number of at least 1, got {memory!r}", field="memory")
+    if not (isinstance(restarts, int) and restarts >= 1):
+        raise ProblemError(
+            f"must be a whole number of at least 1, got {restarts!r}", field="restarts"
+        )
+    if min_goal is not None:
+        if not (randomized and objective == "decoy"):
+            raise ProblemError(
+                "a floor on the nominal Pr(goal) needs the randomized master and the decoy "
+                "objective",
+                field="min_goal",
+            )
+        if not (math.isfinite(min_goal) and 0 <= min_goal <= 1):
+            raise ProblemError(f"must be a probability in [0, 1], got {min_goal}", field="min_goal")
     budget = attacker_budget(problem, budget)
     pomdp = problem.pomdp
     n_obs, n_actions = pomdp.n_observations, pomdp.n_actions
-    receivable = _receivable(problem, budget)
-    cells = (np.arange(memory)[:, None] * n_obs + np.flatnonzero(receivable)[None, :]).ravel()
-    count = (n_actions * memory) ** cells.size
-    if count > MAX_CANDIDATES:
-        raise ProblemError(
-            f"the exact master would enumerate {count:,} controllers ({n_actions} actions x "
-            f"{memory} nodes per cell, {cells.size} cells), more than {MAX_CANDIDATES:,}; "
-            "larger classes need a master not done yet (docs/robust.md)",
-            field="memory",
-        )
-    deadline = shared_deadline(time_limit)
     sense = 1.0 if objective == "decoy" else -1.0
-    evaluator = _Evaluator(problem, objective, memory)
+    gradient: GradientMaster | None = None
+    if randomized:
+        target, worth = _target_and_worth(problem, objective)
+        given = problem.controller
+        goal = goal_states(problem)
+        gradient = GradientMaster(
+            ChainModel(pomdp, target, worth, memory),
+            sense,
+            restarts=restarts,
+            seed=seed,
+            given=mu_of(given, n_obs, n_actions) if given.n_nodes == memory else None,
+            blind=_embedded(
+                mu_of(best_blind(problem, objective, min_goal), n_obs, n_actions), n_obs, memory
+            ),
+            floor=None
+            if min_goal is None
+            else (
+                ChainModel(pomdp, goal, goal.astype(float), memory),
+                problem.identity(),
+                min_goal,
+            ),
+        )
+        rounds_cap = GRADIENT_ROUNDS if max_rounds is None else max_rounds
+    else:
+        receivable = _receivable(problem, budget)
+        cells = (np.arange(memory)[:, None] * n_obs + np.flatnonzero(receivable)[None, :]).ravel()
+        count = (n_actions * memory) ** cells.size
+        if count > MAX_CANDIDATES:
+            raise ProblemError(
+                f"the exact master would enumerate {count:,} controllers ({n_actions} actions x "
+                f"{memory} nodes per cell, {cells.size} cells), more than {MAX_CANDIDATES:,}; "
+                "larger classes need the randomized master (docs/robust.md)",
+                field="memory",
+            )
+        evaluator = _Evaluator(problem, objective, memory)
+        rounds_cap = 1000 if max_rounds is None else max_rounds
+    deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
     rounds: list[RobustRound] = []
-    best: tuple[float, Controller, _Worst] | None = None  # (sense * bound, controller, worst)
+    # ((shortfall below the floor, sense * bound, tie-break), controller, worst)
+    best: tuple[tuple[float, float, float], Controller, _Worst] | None = None
     master_bound = -math.inf  # sense * the master's value: a bound from below in sense terms
     stop = "time limit"
     notes: list[str] = []
-    for _ in range(max_rounds):
-        round_began = time.perf_counter()
-        value, action, update, looked, finished = _master(
-            evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline
-        )
-        if not finished or not math.isfinite(value):
-            break
-        controller = memoryless_controller(problem, action, update)
+
+    def worst_over_k(controller: Controller) -> float:
         candidate = replace(problem, controller=controller)
-        # the master's value re-evaluated exactly on its controller
-        exact = max(sense * objective_value(candidate, objective, a) for a in alterations)
-        master_bound = max(master_bound, min(exact, value))
+        return max(sense * objective_value(candidate, objective, a) for a in alterations)
+
+    def nominal_rank(controller: Controller) -> tuple[float, float]:
+        """The shortfall below the floor (the floor is on Pr(goal), with the decoy objective
+        only), and the other objective's nominal value as a tie-break (for decoy, a higher
+        Pr(goal) is better; for goal, a lower Pr(decoy))."""
+        other = "goal" if objective == "decoy" else "decoy"
+        nominal = objective_value(
+            replace(problem, controller=controller), other, problem.identity()
+        )
+        short = 0.0 if min_goal is None else max(min_goal - nominal, 0.0)
+        return short, -sense * nominal
+
+    def ranked(controller: Controller) -> tuple[float, float, float]:
+        """The gradient master's exact ranking: the shortfall, the worst over K, the
+        tie-break."""
+        short, tie = nominal_rank(controller)
+        return short, worst_over_k(controller), tie
+
+    def certified_rank(controller: Controller, held: _Worst) -> tuple[float, float, float]:
+        """How the loop keeps its best: the shortfall, the certified bound, and (gradient
+        master) the tie-break."""
+        if gradient is None:
+            return 0.0, sense * held.bound, 0.0
+        short, tie = nominal_rank(controller)
+        return short, sense * held.bound, tie
+
+    if gradient is not None:
+        # the baselines in the class are the incumbents the rounds must beat: the answer is
+        # then never worse than they are (certified), even when the time runs out
+        for mu in (gradient.blind, gradient.given):
+            if mu is None or deadline.expired():
+                continue
+            incumbent = controller_of(mu, memory, n_obs, n_actions)
+            held = _oracle(problem, incumbent, objective, budget, deadline.remaining())
+            score = certified_rank(incumbent, held)
+            if held.certified and (best is None or better(score, best[0])):
+                best = (score, incumbent, held)
+    for _ in range(rounds_cap):
+        round_began = time.perf_counter()
+        iterations = 0
+        if gradient is not None:
+            answer = gradient.solve(alterations, deadline, ranked)
+            if answer is None:
+                break
+            controller, looked, iterations = answer.controller, answer.candidates, answer.iterations
+            exact = sense * answer.value  # already the project's exact evaluation over K
+        else:
+            value, action, update, looked, finished = _master(
+                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline
+            )
+            if not finished or not math.isfinite(value):
+                break
+            controller = memoryless_controller(problem, action, update)
+            # the master's value re-evaluated exactly on its controller
+            exact = worst_over_k(controller)
+            master_bound = max(master_bound, min(exact, value))
         worst = _oracle(problem, controller, objective, budget, deadline.remaining())
         rounds.append(
             RobustRound(
@@ -525,16 +675,26 @@ def robust_controller(
                 alteration=worst.changes,
                 candidates=looked,
                 time_s=time.perf_counter() - round_began,
+                iterations=iterations,
             )
         )
-        score = sense * worst.bound
-        if best is None or score < best[0] - tolerance.IMPROVE:
+        score = certified_rank(controller, worst)
+        if best is None or better(score, best[0]):
             best = (score, controller, worst)
-        if best[0] - master_bound <= tolerance.CERTIFY and best[2].certified:
+        if (
+            gradient is None
+            and best[0][1] - master_bound <= tolerance.CERTIFY
+            and best[2].certified
+        ):
             stop = "bounds met"
             break
         if any(np.array_equal(worst.alteration, a) for a in alterations):
-            stop = "the oracle's attack is already in K (its solve was not certified)"
+            stop = (
+                "the oracle's attack is already in K: the controller's worst case is its value "
+                "over K (a local optimum of the master, no bound)"
+                if gradient is not None and worst.certified
+                else "the oracle's attack is already in K (its solve was not certified)"
+            )
             break
         alterations.append(worst.alteration)
         if deadline.expired():
@@ -549,8 +709,8 @@ def robust_controller(
     _, controller, worst = best
     candidate = replace(problem, controller=controller)
     proven = [r.certified for r in rounds]
-    lower_sense = master_bound  # sense-terms lower bound on the min-max
-    upper_sense = best[0] if worst.certified or any(proven) else math.inf
+    lower_sense = master_bound if gradient is None else -math.inf  # sense-terms lower bound
+    upper_sense = best[0][1] if worst.certified or any(proven) else math.inf
     if objective == "decoy":
         lower, upper = lower_sense, upper_sense
     else:
@@ -568,7 +728,20 @@ def robust_controller(
             "run might be trapped forever under some alteration (then 1 - Pr(non-goal end) is not "
             "Pr(goal))"
         )
-    refs = _baselines(problem, objective, budget, deadline) if baselines else ()
+    if gradient is not None:
+        notes.append(
+            "randomized master (gradient, a local search): the worst case reported is the "
+            "oracle's certified answer for this controller; no bound on the best controller of "
+            "the class, and no gap, is claimed"
+        )
+    nominal_goal = objective_value(candidate, "goal", problem.identity())
+    if min_goal is not None and nominal_goal < min_goal - tolerance.slack(min_goal):
+        notes.append(
+            f"no controller found meets the floor: nominal Pr(goal) {nominal_goal:.6f} < "
+            f"{min_goal:g} (the one returned falls short the least)"
+        )
+    refs = _baselines(problem, objective, budget, deadline, min_goal) if baselines else ()
+    master_side = lower_out if objective == "decoy" else upper_out
     return RobustResult(
         problem=problem.title,
         objective=objective,
@@ -587,7 +760,23 @@ def robust_controller(
         time_s=time.perf_counter() - began,
         stop_reason=stop,
         notes=tuple(notes),
+        master="exact" if gradient is None else "gradient",
+        master_bound=None if gradient is not None else master_side,
+        seed=seed if gradient is not None else None,
+        restarts=restarts if gradient is not None else None,
+        nominal_goal=nominal_goal,
+        min_goal=min_goal,
+        certified=worst.certified,
     )
+
+
+def _embedded(mu: np.ndarray, n_obs: int, memory: int) -> np.ndarray:
+    """A one-node controller's flat μ as a ``memory``-node one that stays in node 0 (the
+    other nodes, never entered, play the same)."""
+    one = mu.reshape(n_obs, -1)  # (|Ω|, |A|)
+    table = np.zeros((memory, n_obs, one.shape[1], memory))
+    table[:, :, :, 0] = one[None, :, :]
+    return table.reshape(-1)
 
 
 def blind_controllers(problem: Problem) -> list[Controller]:
@@ -601,16 +790,42 @@ def blind_controllers(problem: Problem) -> list[Controller]:
     ]
 
 
-def _baselines(
-    problem: Problem, objective: str, budget: float, deadline: Deadline
-) -> tuple[Baseline, ...]:
+def _shortfall(problem: Problem, controller: Controller, min_goal: float | None) -> float:
+    """How far the nominal Pr(goal) of ``controller`` falls short of the floor (0 if none)."""
+    if min_goal is None:
+        return 0.0
+    goal = objective_value(replace(problem, controller=controller), "goal", problem.identity())
+    return max(min_goal - goal, 0.0)
+
+
+def best_blind(problem: Problem, objective: str, min_goal: float | None = None) -> Controller:
+    """The observation-blind controller with the best nominal value (= its worst case); among
+    equals, the best in the other objective (decoy: the highest Pr(goal)). With a floor on
+    Pr(goal), one meeting it first (or the one falling short the least)."""
     sense = 1.0 if objective == "decoy" else -1.0
-    blind = min(
-        blind_controllers(problem),
-        key=lambda c: (
-            sense * objective_value(replace(problem, controller=c), objective, problem.identity())
-        ),
-    )
+    other = "goal" if objective == "decoy" else "decoy"
+
+    def key(controller: Controller) -> tuple[float, float, float]:
+        candidate = replace(problem, controller=controller)
+        value = sense * objective_value(candidate, objective, problem.identity())
+        short = round(_shortfall(problem, controller, min_goal), 12)
+        return (
+            short,
+            round(value, 12),
+            -sense * objective_value(candidate, other, problem.identity()),
+        )
+
+    return min(blind_controllers(problem), key=key)
+
+
+def _baselines(
+    problem: Problem,
+    objective: str,
+    budget: float,
+    deadline: Deadline,
+    min_goal: float | None = None,
+) -> tuple[Baseline, ...]:
+    blind = best_blind(problem, objective, min_goal)
     out = []
     for name, controller in (
         ("given controller", problem.controller),
@@ -629,6 +844,9 @@ def _baselines(
                 bound=worst.bound,
                 certified=worst.certified,
                 alteration=worst.changes,
+                nominal_goal=objective_value(
+                    replace(problem, controller=controller), "goal", problem.identity()
+                ),
             )
         )
     return tuple(out)

@@ -1574,10 +1574,28 @@ def _move_rule(controller: Controller, move: int, actions: tuple[str, ...]) -> d
     return {"action": shown(by_action, actions), "next": shown(by_next, nodes)}
 
 
+def controller_to_document(controller: Controller, pomdp: Pomdp) -> dict[str, Any]:
+    """The ``controller:`` entry of ``controller`` (``nodes``, ``initial``, ``rules``; a
+    randomized move as ``{name: probability}`` maps or joint ``moves``). Written alone to a
+    ``.yaml`` file, it loads back with ``--controller``."""
+    actions, obs, nodes = pomdp.actions, pomdp.observations, controller.nodes
+    rules = []
+    for o in range(pomdp.n_observations):
+        distinct = np.unique(controller.move[:, o])
+        if distinct.size == 1:
+            body = _move_rule(controller, distinct[0], actions)
+            rules.append({"node": WILDCARD, "obs": obs[o], **body})
+            continue
+        for node in range(controller.n_nodes):
+            body = _move_rule(controller, controller.move[node, o], actions)
+            rules.append({"node": nodes[node], "obs": obs[o], **body})
+    return {"nodes": list(nodes), "initial": nodes[controller.initial_node], "rules": rules}
+
+
 def problem_to_document(problem: Problem) -> dict[str, Any]:
     """The explicit ``misdirect/v1`` document of ``problem`` (loads back to the same model)."""
     pomdp, controller = problem.pomdp, problem.controller
-    states, actions, obs, nodes = pomdp.states, pomdp.actions, pomdp.observations, controller.nodes
+    states, actions, obs = pomdp.states, pomdp.actions, pomdp.observations
     coo = pomdp.transitions.tocoo()
     act, src = np.divmod(coo.row, pomdp.n_states)
     keep = ~pomdp.absorbing[src]
@@ -1592,16 +1610,6 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             strict=True,
         )
     ]
-    rules = []
-    for o in range(pomdp.n_observations):
-        distinct = np.unique(controller.move[:, o])
-        if distinct.size == 1:
-            body = _move_rule(controller, distinct[0], actions)
-            rules.append({"node": WILDCARD, "obs": obs[o], **body})
-            continue
-        for node in range(controller.n_nodes):
-            body = _move_rule(controller, controller.move[node, o], actions)
-            rules.append({"node": nodes[node], "obs": obs[o], **body})
     cost = problem.cost
     pairs: dict[str, dict[str, float]] = {}
     forbidden = []
@@ -1624,11 +1632,7 @@ def problem_to_document(problem: Problem) -> dict[str, Any]:
             "transitions": transitions,
             "absorbing": [states[s] for s in np.flatnonzero(pomdp.absorbing)],
         },
-        "controller": {
-            "nodes": list(nodes),
-            "initial": nodes[controller.initial_node],
-            "rules": rules,
-        },
+        "controller": controller_to_document(controller, pomdp),
         "deception": {
             "decoy": _decoy_document(problem),
             "budget": problem.budget,
