@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
+import math
 import signal
 import time
 from collections.abc import Iterable, Sequence
@@ -259,6 +261,17 @@ def solve(
             show_default=False,
         ),
     ] = None,
+    max_alarm: Annotated[
+        str | None,
+        typer.Option(
+            "--max-alarm",
+            help="δ, or a list (0,0.01,0.1,1): the best attack whose Pr(alarm) is at most δ "
+            "(0: the monitor never raises the alarm), each point certified for that "
+            "constraint; a list prints value against δ per budget (--json: every curve). "
+            "Implies --stealth (the consistency monitor) when no monitor is given.",
+            show_default=False,
+        ),
+    ] = None,
     cluster: ClusterOption = None,
     workers: WorkersOption = None,
     exact: ExactOption = False,
@@ -273,6 +286,9 @@ def solve(
     check_seconds(time_limit)
     if output is not None:
         check_output_path(output, field="-o")
+    deltas = None if max_alarm is None else parse_max_alarm(max_alarm)
+    if deltas is not None:
+        source = dataclasses.replace(source, stealth=True)  # a monitor: consistency if none
     with ProgressBars(enabled=not quiet, transient=True) as bars:
         if bars:  # the first phase, before the solver's own: reading and building the problem
             bars.track("solving", 0, 0, stage="loading")
@@ -304,6 +320,14 @@ def solve(
         )
     from misdirect.distributed import connect
 
+    if deltas is not None and len(deltas) > 1:
+        with connect(cluster, workers) as pool:
+            if pool is not None:
+                given["pool"] = pool
+            _solve_tradeoff(problem, method, requested, given, deltas, quiet, as_json)
+        return
+    if deltas is not None:
+        given["max_alarm"] = deltas[0]
     with connect(cluster, workers) as pool:
         if pool is not None:
             given["pool"] = pool
@@ -328,6 +352,70 @@ def solve(
         if output is not None:
             wrote(f"wrote {output} ({_written_what(output)})")
     _finish_solve(result, received)
+
+
+def parse_max_alarm(text: str) -> list[float]:
+    """``--max-alarm``: one probability or a comma-separated list, each in [0, 1]."""
+    deltas = []
+    for part in text.split(","):
+        try:
+            delta = float(part)
+        except ValueError:
+            raise ProblemError(
+                f"must be a probability in [0, 1] or a list of them, got {part.strip()!r}",
+                field="--max-alarm",
+            ) from None
+        if not (math.isfinite(delta) and 0.0 <= delta <= 1.0):
+            raise ProblemError(
+                f"must be a probability in [0, 1], got {part.strip()}", field="--max-alarm"
+            )
+        deltas.append(delta)
+    return sorted(set(deltas))
+
+
+def _solve_tradeoff(
+    problem: Problem,
+    method: str,
+    budgets: list[float] | None,
+    options: dict[str, Any],
+    deltas: list[float],
+    quiet: bool,
+    as_json: bool,
+) -> None:
+    """``--max-alarm`` with several δ: one certified curve per δ; a table of the value (and
+    its status) against δ per budget, or (``--json``) every curve."""
+    results = []
+    for delta in deltas:
+        result, received = _run_solve(
+            problem, method, budgets, {**options, "max_alarm": delta}, quiet or as_json, quiet
+        )
+        results.append(result)
+        if received:
+            _finish_solve(result, received)
+    if as_json:
+        payload = json_output.solve(results[-1])
+        payload["tradeoff"] = [r.to_dict() for r in results]
+        print_json(payload)
+    else:
+        table = Table(
+            title=escape(f"{problem.title} — value against Pr(alarm) <= δ ({results[0].method})")
+        )
+        table.add_column("budget", justify="right")
+        for delta in deltas:
+            table.add_column(f"δ = {delta:g}", justify="right")
+        for j, point in enumerate(results[0].curve):
+            cells = []
+            for result in results:
+                p = result.curve[j]
+                shown = "—" if p.status == "infeasible" else f"{p.probability:.6f}"
+                cells.append(f"{shown} {p.status}")
+            table.add_row(f"{point.budget:g}", *cells)
+        out.print(table)
+        _print_notes([*results[-1].notes])
+    warnings = [w for r in results for w in r.warnings]
+    _print_warnings(warnings)
+    if warnings:
+        raise typer.Exit(1)
 
 
 def _written_what(output: Path) -> str:

@@ -48,8 +48,9 @@ from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, 
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS
+from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS, NotApplicableError
 from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
+from misdirect.solvers.engines.alarm import Verdict, alarm_constraint
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions
@@ -399,7 +400,61 @@ class AutoSolver:
         seeds: Sequence[AlterationArray | None] | None = None,
     ) -> list[Solution]:
         """``seeds`` (one alteration per budget, optional) start the searches."""
+        if self.options.max_alarm is not None:
+            return self._constrained(problem, budgets, progress, deadline, seeds)
         return self._solve(problem, budgets, progress, deadline, seeds, may_split=True)
+
+    def _constrained(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+        deadline: Deadline | None,
+        seeds: Sequence[AlterationArray | None] | None,
+    ) -> list[Solution]:
+        """Under ``max_alarm``: the unconstrained problem first (every bound on it bounds
+        the constrained one); a budget whose answer is proven feasible keeps it, with that
+        bound. The others go to a constrained method: the enumeration where it applies and
+        the alterations are few enough, else the MILP with the alarm's system."""
+        assert self.options.max_alarm is not None
+        deadline = method_deadline(deadline, self.options.time_limit)
+        constraint = alarm_constraint(problem, self.options.max_alarm)
+        free = AutoSolver(
+            replace(self.options, max_alarm=None),
+            enumeration_limit=self.enumeration_limit,
+            node_limit=self.node_limit,
+        )
+        solutions = free.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds)
+        open_at = [
+            j
+            for j, s in enumerate(solutions)
+            if constraint.verdict(np.asarray(s.alteration)) != Verdict.FEASIBLE
+        ]
+        if not open_at:
+            return solutions
+        left = [budgets[j] for j in open_at]
+        count = prepare(constraint.decoy_problem, max(left)).space.count_within(
+            max(left), INCREMENTAL_LIMIT
+        )
+        options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
+        second: list[Solution] | None = None
+        method = "incremental"
+        if count <= INCREMENTAL_LIMIT:
+            try:
+                second = IncrementalSolver(options).solve(
+                    problem, left, progress=progress, deadline=deadline
+                )
+            except NotApplicableError:
+                second = None
+        if second is None:
+            method = "milp"
+            second = self.milp.solve(  # its options carry max_alarm
+                problem, left, progress=progress, deadline=deadline
+            )
+        why = "the unconstrained optimum breaks Pr(alarm) <= δ"
+        for j, answer in zip(open_at, _label(second, method, why), strict=True):
+            solutions[j] = answer
+        return solutions
 
     def _solve(
         self,

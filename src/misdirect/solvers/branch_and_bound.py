@@ -44,6 +44,7 @@ from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report, thread_count
 from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
+from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
 from misdirect.solvers.engines.covering import CoverRule, covering_bound
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
@@ -80,6 +81,8 @@ class _Curve:
     per_state_failed: bool = False
     # a segment search's root bound that holds at every budget (see ``note_segment_root``)
     every_budget_bound: float = np.inf
+    # max_alarm: an alteration's verdict (by its picks); None: unconstrained
+    accept: Callable[[Picks], Verdict] | None = None
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -125,7 +128,7 @@ class BranchAndBoundSolver:
 
     name: ClassVar[str] = "branch-and-bound"
     curve_is_free: ClassVar[bool] = False
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "pool")
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "pool", "max_alarm")
 
     def __init__(self, options: SolveOptions | None = None, *, max_nodes: int = 20_000):
         if max_nodes < 1:
@@ -153,18 +156,27 @@ class BranchAndBoundSolver:
         may have levelled off there, and the largest budget is solved first (see the module
         docstring)."""
         deadline = method_deadline(deadline, self.options.time_limit)
+        constraint = None
+        if self.options.max_alarm is not None:
+            # the decoy's value on the space of both values (engines.alarm); the incumbent
+            # keeps only alterations proven feasible, and the relaxation's bound (of the
+            # unconstrained problem) bounds the constrained one too
+            constraint = alarm_constraint(problem, self.options.max_alarm)
+            problem = constraint.decoy_problem
         instance = prepare(problem, max(budgets))
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+        accept = None if constraint is None else _feasibility(constraint, relax)
         curve = _Curve(
             instance,
             relax,
             policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
             # the segment search backs a budget up on large chains
             # with a pool, every budget goes to the (distributed) segment search
-            segment_backs_up=instance.chain.n_states >= SEGMENT_MIN_STATES
-            or self.options.pool is not None,
+            segment_backs_up=accept is None
+            and (instance.chain.n_states >= SEGMENT_MIN_STATES or self.options.pool is not None),
             max_budget=max(budgets),
+            accept=accept,
         )
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
@@ -220,8 +232,8 @@ class BranchAndBoundSolver:
     ) -> Solution:
         relax, budget = curve.relax, step.budget
         # with a pool, the per-state search bounds its root only: the pool takes the rest
-        nodes = 1 if self.options.pool is not None else self.max_nodes
-        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
+        nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
+        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -257,8 +269,12 @@ class BranchAndBoundSolver:
         if answer.status != Status.OPTIMAL and curve.segments is not None:
             curve.per_state_failed = True
             answer = self._segment_phase(curve, search, answer, step, deadline, progress)
-        curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
+        if search.best_value >= 0:  # under max_alarm, none may be feasible
+            curve.incumbent = (search.best_picks, search.best_value)
+        curve.policy = search.root_policy
         answer = curve.bounded(answer)
+        if curve.accept is not None and search.best_value < 0:
+            answer = _none_feasible(answer, search, relax)
         if answer.status != Status.OPTIMAL and _budget_blind(answer, curve.instance):
             answer.notes["trivial_bound"] = (
                 f"no budget-aware bound on this chain: {int(curve.instance.cycling.sum()):,} "
@@ -342,6 +358,30 @@ class BranchAndBoundSolver:
         )
 
 
+def _feasibility(
+    constraint: AlarmConstraint, relax: PerStateRelaxation
+) -> Callable[[Picks], Verdict]:
+    """An incumbent's test under ``max_alarm``: the verdict of the picks' alteration."""
+
+    def verdict(picks: Picks) -> Verdict:
+        return constraint.verdict(relax.alteration(picks))
+
+    return verdict
+
+
+def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
+    """A budget whose search kept no feasible alteration: ``infeasible`` where it finished and
+    no verdict was undecided, else open at its bound with no answer."""
+    proven = answer.status == Status.OPTIMAL and search.incumbent.undecided < 0
+    return replace(
+        answer,
+        alteration=relax.alteration((0,) * len(relax.order)),
+        solver_probability=None,
+        status=Status.INFEASIBLE if proven else answer.status,
+        upper_bound=None if proven else answer.upper_bound,
+    )
+
+
 def _budget_blind(answer: Solution, instance: AttackInstance) -> bool:
     """Whether an open answer's bound is the relaxations' own on a chain with end components:
     no better than their bound at the root (or none yet), which does not see the budget there."""
@@ -404,9 +444,10 @@ class _Search(IncumbentSearch):
         max_nodes: int,
         seed: tuple[Picks, float] | None,
         policy: np.ndarray,
+        accept: Callable[[Picks], Verdict] | None = None,
     ):
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget)
+        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget, accept=accept)
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy

@@ -24,7 +24,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from misdirect.core.attack import prepare
+from misdirect.core import tolerance
+from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.solvers import schedule
@@ -36,6 +37,7 @@ from misdirect.solvers.base import (
     thread_count,
 )
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint, best_feasible
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
     Enumerated,
@@ -53,7 +55,7 @@ __all__ = ["IncrementalSolver", "NotApplicableError"]
 class IncrementalSolver:
     name: ClassVar[str] = "incremental"
     curve_is_free: ClassVar[bool] = True
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads")
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "max_alarm")
 
     def __init__(
         self,
@@ -78,6 +80,9 @@ class IncrementalSolver:
     ) -> list[Solution]:
         deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
+        if self.options.max_alarm is not None:
+            constraint = alarm_constraint(problem, self.options.max_alarm)
+            return self._constrained(constraint, budgets, deadline, progress)
         instance = prepare(problem, top)
         enumeration = LowRankEnumeration(
             instance, threads=self.threads, max_evaluations=self.max_evaluations
@@ -142,6 +147,105 @@ class IncrementalSolver:
                     upper_bound=bound,
                     stats=stats,
                     stop_reason=StopReason.FINISHED if finished else cut,
+                )
+            )
+        return solutions
+
+    def _constrained(
+        self,
+        constraint: AlarmConstraint,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+    ) -> list[Solution]:
+        """Under ``max_alarm``: one enumeration of the decoy's value and one of the alarm's
+        (:mod:`~misdirect.solvers.engines.alarm`: the same space, valued in the same order),
+        then per budget the best alteration not shown infeasible by its alarm value, its
+        verdict decided exactly (:meth:`~.AlarmConstraint.verdict`)."""
+        problem, top = constraint.problem, max(budgets)
+        instance = prepare(constraint.decoy_problem, top)
+        alarm_instance = prepare(constraint.alarm_problem, top)
+        if not instance.space.choices:  # only the unaltered chain
+            identity = problem.identity()
+            feasible = constraint.verdict(identity) == Verdict.FEASIBLE
+            value = decoy_probability(problem, identity)
+            return [
+                Solution(
+                    b,
+                    identity,
+                    value if feasible else None,
+                    status=Status.OPTIMAL if feasible else Status.INFEASIBLE,
+                    upper_bound=value if feasible else None,
+                    stop_reason=StopReason.FINISHED,
+                )
+                for b in budgets
+            ]
+        if not _same_space(instance, alarm_instance):
+            raise NotApplicableError("the decoy's and the alarm's alteration spaces differ")
+        found = LowRankEnumeration(
+            instance, threads=self.threads, max_evaluations=self.max_evaluations
+        ).run(top, deadline=deadline, progress=progress)
+        alarms = LowRankEnumeration(
+            alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
+        ).run(top, deadline=deadline)
+        aligned = alarms.values.size == found.values.size and np.array_equal(
+            alarms.costs, found.costs
+        )
+        stats = IncrementalStats(
+            evaluations=found.evaluations + alarms.evaluations,
+            factorisations=found.base_solves + alarms.base_solves,
+            inner_observations=len(found.inner),
+            outer_observations=len(found.outer),
+        )
+        # the search's own alarm values rule out what lies clearly above δ
+        excluded = alarms.values > constraint.limit + tolerance.ALARM_MARGIN if aligned else None
+
+        def alteration(index: int) -> np.ndarray:
+            return instance.space.alteration(problem, found.picks(index))
+
+        def verdict(index: int) -> Verdict:
+            estimate = float(alarms.values[index]) if aligned else None
+            return constraint.verdict(alteration(index), estimate)
+
+        solutions = []
+        top_value = problem.objective.max_value
+        cut = StopReason.cut(deadline.cancelled)
+        for budget in budgets:
+            complete = found.complete_for(budget) and (aligned or alarms.complete_for(budget))
+            index, undecided = best_feasible(
+                found.costs,
+                found.values,
+                budget,
+                found.scale,
+                verdict,
+                excluded=excluded,
+                tie=tolerance.NEAR_TIE,
+                terms=found.terms,
+            )
+            if index is None:
+                proven = complete and undecided < 0
+                solutions.append(
+                    Solution(
+                        budget,
+                        problem.identity(),
+                        None,
+                        status=Status.INFEASIBLE if proven else Status.TIME_LIMIT,
+                        upper_bound=None if proven else top_value,
+                        stats=stats,
+                        stop_reason=StopReason.FINISHED if complete else cut,
+                    )
+                )
+                continue
+            value = float(found.values[index])
+            solutions.append(
+                Solution(
+                    budget,
+                    alteration(index),
+                    value,
+                    status=Status.OPTIMAL if complete else Status.TIME_LIMIT,
+                    upper_bound=max(value, undecided) if complete else top_value,
+                    stats=stats,
+                    stop_reason=StopReason.FINISHED if complete else cut,
                 )
             )
         return solutions
@@ -215,6 +319,15 @@ def _best_fitting_value(found: Enumerated, budget: float, answer: float) -> floa
         if scale.fits_exactly(found.terms(i), budget):
             return float(found.values[i])
     return best
+
+
+def _same_space(first: AttackInstance, second: AttackInstance) -> bool:
+    """Whether two instances offer the same options, in the same order."""
+    a, b = first.space.choices, second.space.choices
+    return len(a) == len(b) and all(
+        x.observation == y.observation and np.array_equal(x.targets, y.targets)
+        for x, y in zip(a, b, strict=True)
+    )
 
 
 def _covering(runs: list[tuple[float, Enumerated]], budget: float) -> Enumerated:

@@ -78,6 +78,9 @@ class SolveOptions:
     # branch-and-bound: the segment search's subtrees run on this pool (a Dask cluster's,
     # misdirect.distributed.connect); None: in this process
     pool: TaskPool | None = field(default=None, compare=False)
+    # the best attack subject to Pr(alarm) <= max_alarm, on a monitored problem (every method
+    # takes it: misdirect.solvers.engines.alarm)
+    max_alarm: float | None = None
 
     def __post_init__(self) -> None:
         check_time_limit(self.time_limit)
