@@ -19,7 +19,7 @@ from misdirect.cli import app
 from misdirect.core.monitor import with_monitor
 from misdirect.errors import OptionError
 from misdirect.scenarios import random_problem
-from tests.test_monitor import (
+from test_monitor import (
     HAND_MONITOR,
     _hand,
     _hand_step,

@@ -59,7 +59,7 @@ would be margin that no relative tolerance covers on a problem whose optimum is 
 
 ALARM_MARGIN = 1e-7
 """A search's own (unproven) value of Pr(alarm) decides an alteration infeasible under
-``--max-alarm δ`` only when it exceeds δ by more than this; closer, the exact evaluator (or,
+``max_alarm`` (δ) only when it exceeds δ by more than this; closer, the exact evaluator (or,
 for δ = 0, the graph) decides."""
 
 FEASIBILITY = 1e-9

@@ -48,9 +48,9 @@ from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, 
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import Verdict, alarm_constraint
 from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS, NotApplicableError
 from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
-from misdirect.solvers.engines.alarm import Verdict, alarm_constraint
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
 from misdirect.solvers.options import SolveOptions

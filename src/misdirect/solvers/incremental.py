@@ -37,7 +37,12 @@ from misdirect.solvers.base import (
     thread_count,
 )
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint, best_feasible
+from misdirect.solvers.engines.alarm import (
+    AlarmConstraint,
+    Verdict,
+    alarm_constraint,
+    best_feasible,
+)
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
     Enumerated,

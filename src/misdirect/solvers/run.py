@@ -36,13 +36,13 @@ from misdirect.solvers.certification import (
     exact_scope,
     take_evidence,
 )
+from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError, call_deadline
 from misdirect.solvers.engines.alarm import (
     AlarmConstraint,
     Verdict,
     alarm_value,
     constraint_scope,
 )
-from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError, call_deadline
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
@@ -596,13 +596,10 @@ def solve(
         ]
     curve, warnings = _exact_curve(problem, solutions, method_solver.name, exact_value)
     identity = problem.identity()
-    unaltered: tuple[np.ndarray, float, float] | None = (
-        identity,
-        exact_value(identity),
-        exact_value.error(identity),
-    )
+    nothing = (identity, exact_value(identity), exact_value.error(identity))
+    unaltered: tuple[np.ndarray, float, float] | None = nothing
     if constraint is not None:
-        warnings += _feasible_answers(curve, constraint, method_solver.name, unaltered)
+        warnings += _feasible_answers(curve, constraint, method_solver.name, nothing)
         if constraint.verdict(identity) != Verdict.FEASIBLE:
             unaltered = None  # altering nothing is no answer to carry up
     certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))

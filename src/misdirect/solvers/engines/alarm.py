@@ -62,11 +62,14 @@ def check_max_alarm(problem: Problem, max_alarm: float) -> float:
             f"must be a probability in [0, 1], got {max_alarm!r}", parameter="max_alarm"
         ) from None
     if not (math.isfinite(limit) and 0.0 <= limit <= 1.0):
-        raise OptionError(f"must be a probability in [0, 1], got {max_alarm}", parameter="max_alarm")
+        raise OptionError(
+            f"must be a probability in [0, 1], got {max_alarm}", parameter="max_alarm"
+        )
     if problem.alarm_state is None:
         raise OptionError(
             "bounds Pr(alarm), and this problem has no alarm: give it a monitor "
-            "(with_monitor, or --monitor / --stealth on the command line)",
+            "(misdirect.core.monitor.with_monitor; the command line's monitor and stealth "
+            "options)",
             parameter="max_alarm",
         )
     return limit

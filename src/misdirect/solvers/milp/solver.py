@@ -53,6 +53,7 @@ from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import alarm_constraint
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.backends import (
@@ -62,7 +63,6 @@ from misdirect.solvers.milp.backends import (
     Tolerances,
     make_backend,
 )
-from misdirect.solvers.engines.alarm import alarm_constraint
 from misdirect.solvers.milp.compact import build_compact
 from misdirect.solvers.milp.model import MilpModel
 from misdirect.solvers.milp.paper import build_paper
