@@ -384,14 +384,18 @@ def _solve_tradeoff(
 ) -> None:
     """``--max-alarm`` with several δ: one certified curve per δ; a table of the value (and
     its status) against δ per budget, or (``--json``) every curve."""
+    from misdirect.core.attack import shared_preparation
+    from misdirect.solvers.engines.alarm import tradeoff_scope
+
     results = []
-    for delta in deltas:
-        result, received = _run_solve(
-            problem, method, budgets, {**options, "max_alarm": delta}, quiet or as_json, quiet
-        )
-        results.append(result)
-        if received:
-            _finish_solve(result, received)
+    with shared_preparation(), tradeoff_scope(problem):  # what δ does not change, once
+        for delta in deltas:
+            result, received = _run_solve(
+                problem, method, budgets, {**options, "max_alarm": delta}, quiet or as_json, quiet
+            )
+            results.append(result)
+            if received:
+                _finish_solve(result, received)
     if as_json:
         payload = json_output.solve(results[-1])
         payload["tradeoff"] = [r.to_dict() for r in results]

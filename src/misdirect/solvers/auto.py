@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import ClassVar
+from typing import ClassVar, cast
 
 import numpy as np
 
@@ -424,7 +424,16 @@ class AutoSolver:
             enumeration_limit=self.enumeration_limit,
             node_limit=self.node_limit,
         )
-        solutions = free.solve(problem, budgets, progress=progress, deadline=deadline, seeds=seeds)
+        key = ("auto", tuple(budgets))  # a trade-off curve's other δ solved it already
+        memo = constraint.memo.get(key)
+        if memo is None:
+            solutions = free.solve(
+                problem, budgets, progress=progress, deadline=deadline, seeds=seeds
+            )
+            if all(s.status == Status.OPTIMAL for s in solutions):
+                constraint.memo[key] = list(solutions)
+        else:
+            solutions = list(cast(list[Solution], memo))
         open_at = [
             j
             for j, s in enumerate(solutions)

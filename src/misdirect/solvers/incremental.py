@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import ClassVar, cast
 
 import numpy as np
 
@@ -187,12 +187,19 @@ class IncrementalSolver:
             ]
         if not _same_space(instance, alarm_instance):
             raise NotApplicableError("the decoy's and the alarm's alteration spaces differ")
-        found = LowRankEnumeration(
-            instance, threads=self.threads, max_evaluations=self.max_evaluations
-        ).run(top, deadline=deadline, progress=progress)
-        alarms = LowRankEnumeration(
-            alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
-        ).run(top, deadline=deadline)
+        key = ("incremental", top)  # a trade-off curve's other δ enumerated it already
+        memo = constraint.memo.get(key)
+        if memo is None:
+            found = LowRankEnumeration(
+                instance, threads=self.threads, max_evaluations=self.max_evaluations
+            ).run(top, deadline=deadline, progress=progress)
+            alarms = LowRankEnumeration(
+                alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
+            ).run(top, deadline=deadline)
+            if found.complete_for(top) and alarms.complete_for(top):
+                constraint.memo[key] = (found, alarms)
+        else:
+            found, alarms = cast(tuple[Enumerated, Enumerated], memo)
         aligned = alarms.values.size == found.values.size and np.array_equal(
             alarms.costs, found.costs
         )

@@ -41,7 +41,9 @@ from misdirect.solvers.engines.alarm import (
     AlarmConstraint,
     Verdict,
     alarm_value,
+    check_max_alarm,
     constraint_scope,
+    tradeoff_scope,
 )
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
@@ -552,11 +554,9 @@ def solve(
         "verbose": verbose,
         "pool": pool,
     }
-    constraint = None
-    if max_alarm is not None:
-        constraint = AlarmConstraint(problem, max_alarm)  # checks δ and the monitor
-        if not constraint.trivial:  # δ = 1 is the unconstrained problem
-            overrides["max_alarm"] = constraint.limit
+    limit = None if max_alarm is None else check_max_alarm(problem, max_alarm)
+    if limit is not None and limit < 1.0:  # δ = 1 is the unconstrained problem
+        overrides["max_alarm"] = limit
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)
     method, implying = implied_method(method, options.given())  # auto + a MILP option: milp
@@ -565,6 +565,8 @@ def solve(
     budgets, cap, clamped_from = _budgets(problem, budgets, method_solver.curve_is_free, notes)
     if problem.budget > cap:
         problem = problem.with_budget(cap)
+    # the methods' problem: its constraint is the one they find (engines.alarm)
+    constraint = None if limit is None else AlarmConstraint(problem, limit)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
     deadline = call_deadline(deadline, options.time_limit, cancel)
@@ -622,6 +624,36 @@ def solve(
         objective=problem.objective.kind,
         max_alarm=None if constraint is None else constraint.limit,
     )
+
+
+def solve_tradeoff(
+    problem: Problem, max_alarm: Sequence[float], **options: Any
+) -> list[SolveResult]:
+    """The trade-off between value and stealth: :func:`solve` once per δ of ``max_alarm``
+    (in increasing order), each curve certified for Pr(alarm) <= δ. ``options`` are
+    :func:`solve`'s (``budgets``, ``method``, ``time_limit`` per δ, ...). The solves share
+    what δ does not change: the prepared instances, each alteration's exact Pr(alarm), the
+    enumerations' tables and auto's unconstrained answers, so a curve of five δ costs little
+    more than its hardest point.
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.core.monitor import consistency_monitor, with_monitor
+    >>> from misdirect.scenarios import paper_grid
+    >>> grid = paper_grid(5)
+    >>> watched = with_monitor(grid, consistency_monitor(grid))
+    >>> curves = misdirect.solve_tradeoff(watched, [0, 0.25], budgets=[1], method="exhaustive")
+    >>> [(c.max_alarm, round(c.probability, 6), round(c.alarm, 6)) for c in curves]
+    [(0.0, 0.089186, 0.0), (0.25, 0.647903, 0.210195)]
+    """
+    if "max_alarm" in options:
+        raise TypeError("solve_tradeoff() takes max_alarm once, as its list of δ")
+    deltas = sorted({float(d) for d in max_alarm})
+    if not deltas:
+        raise OptionError("no δ to solve for: give at least one", parameter="max_alarm")
+    with shared_preparation(), tradeoff_scope(problem):
+        return [solve(problem, max_alarm=delta, **options) for delta in deltas]
 
 
 def _constraint_scope(constraint: AlarmConstraint | None) -> contextlib.AbstractContextManager[Any]:

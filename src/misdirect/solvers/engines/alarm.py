@@ -75,15 +75,16 @@ def check_max_alarm(problem: Problem, max_alarm: float) -> float:
     return limit
 
 
-class AlarmConstraint:
-    """Pr(alarm) ≤ ``limit`` on the monitored ``problem``: its two valued problems, the exact
-    alarm value of each alteration (with its proven error) and the verdicts, each once."""
+class AlarmValues:
+    """What does not depend on δ, shared by the solves of one trade-off curve
+    (:func:`tradeoff_scope`): the two valued problems, each alteration's exact Pr(alarm), and
+    what a method computed once for every δ (``memo``: the enumerations' tables, auto's
+    unconstrained answers)."""
 
-    def __init__(self, problem: Problem, limit: float):
+    def __init__(self, problem: Problem):
         self.problem = problem
-        self.limit = check_max_alarm(problem, limit)
         self._alarms: dict[bytes, Bounded] = {}
-        self._verdicts: dict[bytes, Verdict] = {}
+        self.memo: dict[tuple[object, ...], object] = {}
 
     @cached_property
     def sink(self) -> np.ndarray:
@@ -115,11 +116,6 @@ class AlarmConstraint:
             decoy_sets=(DecoySet("decoy", 0.0, decoy), DecoySet("alarm", 1.0, self.sink)),
         )
 
-    @property
-    def trivial(self) -> bool:
-        """δ ≥ 1: every alteration is feasible."""
-        return self.limit >= 1.0
-
     def alarm(self, alteration: AlterationArray) -> Bounded:
         """Pr(alarm before decoy) of ``alteration`` and a proven bound on its error."""
         alpha = np.asarray(alteration, dtype=np.int64)
@@ -127,6 +123,48 @@ class AlarmConstraint:
         if key not in self._alarms:
             self._alarms[key] = alarm_value(self.problem, alpha)
         return self._alarms[key]
+
+
+class AlarmConstraint:
+    """Pr(alarm) ≤ ``limit`` on the monitored ``problem``: its two valued problems, the exact
+    alarm value of each alteration (with its proven error) and the verdicts, each once."""
+
+    def __init__(self, problem: Problem, limit: float):
+        self.problem = problem
+        self.limit = check_max_alarm(problem, limit)
+        shared = _shared.get()
+        self.values = shared if shared is not None and _same(shared.problem, problem) else None
+        if self.values is None:
+            self.values = AlarmValues(problem)
+        self._verdicts: dict[bytes, Verdict] = {}
+
+    @property
+    def decoy_problem(self) -> Problem:
+        """:attr:`AlarmValues.decoy_problem`."""
+        assert self.values is not None
+        return self.values.decoy_problem
+
+    @property
+    def alarm_problem(self) -> Problem:
+        """:attr:`AlarmValues.alarm_problem`."""
+        assert self.values is not None
+        return self.values.alarm_problem
+
+    @property
+    def memo(self) -> dict[tuple[object, ...], object]:
+        """:attr:`AlarmValues.memo`: what the solves of every δ share."""
+        assert self.values is not None
+        return self.values.memo
+
+    @property
+    def trivial(self) -> bool:
+        """δ ≥ 1: every alteration is feasible."""
+        return self.limit >= 1.0
+
+    def alarm(self, alteration: AlterationArray) -> Bounded:
+        """Pr(alarm before decoy) of ``alteration`` and a proven bound on its error."""
+        assert self.values is not None
+        return self.values.alarm(alteration)
 
     def verdict(self, alteration: AlterationArray, estimate: float | None = None) -> Verdict:
         """Feasible, infeasible or undecided. ``estimate``: a search's own value of its alarm;
@@ -144,7 +182,9 @@ class AlarmConstraint:
 
     def _decide(self, alpha: np.ndarray) -> Verdict:
         if self.limit == 0.0:  # exactly: can the run reach the sink at all?
-            reached = _reaches_sink(self.problem, build_product(self.problem, alpha), self.sink)
+            assert self.values is not None
+            chain = build_product(self.problem, alpha)
+            reached = _reaches_sink(self.problem, chain, self.values.sink)
             return Verdict.INFEASIBLE if reached else Verdict.FEASIBLE
         value, error = self.alarm(alpha)
         if value + error <= self.limit:
@@ -152,6 +192,18 @@ class AlarmConstraint:
         if value - error > self.limit:
             return Verdict.INFEASIBLE
         return Verdict.UNDECIDED
+
+
+def _same(first: Problem, second: Problem) -> bool:
+    """The same problem but perhaps for its budget (``with_budget`` keeps every part)."""
+    return first is second or (
+        first.pomdp is second.pomdp
+        and first.controller is second.controller
+        and first.cost is second.cost
+        and first.decoy is second.decoy
+        and first.decoy_sets == second.decoy_sets
+        and first.alarm_state == second.alarm_state
+    )
 
 
 def alarm_value(problem: Problem, alteration: AlterationArray) -> Bounded:
@@ -208,6 +260,18 @@ def best_feasible(
 
 
 _current: ContextVar[AlarmConstraint | None] = ContextVar("misdirect_alarm", default=None)
+_shared: ContextVar[AlarmValues | None] = ContextVar("misdirect_alarm_values", default=None)
+
+
+@contextlib.contextmanager
+def tradeoff_scope(problem: Problem) -> Iterator[AlarmValues]:
+    """Within this block, every :class:`AlarmConstraint` of ``problem`` (whatever its δ)
+    shares one :class:`AlarmValues`: a trade-off curve pays once for what δ does not change."""
+    token = _shared.set(AlarmValues(problem))
+    try:
+        yield _shared.get()  # type: ignore[misc]
+    finally:
+        _shared.reset(token)
 
 
 @contextlib.contextmanager
