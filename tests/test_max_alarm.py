@@ -76,6 +76,24 @@ def test_random_monitors_every_method_against_brute_force(seed):
             _check(result, best[delta], valued, delta, method)
 
 
+def test_incremental_with_the_alarm_enumerated(monkeypatch):
+    """The enumeration's second table (every alteration's alarm), which a constraint that cuts
+    deep calls for: the same answers as the lazy walk's."""
+    from misdirect.solvers import incremental
+
+    monkeypatch.setattr(incremental, "LAZY_VERDICTS", 0)
+    seed = 33
+    problem = random_problem(seed, randomized=True)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    best, valued = _brute_force(problem, step, "m0", problem.budget, DELTAS)
+    curves = misdirect.solve_tradeoff(
+        watched, DELTAS, budgets=[problem.budget], method="incremental"
+    )
+    for delta, result in zip(DELTAS, curves, strict=True):
+        _check(result, best[delta], valued, delta, "incremental")
+
+
 def test_delta_one_is_the_plain_stealth_optimum():
     problem = random_problem(1)
     monitor, _ = _random_monitor(problem, np.random.default_rng(1), 3)

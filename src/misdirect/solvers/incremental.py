@@ -56,6 +56,10 @@ from misdirect.solvers.status import Status, StopReason
 
 __all__ = ["IncrementalSolver", "NotApplicableError"]
 
+# under max_alarm, the exact verdicts tried on the best candidates before every alarm is
+# enumerated (one verdict costs about what valuing one alteration on its own chain does)
+LAZY_VERDICTS = 256
+
 
 class IncrementalSolver:
     name: ClassVar[str] = "incremental"
@@ -163,10 +167,11 @@ class IncrementalSolver:
         deadline: Deadline,
         progress: ProgressCallback | None,
     ) -> list[Solution]:
-        """Under ``max_alarm``: one enumeration of the decoy's value and one of the alarm's
-        (:mod:`~misdirect.solvers.engines.alarm`: the same space, valued in the same order),
-        then per budget the best alteration not shown infeasible by its alarm value, its
-        verdict decided exactly (:meth:`~.AlarmConstraint.verdict`)."""
+        """Under ``max_alarm``: the enumeration of the decoy's value over the space of both
+        values (:mod:`~misdirect.solvers.engines.alarm`), then per budget the best alteration
+        proven feasible (:meth:`~.AlarmConstraint.verdict`), best candidates first. Past
+        :data:`LAZY_VERDICTS` exact verdicts, the alarm's value is enumerated too (the same
+        space, valued in the same order), and rules out what lies clearly above δ."""
         problem, top = constraint.problem, max(budgets)
         instance = prepare(constraint.decoy_problem, top)
         alarm_instance = prepare(constraint.alarm_problem, top)
@@ -187,52 +192,42 @@ class IncrementalSolver:
             ]
         if not _same_space(instance, alarm_instance):
             raise NotApplicableError("the decoy's and the alarm's alteration spaces differ")
-        key = ("incremental", top)  # a trade-off curve's other δ enumerated it already
-        memo = constraint.memo.get(key)
-        if memo is None:
+        memo = constraint.memo  # a trade-off curve's other δ may have enumerated them
+        found = cast(Enumerated | None, memo.get(("incremental", top)))
+        if found is None:
             found = LowRankEnumeration(
                 instance, threads=self.threads, max_evaluations=self.max_evaluations
             ).run(top, deadline=deadline, progress=progress)
-            alarms = LowRankEnumeration(
-                alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
-            ).run(top, deadline=deadline)
-            if found.complete_for(top) and alarms.complete_for(top):
-                constraint.memo[key] = (found, alarms)
-        else:
-            found, alarms = cast(tuple[Enumerated, Enumerated], memo)
-        aligned = alarms.values.size == found.values.size and np.array_equal(
-            alarms.costs, found.costs
-        )
+            if found.complete_for(top):
+                memo[("incremental", top)] = found
+        alarms = cast(Enumerated | None, memo.get(("incremental alarms", top)))
+        picked: list[tuple[int | None, float]] | None = None
+        if alarms is None:  # lazily: the exact verdicts of the best candidates first
+            try:
+                picked = self._pick(
+                    constraint, instance, found, budgets, None, _lazy(found, constraint)
+                )
+            except _TooManyVerdictsError:  # the constraint cuts deep: value every alarm
+                alarms = LowRankEnumeration(
+                    alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
+                ).run(top, deadline=deadline)
+                if alarms.complete_for(top):
+                    memo[("incremental alarms", top)] = alarms
+        if picked is None:
+            picked = self._pick(constraint, instance, found, budgets, alarms, None)
+        aligned = alarms is not None and np.array_equal(alarms.costs, found.costs)
         stats = IncrementalStats(
-            evaluations=found.evaluations + alarms.evaluations,
-            factorisations=found.base_solves + alarms.base_solves,
+            evaluations=found.evaluations + (0 if alarms is None else alarms.evaluations),
+            factorisations=found.base_solves + (0 if alarms is None else alarms.base_solves),
             inner_observations=len(found.inner),
             outer_observations=len(found.outer),
         )
-        # the search's own alarm values rule out what lies clearly above δ
-        excluded = alarms.values > constraint.limit + tolerance.ALARM_MARGIN if aligned else None
-
-        def alteration(index: int) -> np.ndarray:
-            return instance.space.alteration(problem, found.picks(index))
-
-        def verdict(index: int) -> Verdict:
-            estimate = float(alarms.values[index]) if aligned else None
-            return constraint.verdict(alteration(index), estimate)
-
         solutions = []
         top_value = problem.objective.max_value
         cut = StopReason.cut(deadline.cancelled)
-        for budget in budgets:
-            complete = found.complete_for(budget) and (aligned or alarms.complete_for(budget))
-            index, undecided = best_feasible(
-                found.costs,
-                found.values,
-                budget,
-                found.scale,
-                verdict,
-                excluded=excluded,
-                tie=tolerance.NEAR_TIE,
-                terms=found.terms,
+        for budget, (index, undecided) in zip(budgets, picked, strict=True):
+            complete = found.complete_for(budget) and (
+                alarms is None or aligned or alarms.complete_for(budget)
             )
             if index is None:
                 proven = complete and undecided < 0
@@ -252,7 +247,7 @@ class IncrementalSolver:
             solutions.append(
                 Solution(
                     budget,
-                    alteration(index),
+                    instance.space.alteration(problem, found.picks(index)),
                     value,
                     status=Status.OPTIMAL if complete else Status.TIME_LIMIT,
                     upper_bound=max(value, undecided) if complete else top_value,
@@ -261,6 +256,47 @@ class IncrementalSolver:
                 )
             )
         return solutions
+
+    @staticmethod
+    def _pick(
+        constraint: AlarmConstraint,
+        instance: AttackInstance,
+        found: Enumerated,
+        budgets: Sequence[float],
+        alarms: Enumerated | None,
+        most: int | None,
+    ) -> list[tuple[int | None, float]]:
+        """Per budget, :func:`~misdirect.solvers.engines.alarm.best_feasible` over ``found``:
+        with ``alarms`` (aligned), those clearly above δ ruled out by their value; ``most``:
+        raise :class:`_TooManyVerdictsError` past that many exact verdicts."""
+        aligned = alarms is not None and np.array_equal(alarms.costs, found.costs)
+        excluded = None
+        if alarms is not None and aligned:
+            excluded = alarms.values > constraint.limit + tolerance.ALARM_MARGIN
+        asked = 0
+
+        def verdict(index: int) -> Verdict:
+            nonlocal asked
+            asked += 1
+            if most is not None and asked > most:
+                raise _TooManyVerdictsError
+            estimate = float(alarms.values[index]) if alarms is not None and aligned else None
+            alpha = instance.space.alteration(constraint.problem, found.picks(index))
+            return constraint.verdict(alpha, estimate)
+
+        return [
+            best_feasible(
+                found.costs,
+                found.values,
+                budget,
+                found.scale,
+                verdict,
+                excluded=excluded,
+                tie=tolerance.NEAR_TIE,
+                terms=found.terms,
+            )
+            for budget in budgets
+        ]
 
     @staticmethod
     def _runs(
@@ -331,6 +367,20 @@ def _best_fitting_value(found: Enumerated, budget: float, answer: float) -> floa
         if scale.fits_exactly(found.terms(i), budget):
             return float(found.values[i])
     return best
+
+
+def _lazy(found: Enumerated, constraint: AlarmConstraint) -> int | None:
+    """How many exact verdicts the lazy walk may ask for (None: any): for δ = 0 any (a
+    verdict is a graph search, cheaper than valuing an alarm); where the enumeration valued
+    each alteration on its own chain, as many as it valued (a verdict costs about one); else
+    :data:`LAZY_VERDICTS` (low-rank updates value the alarms far more cheaply)."""
+    if constraint.limit == 0.0:
+        return None
+    return int(found.values.size) if not found.inner else LAZY_VERDICTS
+
+
+class _TooManyVerdictsError(Exception):
+    """The lazy walk asked for more exact verdicts than enumerating every alarm would cost."""
 
 
 def _same_space(first: AttackInstance, second: AttackInstance) -> bool:
