@@ -157,11 +157,11 @@ class BranchAndBoundSolver:
         docstring)."""
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = None
-        if self.options.max_alarm is not None:
+        if self.options.alarm_limit is not None:
             # the decoy's value on the space of both values (engines.alarm); the incumbent
             # keeps only alterations proven feasible, and the relaxation's bound (of the
             # unconstrained problem) bounds the constrained one too
-            constraint = alarm_constraint(problem, self.options.max_alarm)
+            constraint = alarm_constraint(problem, self.options.alarm_limit)
             problem = constraint.decoy_problem
         instance = prepare(problem, max(budgets))
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with

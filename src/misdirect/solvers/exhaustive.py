@@ -58,8 +58,8 @@ class ExhaustiveSolver:
         top = max(budgets)
         constraint = (
             None
-            if self.options.max_alarm is None
-            else alarm_constraint(problem, self.options.max_alarm)
+            if self.options.alarm_limit is None
+            else alarm_constraint(problem, self.options.alarm_limit)
         )
         # under a constraint, the space of both values (engines.alarm): the same values
         space = prepare(problem if constraint is None else constraint.decoy_problem, top).space

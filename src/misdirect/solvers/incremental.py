@@ -89,8 +89,8 @@ class IncrementalSolver:
     ) -> list[Solution]:
         deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
-        if self.options.max_alarm is not None:
-            constraint = alarm_constraint(problem, self.options.max_alarm)
+        if self.options.alarm_limit is not None:
+            constraint = alarm_constraint(problem, self.options.alarm_limit)
             return self._constrained(constraint, budgets, deadline, progress)
         instance = prepare(problem, top)
         enumeration = LowRankEnumeration(

@@ -91,6 +91,12 @@ class SolveOptions:
                 f"must be a non-negative finite number, got {self.mip_gap}", parameter="mip_gap"
             )
 
+    @property
+    def alarm_limit(self) -> float | None:
+        """``max_alarm`` where it constrains anything: below 1 (every alteration keeps
+        Pr(alarm) <= 1, so δ = 1 is the unconstrained problem); else None."""
+        return self.max_alarm if self.max_alarm is not None and self.max_alarm < 1.0 else None
+
     def given(self) -> list[str]:
         """The options set (not None), in declaration order."""
         return [f.name for f in fields(self) if getattr(self, f.name) is not None]

@@ -555,7 +555,7 @@ def solve(
         "pool": pool,
     }
     limit = None if max_alarm is None else check_max_alarm(problem, max_alarm)
-    if limit is not None and limit < 1.0:  # δ = 1 is the unconstrained problem
+    if limit is not None:  # the methods solve δ = 1 unconstrained (SolveOptions.alarm_limit)
         overrides["max_alarm"] = limit
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)

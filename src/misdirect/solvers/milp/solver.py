@@ -176,7 +176,7 @@ class MilpSolver:
             verbose=bool(options.verbose),
         )
         make_backend(self.backend_name, self.options)  # fail early on a missing backend
-        self.max_alarm = options.max_alarm
+        self.max_alarm = options.alarm_limit
 
     def solve(
         self,
