@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/defence.py --out $(BENCH_OUT)
 	$(BIN)/python bench/proofs_on_cycles.py --out $(BENCH_OUT)
 	$(BIN)/python bench/covering_bound.py --out $(BENCH_OUT)
+	$(BIN)/python bench/stealth.py --out $(BENCH_OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench
