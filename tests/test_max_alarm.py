@@ -19,6 +19,7 @@ from misdirect.cli import app
 from misdirect.core.monitor import with_monitor
 from misdirect.errors import OptionError
 from misdirect.scenarios import random_problem
+from result_schema import checked
 from test_monitor import (
     HAND_MONITOR,
     _hand,
@@ -144,13 +145,28 @@ def test_cli_tradeoff_table_and_json():
     assert "δ = 0.25" in shown.output and "0.647903 optimal" in shown.output
     written = runner.invoke(app, [*args, "--max-alarm", "0,0.25", "--json"])
     assert written.exit_code == 0, written.output
-    curves = {c["max_alarm"]: c for c in json.loads(written.output)["tradeoff"]}
+    curves = {c["max_alarm"]: c for c in checked(written.output)["tradeoff"]}
     top = curves[0.25]["curve"][-1]
     assert top["value"] == pytest.approx(0.647903, abs=1e-6)
     assert top["alarm"] == pytest.approx(0.210195, abs=1e-6)
     never = curves[0.0]["curve"][-1]
     assert never["alarm"] == 0.0 and never["status"] == "optimal"
     assert never["value"] < top["value"]
+    single = checked(runner.invoke(app, [*args, "--max-alarm", "0.25", "--json"]).output)
+    assert single["max_alarm"] == 0.25 and single["value"] == pytest.approx(top["value"])
+    assert single["curve"][-1]["alarm_error"] is not None
+
+
+def test_an_infeasible_budget_in_the_json():
+    """Seed 1's monitor raises the alarm on the unaltered robot (0.78): nothing keeps
+    Pr(alarm) <= 0.2 (brute force in the test above), status infeasible, schema-valid."""
+    problem = random_problem(1, randomized=True)
+    monitor, _ = _random_monitor(problem, np.random.default_rng(1), 3)
+    result = misdirect.solve(with_monitor(problem, monitor), method="exhaustive", max_alarm=0.2)
+    assert str(result.status) == "infeasible"
+    from misdirect.report import json_output
+
+    checked(json.dumps(json_output.solve(result)))
 
 
 def test_bench_stealth_reduced_mode(tmp_path):

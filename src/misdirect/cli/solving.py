@@ -536,7 +536,8 @@ def _finish_solve(result: SolveResult, received: list[int]) -> None:
 def _print_solve(
     result: SolveResult, problem: Problem, exact: Sequence[ExactValue | None] | None = None
 ) -> None:
-    table = Table(title=escape(f"{problem.title} — optimal alterations ({result.method})"))
+    within = "" if result.max_alarm is None else f", Pr(alarm) <= {result.max_alarm:g}"
+    table = Table(title=escape(f"{problem.title} — optimal alterations{within} ({result.method})"))
     bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column(f"max {problem.objective.label}", justify="right")
@@ -550,6 +551,8 @@ def _print_solve(
     table.add_column("status")
     if exact is not None:  # what the model as written gives: digits past the 6th can differ
         table.add_column("as written (exact)", justify="right")
+    if result.max_alarm is not None:  # --max-alarm: the constrained probability beside
+        table.add_column("Pr(alarm)", justify="right")
     for i, point in enumerate(result.curve):
         bound = (
             []
@@ -557,6 +560,8 @@ def _print_solve(
             else ["—" if point.upper_bound is None else f"{point.upper_bound:.6f}"]
         )
         written = [] if exact is None else [_as_written(exact[i])]
+        if result.max_alarm is not None:
+            written.append("—" if point.alarm is None else f"{point.alarm:.6f}")
         table.add_row(
             f"{point.budget:g}",
             f"{point.probability:.6f}",
