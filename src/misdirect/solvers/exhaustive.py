@@ -98,7 +98,14 @@ class ExhaustiveSolver:
         complete = [finished or costs[done] > problem.cost.scale.cap(b) for b in budgets]
         if constraint is not None:
             return _constrained(
-                constraint, budgets, costs[:done], values[:done], alterations, complete, stats
+                constraint,
+                budgets,
+                costs[:done],
+                values[:done],
+                alterations,
+                complete,
+                stats,
+                worst_error,
             )
         picks = best_per_budget(
             costs[:done],
@@ -138,12 +145,14 @@ def _constrained(
     alterations: dict[int, np.ndarray],
     complete: list[bool],
     stats: ExhaustiveStats,
+    error: float,
 ) -> list[Solution]:
     """Under ``max_alarm``: per budget the best alteration proven feasible, every one evaluated
     exactly (value and verdict); a budget with none is ``infeasible`` when every alteration it
     affords was evaluated and none is undecided. An undecided alteration worth more than the
-    answer keeps its value in the bound (the answer is then not certified). A budget not
-    evaluated completely has only the objective's largest value as its bound."""
+    answer keeps its value in the bound (the answer is then not certified); so does the
+    largest proven ``error`` of the values compared. A budget not evaluated completely has
+    only the objective's largest value as its bound."""
     problem = constraint.problem
     top = problem.objective.max_value
     solutions = []
@@ -171,7 +180,7 @@ def _constrained(
             )
             continue
         value = float(values[index])
-        bound = max(value, undecided) if proven else top
+        bound = min(max(value, undecided) + error, top) if proven else top
         solutions.append(
             Solution(
                 budget,
