@@ -75,6 +75,10 @@ def test_random_monitors_every_method_against_brute_force(seed):
                 watched, budgets=[problem.budget], method=method, max_alarm=delta
             )
             _check(result, best[delta], valued, delta, method)
+        # with a time limit, auto solves the unconstrained problem first and hands on only the
+        # budgets whose answer breaks the constraint
+        limited = misdirect.solve(watched, budgets=[problem.budget], max_alarm=delta, time_limit=60)
+        _check(limited, best[delta], valued, delta, "auto, time limit")
 
 
 def test_incremental_with_the_alarm_enumerated(monkeypatch):

@@ -31,6 +31,7 @@ certified it and why.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -412,13 +413,29 @@ class AutoSolver:
         deadline: Deadline | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        """Under ``max_alarm``: the unconstrained problem first (every bound on it bounds
-        the constrained one); a budget whose answer is proven feasible keeps it, with that
-        bound. The others go to a constrained method: the enumeration where it applies and
-        the alterations are few enough, else the MILP with the alarm's system."""
+        """Under ``max_alarm``: without a time limit, where the enumeration takes every
+        alteration within the budget, the constrained enumeration alone (its lazy walk finds
+        a feasible unconstrained optimum first). Otherwise the unconstrained problem first
+        (every bound on it bounds the constrained one): a budget whose answer is proven
+        feasible keeps it, with that bound, and the others go to the constrained enumeration
+        where it applies and the alterations are few enough, else to the MILP with the
+        alarm's system."""
         assert self.options.max_alarm is not None
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = alarm_constraint(problem, self.options.max_alarm)
+        options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
+        top = max(budgets)
+        if options.alarm_limit is not None and deadline.remaining() is None:
+            count = prepare(constraint.decoy_problem, top).space.count_within(
+                top, INCREMENTAL_LIMIT
+            )
+            if count <= INCREMENTAL_LIMIT:
+                with contextlib.suppress(NotApplicableError):
+                    answers = IncrementalSolver(options).solve(
+                        problem, budgets, progress=progress, deadline=deadline
+                    )
+                    why = f"{count:,} alterations fit the budget: enumerated under the constraint"
+                    return _label(answers, "incremental", why)
         free = AutoSolver(
             replace(self.options, max_alarm=None),
             enumeration_limit=self.enumeration_limit,
@@ -445,7 +462,6 @@ class AutoSolver:
         count = prepare(constraint.decoy_problem, max(left)).space.count_within(
             max(left), INCREMENTAL_LIMIT
         )
-        options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
         second: list[Solution] | None = None
         method = "incremental"
         if count <= INCREMENTAL_LIMIT:
