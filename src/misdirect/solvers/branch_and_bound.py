@@ -83,6 +83,8 @@ class _Curve:
     every_budget_bound: float = np.inf
     # max_alarm: an alteration's verdict (by its picks); None: unconstrained
     accept: Callable[[Picks], Verdict] | None = None
+    # max_alarm = 0: whether a node's fixed picks let the alarm through whatever the rest
+    caught: Callable[[Picks], bool] | None = None
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -167,6 +169,8 @@ class BranchAndBoundSolver:
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         accept = None if constraint is None else _feasibility(constraint, relax)
+        # δ = 0: a node whose fixed picks already let the alarm through is pruned
+        caught = None if constraint is None or constraint.limit > 0 else _caught(relax)
         curve = _Curve(
             instance,
             relax,
@@ -177,6 +181,7 @@ class BranchAndBoundSolver:
             and (instance.chain.n_states >= SEGMENT_MIN_STATES or self.options.pool is not None),
             max_budget=max(budgets),
             accept=accept,
+            caught=caught,
         )
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
@@ -234,6 +239,7 @@ class BranchAndBoundSolver:
         # with a pool, the per-state search bounds its root only: the pool takes the rest
         nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
+        search.caught = curve.caught
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -369,6 +375,35 @@ def _feasibility(
     return verdict
 
 
+def _caught(relax: PerStateRelaxation) -> Callable[[Picks], bool]:
+    """For ``max_alarm = 0``: whether the picks fixed so far (a prefix of ``relax.order``)
+    already let a run reach the alarm sink, whatever the free choices take. The states whose
+    rows the prefix decides (its options' groups, and the states with no choice) are walked
+    from the start, stopping at the stopping states; a free choice's states are not entered.
+    A path found lies in the chain of every completion with positive probability, so every
+    completion raises the alarm: the subtree holds no feasible alteration."""
+    chain = relax.chain
+    problem = relax.problem
+    assert problem.alarm_state is not None
+    sink = chain.world_state == problem.alarm_state
+    stop = chain.target  # the decoys and the sink (the decoy problem's stopping states)
+    n = chain.n_states
+
+    def caught(picks: Picks) -> bool:
+        options = np.zeros(relax.option_cost.size, dtype=bool)
+        for i, k in zip(relax.order, picks, strict=False):
+            options[relax.first_option[i] + k] = True
+        groups = np.flatnonzero(relax.allowed_groups(options))
+        groups = groups[~stop[chain.group_state[groups]]]
+        rows = chain.transitions[groups].tocoo()
+        graph = sp.csr_matrix(
+            (np.ones(rows.nnz), (chain.group_state[groups][rows.row], rows.col)), shape=(n, n)
+        )
+        return bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+
+    return caught
+
+
 def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
     """A budget whose search kept no feasible alteration: ``infeasible`` where it finished and
     no verdict was undecided, else open at its bound with no answer."""
@@ -462,6 +497,8 @@ class _Search(IncumbentSearch):
         self.covers = self.cover_unions = self.cover_pruned = self.covers_given_up = 0
         self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
+        self.caught: Callable[[Picks], bool] | None = None  # max_alarm = 0 (_caught)
+        self.caught_pruned = 0
         mdp = relax.mdp
         self.proofs_before = (
             mdp.proofs,
@@ -516,6 +553,9 @@ class _Search(IncumbentSearch):
         """Bound ``node``, round its policy to an incumbent, and push its children."""
         relax = self.relax
         self.nodes += 1
+        if self.caught is not None and self.caught(node.picks):
+            self.caught_pruned += 1  # no completion is feasible: nothing to bound
+            return
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
         began = time.perf_counter()
         bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)
