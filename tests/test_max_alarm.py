@@ -99,6 +99,22 @@ def test_incremental_with_the_alarm_enumerated(monkeypatch):
         _check(result, best[delta], valued, delta, "incremental")
 
 
+def test_auto_hands_open_budgets_on(monkeypatch):
+    """auto's constrained search stopped after one node: the enumeration takes the budget
+    over, and the answer is still the brute-force optimum, certified."""
+    from misdirect.solvers import auto
+
+    monkeypatch.setattr(auto, "NODE_LIMIT", 1)
+    seed = 33
+    problem = random_problem(seed, randomized=True)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    best, valued = _brute_force(problem, step, "m0", problem.budget, (0.0, 0.05))
+    for delta in (0.0, 0.05):
+        result = misdirect.solve(watched, budgets=[problem.budget], max_alarm=delta)
+        _check(result, best[delta], valued, delta, "auto")
+
+
 def test_delta_one_is_the_plain_stealth_optimum():
     problem = random_problem(1)
     monitor, _ = _random_monitor(problem, np.random.default_rng(1), 3)

@@ -31,7 +31,6 @@ certified it and why.
 
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -49,7 +48,7 @@ from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, 
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.alarm import Verdict, alarm_constraint
+from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
 from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS, NotApplicableError
 from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
@@ -413,50 +412,45 @@ class AutoSolver:
         deadline: Deadline | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        """Under ``max_alarm``: without a time limit, where the enumeration takes every
-        alteration within the budget, the constrained enumeration alone (its lazy walk finds
-        a feasible unconstrained optimum first). Otherwise the unconstrained problem first
-        (every bound on it bounds the constrained one): a budget whose answer is proven
-        feasible keeps it, with that bound, and the others go to the constrained enumeration
-        where it applies and the alterations are few enough, else to the MILP with the
-        alarm's system."""
+        """Under ``max_alarm``. δ = 1 is the unconstrained problem (auto as usual; a
+        trade-off curve's other δ reuse its answers). Otherwise branch-and-bound under the
+        constraint (its incumbents proven feasible, subtrees whose fixed picks already raise
+        the alarm too often pruned), with :data:`NODE_LIMIT` nodes a budget; a budget it
+        leaves open goes to the constrained enumeration where it applies and the alterations
+        are few enough, else to the MILP with the alarm's system."""
         assert self.options.max_alarm is not None
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = alarm_constraint(problem, self.options.max_alarm)
         options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
-        top = max(budgets)
-        if options.alarm_limit is not None and deadline.remaining() is None:
-            count = prepare(constraint.decoy_problem, top).space.count_within(
-                top, INCREMENTAL_LIMIT
+        if options.alarm_limit is None:  # δ = 1
+            key = ("auto", tuple(budgets))
+            memo = constraint.memo.get(key)
+            if memo is not None:
+                return list(cast(list[Solution], memo))
+            free = AutoSolver(
+                replace(self.options, max_alarm=None),
+                enumeration_limit=self.enumeration_limit,
+                node_limit=self.node_limit,
             )
-            if count <= INCREMENTAL_LIMIT:
-                with contextlib.suppress(NotApplicableError):
-                    answers = IncrementalSolver(options).solve(
-                        problem, budgets, progress=progress, deadline=deadline
-                    )
-                    why = f"{count:,} alterations fit the budget: enumerated under the constraint"
-                    return _label(answers, "incremental", why)
-        free = AutoSolver(
-            replace(self.options, max_alarm=None),
-            enumeration_limit=self.enumeration_limit,
-            node_limit=self.node_limit,
-        )
-        key = ("auto", tuple(budgets))  # a trade-off curve's other δ solved it already
-        memo = constraint.memo.get(key)
-        if memo is None:
             solutions = free.solve(
                 problem, budgets, progress=progress, deadline=deadline, seeds=seeds
             )
             if all(s.status == Status.OPTIMAL for s in solutions):
                 constraint.memo[key] = list(solutions)
-        else:
-            solutions = list(cast(list[Solution], memo))
+            return solutions
+        search = BranchAndBoundSolver(options, max_nodes=self.node_limit)
+        why = "branch-and-bound under the constraint"
+        solutions = _label(
+            search.solve(problem, budgets, progress=progress, deadline=deadline),
+            "branch-and-bound",
+            why,
+        )
         open_at = [
             j
             for j, s in enumerate(solutions)
-            if constraint.verdict(np.asarray(s.alteration)) != Verdict.FEASIBLE
+            if s.status not in (Status.OPTIMAL, Status.INFEASIBLE)
         ]
-        if not open_at:
+        if not open_at or deadline.expired():
             return solutions
         left = [budgets[j] for j in open_at]
         count = prepare(constraint.decoy_problem, max(left)).space.count_within(
@@ -476,9 +470,10 @@ class AutoSolver:
             second = self.milp.solve(  # its options carry max_alarm
                 problem, left, progress=progress, deadline=deadline
             )
-        why = "the unconstrained optimum breaks Pr(alarm) <= δ"
+        why = "branch-and-bound left it open under the constraint"
+        exact = exact_values(problem)
         for j, answer in zip(open_at, _label(second, method, why), strict=True):
-            solutions[j] = answer
+            solutions[j] = _better_feasible(exact, constraint, solutions[j], answer)
         return solutions
 
     def _solve(
@@ -684,6 +679,33 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         notes={**first.notes, **second.notes},  # what each method said of its answer or bound
         stop_reason=stop,
     )
+
+
+def _better_feasible(
+    exact: ExactValues, constraint: AlarmConstraint, first: Solution, second: Solution
+) -> Solution:
+    """Under ``max_alarm``, the better of two stages' answers for one budget among those
+    proven feasible, with the tighter of their bounds (both bound the constrained optimum);
+    ``optimal`` or ``infeasible`` where either stage finished so."""
+    for finished in (Status.INFEASIBLE, Status.OPTIMAL):
+        done = [s for s in (second, first) if s.status == finished]
+        if done:
+            return done[0]
+    feasible = [
+        s
+        for s in (first, second)
+        if s.solver_probability is not None
+        and constraint.verdict(np.asarray(s.alteration, dtype=np.int64)) == Verdict.FEASIBLE
+    ]
+    pick = max(
+        feasible or [second],
+        key=lambda s: exact(np.asarray(s.alteration, dtype=np.int64)),
+    )
+    bounds = [s.upper_bound for s in (first, second) if s.upper_bound is not None]
+    if not bounds:
+        return pick
+    value = exact(np.asarray(pick.alteration, dtype=np.int64)) if feasible else 0.0
+    return replace(pick, upper_bound=max(min(bounds), value))
 
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:

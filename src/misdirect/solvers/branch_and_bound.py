@@ -39,6 +39,7 @@ import scipy.sparse.linalg as spla
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.model import AlterationArray, Problem, reachable_from
+from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report, thread_count
@@ -169,8 +170,8 @@ class BranchAndBoundSolver:
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         accept = None if constraint is None else _feasibility(constraint, relax)
-        # δ = 0: a node whose fixed picks already let the alarm through is pruned
-        caught = None if constraint is None or constraint.limit > 0 else _caught(relax)
+        # a node whose fixed picks already raise the alarm too often is pruned
+        caught = None if constraint is None else _caught(relax, constraint.limit)
         curve = _Curve(
             instance,
             relax,
@@ -375,13 +376,15 @@ def _feasibility(
     return verdict
 
 
-def _caught(relax: PerStateRelaxation) -> Callable[[Picks], bool]:
-    """For ``max_alarm = 0``: whether the picks fixed so far (a prefix of ``relax.order``)
-    already let a run reach the alarm sink, whatever the free choices take. The states whose
-    rows the prefix decides (its options' groups, and the states with no choice) are walked
-    from the start, stopping at the stopping states; a free choice's states are not entered.
-    A path found lies in the chain of every completion with positive probability, so every
-    completion raises the alarm: the subtree holds no feasible alteration."""
+def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
+    """Under ``max_alarm`` (δ = ``limit``): whether the picks fixed so far (a prefix of
+    ``relax.order``) already raise the alarm with probability above δ, whatever the free
+    choices take. The states whose rows the prefix decides (one group each: its options'
+    groups, and the states with no choice) form a chain in which a free choice's states end
+    the run (scoring 0); a run of it that reaches the sink is a run of every completion, so
+    its Pr(sink) is a lower bound on every completion's Pr(alarm). δ = 0: the sink reachable
+    in its graph; δ > 0: its value less its proven error above δ. Then the subtree holds no
+    feasible alteration."""
     chain = relax.chain
     problem = relax.problem
     assert problem.alarm_state is not None
@@ -395,11 +398,23 @@ def _caught(relax: PerStateRelaxation) -> Callable[[Picks], bool]:
             options[relax.first_option[i] + k] = True
         groups = np.flatnonzero(relax.allowed_groups(options))
         groups = groups[~stop[chain.group_state[groups]]]
+        owner = chain.group_state[groups]
         rows = chain.transitions[groups].tocoo()
-        graph = sp.csr_matrix(
-            (np.ones(rows.nnz), (chain.group_state[groups][rows.row], rows.col)), shape=(n, n)
+        if limit == 0.0:
+            graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
+            return bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+        ended = np.ones(n, dtype=bool)  # undecided and stopping states: a self-loop each
+        ended[owner] = False
+        loops = np.flatnonzero(ended)
+        matrix = sp.csr_matrix(
+            (
+                np.concatenate([rows.data, np.ones(loops.size)]),
+                (np.concatenate([owner[rows.row], loops]), np.concatenate([rows.col, loops])),
+            ),
+            shape=(n, n),
         )
-        return bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+        found = reach_probability_bounded(matrix, sink, chain.initial)
+        return bool(found.value - found.error > limit)
 
     return caught
 
