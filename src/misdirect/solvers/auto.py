@@ -35,7 +35,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import ClassVar, cast
+from typing import ClassVar
 
 import numpy as np
 
@@ -412,32 +412,16 @@ class AutoSolver:
         deadline: Deadline | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        """Under ``max_alarm``. δ = 1 is the unconstrained problem (auto as usual; a
-        trade-off curve's other δ reuse its answers). Otherwise branch-and-bound under the
-        constraint (its incumbents proven feasible, subtrees whose fixed picks already raise
-        the alarm too often pruned), with :data:`NODE_LIMIT` nodes a budget; a budget it
-        leaves open goes to the constrained enumeration where it applies and the alterations
-        are few enough, else to the MILP with the alarm's system."""
+        """Under ``max_alarm``: branch-and-bound under the constraint (its incumbents proven
+        feasible, subtrees whose fixed picks already raise the alarm too often pruned, no
+        segment search: on monitored chains the per-state search alone is the faster), with
+        :data:`NODE_LIMIT` nodes a budget; a budget it leaves open goes to the constrained
+        enumeration where it applies and the alterations are few enough, else to the MILP
+        with the alarm's system. δ = 1 too, as the unconstrained problem."""
         assert self.options.max_alarm is not None
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = alarm_constraint(problem, self.options.max_alarm)
         options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
-        if options.alarm_limit is None:  # δ = 1
-            key = ("auto", tuple(budgets))
-            memo = constraint.memo.get(key)
-            if memo is not None:
-                return list(cast(list[Solution], memo))
-            free = AutoSolver(
-                replace(self.options, max_alarm=None),
-                enumeration_limit=self.enumeration_limit,
-                node_limit=self.node_limit,
-            )
-            solutions = free.solve(
-                problem, budgets, progress=progress, deadline=deadline, seeds=seeds
-            )
-            if all(s.status == Status.OPTIMAL for s in solutions):
-                constraint.memo[key] = list(solutions)
-            return solutions
         search = BranchAndBoundSolver(options, max_nodes=self.node_limit)
         why = "branch-and-bound under the constraint"
         solutions = _label(

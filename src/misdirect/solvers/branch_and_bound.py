@@ -84,7 +84,7 @@ class _Curve:
     every_budget_bound: float = np.inf
     # max_alarm: an alteration's verdict (by its picks); None: unconstrained
     accept: Callable[[Picks], Verdict] | None = None
-    # max_alarm = 0: whether a node's fixed picks let the alarm through whatever the rest
+    # max_alarm: whether a node's fixed picks raise the alarm above δ whatever the rest
     caught: Callable[[Picks], bool] | None = None
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
@@ -160,18 +160,20 @@ class BranchAndBoundSolver:
         docstring)."""
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = None
-        if self.options.alarm_limit is not None:
+        if self.options.max_alarm is not None:  # δ = 1 too: the per-state search alone
             # the decoy's value on the space of both values (engines.alarm); the incumbent
             # keeps only alterations proven feasible, and the relaxation's bound (of the
             # unconstrained problem) bounds the constrained one too
-            constraint = alarm_constraint(problem, self.options.alarm_limit)
+            constraint = alarm_constraint(problem, self.options.max_alarm)
             problem = constraint.decoy_problem
         instance = prepare(problem, max(budgets))
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
         accept = None if constraint is None else _feasibility(constraint, relax)
         # a node whose fixed picks already raise the alarm too often is pruned
-        caught = None if constraint is None else _caught(relax, constraint.limit)
+        caught = (
+            None if constraint is None or constraint.trivial else _caught(relax, constraint.limit)
+        )
         curve = _Curve(
             instance,
             relax,
@@ -512,7 +514,7 @@ class _Search(IncumbentSearch):
         self.covers = self.cover_unions = self.cover_pruned = self.covers_given_up = 0
         self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
-        self.caught: Callable[[Picks], bool] | None = None  # max_alarm = 0 (_caught)
+        self.caught: Callable[[Picks], bool] | None = None  # max_alarm (_caught)
         self.caught_pruned = 0
         mdp = relax.mdp
         self.proofs_before = (
