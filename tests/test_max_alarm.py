@@ -155,7 +155,7 @@ def test_cli_bad_max_alarm_is_one_line_exit_2(given):
     assert "Traceback" not in result.output
 
 
-def test_cli_tradeoff_table_and_json():
+def test_cli_tradeoff_table_and_json(tmp_path):
     """The paper's grid at budget 1 under --max-alarm (which implies --stealth): δ = 0.25
     keeps the stealthy optimum o1 -> o2 (0.647903, caught 0.210195: docs/stealth.md); δ = 0
     must give it up for an attack the consistency monitor never catches."""
@@ -172,6 +172,12 @@ def test_cli_tradeoff_table_and_json():
     never = curves[0.0]["curve"][-1]
     assert never["alarm"] == 0.0 and never["status"] == "optimal"
     assert never["value"] < top["value"]
+    figure = tmp_path / "tradeoff.png"
+    drawn = runner.invoke(app, [*args, "--max-alarm", "0,0.25", "-o", str(figure)])
+    assert drawn.exit_code == 0, drawn.output
+    assert figure.stat().st_size > 0
+    refused = runner.invoke(app, [*args, "--max-alarm", "0,0.25", "-o", str(tmp_path / "a.yaml")])
+    assert refused.exit_code == 2 and "-o" in refused.output
     single = checked(runner.invoke(app, [*args, "--max-alarm", "0.25", "--json"]).output)
     assert single["max_alarm"] == 0.25 and single["value"] == pytest.approx(top["value"])
     assert single["curve"][-1]["alarm_error"] is not None

@@ -257,7 +257,9 @@ def solve(
             "-o",
             help="Write the answer for --alteration FILE of evaluate, simulate, show and "
             "export-chain: .json the whole --json document (every budget; pick one with "
-            "--at-budget), else (.yaml) the answer's alteration as {observation: received}.",
+            "--at-budget), else (.yaml) the answer's alteration as {observation: received}. "
+            "With several δ of --max-alarm: .json, or the figure of value against δ (.png, "
+            ".svg, .pdf).",
             show_default=False,
         ),
     ] = None,
@@ -324,7 +326,7 @@ def solve(
         with connect(cluster, workers) as pool:
             if pool is not None:
                 given["pool"] = pool
-            _solve_tradeoff(problem, method, requested, given, deltas, quiet, as_json)
+            _solve_tradeoff(problem, method, requested, given, deltas, quiet, as_json, output)
         return
     if deltas is not None:
         given["max_alarm"] = deltas[0]
@@ -354,6 +356,9 @@ def solve(
     _finish_solve(result, received)
 
 
+FIGURE_SUFFIXES = (".png", ".svg", ".pdf")
+
+
 def parse_max_alarm(text: str) -> list[float]:
     """``--max-alarm``: one probability or a comma-separated list, each in [0, 1]."""
     deltas = []
@@ -381,9 +386,17 @@ def _solve_tradeoff(
     deltas: list[float],
     quiet: bool,
     as_json: bool,
+    output: Path | None = None,
 ) -> None:
     """``--max-alarm`` with several δ: one certified curve per δ; a table of the value (and
-    its status) against δ per budget, or (``--json``) every curve."""
+    its status) against δ per budget, or (``--json``) every curve; ``-o`` writes the JSON
+    (``.json``) or the figure of value against δ (``.png``, ``.svg``, ``.pdf``)."""
+    if output is not None and output.suffix.lower() not in (".json", *FIGURE_SUFFIXES):
+        raise ProblemError(
+            "with several δ of --max-alarm, -o writes the --json document (.json) or the "
+            f"figure of value against δ ({', '.join(FIGURE_SUFFIXES)}), not {output.name!r}",
+            field="-o",
+        )
     from misdirect.core.attack import shared_preparation
     from misdirect.solvers.engines.alarm import tradeoff_scope
 
@@ -396,9 +409,17 @@ def _solve_tradeoff(
             results.append(result)
             if received:
                 _finish_solve(result, received)
+    payload = json_output.solve(results[-1])
+    payload["tradeoff"] = [r.to_dict() for r in results]
+    if output is not None:
+        payload["written"] = [str(output)]
+        if output.suffix.lower() == ".json":
+            write_output(output, json_text(payload), field="-o")
+        else:
+            from misdirect.report.figures import tradeoff_figure
+
+            tradeoff_figure(results, output, title=problem.title)
     if as_json:
-        payload = json_output.solve(results[-1])
-        payload["tradeoff"] = [r.to_dict() for r in results]
         print_json(payload)
     else:
         table = Table(
@@ -416,6 +437,8 @@ def _solve_tradeoff(
             table.add_row(f"{point.budget:g}", *cells)
         out.print(table)
         _print_notes([*results[-1].notes])
+        if output is not None:
+            wrote(f"wrote {output}")
     warnings = [w for r in results for w in r.warnings]
     _print_warnings(warnings)
     if warnings:
