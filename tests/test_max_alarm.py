@@ -193,3 +193,23 @@ def test_an_infeasible_budget_in_the_json():
     from misdirect.report import json_output
 
     checked(json.dumps(json_output.solve(result)))
+
+
+def test_a_wrong_infeasible_claim_is_caught(monkeypatch):
+    """A method that says nothing fits where altering nothing does (Pr(alarm) 0 under the
+    consistency monitor) is contradicted: a warning, and the point is not certified."""
+    from misdirect.core.monitor import consistency_monitor
+    from misdirect.solvers import exhaustive
+    from misdirect.solvers.base import Solution
+    from misdirect.solvers.status import Status
+
+    def claims_infeasible(constraint, budgets, *args):
+        identity = constraint.problem.identity()
+        return [Solution(b, identity, None, status=Status.INFEASIBLE) for b in budgets]
+
+    monkeypatch.setattr(exhaustive, "_constrained", claims_infeasible)
+    problem = random_problem(0)
+    watched = with_monitor(problem, consistency_monitor(problem))
+    result = misdirect.solve(watched, method="exhaustive", max_alarm=0.0)
+    assert str(result.status) == "feasible"
+    assert any("altering nothing does" in w for w in result.warnings)

@@ -673,6 +673,17 @@ def _feasible_answers(
     warnings = []
     identity, value, error = unaltered
     for point in curve:
+        if point.status == Status.INFEASIBLE and constraint.verdict(identity) == Verdict.FEASIBLE:
+            # a method's claim that nothing fits, against altering nothing, which does
+            warnings.append(
+                f"budget {point.budget:g}: the {method} solver found no alteration keeping "
+                f"Pr(alarm) <= {constraint.limit:g}, but altering nothing does"
+            )
+            point.notes["replaced"] = "the solver's 'infeasible' is wrong: altering nothing fits"
+            point.alteration, point.probability, point.error_bound = identity, value, error
+            point.cost, point.fits, point.claimed = 0.0, True, None
+            point.status, point.upper_bound = Status.FEASIBLE, None
+            continue
         if point.status in (Status.INFEASIBLE, Status.UNVERIFIED):
             continue
         if constraint.verdict(point.alteration) != Verdict.INFEASIBLE:
