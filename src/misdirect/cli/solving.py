@@ -323,6 +323,10 @@ def solve(
     from misdirect.distributed import connect
 
     if deltas is not None and len(deltas) > 1:
+        if exact:
+            raise ProblemError(
+                "takes one δ of --max-alarm (the values as written, per point)", field="--exact"
+            )
         with connect(cluster, workers) as pool:
             if pool is not None:
                 given["pool"] = pool
