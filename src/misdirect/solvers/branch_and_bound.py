@@ -402,9 +402,10 @@ def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
         groups = groups[~stop[chain.group_state[groups]]]
         owner = chain.group_state[groups]
         rows = chain.transitions[groups].tocoo()
-        if limit == 0.0:
-            graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
-            return bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+        graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
+        reached = bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+        if limit == 0.0 or not reached:  # exact; an unreachable sink bounds nothing
+            return reached
         ended = np.ones(n, dtype=bool)  # undecided and stopping states: a self-loop each
         ended[owner] = False
         loops = np.flatnonzero(ended)
