@@ -632,9 +632,8 @@ def solve_tradeoff(
     """The trade-off between value and stealth: :func:`solve` once per δ of ``max_alarm``
     (in increasing order), each curve certified for Pr(alarm) <= δ. ``options`` are
     :func:`solve`'s (``budgets``, ``method``, ``time_limit`` per δ, ...). The solves share
-    what δ does not change: the prepared instances, each alteration's exact Pr(alarm), the
-    enumerations' tables and auto's unconstrained answers, so a curve of five δ costs little
-    more than its hardest point.
+    what δ does not change: the prepared instances, each alteration's exact Pr(alarm) and
+    the enumerations' tables (a curve of enumerations pays for one).
 
     Examples
     --------

@@ -78,8 +78,7 @@ def check_max_alarm(problem: Problem, max_alarm: float) -> float:
 class AlarmValues:
     """What does not depend on δ, shared by the solves of one trade-off curve
     (:func:`tradeoff_scope`): the two valued problems, each alteration's exact Pr(alarm), and
-    what a method computed once for every δ (``memo``: the enumerations' tables, auto's
-    unconstrained answers)."""
+    what a method computed once for every δ (``memo``: the enumerations' tables)."""
 
     def __init__(self, problem: Problem):
         self.problem = problem
