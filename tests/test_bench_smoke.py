@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -260,3 +261,31 @@ def test_stealth_speed_quick_mode(tmp_path):
     assert grid["plain"]["values"] == pytest.approx([0.084957, 0.719924], abs=1e-6)
     assert (tmp_path / "stealth_speed.csv").exists()
     assert "Stealth speed" in (tmp_path / "stealth_speed.md").read_text()
+
+def test_bench_stealth_reduced_mode(tmp_path):
+    """bench/stealth.py at budgets 0..1 (no timing asserted): every point certified, and the
+    budget-1 values against the brute force over its 49 alterations (docs/stealth.md): 0.720
+    unmonitored, 0.648 stealthy (caught 0.21), 0.1219 (o2 -> b, caught 0.006) for δ of 0.01
+    to 0.1, 0.0892 (o6 -> b, never caught) for δ = 0."""
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "stealth.py"), "--out", str(tmp_path), "--top", "1"],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )
+    summary = json.loads((tmp_path / "stealth.json").read_text())
+    assert summary["all_optimal"]
+    at_one = {(r["case"], r["max_alarm"]): r for r in summary["rows"] if r["budget"] == 1}
+    expected = {
+        ("plain", None): 0.719924,
+        ("stealth", None): 0.647903,
+        ("delta", 1.0): 0.647903,
+        ("delta", 0.1): 0.121885,
+        ("delta", 0.01): 0.121885,
+        ("delta", 0.0): 0.089186,
+    }
+    for key, value in expected.items():
+        assert at_one[key]["value"] == pytest.approx(value, abs=1e-6), key
+    assert at_one[("delta", 0.0)]["alarm"] == 0.0
+    assert (tmp_path / "stealth.csv").exists()
+    assert (tmp_path / "stealth_tradeoff.png").stat().st_size > 0

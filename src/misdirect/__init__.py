@@ -34,7 +34,7 @@ from misdirect.io.problem_file import load_problem, problem_from_dict, write_pro
 from misdirect.solvers.base import ProgressCallback
 from misdirect.solvers.deadline import CancelToken, Deadline
 from misdirect.solvers.options import SolveOptions
-from misdirect.solvers.run import BudgetResult, SolveResult, solve
+from misdirect.solvers.run import BudgetResult, SolveResult, solve, solve_tradeoff
 from misdirect.solvers.status import Status, StopReason
 
 __version__ = "0.1.0"
@@ -81,6 +81,7 @@ __all__ = [
     "shared_preparation",
     "simulate",
     "solve",
+    "solve_tradeoff",
     "with_controller",
     "write_problem",
 ]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
+import math
 import signal
 import time
 from collections.abc import Iterable, Sequence
@@ -258,7 +260,20 @@ def solve(
             "-o",
             help="Write the answer for --alteration FILE of evaluate, simulate, show and "
             "export-chain: .json the whole --json document (every budget; pick one with "
-            "--at-budget), else (.yaml) the answer's alteration as {observation: received}.",
+            "--at-budget), else (.yaml) the answer's alteration as {observation: received}. "
+            "With several δ of --max-alarm: .json, or the figure of value against δ (.png, "
+            ".svg, .pdf).",
+            show_default=False,
+        ),
+    ] = None,
+    max_alarm: Annotated[
+        str | None,
+        typer.Option(
+            "--max-alarm",
+            help="δ, or a list (0,0.01,0.1,1): the best attack whose Pr(alarm) is at most δ "
+            "(0: the monitor never raises the alarm), each point certified for that "
+            "constraint; a list prints value against δ per budget (--json: every curve). "
+            "Implies --stealth (the consistency monitor) when no monitor is given.",
             show_default=False,
         ),
     ] = None,
@@ -276,6 +291,9 @@ def solve(
     check_seconds(time_limit)
     if output is not None:
         check_output_path(output, field="-o")
+    deltas = None if max_alarm is None else parse_max_alarm(max_alarm)
+    if deltas is not None:
+        source = dataclasses.replace(source, stealth=True)  # a monitor: consistency if none
     with ProgressBars(enabled=not quiet, transient=True) as bars:
         if bars:  # the first phase, before the solver's own: reading and building the problem
             bars.track("solving", 0, 0, stage="loading")
@@ -307,6 +325,18 @@ def solve(
         )
     from misdirect.distributed import connect
 
+    if deltas is not None and len(deltas) > 1:
+        if exact:
+            raise ProblemError(
+                "takes one δ of --max-alarm (the values as written, per point)", field="--exact"
+            )
+        with connect(cluster, workers) as pool:
+            if pool is not None:
+                given["pool"] = pool
+            _solve_tradeoff(problem, method, requested, given, deltas, quiet, as_json, output)
+        return
+    if deltas is not None:
+        given["max_alarm"] = deltas[0]
     with connect(cluster, workers) as pool:
         if pool is not None:
             given["pool"] = pool
@@ -331,6 +361,95 @@ def solve(
         if output is not None:
             wrote(f"wrote {output} ({_written_what(output)})")
     _finish_solve(result, received)
+
+
+FIGURE_SUFFIXES = (".png", ".svg", ".pdf")
+
+
+def parse_max_alarm(text: str) -> list[float]:
+    """``--max-alarm``: one probability or a comma-separated list, each in [0, 1]."""
+    deltas = []
+    for part in text.split(","):
+        try:
+            delta = float(part)
+        except ValueError:
+            raise ProblemError(
+                f"must be a probability in [0, 1] or a list of them, got {part.strip()!r}",
+                field="--max-alarm",
+            ) from None
+        if not (math.isfinite(delta) and 0.0 <= delta <= 1.0):
+            raise ProblemError(
+                f"must be a probability in [0, 1], got {part.strip()}", field="--max-alarm"
+            )
+        deltas.append(delta)
+    return sorted(set(deltas))
+
+
+def _solve_tradeoff(
+    problem: Problem,
+    method: str,
+    budgets: list[float] | None,
+    options: dict[str, Any],
+    deltas: list[float],
+    quiet: bool,
+    as_json: bool,
+    output: Path | None = None,
+) -> None:
+    """``--max-alarm`` with several δ: one certified curve per δ; a table of the value (and
+    its status) against δ per budget, or (``--json``) every curve; ``-o`` writes the JSON
+    (``.json``) or the figure of value against δ (``.png``, ``.svg``, ``.pdf``)."""
+    if output is not None and output.suffix.lower() not in (".json", *FIGURE_SUFFIXES):
+        raise ProblemError(
+            "with several δ of --max-alarm, -o writes the --json document (.json) or the "
+            f"figure of value against δ ({', '.join(FIGURE_SUFFIXES)}), not {output.name!r}",
+            field="-o",
+        )
+    from misdirect.core.attack import shared_preparation
+    from misdirect.solvers.engines.alarm import tradeoff_scope
+
+    results = []
+    with shared_preparation(), tradeoff_scope(problem):  # what δ does not change, once
+        for delta in deltas:
+            result, received = _run_solve(
+                problem, method, budgets, {**options, "max_alarm": delta}, quiet or as_json, quiet
+            )
+            results.append(result)
+            if received:
+                _finish_solve(result, received)
+    payload = json_output.solve(results[-1])
+    payload["tradeoff"] = [r.to_dict() for r in results]
+    if output is not None:
+        payload["written"] = [str(output)]
+        if output.suffix.lower() == ".json":
+            write_output(output, json_text(payload), field="-o")
+        else:
+            from misdirect.report.figures import tradeoff_figure
+
+            tradeoff_figure(results, output, title=problem.title)
+    if as_json:
+        print_json(payload)
+    else:
+        table = Table(
+            title=escape(f"{problem.title} — value against Pr(alarm) <= δ ({results[0].method})")
+        )
+        table.add_column("budget", justify="right")
+        for delta in deltas:
+            table.add_column(f"δ = {delta:g}", justify="right")
+        for j, point in enumerate(results[0].curve):
+            cells = []
+            for result in results:
+                p = result.curve[j]
+                shown = "—" if p.status == "infeasible" else f"{p.probability:.6f}"
+                cells.append(f"{shown} {p.status}")
+            table.add_row(f"{point.budget:g}", *cells)
+        out.print(table)
+        _print_notes([*results[-1].notes])
+        if output is not None:
+            wrote(f"wrote {output}")
+    warnings = [w for r in results for w in r.warnings]
+    _print_warnings(warnings)
+    if warnings:
+        raise typer.Exit(1)
 
 
 def _written_what(output: Path) -> str:
@@ -447,7 +566,8 @@ def _finish_solve(result: SolveResult, received: list[int]) -> None:
 def _print_solve(
     result: SolveResult, problem: Problem, exact: Sequence[ExactValue | None] | None = None
 ) -> None:
-    table = Table(title=escape(f"{problem.title} — optimal alterations ({result.method})"))
+    within = "" if result.max_alarm is None else f", Pr(alarm) <= {result.max_alarm:g}"
+    table = Table(title=escape(f"{problem.title} — optimal alterations{within} ({result.method})"))
     bounded = any(point.status != Status.OPTIMAL for point in result.curve)
     table.add_column("budget", justify="right")
     table.add_column(f"max {problem.objective.label}", justify="right")
@@ -461,6 +581,8 @@ def _print_solve(
     table.add_column("status")
     if exact is not None:  # what the model as written gives: digits past the 6th can differ
         table.add_column("as written (exact)", justify="right")
+    if result.max_alarm is not None:  # --max-alarm: the constrained probability beside
+        table.add_column("Pr(alarm)", justify="right")
     for i, point in enumerate(result.curve):
         bound = (
             []
@@ -468,6 +590,8 @@ def _print_solve(
             else ["—" if point.upper_bound is None else f"{point.upper_bound:.6f}"]
         )
         written = [] if exact is None else [_as_written(exact[i])]
+        if result.max_alarm is not None:
+            written.append("—" if point.alarm is None else f"{point.alarm:.6f}")
         table.add_row(
             f"{point.budget:g}",
             f"{point.probability:.6f}",

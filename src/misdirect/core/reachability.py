@@ -594,6 +594,8 @@ def reach_probability_bounded(
     chains), the jump chain is eliminated first, and where its runs last at least
     :data:`NO_PROOF_STEPS` steps its value is returned at once, unproven: no LU is tried.
     """
+    if value is not None:
+        target = _without_worthless_sinks(matrix, target, value)
     scale, scaled = _scores(target, value)
     if scale == 0.0:
         return Bounded(0.0, 0.0)
@@ -622,6 +624,25 @@ def reach_probability_bounded(
     # scaling the scores rounds each by u at most, and so their expectation; so does `scale *`
     rounding = (0.0 if scaled is None else 2 * UNIT_ROUNDOFF * scale) + UNIT_ROUNDOFF * result
     return Bounded(float(result), float(scale * found.error + rounding))
+
+
+def _without_worthless_sinks(
+    matrix: sp.csr_matrix, target: np.ndarray, value: np.ndarray
+) -> np.ndarray:
+    """``target`` without its states worth 0 that never leave (a monitor's alarm sink, a
+    stopping state of weight 0): a run there scores 0 as a target or not, and left out they
+    let the value be a plain reachability (:func:`prob0_prob1`: fewer unknowns)."""
+    target = np.asarray(target, dtype=bool)
+    worthless = target & (np.asarray(value, dtype=np.float64) == 0.0)
+    if not worthless.any():
+        return target
+    states = np.flatnonzero(worthless)
+    stays = matrix.diagonal()[states] == 1.0
+    if not stays.any():
+        return target
+    kept = target.copy()
+    kept[states[stays]] = False
+    return kept
 
 
 def _can_reach_dense(dense: np.ndarray, target: np.ndarray) -> np.ndarray:

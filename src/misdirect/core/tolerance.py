@@ -57,6 +57,11 @@ its gap, so its bound may lie that far below the optimum: the bound counts only 
 would be margin that no relative tolerance covers on a problem whose optimum is 0."""
 
 
+ALARM_MARGIN = 1e-7
+"""A search's own (unproven) value of Pr(alarm) decides an alteration infeasible under
+``max_alarm`` (δ) only when it exceeds δ by more than this; closer, the exact evaluator (or,
+for δ = 0, the graph) decides."""
+
 FEASIBILITY = 1e-9
 """A MILP point further than this from feasible (in the scaled model, values about 1) gets its
 claim recomputed with rounded binaries."""

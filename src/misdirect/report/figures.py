@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -704,3 +705,45 @@ def draw_grid(
     finally:
         plt.close(fig)
     return output
+
+
+def tradeoff_figure(curves: Sequence[Any], path: Path, *, title: str = "") -> Path:
+    """Value against δ, one line per budget: the solves of
+    :func:`misdirect.solve_tradeoff` (one :class:`~misdirect.SolveResult` per δ, increasing).
+    A certified point is filled, any other hollow; a budget where nothing keeps Pr(alarm) <= δ
+    (``infeasible``) has no point. Between two δ solved the line holds the smaller one's value
+    (steps: the optimum only grows with δ, and is known only where solved). Written to
+    ``path`` (its suffix picks the format)."""
+    from misdirect.core.objective import LABELS
+
+    fig, ax = plt.subplots(figsize=(6.0, 4.0))
+    deltas = [float(curve.max_alarm) for curve in curves]
+    for j, point in enumerate(curves[0].curve):
+        xs, ys, proven = [], [], []
+        for delta, curve in zip(deltas, curves, strict=True):
+            p = curve.curve[j]
+            if str(p.status) == "infeasible":
+                continue
+            xs.append(delta)
+            ys.append(p.probability)
+            proven.append(str(p.status) == "optimal")
+        (line,) = ax.plot(xs, ys, "-", drawstyle="steps-post", label=f"budget {point.budget:g}")
+        colour = line.get_color()
+        for x, y, certified in zip(xs, ys, proven, strict=True):
+            ax.plot(x, y, "o", color=colour, markerfacecolor=colour if certified else "white")
+    positive = [d for d in deltas if d > 0]
+    if positive and min(positive) < 0.1 * max(positive):
+        ax.set_xscale("symlog", linthresh=min(positive))
+    ax.set_xlabel("δ: the largest Pr(alarm) allowed")
+    label = LABELS.get(curves[0].objective, curves[0].objective)
+    ax.set_ylabel(f"{label} before the alarm")
+    ax.set_title(title or "value against stealth")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize="small")
+    fig.tight_layout()
+    path = Path(path)
+    try:  # atomic, as every picture
+        write_output(path, lambda staged: fig.savefig(staged, dpi=150, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
+    return path

@@ -48,7 +48,8 @@ from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, 
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS
+from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
+from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS, NotApplicableError
 from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
@@ -399,7 +400,65 @@ class AutoSolver:
         seeds: Sequence[AlterationArray | None] | None = None,
     ) -> list[Solution]:
         """``seeds`` (one alteration per budget, optional) start the searches."""
+        if self.options.max_alarm is not None:
+            return self._constrained(problem, budgets, progress, deadline, seeds)
         return self._solve(problem, budgets, progress, deadline, seeds, may_split=True)
+
+    def _constrained(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+        deadline: Deadline | None,
+        seeds: Sequence[AlterationArray | None] | None,
+    ) -> list[Solution]:
+        """Under ``max_alarm``: branch-and-bound under the constraint (its incumbents proven
+        feasible, subtrees whose fixed picks already raise the alarm too often pruned, no
+        segment search: on monitored chains the per-state search alone is the faster), with
+        :data:`NODE_LIMIT` nodes a budget; a budget it leaves open goes to the constrained
+        enumeration where it applies and the alterations are few enough, else to the MILP
+        with the alarm's system. δ = 1 too, as the unconstrained problem."""
+        assert self.options.max_alarm is not None
+        deadline = method_deadline(deadline, self.options.time_limit)
+        constraint = alarm_constraint(problem, self.options.max_alarm)
+        options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
+        search = BranchAndBoundSolver(options, max_nodes=self.node_limit)
+        why = "branch-and-bound under the constraint"
+        solutions = _label(
+            search.solve(problem, budgets, progress=progress, deadline=deadline),
+            "branch-and-bound",
+            why,
+        )
+        open_at = [
+            j
+            for j, s in enumerate(solutions)
+            if s.status not in (Status.OPTIMAL, Status.INFEASIBLE)
+        ]
+        if not open_at or deadline.expired():
+            return solutions
+        left = [budgets[j] for j in open_at]
+        count = prepare(constraint.decoy_problem, max(left)).space.count_within(
+            max(left), INCREMENTAL_LIMIT
+        )
+        second: list[Solution] | None = None
+        method = "incremental"
+        if count <= INCREMENTAL_LIMIT:
+            try:
+                second = IncrementalSolver(options).solve(
+                    problem, left, progress=progress, deadline=deadline
+                )
+            except NotApplicableError:
+                second = None
+        if second is None:
+            method = "milp"
+            second = self.milp.solve(  # its options carry max_alarm
+                problem, left, progress=progress, deadline=deadline
+            )
+        why = "branch-and-bound left it open under the constraint"
+        exact = exact_values(problem)
+        for j, answer in zip(open_at, _label(second, method, why), strict=True):
+            solutions[j] = _better_feasible(exact, constraint, solutions[j], answer)
+        return solutions
 
     def _solve(
         self,
@@ -604,6 +663,33 @@ def _better(exact: ExactValues, first: Solution, second: Solution, why: str) -> 
         notes={**first.notes, **second.notes},  # what each method said of its answer or bound
         stop_reason=stop,
     )
+
+
+def _better_feasible(
+    exact: ExactValues, constraint: AlarmConstraint, first: Solution, second: Solution
+) -> Solution:
+    """Under ``max_alarm``, the better of two stages' answers for one budget among those
+    proven feasible, with the tighter of their bounds (both bound the constrained optimum);
+    ``optimal`` or ``infeasible`` where either stage finished so."""
+    for finished in (Status.INFEASIBLE, Status.OPTIMAL):
+        done = [s for s in (second, first) if s.status == finished]
+        if done:
+            return done[0]
+    feasible = [
+        s
+        for s in (first, second)
+        if s.solver_probability is not None
+        and constraint.verdict(np.asarray(s.alteration, dtype=np.int64)) == Verdict.FEASIBLE
+    ]
+    pick = max(
+        feasible or [second],
+        key=lambda s: exact(np.asarray(s.alteration, dtype=np.int64)),
+    )
+    bounds = [s.upper_bound for s in (first, second) if s.upper_bound is not None]
+    if not bounds:
+        return pick
+    value = exact(np.asarray(pick.alteration, dtype=np.int64)) if feasible else 0.0
+    return replace(pick, upper_bound=max(min(bounds), value))
 
 
 def _label(solutions: list[Solution], method: str, reason: str) -> list[Solution]:

@@ -39,11 +39,13 @@ import scipy.sparse.linalg as spla
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.model import AlterationArray, Problem, reachable_from
+from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import OptionError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report, thread_count
 from misdirect.solvers.certification import exact_values
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
+from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
 from misdirect.solvers.engines.covering import CoverRule, covering_bound
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
 from misdirect.solvers.engines.per_state import PerStateRelaxation
@@ -80,6 +82,10 @@ class _Curve:
     per_state_failed: bool = False
     # a segment search's root bound that holds at every budget (see ``note_segment_root``)
     every_budget_bound: float = np.inf
+    # max_alarm: an alteration's verdict (by its picks); None: unconstrained
+    accept: Callable[[Picks], Verdict] | None = None
+    # max_alarm: whether a node's fixed picks raise the alarm above δ whatever the rest
+    caught: Callable[[Picks], bool] | None = None
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -125,7 +131,7 @@ class BranchAndBoundSolver:
 
     name: ClassVar[str] = "branch-and-bound"
     curve_is_free: ClassVar[bool] = False
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "pool")
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "pool", "max_alarm")
 
     def __init__(self, options: SolveOptions | None = None, *, max_nodes: int = 20_000):
         if max_nodes < 1:
@@ -153,18 +159,32 @@ class BranchAndBoundSolver:
         may have levelled off there, and the largest budget is solved first (see the module
         docstring)."""
         deadline = method_deadline(deadline, self.options.time_limit)
+        constraint = None
+        if self.options.max_alarm is not None:  # δ = 1 too: the per-state search alone
+            # the decoy's value on the space of both values (engines.alarm); the incumbent
+            # keeps only alterations proven feasible, and the relaxation's bound (of the
+            # unconstrained problem) bounds the constrained one too
+            constraint = alarm_constraint(problem, self.options.max_alarm)
+            problem = constraint.decoy_problem
         instance = prepare(problem, max(budgets))
         report(progress, 0, 0, stage="bounds")  # the relaxation the search bounds with
         relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+        accept = None if constraint is None else _feasibility(constraint, relax)
+        # a node whose fixed picks already raise the alarm too often is pruned
+        caught = (
+            None if constraint is None or constraint.trivial else _caught(relax, constraint.limit)
+        )
         curve = _Curve(
             instance,
             relax,
             policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
             # the segment search backs a budget up on large chains
             # with a pool, every budget goes to the (distributed) segment search
-            segment_backs_up=instance.chain.n_states >= SEGMENT_MIN_STATES
-            or self.options.pool is not None,
+            segment_backs_up=accept is None
+            and (instance.chain.n_states >= SEGMENT_MIN_STATES or self.options.pool is not None),
             max_budget=max(budgets),
+            accept=accept,
+            caught=caught,
         )
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
@@ -220,8 +240,9 @@ class BranchAndBoundSolver:
     ) -> Solution:
         relax, budget = curve.relax, step.budget
         # with a pool, the per-state search bounds its root only: the pool takes the rest
-        nodes = 1 if self.options.pool is not None else self.max_nodes
-        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy)
+        nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
+        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
+        search.caught = curve.caught
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -257,8 +278,12 @@ class BranchAndBoundSolver:
         if answer.status != Status.OPTIMAL and curve.segments is not None:
             curve.per_state_failed = True
             answer = self._segment_phase(curve, search, answer, step, deadline, progress)
-        curve.incumbent, curve.policy = (search.best_picks, search.best_value), search.root_policy
+        if search.best_value >= 0:  # under max_alarm, none may be feasible
+            curve.incumbent = (search.best_picks, search.best_value)
+        curve.policy = search.root_policy
         answer = curve.bounded(answer)
+        if curve.accept is not None and search.best_value < 0:
+            answer = _none_feasible(answer, search, relax)
         if answer.status != Status.OPTIMAL and _budget_blind(answer, curve.instance):
             answer.notes["trivial_bound"] = (
                 f"no budget-aware bound on this chain: {int(curve.instance.cycling.sum()):,} "
@@ -342,6 +367,74 @@ class BranchAndBoundSolver:
         )
 
 
+def _feasibility(
+    constraint: AlarmConstraint, relax: PerStateRelaxation
+) -> Callable[[Picks], Verdict]:
+    """An incumbent's test under ``max_alarm``: the verdict of the picks' alteration."""
+
+    def verdict(picks: Picks) -> Verdict:
+        return constraint.verdict(relax.alteration(picks))
+
+    return verdict
+
+
+def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
+    """Under ``max_alarm`` (δ = ``limit``): whether the picks fixed so far (a prefix of
+    ``relax.order``) already raise the alarm with probability above δ, whatever the free
+    choices take. The states whose rows the prefix decides (one group each: its options'
+    groups, and the states with no choice) form a chain in which a free choice's states end
+    the run (scoring 0); a run of it that reaches the sink is a run of every completion, so
+    its Pr(sink) is a lower bound on every completion's Pr(alarm). δ = 0: the sink reachable
+    in its graph; δ > 0: its value less its proven error above δ. Then the subtree holds no
+    feasible alteration."""
+    chain = relax.chain
+    problem = relax.problem
+    assert problem.alarm_state is not None
+    sink = chain.world_state == problem.alarm_state
+    stop = chain.target  # the decoys and the sink (the decoy problem's stopping states)
+    n = chain.n_states
+
+    def caught(picks: Picks) -> bool:
+        options = np.zeros(relax.option_cost.size, dtype=bool)
+        for i, k in zip(relax.order, picks, strict=False):
+            options[relax.first_option[i] + k] = True
+        groups = np.flatnonzero(relax.allowed_groups(options))
+        groups = groups[~stop[chain.group_state[groups]]]
+        owner = chain.group_state[groups]
+        rows = chain.transitions[groups].tocoo()
+        graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
+        reached = bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
+        if limit == 0.0 or not reached:  # exact; an unreachable sink bounds nothing
+            return reached
+        ended = np.ones(n, dtype=bool)  # undecided and stopping states: a self-loop each
+        ended[owner] = False
+        loops = np.flatnonzero(ended)
+        matrix = sp.csr_matrix(
+            (
+                np.concatenate([rows.data, np.ones(loops.size)]),
+                (np.concatenate([owner[rows.row], loops]), np.concatenate([rows.col, loops])),
+            ),
+            shape=(n, n),
+        )
+        found = reach_probability_bounded(matrix, sink, chain.initial)
+        return bool(found.value - found.error > limit)
+
+    return caught
+
+
+def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
+    """A budget whose search kept no feasible alteration: ``infeasible`` where it finished and
+    no verdict was undecided, else open at its bound with no answer."""
+    proven = answer.status == Status.OPTIMAL and search.incumbent.undecided < 0
+    return replace(
+        answer,
+        alteration=relax.alteration((0,) * len(relax.order)),
+        solver_probability=None,
+        status=Status.INFEASIBLE if proven else answer.status,
+        upper_bound=None if proven else answer.upper_bound,
+    )
+
+
 def _budget_blind(answer: Solution, instance: AttackInstance) -> bool:
     """Whether an open answer's bound is the relaxations' own on a chain with end components:
     no better than their bound at the root (or none yet), which does not see the budget there."""
@@ -404,9 +497,10 @@ class _Search(IncumbentSearch):
         max_nodes: int,
         seed: tuple[Picks, float] | None,
         policy: np.ndarray,
+        accept: Callable[[Picks], Verdict] | None = None,
     ):
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget)
+        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget, accept=accept)
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy
@@ -421,6 +515,8 @@ class _Search(IncumbentSearch):
         self.covers = self.cover_unions = self.cover_pruned = self.covers_given_up = 0
         self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
+        self.caught: Callable[[Picks], bool] | None = None  # max_alarm (_caught)
+        self.caught_pruned = 0
         mdp = relax.mdp
         self.proofs_before = (
             mdp.proofs,
@@ -475,6 +571,9 @@ class _Search(IncumbentSearch):
         """Bound ``node``, round its policy to an incumbent, and push its children."""
         relax = self.relax
         self.nodes += 1
+        if self.caught is not None and self.caught(node.picks):
+            self.caught_pruned += 1  # no completion is feasible: nothing to bound
+            return
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
         began = time.perf_counter()
         bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)

@@ -235,7 +235,7 @@ def certify_curve(
     scale = max([p.probability for p in curve] + ([unaltered[1]] if unaltered else []))
     bound: float | None = None
     for point in sorted(curve, key=lambda p: p.budget, reverse=True):
-        if point.status == Status.UNVERIFIED:
+        if point.status in (Status.UNVERIFIED, Status.INFEASIBLE):
             continue
         if bound is not None and (point.upper_bound is None or bound < point.upper_bound):
             point.upper_bound = max(bound, point.probability)
@@ -298,6 +298,8 @@ def _carry_answers_up(
         identity, value, error = unaltered
         best = _Known(identity, value, 0.0, "altering nothing", error)
     for point in sorted(curve, key=lambda p: p.budget):
+        if point.status == Status.INFEASIBLE:  # max_alarm: nothing fits, nothing to carry
+            continue
         if best is not None:
             # costs are the floats of exact sums: compared as they are
             # an alteration over the budget is no answer (check_claims warned of it)

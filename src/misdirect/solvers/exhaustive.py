@@ -26,6 +26,7 @@ from misdirect.solvers.base import (
     report,
 )
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import AlarmConstraint, alarm_constraint, best_feasible
 from misdirect.solvers.engines.per_state import relaxation_bound
 from misdirect.solvers.options import SolveOptions
 from misdirect.solvers.stats import ExhaustiveStats
@@ -37,7 +38,7 @@ MAX_EVALUATIONS = 2_000_000  # alterations it takes on (more: it refuses, naming
 class ExhaustiveSolver:
     name: ClassVar[str] = "exhaustive"
     curve_is_free: ClassVar[bool] = True
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit",)
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "max_alarm")
 
     def __init__(
         self, options: SolveOptions | None = None, *, max_evaluations: int = MAX_EVALUATIONS
@@ -55,7 +56,13 @@ class ExhaustiveSolver:
     ) -> list[Solution]:
         deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
-        space = prepare(problem, top).space
+        constraint = (
+            None
+            if self.options.alarm_limit is None
+            else alarm_constraint(problem, self.options.alarm_limit)
+        )
+        # under a constraint, the space of both values (engines.alarm): the same values
+        space = prepare(problem if constraint is None else constraint.decoy_problem, top).space
         enumerated = space.within(top, limit=self.max_evaluations)
         if enumerated is None:
             raise SolverError(
@@ -87,6 +94,19 @@ class ExhaustiveSolver:
             relevant_observations=len(space.choices),
             candidates_per_observation=[c.size for c in space.choices],
         )
+        # a budget is proven when every alteration it affords was evaluated
+        complete = [finished or costs[done] > problem.cost.scale.cap(b) for b in budgets]
+        if constraint is not None:
+            return _constrained(
+                constraint,
+                budgets,
+                costs[:done],
+                values[:done],
+                alterations,
+                complete,
+                stats,
+                worst_error,
+            )
         picks = best_per_budget(
             costs[:done],
             values[:done],
@@ -94,8 +114,6 @@ class ExhaustiveSolver:
             problem.cost.scale,
             terms=lambda i: problem.cost.terms(alterations[i]),
         )
-        # a budget is proven when every alteration it affords was evaluated
-        complete = [finished or costs[done] > problem.cost.scale.cap(b) for b in budgets]
         # the relaxation at the largest budget bounds every smaller one too
         bound = (
             None
@@ -117,6 +135,64 @@ class ExhaustiveSolver:
             )
             for b, i, proven in zip(budgets, picks, complete, strict=True)
         ]
+
+
+def _constrained(
+    constraint: AlarmConstraint,
+    budgets: Sequence[float],
+    costs: np.ndarray,
+    values: np.ndarray,
+    alterations: dict[int, np.ndarray],
+    complete: list[bool],
+    stats: ExhaustiveStats,
+    error: float,
+) -> list[Solution]:
+    """Under ``max_alarm``: per budget the best alteration proven feasible, every one evaluated
+    exactly (value and verdict); a budget with none is ``infeasible`` when every alteration it
+    affords was evaluated and none is undecided. An undecided alteration worth more than the
+    answer keeps its value in the bound (the answer is then not certified); so does the
+    largest proven ``error`` of the values compared. A budget not evaluated completely has
+    only the objective's largest value as its bound."""
+    problem = constraint.problem
+    top = problem.objective.max_value
+    solutions = []
+    for budget, proven in zip(budgets, complete, strict=True):
+        index, undecided = best_feasible(
+            costs,
+            values,
+            budget,
+            problem.cost.scale,
+            lambda i: constraint.verdict(alterations[i]),
+            terms=lambda i: problem.cost.terms(alterations[i]),
+        )
+        stop = StopReason.FINISHED if proven else StopReason.TIME
+        if index is None:
+            solutions.append(
+                Solution(
+                    budget,
+                    problem.identity(),
+                    None,
+                    status=Status.INFEASIBLE if proven and undecided < 0 else Status.TIME_LIMIT,
+                    upper_bound=None if proven and undecided < 0 else top,
+                    stats=stats,
+                    stop_reason=stop,
+                )
+            )
+            continue
+        value = float(values[index])
+        bound = min(max(value, undecided) + error, top) if proven else top
+        solutions.append(
+            Solution(
+                budget,
+                alterations[index],
+                value,
+                status=Status.OPTIMAL if proven else Status.TIME_LIMIT,
+                upper_bound=bound,
+                stats=stats,
+                stop_reason=stop,
+            )
+        )
+    return solutions
 
 
 def _bound(value: float, proven: bool, relaxed: float | None, error: float, top: float) -> float:

@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import ClassVar, cast
 
 import numpy as np
 
-from misdirect.core.attack import prepare
+from misdirect.core import tolerance
+from misdirect.core.attack import AttackInstance, prepare
 from misdirect.core.evaluate import decoy_probability
 from misdirect.core.model import Problem
 from misdirect.solvers import schedule
@@ -36,6 +37,12 @@ from misdirect.solvers.base import (
     thread_count,
 )
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import (
+    AlarmConstraint,
+    Verdict,
+    alarm_constraint,
+    best_feasible,
+)
 from misdirect.solvers.engines.lowrank import (
     MAX_ALTERATIONS,
     Enumerated,
@@ -49,11 +56,15 @@ from misdirect.solvers.status import Status, StopReason
 
 __all__ = ["IncrementalSolver", "NotApplicableError"]
 
+# under max_alarm, the exact verdicts tried on the best candidates before every alarm is
+# enumerated (one verdict costs about what valuing one alteration on its own chain does)
+LAZY_VERDICTS = 256
+
 
 class IncrementalSolver:
     name: ClassVar[str] = "incremental"
     curve_is_free: ClassVar[bool] = True
-    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads")
+    accepts: ClassVar[tuple[str, ...]] = ("time_limit", "threads", "max_alarm")
 
     def __init__(
         self,
@@ -78,6 +89,9 @@ class IncrementalSolver:
     ) -> list[Solution]:
         deadline = method_deadline(deadline, self.options.time_limit)
         top = max(budgets)
+        if self.options.alarm_limit is not None:
+            constraint = alarm_constraint(problem, self.options.alarm_limit)
+            return self._constrained(constraint, budgets, deadline, progress)
         instance = prepare(problem, top)
         enumeration = LowRankEnumeration(
             instance, threads=self.threads, max_evaluations=self.max_evaluations
@@ -145,6 +159,144 @@ class IncrementalSolver:
                 )
             )
         return solutions
+
+    def _constrained(
+        self,
+        constraint: AlarmConstraint,
+        budgets: Sequence[float],
+        deadline: Deadline,
+        progress: ProgressCallback | None,
+    ) -> list[Solution]:
+        """Under ``max_alarm``: the enumeration of the decoy's value over the space of both
+        values (:mod:`~misdirect.solvers.engines.alarm`), then per budget the best alteration
+        proven feasible (:meth:`~.AlarmConstraint.verdict`), best candidates first. Past
+        :data:`LAZY_VERDICTS` exact verdicts, the alarm's value is enumerated too (the same
+        space, valued in the same order), and rules out what lies clearly above δ."""
+        problem, top = constraint.problem, max(budgets)
+        instance = prepare(constraint.decoy_problem, top)
+        alarm_instance = prepare(constraint.alarm_problem, top)
+        if not instance.space.choices:  # only the unaltered chain
+            identity = problem.identity()
+            feasible = constraint.verdict(identity) == Verdict.FEASIBLE
+            value = decoy_probability(problem, identity)
+            return [
+                Solution(
+                    b,
+                    identity,
+                    value if feasible else None,
+                    status=Status.OPTIMAL if feasible else Status.INFEASIBLE,
+                    upper_bound=value if feasible else None,
+                    stop_reason=StopReason.FINISHED,
+                )
+                for b in budgets
+            ]
+        if not _same_space(instance, alarm_instance):
+            raise NotApplicableError("the decoy's and the alarm's alteration spaces differ")
+        memo = constraint.memo  # a trade-off curve's other δ may have enumerated them
+        found = cast(Enumerated | None, memo.get(("incremental", top)))
+        if found is None:
+            found = LowRankEnumeration(
+                instance, threads=self.threads, max_evaluations=self.max_evaluations
+            ).run(top, deadline=deadline, progress=progress)
+            if found.complete_for(top):
+                memo[("incremental", top)] = found
+        alarms = cast(Enumerated | None, memo.get(("incremental alarms", top)))
+        picked: list[tuple[int | None, float]] | None = None
+        if alarms is None:  # lazily: the exact verdicts of the best candidates first
+            try:
+                picked = self._pick(
+                    constraint, instance, found, budgets, None, _lazy(found, constraint)
+                )
+            except _TooManyVerdictsError:  # the constraint cuts deep: value every alarm
+                alarms = LowRankEnumeration(
+                    alarm_instance, threads=self.threads, max_evaluations=self.max_evaluations
+                ).run(top, deadline=deadline)
+                if alarms.complete_for(top):
+                    memo[("incremental alarms", top)] = alarms
+        if picked is None:
+            picked = self._pick(constraint, instance, found, budgets, alarms, None)
+        aligned = alarms is not None and np.array_equal(alarms.costs, found.costs)
+        stats = IncrementalStats(
+            evaluations=found.evaluations + (0 if alarms is None else alarms.evaluations),
+            factorisations=found.base_solves + (0 if alarms is None else alarms.base_solves),
+            inner_observations=len(found.inner),
+            outer_observations=len(found.outer),
+        )
+        solutions = []
+        top_value = problem.objective.max_value
+        cut = StopReason.cut(deadline.cancelled)
+        for budget, (index, undecided) in zip(budgets, picked, strict=True):
+            complete = found.complete_for(budget) and (
+                alarms is None or aligned or alarms.complete_for(budget)
+            )
+            if index is None:
+                proven = complete and undecided < 0
+                solutions.append(
+                    Solution(
+                        budget,
+                        problem.identity(),
+                        None,
+                        status=Status.INFEASIBLE if proven else Status.TIME_LIMIT,
+                        upper_bound=None if proven else top_value,
+                        stats=stats,
+                        stop_reason=StopReason.FINISHED if complete else cut,
+                    )
+                )
+                continue
+            value = float(found.values[index])
+            solutions.append(
+                Solution(
+                    budget,
+                    instance.space.alteration(problem, found.picks(index)),
+                    value,
+                    status=Status.OPTIMAL if complete else Status.TIME_LIMIT,
+                    upper_bound=max(value, undecided) if complete else top_value,
+                    stats=stats,
+                    stop_reason=StopReason.FINISHED if complete else cut,
+                )
+            )
+        return solutions
+
+    @staticmethod
+    def _pick(
+        constraint: AlarmConstraint,
+        instance: AttackInstance,
+        found: Enumerated,
+        budgets: Sequence[float],
+        alarms: Enumerated | None,
+        most: int | None,
+    ) -> list[tuple[int | None, float]]:
+        """Per budget, :func:`~misdirect.solvers.engines.alarm.best_feasible` over ``found``:
+        with ``alarms`` (aligned), those clearly above δ ruled out by their value; ``most``:
+        raise :class:`_TooManyVerdictsError` past that many exact verdicts."""
+        aligned = alarms is not None and np.array_equal(alarms.costs, found.costs)
+        excluded = None
+        if alarms is not None and aligned:
+            excluded = alarms.values > constraint.limit + tolerance.ALARM_MARGIN
+        asked = 0
+
+        def verdict(index: int) -> Verdict:
+            nonlocal asked
+            asked += 1
+            if most is not None and asked > most:
+                raise _TooManyVerdictsError
+            estimate = float(alarms.values[index]) if alarms is not None and aligned else None
+            alpha = instance.space.alteration(constraint.problem, found.picks(index))
+            return constraint.verdict(alpha, estimate)
+
+        return [
+            best_feasible(
+                found.costs,
+                found.values,
+                budget,
+                found.scale,
+                verdict,
+                excluded=excluded,
+                tie=tolerance.NEAR_TIE,
+                terms=found.terms,
+            )
+            for budget in budgets
+        ]
 
     @staticmethod
     def _runs(
@@ -215,6 +367,29 @@ def _best_fitting_value(found: Enumerated, budget: float, answer: float) -> floa
         if scale.fits_exactly(found.terms(i), budget):
             return float(found.values[i])
     return best
+
+
+def _lazy(found: Enumerated, constraint: AlarmConstraint) -> int | None:
+    """How many exact verdicts the lazy walk may ask for (None: any): for δ = 0 any (a
+    verdict is a graph search, cheaper than valuing an alarm); where the enumeration valued
+    each alteration on its own chain, as many as it valued (a verdict costs about one); else
+    :data:`LAZY_VERDICTS` (low-rank updates value the alarms far more cheaply)."""
+    if constraint.limit == 0.0:
+        return None
+    return int(found.values.size) if not found.inner else LAZY_VERDICTS
+
+
+class _TooManyVerdictsError(Exception):
+    """The lazy walk asked for more exact verdicts than enumerating every alarm would cost."""
+
+
+def _same_space(first: AttackInstance, second: AttackInstance) -> bool:
+    """Whether two instances offer the same options, in the same order."""
+    a, b = first.space.choices, second.space.choices
+    return len(a) == len(b) and all(
+        x.observation == y.observation and np.array_equal(x.targets, y.targets)
+        for x, y in zip(a, b, strict=True)
+    )
 
 
 def _covering(runs: list[tuple[float, Enumerated]], budget: float) -> Enumerated:

@@ -78,6 +78,9 @@ class SolveOptions:
     # branch-and-bound: the segment search's subtrees run on this pool (a Dask cluster's,
     # misdirect.distributed.connect); None: in this process
     pool: TaskPool | None = field(default=None, compare=False)
+    # the best attack subject to Pr(alarm) <= max_alarm, on a monitored problem (every method
+    # takes it: misdirect.solvers.engines.alarm)
+    max_alarm: float | None = None
 
     def __post_init__(self) -> None:
         check_time_limit(self.time_limit)
@@ -87,6 +90,12 @@ class SolveOptions:
             raise OptionError(
                 f"must be a non-negative finite number, got {self.mip_gap}", parameter="mip_gap"
             )
+
+    @property
+    def alarm_limit(self) -> float | None:
+        """``max_alarm`` where it constrains anything: below 1 (every alteration keeps
+        Pr(alarm) <= 1, so δ = 1 is the unconstrained problem); else None."""
+        return self.max_alarm if self.max_alarm is not None and self.max_alarm < 1.0 else None
 
     def given(self) -> list[str]:
         """The options set (not None), in declaration order."""

@@ -7,6 +7,7 @@ disagreement: a solver can be wrong, the chain cannot.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Sequence
@@ -36,6 +37,14 @@ from misdirect.solvers.certification import (
     take_evidence,
 )
 from misdirect.solvers.deadline import CancelToken, Deadline, DeadlineExpiredError, call_deadline
+from misdirect.solvers.engines.alarm import (
+    AlarmConstraint,
+    Verdict,
+    alarm_value,
+    check_max_alarm,
+    constraint_scope,
+    tradeoff_scope,
+)
 from misdirect.solvers.options import SolveOptions, implied_method, implied_note
 from misdirect.solvers.pool import TaskPool
 from misdirect.solvers.stats import AutoStats, MethodStats, NoStats
@@ -83,6 +92,9 @@ class BudgetResult(Shown):
         ``nodes`` (a search's node limit), ``gap`` (the MILP's gap) or ``cancelled``; None
         where no method said. Only certification makes a point ``optimal``: a finished method
         may still leave it ``feasible``, and a point may be proven after a method's ``time``.
+    alarm, alarm_error : float or None
+        A monitored problem: Pr(the alarm before any decoy) under :attr:`alteration`, exactly,
+        and a proven bound on its error (None: not monitored, or no error proven).
     """
 
     budget: float
@@ -100,6 +112,8 @@ class BudgetResult(Shown):
     # proven bound on the error of ``probability`` on the chain as built; None: none proven
     error_bound: float | None = 0.0
     stop_reason: StopReason | None = None  # how the method stopped, before certification
+    alarm: float | None = None  # a monitored problem: Pr(alarm first) of the alteration
+    alarm_error: float | None = None  # its proven error bound
 
     @property
     def gap(self) -> float | None:
@@ -129,6 +143,8 @@ class BudgetResult(Shown):
             ("alteration", nb.changes(self.alteration)),
             ("cost", nb.amount(self.cost)),
         ]
+        if self.alarm is not None:
+            facts.append(("Pr(alarm)", nb.number(self.alarm)))
         if self.certified_by:
             facts.append(("certified by", nb.text(self.certified_by)))
         notes = [f"{key}: {note}" for key, note in self.notes.items()]
@@ -152,6 +168,9 @@ class BudgetResult(Shown):
             "certification": dict(self.notes),
             "stop_reason": None if self.stop_reason is None else str(self.stop_reason),
         }
+        if self.alarm is not None:  # a monitored problem
+            shown["alarm"] = self.alarm
+            shown["alarm_error"] = self.alarm_error
         if stats:
             shown["stats"] = {k: v for k, v in self.stats.to_dict().items() if k != "auto_reason"}
         return shown
@@ -222,6 +241,9 @@ class SolveResult(Shown):
         Stopped early on request: the answers are the best found so far.
     objective : str
         ``probability``, or ``expected_decoy_weight`` with weighted decoy sets.
+    max_alarm : float or None
+        The δ the curve was solved for (``solve(..., max_alarm=δ)``): every point is the best
+        alteration whose Pr(alarm) is proven at most δ; None: unconstrained.
 
     Examples
     --------
@@ -252,6 +274,7 @@ class SolveResult(Shown):
     # what `probability` measures: "probability" (of reaching the decoy), or
     # "expected_decoy_weight" with weighted decoy sets
     objective: str = "probability"
+    max_alarm: float | None = None  # the δ of Pr(alarm) <= δ, if the solve was constrained
 
     @property
     def final(self) -> BudgetResult:
@@ -267,6 +290,8 @@ class SolveResult(Shown):
     error_bound = property(lambda self: self.final.error_bound)
     stats = property(lambda self: self.final.stats)
     certified_by = property(lambda self: self.final.certified_by)
+    alarm = property(lambda self: self.final.alarm)
+    alarm_error = property(lambda self: self.final.alarm_error)
 
     def __repr__(self) -> str:
         return (
@@ -293,6 +318,8 @@ class SolveResult(Shown):
             ("method", nb.text(self.method)),
             ("time", nb.text(f"{self.time_s:.3g} s")),
         ]
+        if self.max_alarm is not None:
+            facts.insert(1, ("subject to", nb.text(f"Pr(alarm) <= {self.max_alarm:g}")))
         if self.certified_by:
             facts.insert(4, ("certified by", nb.text(self.certified_by)))
         notes = [*self.warnings, *self.notes]
@@ -350,6 +377,8 @@ class SolveResult(Shown):
             "stats": stats,
             "warnings": list(self.warnings),
             "notes": list(self.notes),
+            **({} if self.final.alarm is None else {"alarm": self.final.alarm}),
+            **({} if self.max_alarm is None else {"max_alarm": self.max_alarm}),
         }
 
 
@@ -407,6 +436,7 @@ def solve(
     deadline: Deadline | None = None,
     cancel: CancelToken | None = None,
     progress: ProgressCallback | None = None,
+    max_alarm: float | None = None,
 ) -> SolveResult:
     """The optimal alteration for ``problem.budget`` (or each of ``budgets``), certified exactly.
 
@@ -454,6 +484,14 @@ def solve(
         Cancelling it (from another thread or a signal handler) stops this solve, and only
         this one, with its best answers so far, marked ``interrupted``. Default: the
         deadline's token, else a fresh one.
+    max_alarm : float, optional
+        δ in [0, 1]: the best alteration whose Pr(alarm) is at most δ, on a monitored
+        problem (:func:`misdirect.core.monitor.with_monitor`); δ = 0 asks for attacks the
+        monitor never catches (decided on the altered chain's graph, exactly). Every point is
+        then certified for the constrained problem: ``optimal`` only where its alteration's
+        Pr(alarm) is proven at most δ and a proven bound on the constrained optimum meets its
+        value; ``infeasible`` where no alteration within the budget is. Every method takes it
+        (docs/stealth.md). One δ a call: a trade-off curve is one call per δ.
     progress : callable, optional
         Called as ``progress(done, total, stage=..., detail=..., note=...)`` while solving:
         ``done`` of ``total`` steps of ``stage`` (a method's name), ``detail`` a short status
@@ -476,7 +514,8 @@ def solve(
         valid one.
     OptionError
         An option out of range, or one the method does not take (``solver`` with
-        ``method="exhaustive"``).
+        ``method="exhaustive"``); ``max_alarm`` outside [0, 1] or on a problem without a
+        monitor.
     ProblemError
         A negative or non-finite budget.
     SolverError
@@ -515,6 +554,9 @@ def solve(
         "verbose": verbose,
         "pool": pool,
     }
+    limit = None if max_alarm is None else check_max_alarm(problem, max_alarm)
+    if limit is not None:  # the methods solve δ = 1 unconstrained (SolveOptions.alarm_limit)
+        overrides["max_alarm"] = limit
     given = {name: value for name, value in overrides.items() if value is not None}
     options = replace(options or SolveOptions(), **given)
     method, implying = implied_method(method, options.given())  # auto + a MILP option: milp
@@ -523,6 +565,8 @@ def solve(
     budgets, cap, clamped_from = _budgets(problem, budgets, method_solver.curve_is_free, notes)
     if problem.budget > cap:
         problem = problem.with_budget(cap)
+    # the methods' problem: its constraint is the one they find (engines.alarm)
+    constraint = None if limit is None else AlarmConstraint(problem, limit)
     # each budget above the cap is answered by the cap's solution, reported at its own budget
     clamped = sorted({min(b, cap) for b in budgets})
     deadline = call_deadline(deadline, options.time_limit, cancel)
@@ -532,7 +576,12 @@ def solve(
     # the choice product stops at the deadline too (core.checkpoint)
     solutions: list[Solution] | None = None
     try:
-        with shared_preparation(), exact_scope(exact_value), interruptible(deadline.check):
+        with (
+            shared_preparation(),
+            exact_scope(exact_value),
+            interruptible(deadline.check),
+            _constraint_scope(constraint),
+        ):
             # the first phase, until the method reports its own: the product chain's build
             report(progress, 0, 0, stage="product")
             solutions = method_solver.solve(problem, clamped, progress=progress, deadline=deadline)
@@ -549,8 +598,15 @@ def solve(
         ]
     curve, warnings = _exact_curve(problem, solutions, method_solver.name, exact_value)
     identity = problem.identity()
-    unaltered = (identity, exact_value(identity), exact_value.error(identity))
+    nothing = (identity, exact_value(identity), exact_value.error(identity))
+    unaltered: tuple[np.ndarray, float, float] | None = nothing
+    if constraint is not None:
+        warnings += _feasible_answers(curve, constraint, method_solver.name, nothing)
+        if constraint.verdict(identity) != Verdict.FEASIBLE:
+            unaltered = None  # altering nothing is no answer to carry up
     certify_curve(curve, cancelled=interrupted, unaltered=unaltered, floor=_floor(problem))
+    if constraint is not None:
+        warnings += _check_feasible(curve, constraint)
     for point in curve:  # a single method that proved its own point names itself
         if point.status == Status.OPTIMAL and point.certified_by is None:
             point.certified_by = method_solver.name
@@ -559,14 +615,123 @@ def solve(
         method=method_solver.name,
         baseline_probability=_clean(exact_value(identity)),
         time_s=elapsed,
-        curve=[_result(point, problem) for point in curve],
+        curve=[_result(point, problem, constraint) for point in curve],
         warnings=[*problem.warnings, *warnings],
         notes=[*notes, *problem.notes],
         budget_clamped_from=clamped_from,
         budget_clamped_to=None if clamped_from is None else cap,
         interrupted=interrupted,
         objective=problem.objective.kind,
+        max_alarm=None if constraint is None else constraint.limit,
     )
+
+
+def solve_tradeoff(
+    problem: Problem, max_alarm: Sequence[float], **options: Any
+) -> list[SolveResult]:
+    """The trade-off between value and stealth: :func:`solve` once per δ of ``max_alarm``
+    (in increasing order), each curve certified for Pr(alarm) <= δ. ``options`` are
+    :func:`solve`'s (``budgets``, ``method``, ``time_limit`` per δ, ...). The solves share
+    what δ does not change: the prepared instances, each alteration's exact Pr(alarm) and
+    the enumerations' tables (a curve of enumerations pays for one).
+
+    Examples
+    --------
+    >>> import misdirect
+    >>> from misdirect.core.monitor import consistency_monitor, with_monitor
+    >>> from misdirect.scenarios import paper_grid
+    >>> grid = paper_grid(5)
+    >>> watched = with_monitor(grid, consistency_monitor(grid))
+    >>> curves = misdirect.solve_tradeoff(watched, [0, 0.25], budgets=[1], method="exhaustive")
+    >>> [(c.max_alarm, round(c.probability, 6), round(c.alarm, 6)) for c in curves]
+    [(0.0, 0.089186, 0.0), (0.25, 0.647903, 0.210195)]
+    """
+    if "max_alarm" in options:
+        raise TypeError("solve_tradeoff() takes max_alarm once, as its list of δ")
+    deltas = sorted({float(d) for d in max_alarm})
+    if not deltas:
+        raise OptionError("no δ to solve for: give at least one", parameter="max_alarm")
+    with shared_preparation(), tradeoff_scope(problem):
+        return [solve(problem, max_alarm=delta, **options) for delta in deltas]
+
+
+def _constraint_scope(constraint: AlarmConstraint | None) -> contextlib.AbstractContextManager[Any]:
+    return contextlib.nullcontext() if constraint is None else constraint_scope(constraint)
+
+
+def _feasible_answers(
+    curve: list[CurvePoint],
+    constraint: AlarmConstraint,
+    method: str,
+    unaltered: tuple[np.ndarray, float, float],
+) -> list[str]:
+    """Under ``max_alarm``, before certification: an answer proven to break the constraint
+    is no answer (a MILP's tolerances may admit one just above δ); it takes altering nothing
+    where that is proven feasible (its bound, sound for the constrained problem, is kept),
+    else the point is ``unverified``."""
+    warnings = []
+    identity, value, error = unaltered
+    for point in curve:
+        if point.status == Status.INFEASIBLE and constraint.verdict(identity) == Verdict.FEASIBLE:
+            # a method's claim that nothing fits, against altering nothing, which does
+            warnings.append(
+                f"budget {point.budget:g}: the {method} solver found no alteration keeping "
+                f"Pr(alarm) <= {constraint.limit:g}, but altering nothing does"
+            )
+            point.notes["replaced"] = "the solver's 'infeasible' is wrong: altering nothing fits"
+            point.alteration, point.probability, point.error_bound = identity, value, error
+            point.cost, point.fits, point.claimed = 0.0, True, None
+            point.status, point.upper_bound = Status.FEASIBLE, None
+            continue
+        if point.status in (Status.INFEASIBLE, Status.UNVERIFIED):
+            continue
+        if constraint.verdict(point.alteration) != Verdict.INFEASIBLE:
+            continue
+        alarm = constraint.alarm(point.alteration).value
+        warnings.append(
+            f"budget {point.budget:g}: the {method} solver's answer has Pr(alarm) {alarm:.9g}, "
+            f"above {constraint.limit:g}; it is not an answer"
+        )
+        if constraint.verdict(identity) == Verdict.FEASIBLE:
+            point.notes["replaced"] = (
+                f"the solver's answer breaks Pr(alarm) <= {constraint.limit:g}: it takes "
+                "altering nothing"
+            )
+            point.alteration, point.probability, point.error_bound = identity, value, error
+            point.cost, point.fits, point.claimed = 0.0, True, None
+            if point.status == Status.OPTIMAL:
+                point.status = Status.FEASIBLE
+        else:
+            point.status = Status.UNVERIFIED
+    return warnings
+
+
+def _check_feasible(curve: list[CurvePoint], constraint: AlarmConstraint) -> list[str]:
+    """After certification, the final alterations (certification may have carried one up):
+    ``optimal`` only where Pr(alarm) <= δ is proven; an alteration proven to break it is no
+    answer (``unverified``)."""
+    warnings = []
+    for point in curve:
+        if point.status in (Status.INFEASIBLE, Status.UNVERIFIED):
+            continue
+        verdict = constraint.verdict(point.alteration)
+        if verdict == Verdict.FEASIBLE:
+            continue
+        alarm, error = constraint.alarm(point.alteration)
+        if verdict == Verdict.UNDECIDED:
+            point.notes["alarm_undecided"] = (
+                f"Pr(alarm) {alarm:.12f} (error up to {error:.2e}) is not proven at most "
+                f"{constraint.limit:g}"
+            )
+            if point.status == Status.OPTIMAL:
+                point.status = Status.FEASIBLE
+        else:
+            point.status = Status.UNVERIFIED
+            warnings.append(
+                f"budget {point.budget:g}: Pr(alarm) {alarm:.9g} of the answer is above "
+                f"{constraint.limit:g}; it is not an answer"
+            )
+    return warnings
 
 
 def _unaltered_solutions(
@@ -723,7 +888,16 @@ def _clean(value: float) -> float:
     return value + 0.0
 
 
-def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
+def _result(
+    point: CurvePoint, problem: Problem, constraint: AlarmConstraint | None = None
+) -> BudgetResult:
+    alarm = None
+    if problem.alarm_state is not None:  # a monitored problem: both probabilities
+        alarm = (
+            constraint.alarm(point.alteration)
+            if constraint is not None
+            else alarm_value(problem, point.alteration)
+        )
     return BudgetResult(
         budget=point.budget,
         status=point.status,
@@ -738,4 +912,6 @@ def _result(point: CurvePoint, problem: Problem) -> BudgetResult:
         certified_by=point.certified_by,
         error_bound=point.error_bound if math.isfinite(point.error_bound) else None,
         stop_reason=point.stop_reason,
+        alarm=None if alarm is None else _clean(alarm.value),
+        alarm_error=None if alarm is None or not math.isfinite(alarm.error) else alarm.error,
     )

@@ -18,6 +18,8 @@ class Status(StrEnum):
     FEASIBLE = "feasible"  # an allowed alteration, not (yet) proven best (a node limit)
     UNVERIFIED = "unverified"  # the solver's claim and the exact chain disagree
     INTERRUPTED = "interrupted"  # stopped on request (Ctrl-C) with the best found so far
+    # under max_alarm: proven that no alteration within the budget keeps Pr(alarm) <= δ
+    INFEASIBLE = "infeasible"
 
     @property
     def cut_short(self) -> bool:
@@ -56,4 +58,6 @@ class StopReason(StrEnum):
             return cls.GAP
         if status == Status.INTERRUPTED:
             return cls.CANCELLED
+        if status == Status.INFEASIBLE:
+            return cls.FINISHED
         return cls.cut(cancelled)

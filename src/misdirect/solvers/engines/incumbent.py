@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import threading
+from collections.abc import Callable
 
 import numpy as np
 
 from misdirect.core import tolerance
+from misdirect.solvers.engines.alarm import Verdict
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 Picks = tuple[int, ...]  # one candidate per observation of ``PerStateRelaxation.order``
@@ -36,6 +38,7 @@ class Incumbent:
         *,
         order_ties: bool = False,
         lock: threading.RLock | threading.Condition | None = None,
+        accept: Callable[[Picks], Verdict] | None = None,
     ):
         self.relax = relax
         self.budget = budget  # offers over it are refused: searches may reach them by rounding
@@ -51,6 +54,10 @@ class Incumbent:
         # larger of it and ours, so that it stays global when a search is split up
         self.floor = -np.inf
         self._values: dict[Picks, float] = {}
+        # max_alarm: only alterations proven feasible are kept; the best value of one whose
+        # verdict is undecided stays in the proven bound
+        self.accept = accept
+        self.undecided = -np.inf
 
     def value_of(self, picks: Picks) -> float:
         """Exact value of a complete assignment (the chain of its groups, least fixed point),
@@ -73,9 +80,19 @@ class Incumbent:
             cheaper = scale.cheaper(cost, self.cost)
             same_cost = scale.same(cost, self.cost)
             ordered = self.order_ties and same_cost and picks < self.picks
-            if better or (tied and (cheaper or ordered)):
+            if (better or (tied and (cheaper or ordered))) and self._feasible(picks, value):
                 self.picks, self.value, self.cost = picks, value, cost
                 self.improved = self.improved or better
+
+    def _feasible(self, picks: Picks, value: float) -> bool:
+        """Under ``max_alarm``: whether ``picks`` is proven feasible (an undecided one's value
+        is kept for the bound)."""
+        if self.accept is None:
+            return True
+        verdict = self.accept(picks)
+        if verdict == Verdict.UNDECIDED:
+            self.undecided = max(self.undecided, value)
+        return verdict == Verdict.FEASIBLE
 
     def offer_exact(self, picks: Picks) -> None:
         self.offer(picks, self.value_of(picks))
@@ -94,7 +111,7 @@ class Incumbent:
         """The search's bound on the optimum: the incumbent, anything pruned, and the largest
         bound still open; never above the objective's largest value."""
         ceiling = self.relax.problem.objective.max_value
-        return float(min(max(self.value, self.pruned_bound, open_bound), ceiling))
+        return float(min(max(self.value, self.pruned_bound, open_bound, self.undecided), ceiling))
 
 
 class IncumbentSearch:

@@ -52,11 +52,18 @@ BELLMAN_SCALE = 1e3
 
 
 def build_compact(
-    problem: Problem, budget: float | None = None, state_values: np.ndarray | None = None
+    problem: Problem,
+    budget: float | None = None,
+    state_values: np.ndarray | None = None,
+    *,
+    max_alarm: float | None = None,
 ) -> MilpModel:
     """The compact formulation for ``problem`` (budget row set to ``budget``); ``state_values``,
     the states' values under the per-state relaxation, scale the probability columns
-    (:mod:`misdirect.solvers.milp.scaling`; None: unscaled)."""
+    (:mod:`misdirect.solvers.milp.scaling`; None: unscaled). ``max_alarm`` (δ, with
+    ``problem`` a monitored problem whose alarm sink is a stopping state,
+    :attr:`~misdirect.solvers.engines.alarm.AlarmConstraint.decoy_problem`): the alarm's
+    system too (:func:`_add_alarm_rows`), its value at the start at most δ."""
     started = time.perf_counter()
     budget = problem.budget if budget is None else float(budget)
     instance = prepare(problem, budget)
@@ -121,6 +128,9 @@ def build_compact(
     if cycling.any():
         _add_witness_rows(model, chain, cycling, z0, z_of, y0)
 
+    if max_alarm is not None:
+        _add_alarm_rows(model, problem, chain, live, groups, switched, y0, z_of, max_alarm)
+
     objective = np.zeros(model.n_columns)
     offset = 0.0
     if live[chain.initial]:
@@ -136,7 +146,7 @@ def build_compact(
         no witness columns. A complete start spares the solver its own completion LP, which is
         where HiGHS crashed on the 45x45 grid."""
         binaries = (y0 + np.arange(options.size), options.encode(alteration))
-        if cycling.any():
+        if cycling.any() or max_alarm is not None:
             return binaries
         chosen = chain.selected_groups(alteration)
         values = reach_probabilities(
@@ -165,6 +175,60 @@ def build_compact(
             "states_scaled": int((live & (scale < 1.0)).sum()),
         },
     )
+
+
+def _add_alarm_rows(
+    model: ModelBuilder,
+    problem: Problem,
+    chain: ChoiceProduct,
+    live: np.ndarray,
+    groups: np.ndarray,
+    switched: np.ndarray,
+    y0: int,
+    z_of: np.ndarray,
+    max_alarm: float,
+) -> None:
+    """Columns a[q] in [0, 1] and, per live group g of q, the row
+    ``a[q] - Σ_{q'} P_g(q, q') a[q'] >= P_g(q, alarm) - (1 - Σ_{k selects g} y[k])``: for the
+    chosen alteration, ``a >= P_α a + b``, whose every solution lies above the least one,
+    Pr(alarm before decoy) (decoys and the sink are stopping states, outside the live ones);
+    a group switched off holds for every ``a`` in [0, 1]. So ``a[start] <= δ`` is feasible
+    exactly when the alteration's Pr(alarm) is at most δ: no witness rows are needed (a
+    closed class only raises ``a`` above the least solution, which the row allows)."""
+    assert problem.alarm_state is not None
+    a0 = model.columns("alarm_probability", int(live.sum()), 0.0, 1.0)
+    owner = chain.group_state[groups]
+    transitions = chain.transitions[groups].tocoo()
+    sink = (chain.world_state == problem.alarm_state).astype(np.float64)
+    to_alarm = np.asarray(chain.transitions[groups] @ sink).ravel()
+    inside = live[transitions.col]
+    selectors = chain.group_options[groups].tocoo()
+    on = switched[selectors.row]
+    model.rows(
+        "alarm",
+        groups.size,
+        (
+            np.concatenate([np.arange(groups.size), transitions.row[inside], selectors.row[on]]),
+            np.concatenate(
+                [a0 + z_of[owner], a0 + z_of[transitions.col[inside]], y0 + selectors.col[on]]
+            ),
+            np.concatenate(
+                [np.ones(groups.size), -transitions.data[inside], -np.ones(int(on.sum()))]
+            ),
+        ),
+        to_alarm - switched,
+        np.inf,
+        scale=BELLMAN_SCALE,
+    )
+    if live[chain.initial]:
+        model.rows(
+            "max_alarm",
+            1,
+            (np.zeros(1), np.array([a0 + z_of[chain.initial]]), np.ones(1)),
+            -np.inf,
+            max_alarm,
+            scale=BELLMAN_SCALE,
+        )
 
 
 def _add_witness_rows(

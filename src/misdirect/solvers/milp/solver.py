@@ -53,6 +53,7 @@ from misdirect.errors import OptionError, SolverError
 from misdirect.solvers import schedule
 from misdirect.solvers.base import ProgressCallback, Solution, method_deadline, report
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.alarm import alarm_constraint
 from misdirect.solvers.engines.per_state import relaxation_bound, relaxation_values
 from misdirect.solvers.milp import backends
 from misdirect.solvers.milp.backends import (
@@ -99,11 +100,19 @@ def build_formulation(
     formulation: str,
     budget: float | None = None,
     state_values: np.ndarray | None = None,
+    max_alarm: float | None = None,
 ) -> MilpModel:
     """The MILP of ``problem`` in the named formulation, budget row set to ``budget``; with
     ``state_values`` (the per-state relaxation's, :func:`relaxation_values`), its value columns
     scaled to about 1 (:mod:`misdirect.solvers.milp.scaling`)."""
     _check_formulation(formulation)
+    if max_alarm is not None:  # the alarm's system: the compact formulation's alone
+        if formulation != "compact":
+            raise OptionError(
+                f"max_alarm needs the compact formulation, not {formulation!r}",
+                parameter="formulation",
+            )
+        return build_compact(problem, budget, state_values, max_alarm=max_alarm)
     return FORMULATIONS[formulation](problem, budget, state_values=state_values)
 
 
@@ -112,6 +121,7 @@ def scaled_formulation(
     formulation: str,
     budget: float | None = None,
     deadline: Deadline | None = None,
+    max_alarm: float | None = None,
 ) -> MilpModel:
     """The MILP of ``problem`` exactly as a backend gets it (budget row set to ``budget``,
     default the problem's): value columns scaled by the per-state relaxation's values, the
@@ -119,7 +129,11 @@ def scaled_formulation(
     writes, so that another solver sees the numbers HiGHS sees, not a 1e-12 branch."""
     budget = problem.budget if budget is None else float(budget)
     relaxed, values = relaxation_values(problem, budget, deadline)
-    return _scaled(problem, build_formulation(problem, formulation, budget, values), relaxed)
+    if max_alarm is not None:
+        # states that reach only the alarm are worth 0 to the decoy: no scale fits them
+        values = None
+    model = build_formulation(problem, formulation, budget, values, max_alarm)
+    return _scaled(problem, model, relaxed)
 
 
 def _status(result: BackendResult, value: float | None) -> Status:
@@ -147,6 +161,7 @@ class MilpSolver:
         "formulation",
         "mip_gap",
         "verbose",
+        "max_alarm",
     )
 
     def __init__(self, options: SolveOptions | None = None):
@@ -161,6 +176,7 @@ class MilpSolver:
             verbose=bool(options.verbose),
         )
         make_backend(self.backend_name, self.options)  # fail early on a missing backend
+        self.max_alarm = options.alarm_limit
 
     def solve(
         self,
@@ -175,7 +191,9 @@ class MilpSolver:
         # at the largest budget (a decoy behind a branch of 1e-10 has values of 1e-10, below
         # HiGHS's tolerances), in the time the schedule gives it
         quick = schedule.milp_scale(deadline)
-        model = scaled_formulation(problem, self.formulation, max(budgets), quick)
+        if self.max_alarm is not None:  # the decoy's value over the space of both values
+            problem = alarm_constraint(problem, self.max_alarm).decoy_problem
+        model = scaled_formulation(problem, self.formulation, max(budgets), quick, self.max_alarm)
         backend = make_backend(self.backend_name, self.options)
         try:
             return self._solve_curve(problem, model, backend, budgets, progress, deadline)
@@ -278,6 +296,15 @@ class MilpSolver:
             raise SolverError(f"{backend} stopped with status {result.detail} at budget {budget:g}")
         violation = 0.0
         if result.values is None:
+            if result.status == BackendStatus.INFEASIBLE and self.max_alarm is not None:
+                # no alteration within the budget keeps Pr(alarm) <= δ
+                return Solution(
+                    budget=budget,
+                    alteration=problem.identity(),
+                    solver_probability=None,
+                    status=Status.INFEASIBLE,
+                    stop_reason=StopReason.FINISHED,
+                )
             if result.status == BackendStatus.INFEASIBLE:
                 raise SolverError(
                     f"the {self.formulation} MILP is infeasible at budget {budget:g}, "
