@@ -262,6 +262,7 @@ def test_stealth_speed_quick_mode(tmp_path):
     assert (tmp_path / "stealth_speed.csv").exists()
     assert "Stealth speed" in (tmp_path / "stealth_speed.md").read_text()
 
+
 def test_bench_stealth_reduced_mode(tmp_path):
     """bench/stealth.py at budgets 0..1 (no timing asserted): every point certified, and the
     budget-1 values against the brute force over its 49 alterations (docs/stealth.md): 0.720
