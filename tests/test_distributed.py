@@ -512,3 +512,54 @@ def test_any_sweep_file_loads_or_is_one_named_error(document):
     assert all(type(b) in (int, float) and b >= 0 and b != float("inf") for b in spec.budgets)
     for item in spec.scenarios:
         assert all(type(s) is int and 0 <= s < 2**63 for s in item.seeds or [])
+
+
+def test_a_sweep_over_max_alarm_gives_each_delta_its_certified_optimum(tmp_path):
+    """Issue 52: a sweep varies δ. Each row equals the exhaustive search under that δ (the
+    brute force over every alteration within the budget, on the grid watched by the
+    consistency monitor the sweep implies), and reports the answer's Pr(alarm) within δ."""
+    from misdirect.core.monitor import consistency_monitor, with_monitor
+    from misdirect.scenarios import paper_grid
+
+    text = (
+        "budgets: [1]\nmethods: [exhaustive]\nmax_alarm: [0, 0.01, 1]\n"
+        "scenarios:\n  - {scenario: paper-grid, parameters: {n: 5}}\n"
+    )
+    spec, folder = _spec(tmp_path, text)
+    report = run_sweep(spec, folder, tmp_path / "out")
+    rows = {row["max_alarm"]: row for row in report.rows}
+    assert set(rows) == {0.0, 0.01, 1.0} and report.failed == 0
+    grid = paper_grid(5)
+    watched = with_monitor(grid, consistency_monitor(grid))
+    for delta, row in rows.items():
+        exact = solve(watched, budgets=[1], method="exhaustive", max_alarm=delta).final
+        assert row["status"] == "optimal"
+        assert row["probability"] == pytest.approx(exact.probability, abs=1e-12)
+        assert row["alarm"] <= delta + 1e-12
+    assert rows[0.0]["probability"] < rows[0.01]["probability"] < rows[1.0]["probability"]
+
+
+def test_rows_without_a_delta_keep_their_ids_and_old_tables_still_read(tmp_path):
+    """Adding δ to the sweep changes no row id of a sweep without one (the key is the
+    instance, budget and method, hashed as before), and a table written before the two new
+    columns reads back, their cells empty."""
+    import hashlib
+    import json
+
+    from misdirect.distributed.sweep import COLUMNS, read_table, row_id
+
+    key = {"file": "p.yaml"}
+    before = json.dumps({"instance": key, "budget": 2.0, "method": "auto"}, sort_keys=True)
+    assert row_id(key, 2, "auto") == hashlib.sha256(before.encode()).hexdigest()[:16]
+    assert row_id(key, 2, "auto", None, 0.0) != row_id(key, 2, "auto")
+    old = [name for name, _ in COLUMNS if name not in ("max_alarm", "alarm")]
+    table = tmp_path / "results.csv"
+    table.write_text(",".join(old) + "\n" + ",".join("x" if n == "row_id" else "" for n in old))
+    (row,) = read_table(table)
+    assert row["row_id"] == "x" and row["max_alarm"] is None and row["alarm"] is None
+
+
+def test_a_sweeps_max_alarm_outside_zero_one_is_refused_naming_it(tmp_path):
+    with pytest.raises(ProblemError) as raised:
+        _spec(tmp_path, "budgets: [1]\nmax_alarm: [1.5]\n")
+    assert "max_alarm" in str(raised.value)

@@ -1,5 +1,5 @@
-"""``misdirect sweep SPEC``: many problems or generated scenarios × budgets × methods, one
-results table.
+"""``misdirect sweep SPEC``: many problems or generated scenarios × budgets × methods (× the
+δ of ``max_alarm``, under a monitor), one results table.
 
 Each row is one solve, identified by a stable ``row_id`` (a hash of its instance, budget and
 method, not of the time limit or of where it runs). The table is rewritten atomically after
@@ -43,7 +43,14 @@ from pydantic import (
 from misdirect.core.model import Problem, format_alteration
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import parse_json, parse_yaml, read_text_file, write_output
-from misdirect.io.problem_file import error_field, error_reason, load_problem
+from misdirect.io.problem_file import (
+    CONSISTENCY,
+    error_field,
+    error_reason,
+    load_problem,
+    monitored,
+    read_monitor,
+)
 from misdirect.scenarios import drone, knapsack, paper_grid, random_problem, sensor_grid
 from misdirect.solvers import SOLVERS
 from misdirect.solvers.deadline import CancelToken
@@ -79,7 +86,11 @@ COLUMNS: tuple[tuple[str, type], ...] = (
     ("worker", str),
     ("pid", int),
     ("error", str),
+    ("max_alarm", float),  # the δ of Pr(alarm) <= δ, where the sweep gives one
+    ("alarm", float),  # a monitored row's Pr(alarm) for its answer
 )
+# columns a table written before they existed may lack (read back as empty)
+OPTIONAL_COLUMNS = frozenset({"max_alarm", "alarm"})
 ERROR = "error"  # the status of a row that raised: run again on resume
 
 
@@ -114,6 +125,20 @@ class SweepSpec(BaseModel):
     budgets: list[float] = Field(min_length=1)
     methods: list[str] = Field(default_factory=lambda: ["auto"], min_length=1)
     time_limit: float | None = Field(default=None, gt=0)  # seconds per row
+    # a monitor every row is watched by: "consistency", or a monitor file (relative to the
+    # sweep file); it replaces a problem file's own
+    monitor: str | None = None
+    # each δ a row of its own: the best attack with Pr(alarm) <= δ (a monitor needed: the
+    # sweep's, else a problem file's own, else the consistency monitor)
+    max_alarm: list[float] | None = Field(default=None, min_length=1)
+
+    @field_validator("max_alarm")
+    @classmethod
+    def _max_alarm(cls, deltas: list[float] | None) -> list[float] | None:
+        for delta in deltas or []:
+            if not 0.0 <= delta <= 1.0:
+                raise ValueError(f"a max_alarm must be a probability in [0, 1], got {delta}")
+        return deltas
 
     @field_validator("budgets")
     @classmethod
@@ -154,6 +179,8 @@ class Row:
     scenario: str | None = None
     parameters: dict[str, Any] = field(default_factory=dict)
     seed: int | None = None
+    monitor: str | None = None  # "consistency" or a monitor file's path
+    max_alarm: float | None = None
 
 
 @dataclass
@@ -235,12 +262,36 @@ def _type_name(hint: Any) -> str:
     return str(hint)
 
 
-def row_id(instance: dict[str, Any], budget: float, method: str) -> str:
-    """The stable key of a row: its instance, budget and method (not the time limit)."""
-    key = json.dumps(
-        {"instance": instance, "budget": float(budget), "method": method}, sort_keys=True
-    )
+def row_id(
+    instance: dict[str, Any],
+    budget: float,
+    method: str,
+    monitor: str | None = None,
+    max_alarm: float | None = None,
+) -> str:
+    """The stable key of a row: its instance, budget and method (not the time limit), and its
+    monitor and δ where it has them (a row without keeps the key it had before they were)."""
+    fields: dict[str, Any] = {"instance": instance, "budget": float(budget), "method": method}
+    if monitor is not None:
+        fields["monitor"] = monitor
+    if max_alarm is not None:
+        fields["max_alarm"] = float(max_alarm)
+    key = json.dumps(fields, sort_keys=True)
     return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def _watching(spec: SweepSpec, folder: Path) -> str | None:
+    """The sweep's monitor as its rows name it (a file made absolute), checked once here:
+    a wrong monitor file is one error naming it, not an error in every row."""
+    if spec.monitor is None or spec.monitor == CONSISTENCY:
+        return spec.monitor
+    path = folder / spec.monitor
+    try:
+        read_monitor(path)
+    except ProblemError as error:
+        error.field = error.field or "monitor"
+        raise
+    return str(path.absolute())
 
 
 def expand(
@@ -253,6 +304,8 @@ def expand(
     the row object would reach the worker unresolved)."""
     rows: list[Row] = []
     problems: list[Any] = []
+    monitor = _watching(spec, folder)
+    deltas: Sequence[float | None] = spec.max_alarm if spec.max_alarm is not None else [None]
     for k, name in enumerate(spec.problems):
         path = folder / name
         try:
@@ -263,8 +316,20 @@ def expand(
         problems.append(pool.share(problem) if pool is not None else problem)
         for b in spec.budgets:
             for m in spec.methods:
-                rid = row_id({"file": name}, b, m)
-                rows.append(Row(rid, name, float(b), m, spec.time_limit, problem=k))
+                for delta in deltas:
+                    rid = row_id({"file": name}, b, m, spec.monitor, delta)
+                    rows.append(
+                        Row(
+                            rid,
+                            name,
+                            float(b),
+                            m,
+                            spec.time_limit,
+                            problem=k,
+                            monitor=monitor,
+                            max_alarm=delta,
+                        )
+                    )
     for item in spec.scenarios:
         accepted = inspect.signature(GENERATORS[item.scenario]).parameters
         seeds: Sequence[int | None] = item.seeds if item.seeds is not None else [None]
@@ -278,20 +343,23 @@ def expand(
             key = {"scenario": item.scenario, "parameters": item.parameters, "seed": seed}
             for b in spec.budgets:
                 for m in spec.methods:
-                    rid = row_id(key, b, m)
-                    rows.append(
-                        Row(
-                            rid,
-                            label,
-                            float(b),
-                            m,
-                            spec.time_limit,
-                            None,
-                            item.scenario,
-                            dict(item.parameters),
-                            seed,
+                    for delta in deltas:
+                        rid = row_id(key, b, m, spec.monitor, delta)
+                        rows.append(
+                            Row(
+                                rid,
+                                label,
+                                float(b),
+                                m,
+                                spec.time_limit,
+                                None,
+                                item.scenario,
+                                dict(item.parameters),
+                                seed,
+                                monitor,
+                                delta,
+                            )
                         )
-                    )
     return rows, problems
 
 
@@ -307,6 +375,7 @@ def run_row(row: Row, problem: Problem | None = None) -> dict[str, Any]:
         "seed": row.seed,
         "budget": row.budget,
         "method": row.method,
+        "max_alarm": row.max_alarm,
         **where_am_i(),
     }
     try:
@@ -317,7 +386,14 @@ def run_row(row: Row, problem: Problem | None = None) -> dict[str, Any]:
                 problem = generate(row.seed, **row.parameters)
             else:
                 problem = generate(**row.parameters, **extra)
-        solved = solve(problem, method=row.method, budgets=[row.budget], time_limit=row.time_limit)
+        problem = _watched(problem, row)
+        solved = solve(
+            problem,
+            method=row.method,
+            budgets=[row.budget],
+            time_limit=row.time_limit,
+            max_alarm=row.max_alarm,
+        )
         point = solved.final
         result.update(
             status=str(point.status),
@@ -326,12 +402,26 @@ def run_row(row: Row, problem: Problem | None = None) -> dict[str, Any]:
             gap=point.gap,
             cost=point.cost,
             alteration=format_alteration(point.alteration),
+            alarm=point.alarm,
             error=None,
         )
     except (MisdirectError, ValueError, MemoryError) as error:
         result.update(status=ERROR, error=f"{type(error).__name__}: {error}")
     result["time_s"] = time.perf_counter() - started
     return result
+
+
+def _watched(problem: Problem, row: Row) -> Problem:
+    """``problem`` under the row's monitor (in place of its own), or under the consistency
+    monitor where the row asks for a δ and nothing watches it."""
+    if row.monitor is not None:
+        given, where = read_monitor(row.monitor)
+        plain = problem.without_monitor() if problem.unwatched is not None else problem
+        return monitored(plain, given, source=where, field="")
+    if row.max_alarm is not None and problem.unwatched is None:
+        given, where = read_monitor(CONSISTENCY)
+        return monitored(problem, given, source=where, field="")
+    return problem
 
 
 def lost_row(row: Row, error: BaseException) -> dict[str, Any]:
@@ -342,6 +432,7 @@ def lost_row(row: Row, error: BaseException) -> dict[str, Any]:
         "seed": row.seed,
         "budget": row.budget,
         "method": row.method,
+        "max_alarm": row.max_alarm,
         "status": ERROR,
         "error": f"{type(error).__name__}: {error}",
     }
@@ -380,7 +471,11 @@ def read_table(path: Path) -> list[dict[str, Any]]:
             reader = csv.DictReader(handle)
             if reader.fieldnames is None:
                 return []
-            missing = [name for name, _ in COLUMNS if name not in reader.fieldnames]
+            missing = [
+                name
+                for name, _ in COLUMNS
+                if name not in reader.fieldnames and name not in OPTIONAL_COLUMNS
+            ]
             if missing:
                 raise ProblemError(
                     f"is not a sweep's results table (no column {missing[0]!r}); remove it or "
