@@ -26,6 +26,7 @@ from misdirect.core.monitor import (
 )
 from misdirect.core.simulate import simulate
 from misdirect.scenarios import paper_grid, random_problem
+from watched import WATCHED
 
 runner = CliRunner()
 
@@ -33,51 +34,7 @@ runner = CliRunner()
 # else. The monitor knows o0 is read only at the start: a later o0 raises the alarm. Altered
 # o2 -> o0, the robot in s2 (probability 1/2) reads o0 on its second reading and is caught
 # there, in s2; in s1 it reads o1, plays b and reaches the goal.
-HAND = {
-    "format": "misdirect/v1",
-    "name": "watched",
-    "pomdp": {
-        "states": ["s0", "s1", "s2", "goal", "trap"],
-        "actions": ["a", "b"],
-        "initial": "s0",
-        "observe": {"s0": "o0", "s1": "o1", "s2": "o2", "goal": "g", "trap": "g"},
-        "transitions": [
-            ["s0", "a", "s1", 0.5],
-            ["s0", "a", "s2", 0.5],
-            ["s0", "b", "s0", 1.0],
-            ["s1", "a", "trap", 0.3],
-            ["s1", "a", "goal", 0.7],
-            ["s1", "b", "goal", 1.0],
-            ["s2", "a", "trap", 1.0],
-            ["s2", "b", "goal", 1.0],
-        ],
-        "absorbing": ["goal", "trap"],
-    },
-    "controller": {
-        "nodes": ["n"],
-        "initial": "n",
-        "rules": [
-            {"node": "n", "obs": "o0", "action": "a", "next": "n"},
-            {"node": "n", "obs": "g", "action": "a", "next": "n"},
-            {"node": "n", "obs": "*", "action": "b", "next": "n"},
-        ],
-    },
-    "deception": {
-        "decoy": ["trap"],
-        "budget": 1,
-        "cost": {"pairs": {"o2": {"g": 2}}, "protected": ["g"]},
-    },
-    "monitor": {
-        "states": ["start", "run", "caught"],
-        "initial": "start",
-        "alarm": ["caught"],
-        "transitions": [
-            {"state": "start", "reading": "*", "next": "run"},
-            {"state": "run", "reading": "o0", "next": "caught"},
-            {"state": "run", "reading": ["o1", "o2", "g"], "next": "run"},
-        ],
-    },
-}
+HAND = WATCHED
 
 
 def _third_reading(problem):
