@@ -159,22 +159,17 @@ def markdown(rows: list[dict]) -> str:
     lines.append("|---|---|---|---|---|")
     for row in rows:
         a, b = row["before"], row["after"]
-        if row["kind"] in ("enumeration", "drones"):
+        if row["kind"] != "grid":
             if row["kind"] == "drones":
                 label, scenario, parameters, top = row["case"]
                 name = f"auto, 60 s, {label} B0..{top}"
-            else:
+            elif row["kind"] == "enumeration":
                 scenario, parameters, top = row["case"]
                 shown = ", ".join(f"{key}={value}" for key, value in parameters.items())
                 name = f"incremental, {scenario}({shown}) B0..{top}"
-            if "wall_s" in a and "wall_s" in b:
-                cells = [f"{a['wall_s']:.1f} s", f"{b['wall_s']:.1f} s"]
-                cells.append(f"{b['wall_s'] / a['wall_s']:.2f}")
             else:
-                cells = [str(a.get("error", "")), str(b.get("error", "")), ""]
-        elif row["kind"] == "hard":
-            n, k, top, seed, limit = row["case"]
-            name = f"sensor_grid({n}, {k}, seed={seed}) B0..{top}, limit {limit or 'none'}"
+                n, k, top, seed, limit = row["case"]
+                name = f"sensor_grid({n}, {k}, seed={seed}) B0..{top}, limit {limit or 'none'}"
             if "wall_s" in a and "wall_s" in b:
                 cells = [f"{a['wall_s']:.1f} s", f"{b['wall_s']:.1f} s"]
                 cells.append(f"{b['wall_s'] / a['wall_s']:.2f}")
