@@ -222,7 +222,7 @@ def controller_of(mu: np.ndarray, memory: int, n_obs: int, n_actions: int) -> Co
     """The controller playing μ (flat, ``(k, |Ω|, |A|, k)``), its zero entries left out."""
     table = mu.reshape(memory, n_obs, n_actions, memory)
     node, obs, action, nxt = np.nonzero(table > 0)
-    names = ("n0",) if memory == 1 else tuple(f"n{i}" for i in range(memory))
+    names = tuple(f"n{i}" for i in range(memory))
     return Controller.from_entries(
         nodes=names,
         initial_node=0,
