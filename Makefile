@@ -15,8 +15,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/misdirect reproduce --quick --out results
 
+# Two pytest workers (pytest-xdist), one per core; each on one BLAS thread so that OpenBLAS's
+# own threads do not spin against the other worker's (docs/benchmarks.md, "The enumeration's
+# kernel"). TEST_WORKERS=0 runs the suite in one process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 # mkdocs-material + mkdocstrings into the same .venv; --strict: any warning fails the build
 docs: $(STAMP)
