@@ -88,7 +88,7 @@ def test_kept_bases_with_fixed_sensors_value_closing_alterations_too():
             continue
         answer = enumeration.best_with(budget, fixed, Deadline(None), bases)
         assert answer is not None
-        value, vector, complete = answer
+        value, vector, complete, _ = answer
         assert complete
         assert all(vector[i] == k for i, k in fixed.items())
         assert value == pytest.approx(exact[agree].max(), abs=1e-9)

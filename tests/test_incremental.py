@@ -243,7 +243,7 @@ def test_best_with_fixed_choices_equals_brute_force(n, k, seed, costs):
         fixed = {int(i): int(rng.integers(choices[i].size)) for i in picked}
         if sum(choices[i].costs[o] for i, o in fixed.items()) > budget:
             continue
-        value, vector, complete = enumeration.best_with(budget, fixed, Deadline(None), bases)
+        value, vector, complete, _ = enumeration.best_with(budget, fixed, Deadline(None), bases)
         assert complete
         assert all(vector[i] == o for i, o in fixed.items())
         assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget + 1e-9
@@ -296,7 +296,7 @@ def test_an_enumeration_cut_short_offers_the_best_it_valued_and_proves_nothing()
         found = enumeration.best_with(budget, fixed, deadline, BasisCache())
         if found is None:
             continue
-        value, vector, complete = found
+        value, vector, complete, _ = found
         assert all(vector[i] == o for i, o in fixed.items())
         assert sum(c.costs[o] for c, o in zip(choices, vector, strict=True)) <= budget
         exact = decoy_probability(problem, instance.space.alteration(problem, vector))
@@ -307,7 +307,7 @@ def test_an_enumeration_cut_short_offers_the_best_it_valued_and_proves_nothing()
         else:
             candidates += 1
     assert candidates > 0
-    value, _, complete = enumeration.best_with(budget, fixed, Deadline(None), BasisCache())
+    value, _, complete, _ = enumeration.best_with(budget, fixed, Deadline(None), BasisCache())
     assert complete and value == pytest.approx(best, abs=1e-9)
 
 
@@ -580,7 +580,7 @@ def test_a_kept_basis_keeps_w_only_where_rows_are_read_on_demand(goal):
     bases = BasisCache()
     first = enumeration.natural_inner[0]
     fixed = {first: 1}
-    value, vector, complete = enumeration.best_with(2.0, fixed, Deadline(None), bases)
+    value, vector, complete, _ = enumeration.best_with(2.0, fixed, Deadline(None), bases)
     assert complete
     (kept,) = bases._bases.values()
     assert (kept.basis.W is not None) == bool(instance.cycling.any())

@@ -361,7 +361,8 @@ class BranchAndBoundSolver:
             alteration=answer.alteration if picks is None else segments.relax.alteration(picks),
             solver_probability=value,
             status=Status.OPTIMAL if finished else answer.status,
-            upper_bound=value if finished else bound,
+            # finished too: what it pruned or enumerated as a tie may lie a tie above ``value``
+            upper_bound=bound,
             stats=stats,
             stop_reason=StopReason.of(status, deadline.cancelled),  # the segment search's stop
         )

@@ -107,6 +107,13 @@ class Incumbent:
                 return True
             return False
 
+    def settle(self, best: float) -> None:
+        """A subtree solved to the end (enumerated) whose best is worth ``best``: its best is
+        kept only if it beats the incumbent by more than a tie, but the optimum may be that
+        tie above the incumbent, so the proven bound keeps it."""
+        with self._lock:
+            self.pruned_bound = max(self.pruned_bound, best)
+
     def proven_bound(self, open_bound: float) -> float:
         """The search's bound on the optimum: the incumbent, anything pruned, and the largest
         bound still open; never above the objective's largest value."""

@@ -174,6 +174,18 @@ class Enumerated:
         )
 
 
+class BestCompletion(NamedTuple):
+    """What :meth:`LowRankEnumeration.best_with` found: the answer (near-ties: the cheapest,
+    so ``value`` may lie up to a near-tie below the best value), and ``bound``, the best value
+    of any alteration valued within the budget, which the subtree's optimum does not exceed
+    (up to the updates' rounding) when ``complete``."""
+
+    value: float
+    picks: np.ndarray
+    complete: bool
+    bound: float
+
+
 class _KeptBasis(NamedTuple):
     basis: Basis
     cycles: Cycles | None
@@ -423,7 +435,7 @@ class LowRankEnumeration:
         deadline: Deadline,
         bases: BasisCache,
         floor: float | None = None,
-    ) -> tuple[float, np.ndarray, bool] | None:
+    ) -> BestCompletion | None:
         """The best alteration within ``budget`` that takes option ``fixed[i]`` for choice
         ``i`` (value, choice vector, whether every such alteration was valued: ``deadline``
         may cut the run short, and the best of those valued is then no proof); None when none
@@ -437,12 +449,15 @@ class LowRankEnumeration:
         index = best_fitting(
             costs, found.values, budget, found.scale, tolerance.NEAR_TIE, found.terms
         )
+        complete = found.complete_for(budget)
         if index is None:
             if floor is None or not found.values.size:
                 return None
             # every alteration was left out: none can reach the floor (no value to offer)
-            return -np.inf, found.picks(0), found.complete_for(budget)
-        return float(found.values[index]), found.picks(index), found.complete_for(budget)
+            return BestCompletion(-np.inf, found.picks(0), complete, -np.inf)
+        within = found.values[costs <= found.scale.cap(budget)]
+        bound = max(float(found.values[index]), float(within.max(initial=-np.inf)))
+        return BestCompletion(float(found.values[index]), found.picks(index), complete, bound)
 
     def bases_within(self, top: float) -> int:
         """How many base chains a run at ``top`` solves: one per outer block with room for an

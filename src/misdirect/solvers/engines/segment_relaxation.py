@@ -543,16 +543,18 @@ class SegmentRelaxation:
         budget: float,
         deadline: Deadline,
         floor: float | None = None,
-    ) -> tuple[float, tuple[int, ...], bool] | None:
+    ) -> tuple[float, tuple[int, ...], bool, float] | None:
         """The best completion of ``picks`` within ``budget`` (value, picks, whether it is
-        the best of them all), enumerated with low-rank updates: when ``deadline`` cuts the
-        run short, the best of those valued (a candidate, not a proof); None when none was.
-        With ``floor`` (the incumbent's value), only completions that may reach it count."""
+        the best of them all, and the best value of any completion valued: near-ties go to
+        the cheapest, so it may lie a tie above ``value``), enumerated with low-rank updates:
+        when ``deadline`` cuts the run short, the best of those valued (a candidate, not a
+        proof); None when none was. With ``floor`` (the incumbent's value), only completions
+        that may reach it count."""
         found = self.enumeration.best_with(budget, picks, deadline, self.bases, floor)
         if found is None:
             return None
-        value, vector, complete = found
-        return value, tuple(int(vector[i]) for i in self.order), complete
+        picked = tuple(int(found.picks[i]) for i in self.order)
+        return found.value, picked, found.complete, found.bound
 
     @property
     def budget_blind(self) -> bool:

@@ -362,6 +362,8 @@ class SegmentSearch(IncumbentSearch):
                 self._push(entry.picks, entry.remaining, entry.bound, bounded=True)
                 self._status = self._status or Status.TIME_LIMIT
                 return
+            # a best tied with the incumbent is not taken, but it bounds the optimum
+            self.incumbent.settle(found[3] if exact is None else max(found[3], exact))
             self.enumerated += 1
             self.enumerated_alterations += entry.completions
 
