@@ -16,7 +16,7 @@ import misdirect
 from misdirect.cli import app
 from misdirect.core.evaluate import decoy_probability, evaluate
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.io.problem_file import write_problem
+from misdirect.io.problem_file import load_problem, write_problem
 from misdirect.scenarios import random_problem
 
 runner = CliRunner()
@@ -117,6 +117,88 @@ def absorbed_problem(seed: int, budget: float) -> Problem:
         budget=budget,
         name=f"absorbed {seed}",
     )
+
+
+def three_ends_problem(seed: int, budget: float) -> Problem:
+    """As :func:`absorbed_problem`, with a third end, a crash that is neither goal nor decoy:
+    staying away from the decoy no longer means reaching the goal, so a floor on Pr(goal)
+    can cost worst-case Pr(decoy)."""
+    rng = np.random.default_rng(seed)
+    action, source, target, probability = [], [], [], []
+    for a in range(2):
+        for s in range(3):
+            row = rng.dirichlet(np.ones(6))
+            row[3:] += 0.1
+            row /= row.sum()
+            for t in range(6):
+                action.append(a)
+                source.append(s)
+                target.append(t)
+                probability.append(row[t])
+    pomdp = Pomdp.from_triplets(
+        states=("s0", "s1", "s2", "goal", "decoy", "crash"),
+        actions=("x", "y"),
+        observations=("a", "b", "c", "end"),
+        initial_state=0,
+        observation_of=np.array([0, 1, 2, 3, 3, 3]),
+        action=np.array(action),
+        source=np.array(source),
+        target=np.array(target),
+        probability=np.array(probability),
+        absorbing=np.array([False] * 3 + [True] * 3),
+    )
+    controller = Controller(
+        nodes=("m",), initial_node=0, action=np.array([[0, 1, 0, 0]]), update=np.zeros((1, 4))
+    )
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=CostModel(n_observations=4),
+        decoy=np.array([False] * 4 + [True, False]),
+        budget=budget,
+        name=f"three ends {seed}",
+    )
+
+
+@pytest.mark.parametrize(
+    ("maker", "seed"),
+    [(three_ends_problem, 0), (three_ends_problem, 2), (three_ends_problem, 6),
+     (absorbed_problem, 2), (absorbed_problem, 7)],
+)  # fmt: skip
+def test_exact_master_floor_matches_brute_force(maker, seed):
+    """--min-goal q with the exact master: min over every memoryless controller whose nominal
+    Pr(goal) is at least q of the max over every alteration of Pr(decoy), by plain loops; q
+    half-way between the unconstrained min-max controllers' best Pr(goal) and the highest
+    Pr(goal) of any controller, so the floor excludes every unconstrained optimum."""
+    problem = maker(seed, 1.0)
+    alphas = list(alterations_within(problem, 1.0))
+    rows = []  # (worst Pr(decoy), nominal Pr(goal)) of every memoryless controller
+    for table in itertools.product(range(2), repeat=4):
+        candidate = replace(problem, controller=memoryless(problem, table))
+        worst = max(decoy_probability(candidate, a) for a in alphas)
+        rows.append((worst, goal_probability(candidate, problem.identity())))
+    free = min(w for w, _ in rows)
+    free_goal = max(g for w, g in rows if w <= free + 1e-12)
+    top_goal = max(g for _, g in rows)
+    assert top_goal > free_goal + 1e-6  # the floor below binds
+    floor = (free_goal + top_goal) / 2
+    expected = min(w for w, g in rows if g >= floor)
+    assert expected > free + 1e-9  # and costs worst-case Pr(decoy)
+    result = misdirect.robust_controller(problem, 1.0, min_goal=floor)
+    assert result.optimal
+    assert result.lower == pytest.approx(expected, abs=1e-9)
+    assert result.upper == pytest.approx(expected, abs=1e-9)
+    assert result.worst_case == pytest.approx(expected, abs=1e-9)
+    chosen = replace(problem, controller=result.controller)
+    assert goal_probability(chosen, problem.identity()) >= floor
+    assert result.nominal_goal == pytest.approx(goal_probability(chosen, problem.identity()))
+    assert max(decoy_probability(chosen, a) for a in alphas) == pytest.approx(expected, abs=1e-9)
+    assert result.min_goal == floor
+    assert any("floor" in note for note in result.notes)
+    # a floor no controller meets is one clear error naming the field
+    with pytest.raises(misdirect.ProblemError) as error:
+        misdirect.robust_controller(problem, 1.0, min_goal=min(top_goal + 0.01, 1.0))
+    assert error.value.field == "min_goal"
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -356,7 +438,7 @@ def test_gradient_master_floor_on_goal():
     brute = max(decoy_probability(chosen, a) for a in alterations_within(problem, 1.0))
     assert result.worst_case == pytest.approx(brute, abs=1e-9)
     with pytest.raises(misdirect.ProblemError):
-        misdirect.robust_controller(problem, 1.0, min_goal=0.5)  # exact master: no floor
+        misdirect.robust_controller(problem, 1.0, objective="goal", min_goal=0.5)
     with pytest.raises(misdirect.ProblemError):
         misdirect.robust_controller(problem, 1.0, randomized=True, min_goal=1.5)
 
@@ -430,7 +512,26 @@ def test_cli_randomized_writes_a_controller_that_loads_back(tmp_path):
     bad = runner.invoke(
         app,
         ["controller", "robust", str(path), "--budget", "1", "--min-goal", "0.5",
-         "-o", str(tmp_path / "x.fsc.json")],
+         "--objective", "goal", "-o", str(tmp_path / "x.fsc.json")],
     )  # fmt: skip
     assert bad.exit_code == 2
     assert "Traceback" not in bad.output
+
+
+def test_cli_exact_master_with_floor(tmp_path):
+    """`--min-goal` without `--randomized`: the exact master's answer meets the floor, and a
+    floor nothing meets is one line naming the option, exit 2."""
+    problem = three_ends_problem(0, 1.0)
+    path = tmp_path / "p.yaml"
+    write_problem(problem, path)
+    out = tmp_path / "r.fsc.json"
+    args = ["controller", "robust", str(path), "--budget", "1", "-o", str(out)]
+    run = runner.invoke(app, [*args, "--min-goal", "0.7", "--json"])
+    assert run.exit_code == 0, run.output
+    robust = json.loads(run.output)["robust"]
+    assert robust["master"] == "exact" and robust["min_goal"] == 0.7
+    loaded = load_problem(path, controller=str(out))
+    assert goal_probability(loaded, problem.identity()) >= 0.7
+    bad = runner.invoke(app, [*args, "--min-goal", "0.99"])
+    assert bad.exit_code == 2
+    assert "Traceback" not in bad.output and "min_goal" in bad.output

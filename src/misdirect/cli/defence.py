@@ -374,8 +374,9 @@ def controller_robust(
     min_goal: Annotated[
         float | None,
         typer.Option(
-            help="--randomized with --objective decoy: a floor on the nominal Pr(goal); the "
-            "controller found is ranked first by meeting it."
+            help="With --objective decoy: a floor on the nominal Pr(goal). The exact master "
+            "searches only controllers meeting it; --randomized ranks a controller meeting it "
+            "first."
         ),
     ] = None,
     restarts: Annotated[
@@ -403,8 +404,8 @@ def controller_robust(
     check_range("--memory", memory, 1, 8)
     check_range("--restarts", restarts, 1, 1000)
     if min_goal is not None:
-        if not randomized or objective != RobustObjective.decoy:
-            raise ProblemError("needs --randomized and --objective decoy", field="--min-goal")
+        if objective != RobustObjective.decoy:
+            raise ProblemError("needs --objective decoy", field="--min-goal")
         check_range("--min-goal", min_goal, 0, 1)
     attacker_budget = one_budget(budget, "controller robust")
     check_seconds(time_limit)

@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -321,6 +321,24 @@ def _receivable(problem: Problem, budget: float) -> np.ndarray:
 # -- the exact master ---------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _Floor:
+    """The floor on the nominal Pr(goal) the exact master enforces (``--min-goal``)."""
+
+    evaluator: _Evaluator  # the goal objective, same class
+    identity: np.ndarray  # no alteration
+    min_goal: float
+
+
+class _MasterAnswer(NamedTuple):
+    value: float  # sense * the best max over K (inf: no candidate, e.g. none meets the floor)
+    action: np.ndarray
+    update: np.ndarray
+    looked: int  # candidates enumerated
+    finished: bool  # False: the deadline cut the enumeration short
+    top_goal: float  # the highest nominal Pr(goal) seen (with a floor; else -inf)
+
+
 def _master(
     evaluator: _Evaluator,
     cells: np.ndarray,
@@ -330,9 +348,11 @@ def _master(
     alterations: list[np.ndarray],
     sense: float,
     deadline: Deadline,
-) -> tuple[float, np.ndarray, np.ndarray, int, bool]:
+    floor: _Floor | None = None,
+) -> _MasterAnswer:
     """min over the class of max over ``alterations`` of ``sense * value`` (sense = 1 for
-    decoy, -1 for goal). Returns (value, action, update, candidates looked at, finished)."""
+    decoy, -1 for goal); with ``floor``, over the controllers whose nominal Pr(goal) meets it
+    only (the others are dropped before any member of ``K`` is evaluated)."""
     n_moves = n_actions * k
     n_cells = cells.size  # (node, reading) cells that matter, flattened node * n_obs + o
     total = n_moves**n_cells
@@ -340,10 +360,11 @@ def _master(
     best_action = np.zeros((k, n_obs), dtype=np.int64)
     best_update = np.zeros((k, n_obs), dtype=np.int64)
     looked = 0
+    top_goal = -math.inf
     order = list(reversed(alterations))  # the newest attack cuts most candidates off first
     for begin in range(0, total, _BATCH):
         if deadline.expired():
-            return best, best_action, best_update, looked, False
+            return _MasterAnswer(best, best_action, best_update, looked, False, top_goal)
         index = np.arange(begin, min(begin + _BATCH, total), dtype=np.int64)
         looked += index.size
         digits = np.empty((index.size, n_cells), dtype=np.int64)
@@ -357,17 +378,21 @@ def _master(
         update: np.ndarray = flat_update.reshape(-1, k, n_obs)
         worst = np.full(index.size, -math.inf)
         alive = np.arange(index.size)
+        if floor is not None:
+            goal = floor.evaluator.values(action, update, floor.identity)
+            top_goal = max(top_goal, float(goal.max()))
+            alive = alive[goal >= floor.min_goal - tolerance.slack(floor.min_goal)]
         for alpha in order:
+            if alive.size == 0:
+                break
             v = sense * evaluator.values(action[alive], update[alive], alpha)
             worst[alive] = np.maximum(worst[alive], v)
             alive = alive[worst[alive] < best + tolerance.PRUNE]  # near-ties stay
-            if alive.size == 0:
-                break
         if alive.size:
             i = alive[np.argmin(worst[alive])]
             if worst[i] < best:
                 best, best_action, best_update = float(worst[i]), action[i], update[i]
-    return best, best_action, best_update, looked, True
+    return _MasterAnswer(best, best_action, best_update, looked, True, top_goal)
 
 
 def memoryless_controller(problem: Problem, action: np.ndarray, update: np.ndarray) -> Controller:
@@ -515,9 +540,11 @@ def robust_controller(
     seed : int
         The gradient master's seed (its random starts).
     min_goal : float, optional
-        ``"decoy"`` with ``randomized``: a floor ``q`` on the nominal Pr(goal). The master
-        penalises falling short of it and ranks a controller meeting it above any that does
-        not; the result says whether the controller returned meets it (``nominal_goal``).
+        ``"decoy"`` only: a floor ``q`` on the nominal Pr(goal). The exact master excludes
+        every controller whose nominal Pr(goal) is below ``q`` (the bounds are then on the
+        min–max over the others; none left is a ProblemError). The gradient master penalises
+        falling short of it and ranks a controller meeting it above any that does not; the
+        result says whether the controller returned meets it (``nominal_goal``).
     time_limit : float, optional
         Seconds for the loop (the master and the oracle's solves); then the best controller so
         far with the bounds proven so far.
@@ -548,11 +575,9 @@ def robust_controller(
             f"must be a whole number of at least 1, got {restarts!r}", field="restarts"
         )
     if min_goal is not None:
-        if not (randomized and objective == "decoy"):
+        if objective != "decoy":
             raise ProblemError(
-                "a floor on the nominal Pr(goal) needs the randomized master and the decoy "
-                "objective",
-                field="min_goal",
+                "a floor on the nominal Pr(goal) needs the decoy objective", field="min_goal"
             )
         if not (math.isfinite(min_goal) and 0 <= min_goal <= 1):
             raise ProblemError(f"must be a probability in [0, 1], got {min_goal}", field="min_goal")
@@ -595,6 +620,11 @@ def robust_controller(
                 field="memory",
             )
         evaluator = _Evaluator(problem, objective, memory)
+        floor = (
+            None
+            if min_goal is None
+            else _Floor(_Evaluator(problem, "goal", memory), problem.identity(), min_goal)
+        )
         rounds_cap = 1000 if max_rounds is None else max_rounds
     deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
@@ -655,10 +685,17 @@ def robust_controller(
             controller, looked, iterations = answer.controller, answer.candidates, answer.iterations
             exact = sense * answer.value  # already the project's exact evaluation over K
         else:
-            value, action, update, looked, finished = _master(
-                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline
+            found = _master(
+                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline, floor
             )
-            if not finished or not math.isfinite(value):
+            value, action, update, looked = found.value, found.action, found.update, found.looked
+            if found.finished and min_goal is not None and not math.isfinite(value):
+                raise ProblemError(
+                    f"no deterministic controller with {memory} node(s) has a nominal Pr(goal) "
+                    f"of at least {min_goal:g} (the highest is {found.top_goal:.6f})",
+                    field="min_goal",
+                )
+            if not found.finished or not math.isfinite(value):
                 break
             controller = memoryless_controller(problem, action, update)
             # the master's value re-evaluated exactly on its controller
@@ -727,6 +764,12 @@ def robust_controller(
             "the worst-case Pr(goal) is not proven: the oracle's solve was not certified, or a "
             "run might be trapped forever under some alteration (then 1 - Pr(non-goal end) is not "
             "Pr(goal))"
+        )
+    if gradient is None and min_goal is not None:
+        notes.append(
+            f"floor on the nominal Pr(goal): the exact master searched only the controllers "
+            f"whose nominal Pr(goal) is at least {min_goal:g}; the bounds are on the min-max "
+            "over those"
         )
     if gradient is not None:
         notes.append(
