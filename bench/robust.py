@@ -3,6 +3,7 @@ and the trade-off figure.
 
     python bench/robust.py [--out bench/results] [--quick] [--budgets 1,2,3,4]
         [--exact-budgets 0,1,2,3,4] [--parts exact,randomized] [--figure docs/robust-tradeoff.png]
+    python bench/robust.py --replot bench/results/robust.json [--figure docs/robust-tradeoff.png]
 
 **exact** (one memory node, deterministic, the exact master; the target of issue 54: the
 min–max proven, lower = upper bound, for budgets 0..4 within 10 minutes in all), per budget B:
@@ -242,6 +243,16 @@ def write_exact(rows: list[dict], out: Path) -> list[str]:
     return lines + baseline_lines
 
 
+def plot(points: list[dict], path: Path, figure: Path | None) -> None:
+    """The trade-off figure at ``path`` (and at ``figure``, for the docs)."""
+    from misdirect.report.figures import robust_tradeoff_figure
+
+    title = "the paper's grid, 5x5: robustness against nominal performance"
+    for target in (path, figure):
+        if target is not None:
+            robust_tradeoff_figure(points, target, title=title)
+
+
 def write(
     rows: list[dict],
     out: Path,
@@ -266,12 +277,7 @@ def write(
         + "\n"
     )
     if points:
-        from misdirect.report.figures import robust_tradeoff_figure
-
-        title = "the paper's grid: robustness against nominal performance"
-        robust_tradeoff_figure(points, out / "robust_tradeoff.png", title=title)
-        if figure is not None:
-            robust_tradeoff_figure(points, figure, title=title)
+        plot(points, out / "robust_tradeoff.png", figure)
     fields = [
         "run", "budget", "worst_case", "certified", "nominal_goal", "meets_floor", "paper",
         "given", "blind", "blind_goal", "below_paper", "no_worse_than_baselines", "pass",
@@ -313,7 +319,14 @@ def main() -> None:
     parser.add_argument("--exact-budgets", default="0,1,2,3,4", help="of the exact runs")
     parser.add_argument("--parts", default="exact,randomized")
     parser.add_argument("--figure", type=Path, default=None, help="also write the figure here")
+    parser.add_argument(
+        "--replot", type=Path, default=None, help="draw the figure from this robust.json only"
+    )
     args = parser.parse_args()
+    if args.replot is not None:
+        points = json.loads(args.replot.read_text())["points"]
+        plot(points, args.out / "robust_tradeoff.png", args.figure)
+        return
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     exact_budgets = [0] if args.quick else [int(b) for b in args.exact_budgets.split(",") if b]
     kinds = ("given", "blind", "harden") if args.quick else ("given", "blind", "harden", "paynt")
