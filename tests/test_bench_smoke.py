@@ -290,3 +290,27 @@ def test_bench_stealth_reduced_mode(tmp_path):
     assert at_one[("delta", 0.0)]["alarm"] == 0.0
     assert (tmp_path / "stealth.csv").exists()
     assert (tmp_path / "stealth_tradeoff.png").stat().st_size > 0
+
+
+def test_robust_benchmark_reduced_mode(tmp_path):
+    """bench/robust.py --quick: the exact master at budget 0 and one randomized round at
+    budget 1, the baselines, the table and the trade-off figure."""
+    subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "robust.py"), "--quick", "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )
+    document = json.loads((tmp_path / "robust.json").read_text())
+    (floor,) = document["exact"]
+    assert floor["optimal"] and floor["lower_bound"] == pytest.approx(floor["upper_bound"])
+    assert floor["nominal_goal"] >= 0.9
+    baselines = {b["kind"]: b for b in floor["baselines"]}
+    # SPEC §3: the paper's controller at budget 0
+    assert baselines["given"]["worst_case"] == pytest.approx(0.084957, abs=5e-7)
+    # nothing is altered at budget 0: the min-max is no worse than any baseline's nominal value
+    assert floor["worst_case"] <= min(b["nominal"] for b in baselines.values()) + 1e-9
+    (plain,) = document["rows"]
+    assert plain["certified"] and plain["worst_case"] < 0.719924  # SPEC §3, budget 1
+    assert (tmp_path / "robust_tradeoff.png").stat().st_size > 0
+    assert (tmp_path / "robust_exact.csv").exists()

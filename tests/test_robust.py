@@ -16,7 +16,7 @@ import misdirect
 from misdirect.cli import app
 from misdirect.core.evaluate import decoy_probability, evaluate
 from misdirect.core.model import Controller, CostModel, Pomdp, Problem
-from misdirect.io.problem_file import write_problem
+from misdirect.io.problem_file import load_problem, write_problem
 from misdirect.scenarios import random_problem
 
 runner = CliRunner()
@@ -119,12 +119,94 @@ def absorbed_problem(seed: int, budget: float) -> Problem:
     )
 
 
+def three_ends_problem(seed: int, budget: float) -> Problem:
+    """As :func:`absorbed_problem`, with a third end, a crash that is neither goal nor decoy:
+    staying away from the decoy no longer means reaching the goal, so a floor on Pr(goal)
+    can cost worst-case Pr(decoy)."""
+    rng = np.random.default_rng(seed)
+    action, source, target, probability = [], [], [], []
+    for a in range(2):
+        for s in range(3):
+            row = rng.dirichlet(np.ones(6))
+            row[3:] += 0.1
+            row /= row.sum()
+            for t in range(6):
+                action.append(a)
+                source.append(s)
+                target.append(t)
+                probability.append(row[t])
+    pomdp = Pomdp.from_triplets(
+        states=("s0", "s1", "s2", "goal", "decoy", "crash"),
+        actions=("x", "y"),
+        observations=("a", "b", "c", "end"),
+        initial_state=0,
+        observation_of=np.array([0, 1, 2, 3, 3, 3]),
+        action=np.array(action),
+        source=np.array(source),
+        target=np.array(target),
+        probability=np.array(probability),
+        absorbing=np.array([False] * 3 + [True] * 3),
+    )
+    controller = Controller(
+        nodes=("m",), initial_node=0, action=np.array([[0, 1, 0, 0]]), update=np.zeros((1, 4))
+    )
+    return Problem(
+        pomdp=pomdp,
+        controller=controller,
+        cost=CostModel(n_observations=4),
+        decoy=np.array([False] * 4 + [True, False]),
+        budget=budget,
+        name=f"three ends {seed}",
+    )
+
+
+@pytest.mark.parametrize(
+    ("maker", "seed"),
+    [(three_ends_problem, 0), (three_ends_problem, 2), (three_ends_problem, 6),
+     (absorbed_problem, 2), (absorbed_problem, 7)],
+)  # fmt: skip
+def test_exact_master_floor_matches_brute_force(maker, seed):
+    """--min-goal q with the exact master: min over every memoryless controller whose nominal
+    Pr(goal) is at least q of the max over every alteration of Pr(decoy), by plain loops; q
+    half-way between the unconstrained min-max controllers' best Pr(goal) and the highest
+    Pr(goal) of any controller, so the floor excludes every unconstrained optimum."""
+    problem = maker(seed, 1.0)
+    alphas = list(alterations_within(problem, 1.0))
+    rows = []  # (worst Pr(decoy), nominal Pr(goal)) of every memoryless controller
+    for table in itertools.product(range(2), repeat=4):
+        candidate = replace(problem, controller=memoryless(problem, table))
+        worst = max(decoy_probability(candidate, a) for a in alphas)
+        rows.append((worst, goal_probability(candidate, problem.identity())))
+    free = min(w for w, _ in rows)
+    free_goal = max(g for w, g in rows if w <= free + 1e-12)
+    top_goal = max(g for _, g in rows)
+    assert top_goal > free_goal + 1e-6  # the floor below binds
+    floor = (free_goal + top_goal) / 2
+    expected = min(w for w, g in rows if g >= floor)
+    assert expected > free + 1e-9  # and costs worst-case Pr(decoy)
+    result = misdirect.robust_controller(problem, 1.0, min_goal=floor, baselines=False)
+    assert result.optimal
+    assert result.lower == pytest.approx(expected, abs=1e-9)
+    assert result.upper == pytest.approx(expected, abs=1e-9)
+    assert result.worst_case == pytest.approx(expected, abs=1e-9)
+    chosen = replace(problem, controller=result.controller)
+    assert goal_probability(chosen, problem.identity()) >= floor
+    assert result.nominal_goal == pytest.approx(goal_probability(chosen, problem.identity()))
+    assert max(decoy_probability(chosen, a) for a in alphas) == pytest.approx(expected, abs=1e-9)
+    assert result.min_goal == floor
+    assert any("floor" in note for note in result.notes)
+    # a floor no controller meets is one clear error naming the field
+    with pytest.raises(misdirect.ProblemError) as error:
+        misdirect.robust_controller(problem, 1.0, min_goal=min(top_goal + 0.01, 1.0))
+    assert error.value.field == "min_goal"
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_decoy_minmax_matches_brute_force(seed):
     budget = float(1 + seed % 2)
     problem = random_problem(seed, states=5, actions=2, observations=3, nodes=1, budget=budget)
     expected = brute_minmax(problem, budget, "decoy")
-    result = misdirect.robust_controller(problem, budget)
+    result = misdirect.robust_controller(problem, budget, baselines=False)
     assert result.optimal
     assert result.lower == pytest.approx(expected, abs=1e-9)
     assert result.upper == pytest.approx(expected, abs=1e-9)
@@ -141,7 +223,7 @@ def test_decoy_minmax_matches_brute_force(seed):
 def test_decoy_minmax_on_absorbed_problems(seed):
     problem = absorbed_problem(seed, 1.0)
     expected = brute_minmax(problem, 1.0, "decoy")
-    result = misdirect.robust_controller(problem, 1.0)
+    result = misdirect.robust_controller(problem, 1.0, baselines=False)
     assert result.optimal
     assert result.lower == pytest.approx(expected, abs=1e-9)
     assert result.upper == pytest.approx(expected, abs=1e-9)
@@ -152,7 +234,7 @@ def test_goal_maxmin_matches_brute_force(seed):
     budget = 1.0 + seed % 2
     problem = absorbed_problem(seed, budget)
     expected = brute_minmax(problem, budget, "goal")
-    result = misdirect.robust_controller(problem, budget, objective="goal")
+    result = misdirect.robust_controller(problem, budget, objective="goal", baselines=False)
     assert result.optimal, result.notes
     # goal: the master's value over K is the upper bound, the oracle's the lower
     assert result.lower == pytest.approx(expected, abs=1e-9)
@@ -166,7 +248,7 @@ def test_goal_maxmin_matches_brute_force(seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_baselines(seed):
     problem = absorbed_problem(seed, 1.0)
-    result = misdirect.robust_controller(problem, 1.0)
+    result = misdirect.robust_controller(problem, 1.0, baselines=("given", "blind"))
     given, blind = result.baselines
     assert given.name == "given controller"
     assert given.certified
@@ -255,15 +337,15 @@ def softmax_controller(problem: Problem, memory: int, seed: int):
 @pytest.mark.parametrize("objective", ["decoy", "goal"])
 @pytest.mark.parametrize("seed", range(3))
 def test_adjoint_gradient_matches_finite_differences(seed, objective):
-    from misdirect.defence.robust import _target_and_worth, objective_value
     from misdirect.defence.robust_gradient import ChainModel, softmax, softmax_backward
+    from misdirect.defence.robust_oracle import objective_value, target_and_worth
 
     problem = (
         absorbed_problem(seed, 1.0)
         if seed % 2
         else random_problem(seed, states=6, actions=2, observations=3, nodes=1, budget=1.0)
     )
-    target, worth = _target_and_worth(problem, objective)
+    target, worth = target_and_worth(problem, objective)
     model = ChainModel(problem.pomdp, target, worth, 2)
     controller, mu, theta, shape = softmax_controller(problem, 2, seed)
     rng = np.random.default_rng(100 + seed)
@@ -356,7 +438,7 @@ def test_gradient_master_floor_on_goal():
     brute = max(decoy_probability(chosen, a) for a in alterations_within(problem, 1.0))
     assert result.worst_case == pytest.approx(brute, abs=1e-9)
     with pytest.raises(misdirect.ProblemError):
-        misdirect.robust_controller(problem, 1.0, min_goal=0.5)  # exact master: no floor
+        misdirect.robust_controller(problem, 1.0, objective="goal", min_goal=0.5)
     with pytest.raises(misdirect.ProblemError):
         misdirect.robust_controller(problem, 1.0, randomized=True, min_goal=1.5)
 
@@ -430,7 +512,109 @@ def test_cli_randomized_writes_a_controller_that_loads_back(tmp_path):
     bad = runner.invoke(
         app,
         ["controller", "robust", str(path), "--budget", "1", "--min-goal", "0.5",
-         "-o", str(tmp_path / "x.fsc.json")],
+         "--objective", "goal", "-o", str(tmp_path / "x.fsc.json")],
     )  # fmt: skip
     assert bad.exit_code == 2
     assert "Traceback" not in bad.output
+
+
+def test_cli_exact_master_with_floor(tmp_path):
+    """`--min-goal` without `--randomized`: the exact master's answer meets the floor, and a
+    floor nothing meets is one line naming the option, exit 2."""
+    problem = three_ends_problem(0, 1.0)
+    path = tmp_path / "p.yaml"
+    write_problem(problem, path)
+    out = tmp_path / "r.fsc.json"
+    args = ["controller", "robust", str(path), "--budget", "1", "-o", str(out)]
+    run = runner.invoke(app, [*args, "--min-goal", "0.7", "--json"])
+    assert run.exit_code == 0, run.output
+    robust = json.loads(run.output)["robust"]
+    assert robust["master"] == "exact" and robust["min_goal"] == 0.7
+    loaded = load_problem(path, controller=str(out))
+    assert goal_probability(loaded, problem.identity()) >= 0.7
+    bad = runner.invoke(app, [*args, "--min-goal", "0.99"])
+    assert bad.exit_code == 2
+    assert "Traceback" not in bad.output and "min_goal" in bad.output
+    bad = runner.invoke(app, [*args, "--baselines", "given,cheapest"])
+    assert bad.exit_code == 2
+    assert "Traceback" not in bad.output and "--baselines" in bad.output
+
+
+# -- the harden and PAYNT baselines ------------------------------------------------------------
+
+
+def worst_under(problem: Problem, budget: float, protected: set[int], objective: str) -> float:
+    """The worst value over every alteration within ``budget`` that leaves ``protected``
+    alone, by plain loops (decoy: the largest Pr(decoy); goal: the smallest Pr(goal))."""
+    alphas = [a for a in alterations_within(problem, budget) if all(a[o] == o for o in protected)]
+    if objective == "decoy":
+        return max(decoy_probability(problem, a) for a in alphas)
+    return min(goal_probability(problem, a) for a in alphas)
+
+
+@pytest.mark.parametrize("objective", ["decoy", "goal"])
+@pytest.mark.parametrize("seed", [0, 2])
+def test_harden_baseline_matches_brute_force(seed, objective):
+    """With unit costs the defender protects as many sensors as the attacker alters (D = B =
+    1): the baseline is the given controller with one sensor protected, its worst case the
+    brute-force one under that protection, and no other single sensor protects better."""
+    problem = three_ends_problem(seed, 1.0)
+    result = misdirect.robust_controller(problem, 1.0, objective=objective, baselines=("harden",))
+    (hardened,) = result.baselines
+    assert hardened.kind == "harden" and hardened.certified
+    assert hardened.protection is not None and len(hardened.protection) <= 1
+    names = problem.pomdp.observations
+    protected = {names.index(name) for name in hardened.protection}
+    expected = worst_under(problem, 1.0, protected, objective)
+    assert hardened.worst_case == pytest.approx(expected, abs=1e-9)
+    if objective == "decoy":  # harden's own objective: its choice is the best single sensor
+        best = min(worst_under(problem, 1.0, {o}, objective) for o in range(len(names)))
+        assert hardened.worst_case == pytest.approx(best, abs=1e-9)
+    assert hardened.nominal_goal == pytest.approx(goal_probability(problem, problem.identity()))
+    assert result.skipped_baselines == ()
+
+
+def test_harden_baseline_skipped_when_costs_differ():
+    problem = absorbed_problem(0, 1.0)
+    problem = replace(problem, cost=CostModel(n_observations=4, pairs={(0, 1): 0.5}))
+    result = misdirect.robust_controller(problem, 1.0, baselines=("harden",))
+    assert result.baselines == ()
+    (skipped,) = result.skipped_baselines
+    assert skipped.kind == "harden" and "costs" in skipped.reason
+    document = result.to_dict()
+    assert document["skipped_baselines"] == [{"kind": "harden", "reason": skipped.reason}]
+
+
+def test_paynt_baseline_is_nominally_optimal_and_its_worst_case_certified():
+    """PAYNT's one-node controller reaches the goal as often as the best of every memoryless
+    deterministic controller (brute force), and its worst case is the brute-force one, and
+    misdirect.solve's on that controller."""
+    pytest.importorskip("paynt")
+    problem = three_ends_problem(2, 1.0)
+    result = misdirect.robust_controller(problem, 1.0, baselines=("paynt",))
+    if result.skipped_baselines:
+        pytest.skip(result.skipped_baselines[0].reason)
+    (paynt,) = result.baselines
+    assert paynt.kind == "paynt" and paynt.certified
+    best_goal = max(
+        goal_probability(replace(problem, controller=memoryless(problem, t)), problem.identity())
+        for t in itertools.product(range(2), repeat=4)
+    )
+    assert paynt.nominal_goal == pytest.approx(best_goal, abs=1e-6)  # PAYNT's own precision
+    chosen = replace(problem, controller=paynt.controller)
+    assert paynt.worst_case == pytest.approx(worst_decoy(chosen, 1.0), abs=1e-9)
+    solved = misdirect.solve(chosen, budgets=[1.0]).curve[-1]
+    assert solved.probability == pytest.approx(paynt.worst_case, abs=1e-9)
+
+
+def test_paynt_baseline_skipped_without_paynt(monkeypatch):
+    from misdirect.io import paynt_synthesis
+
+    def missing():
+        raise misdirect.ProblemError(paynt_synthesis.NEEDS_PAYNT)
+
+    monkeypatch.setattr(paynt_synthesis, "_paynt", missing)
+    result = misdirect.robust_controller(absorbed_problem(0, 1.0), 1.0, baselines=("paynt",))
+    assert result.baselines == ()
+    (skipped,) = result.skipped_baselines
+    assert skipped.kind == "paynt" and "needs paynt" in skipped.reason

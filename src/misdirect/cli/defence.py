@@ -374,8 +374,9 @@ def controller_robust(
     min_goal: Annotated[
         float | None,
         typer.Option(
-            help="--randomized with --objective decoy: a floor on the nominal Pr(goal); the "
-            "controller found is ranked first by meeting it."
+            help="With --objective decoy: a floor on the nominal Pr(goal). The exact master "
+            "searches only controllers meeting it; --randomized ranks a controller meeting it "
+            "first."
         ),
     ] = None,
     restarts: Annotated[
@@ -389,6 +390,15 @@ def controller_robust(
         float | None,
         typer.Option(help="Seconds for the search; then the best controller with its bounds."),
     ] = None,
+    baselines: Annotated[
+        str,
+        typer.Option(
+            "--baselines",
+            help="The baselines measured at the same budget, comma-separated: given, blind, "
+            "harden (protection at the matching budget, unit costs only), paynt (PAYNT's "
+            "nominally optimal controller, where installed); all, or none.",
+        ),
+    ] = "all",
     as_json: JsonOption = False,
 ) -> None:
     """The controller that holds up best against every alteration within budget B (constraint
@@ -403,9 +413,10 @@ def controller_robust(
     check_range("--memory", memory, 1, 8)
     check_range("--restarts", restarts, 1, 1000)
     if min_goal is not None:
-        if not randomized or objective != RobustObjective.decoy:
-            raise ProblemError("needs --randomized and --objective decoy", field="--min-goal")
+        if objective != RobustObjective.decoy:
+            raise ProblemError("needs --objective decoy", field="--min-goal")
         check_range("--min-goal", min_goal, 0, 1)
+    kinds = baseline_kinds(baselines)
     attacker_budget = one_budget(budget, "controller robust")
     check_seconds(time_limit)
     problem = source.load()
@@ -419,6 +430,7 @@ def controller_robust(
         seed=seed,
         min_goal=min_goal,
         time_limit=time_limit,
+        baselines=kinds,
     )
     if output.suffix.lower() in (".yaml", ".yml"):
         rules = controller_to_document(result.controller, problem.pomdp)
@@ -433,6 +445,24 @@ def controller_robust(
         return
     _print_robust(result)
     wrote(f"wrote {output} ({result.controller.n_nodes} nodes)")
+
+
+def baseline_kinds(text: str) -> tuple[str, ...]:
+    """``--baselines``: ``all``, ``none`` or names among given, blind, harden, paynt."""
+    from misdirect.defence.robust_baselines import KINDS
+
+    words = [w.strip() for w in text.split(",") if w.strip()]
+    if words == ["all"]:
+        return KINDS
+    if words == ["none"] or not words:
+        return ()
+    for word in words:
+        if word not in KINDS:
+            raise ProblemError(
+                f"unknown baseline {word!r}: choose from {', '.join(KINDS)}, all or none",
+                field="--baselines",
+            )
+    return tuple(words)
 
 
 def _print_robust(result: RobustResult) -> None:
@@ -473,4 +503,10 @@ def _print_robust(result: RobustResult) -> None:
         f"stopped: {escape(result.stop_reason)} · {result.time_s:.2f} s",
         highlight=False,
     )
-    print_notes(list(result.notes))
+    print_notes(
+        [
+            *result.notes,
+            *(f"baseline {b.name}: {b.note}" for b in result.baselines if b.note),
+            *(f"baseline {b.kind} skipped: {b.reason}" for b in result.skipped_baselines),
+        ]
+    )

@@ -40,17 +40,23 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from misdirect.core import tolerance
-from misdirect.core.evaluate import decoy_value
 from misdirect.core.model import Controller, Problem
-from misdirect.defence.attack import Attack, attack_of, attacker_budget, shared_deadline
+from misdirect.defence.attack import attacker_budget, shared_deadline
+from misdirect.defence.robust_baselines import (
+    KINDS,
+    Baseline,
+    Skipped,
+    best_blind,
+    blind_controllers,
+)
+from misdirect.defence.robust_baselines import baselines as measure_baselines
 from misdirect.defence.robust_gradient import (
     ChainModel,
     GradientMaster,
@@ -58,9 +64,17 @@ from misdirect.defence.robust_gradient import (
     controller_of,
     mu_of,
 )
+from misdirect.defence.robust_oracle import (
+    Worst,
+    can_trap,
+    goal_states,
+    memoryless_controller,
+    objective_value,
+    oracle,
+    target_and_worth,
+)
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
-from misdirect.solvers.run import solve
 
 OBJECTIVES = ("decoy", "goal")
 MAX_CANDIDATES = 5_000_000  # controllers the exact master enumerates at most
@@ -93,31 +107,6 @@ class RobustRound:
             "candidates": self.candidates,
             "iterations": self.iterations,
             "time_s": self.time_s,
-        }
-
-
-@dataclass(frozen=True)
-class Baseline:
-    """A reference controller and its certified worst case at the same budget."""
-
-    name: str
-    controller: Controller = field(repr=False)
-    nominal: float  # the objective with no alteration
-    worst_case: float  # exact value of the oracle's attack
-    bound: float  # the oracle's proven bound on the worst case
-    certified: bool
-    alteration: dict[str, str]
-    nominal_goal: float | None = None  # Pr(goal) with no alteration
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "nominal": self.nominal,
-            "nominal_goal": self.nominal_goal,
-            "worst_case": self.worst_case,
-            "bound": self.bound,
-            "certified": self.certified,
-            "alteration": self.alteration,
         }
 
 
@@ -155,6 +144,7 @@ class RobustResult:
     nominal_goal: float | None = None  # Pr(goal) with no alteration
     min_goal: float | None = None  # the floor asked for on the nominal Pr(goal)
     certified: bool = False  # the oracle proved ``worst_case`` for ``controller``
+    skipped_baselines: tuple[Skipped, ...] = ()  # baselines not computed, with the reason
 
     @property
     def gap(self) -> float | None:
@@ -191,6 +181,7 @@ class RobustResult:
             "restarts": self.restarts,
             "rounds": [r.to_dict() for r in self.rounds],
             "baselines": [b.to_dict() for b in self.baselines],
+            "skipped_baselines": [b.to_dict() for b in self.skipped_baselines],
             "controller": controller_dict(self.controller),
             "time_s": self.time_s,
             "stop_reason": self.stop_reason,
@@ -216,40 +207,6 @@ def controller_dict(controller: Controller) -> dict[str, Any]:
     return out
 
 
-# -- the objective on the product chain ---------------------------------------------------------
-
-
-def goal_states(problem: Problem) -> np.ndarray:
-    """The goal: absorbing states that are neither decoys nor a monitor's alarm."""
-    goal = problem.pomdp.absorbing & ~np.asarray(problem.decoy, dtype=bool)
-    if problem.alarm_state is not None:
-        goal[problem.alarm_state] = False
-    return goal
-
-
-def goal_attack_problem(problem: Problem) -> Problem:
-    """The problem whose attacker maximises Pr(reach an absorbing state that is not a goal):
-    ``1 -`` its value is Pr(goal) whenever every run is absorbed."""
-    bad = problem.pomdp.absorbing & ~goal_states(problem)
-    return replace(problem, decoy=bad, decoy_sets=())
-
-
-def objective_value(problem: Problem, objective: str, alteration: np.ndarray) -> float:
-    """The exact value (project's evaluation) of ``objective`` under ``alteration``."""
-    if objective == "decoy":
-        return decoy_value(problem, alteration).value
-    goal = replace(problem, decoy=goal_states(problem), decoy_sets=())
-    return decoy_value(goal, alteration).value
-
-
-def _target_and_worth(problem: Problem, objective: str) -> tuple[np.ndarray, np.ndarray]:
-    if objective == "decoy":
-        o = problem.objective
-        return np.asarray(o.target, dtype=bool), np.asarray(o.value, dtype=float)
-    goal = goal_states(problem)
-    return goal, goal.astype(float)
-
-
 class _Evaluator:
     """Batched values of deterministic controllers of one class on dense product chains.
 
@@ -261,7 +218,7 @@ class _Evaluator:
         self.dense = np.stack(
             [pomdp.transition_matrix(a).toarray() for a in range(pomdp.n_actions)]
         )  # (A, S, S)
-        target, worth = _target_and_worth(problem, objective)
+        target, worth = target_and_worth(problem, objective)
         n = self.n_s * memory
         self.target = np.repeat(target, memory)  # product state s * k + node
         self.worth = np.repeat(worth, memory)
@@ -321,6 +278,24 @@ def _receivable(problem: Problem, budget: float) -> np.ndarray:
 # -- the exact master ---------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _Floor:
+    """The floor on the nominal Pr(goal) the exact master enforces (``--min-goal``)."""
+
+    evaluator: _Evaluator  # the goal objective, same class
+    identity: np.ndarray  # no alteration
+    min_goal: float
+
+
+class _MasterAnswer(NamedTuple):
+    value: float  # sense * the best max over K (inf: no candidate, e.g. none meets the floor)
+    action: np.ndarray
+    update: np.ndarray
+    looked: int  # candidates enumerated
+    finished: bool  # False: the deadline cut the enumeration short
+    top_goal: float  # the highest nominal Pr(goal) seen (with a floor; else -inf)
+
+
 def _master(
     evaluator: _Evaluator,
     cells: np.ndarray,
@@ -330,9 +305,11 @@ def _master(
     alterations: list[np.ndarray],
     sense: float,
     deadline: Deadline,
-) -> tuple[float, np.ndarray, np.ndarray, int, bool]:
+    floor: _Floor | None = None,
+) -> _MasterAnswer:
     """min over the class of max over ``alterations`` of ``sense * value`` (sense = 1 for
-    decoy, -1 for goal). Returns (value, action, update, candidates looked at, finished)."""
+    decoy, -1 for goal); with ``floor``, over the controllers whose nominal Pr(goal) meets it
+    only (the others are dropped before any member of ``K`` is evaluated)."""
     n_moves = n_actions * k
     n_cells = cells.size  # (node, reading) cells that matter, flattened node * n_obs + o
     total = n_moves**n_cells
@@ -340,10 +317,11 @@ def _master(
     best_action = np.zeros((k, n_obs), dtype=np.int64)
     best_update = np.zeros((k, n_obs), dtype=np.int64)
     looked = 0
+    top_goal = -math.inf
     order = list(reversed(alterations))  # the newest attack cuts most candidates off first
     for begin in range(0, total, _BATCH):
         if deadline.expired():
-            return best, best_action, best_update, looked, False
+            return _MasterAnswer(best, best_action, best_update, looked, False, top_goal)
         index = np.arange(begin, min(begin + _BATCH, total), dtype=np.int64)
         looked += index.size
         digits = np.empty((index.size, n_cells), dtype=np.int64)
@@ -357,117 +335,21 @@ def _master(
         update: np.ndarray = flat_update.reshape(-1, k, n_obs)
         worst = np.full(index.size, -math.inf)
         alive = np.arange(index.size)
+        if floor is not None:
+            goal = floor.evaluator.values(action, update, floor.identity)
+            top_goal = max(top_goal, float(goal.max()))
+            alive = alive[goal >= floor.min_goal - tolerance.slack(floor.min_goal)]
         for alpha in order:
+            if alive.size == 0:
+                break
             v = sense * evaluator.values(action[alive], update[alive], alpha)
             worst[alive] = np.maximum(worst[alive], v)
             alive = alive[worst[alive] < best + tolerance.PRUNE]  # near-ties stay
-            if alive.size == 0:
-                break
         if alive.size:
             i = alive[np.argmin(worst[alive])]
             if worst[i] < best:
                 best, best_action, best_update = float(worst[i]), action[i], update[i]
-    return best, best_action, best_update, looked, True
-
-
-def memoryless_controller(problem: Problem, action: np.ndarray, update: np.ndarray) -> Controller:
-    k = action.shape[0]
-    names = ("n0",) if k == 1 else tuple(f"n{i}" for i in range(k))
-    return Controller(nodes=names, initial_node=0, action=action, update=update)
-
-
-# -- the oracle ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Worst:
-    value: float  # exact objective value under the attack
-    bound: float  # proven bound on the worst case (objective's own sense)
-    certified: bool
-    alteration: np.ndarray
-    changes: dict[str, str]
-
-
-def _oracle(
-    problem: Problem, controller: Controller, objective: str, budget: float, seconds: float | None
-) -> _Worst:
-    candidate = replace(problem, controller=controller)
-    attacked = candidate if objective == "decoy" else goal_attack_problem(candidate)
-    limit = Deadline(None if seconds is None else max(seconds, 0.05))
-    result = solve(attacked.with_budget(budget), budgets=[budget], deadline=limit)
-    attack: Attack = attack_of(result.curve[-1], attacked)
-    alpha = (
-        np.asarray(attack.alteration_array, dtype=np.int64)
-        if attack.alteration_array is not None
-        else candidate.identity()
-    )
-    value = objective_value(candidate, objective, alpha)
-    if objective == "decoy":
-        return _Worst(value, attack.upper, attack.certified, alpha, attack.alteration)
-    proven = attack.certified and not can_trap(candidate, budget)
-    bound = 1.0 - attack.upper if proven else 0.0
-    return _Worst(value, min(bound, value), proven, alpha, attack.alteration)
-
-
-def can_trap(problem: Problem, budget: float) -> bool:
-    """Whether some alteration within ``budget`` could keep a run of the product chain from
-    being absorbed forever: an end component among the non-absorbing product states when, in
-    each state, the robot may receive any reading one affordable change gives (a superset of
-    what any alteration does, so ``False`` is a proof)."""
-    pomdp, ctrl = problem.pomdp, problem.controller
-    k, n_s = ctrl.n_nodes, pomdp.n_states
-    recv = _receivable_from(problem, budget)
-    choices: list[list[np.ndarray]] = []  # per product state, successor sets of its choices
-    for s in range(n_s):
-        for n in range(k):
-            options = []
-            if not pomdp.absorbing[s]:
-                for r in recv[int(pomdp.observation_of[s])]:
-                    m = int(ctrl.move[n, r])
-                    lo, hi = ctrl.move_ptr[m], ctrl.move_ptr[m + 1]
-                    succ: list[int] = []
-                    for a, nn in zip(ctrl.move_action[lo:hi], ctrl.move_next[lo:hi], strict=True):
-                        row = pomdp.transition_matrix(int(a)).getrow(s)
-                        succ.extend(int(t) * k + int(nn) for t in row.indices)
-                    options.append(np.unique(np.asarray(succ, dtype=np.int64)))
-            choices.append(options)
-    alive = np.array([bool(c) for c in choices])
-    while True:
-        rows, cols = [], []
-        for p in np.flatnonzero(alive):
-            for option in choices[p]:
-                rows.extend([p] * option.size)
-                cols.extend(option.tolist())
-        graph = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(alive.size,) * 2)
-        _, label = connected_components(graph, directed=True, connection="strong")
-        changed = False
-        for p in np.flatnonzero(alive):
-            kept = [
-                succ
-                for succ in choices[p]
-                if np.all(alive[succ]) and np.all(label[succ] == label[p])
-            ]
-            if len(kept) != len(choices[p]):
-                choices[p] = kept
-                changed = True
-            if not kept:
-                alive[p] = False
-                changed = True
-        if not changed:
-            return bool(alive.any())
-
-
-def _receivable_from(problem: Problem, budget: float) -> dict[int, list[int]]:
-    pomdp = problem.pomdp
-    out: dict[int, list[int]] = {}
-    for o in range(pomdp.n_observations):
-        if o == pomdp.initial_observation or o in problem.cost.protected:
-            out[o] = [o]
-            continue
-        row = problem.cost.row(o)
-        targets = set(np.flatnonzero(row <= budget + tolerance.FEASIBILITY).tolist()) | {o}
-        out[o] = sorted(int(t) for t in targets)
-    return out
+    return _MasterAnswer(best, best_action, best_update, looked, True, top_goal)
 
 
 # -- the loop -----------------------------------------------------------------------------------
@@ -484,7 +366,7 @@ def robust_controller(
     seed: int = 0,
     min_goal: float | None = None,
     time_limit: float | None = None,
-    baselines: bool = True,
+    baselines: bool | Iterable[str] = True,
     max_rounds: int | None = None,
 ) -> RobustResult:
     """The controller with ``memory`` nodes that holds up best against every alteration
@@ -515,15 +397,19 @@ def robust_controller(
     seed : int
         The gradient master's seed (its random starts).
     min_goal : float, optional
-        ``"decoy"`` with ``randomized``: a floor ``q`` on the nominal Pr(goal). The master
-        penalises falling short of it and ranks a controller meeting it above any that does
-        not; the result says whether the controller returned meets it (``nominal_goal``).
+        ``"decoy"`` only: a floor ``q`` on the nominal Pr(goal). The exact master excludes
+        every controller whose nominal Pr(goal) is below ``q`` (the bounds are then on the
+        min–max over the others; none left is a ProblemError). The gradient master penalises
+        falling short of it and ranks a controller meeting it above any that does not; the
+        result says whether the controller returned meets it (``nominal_goal``).
     time_limit : float, optional
         Seconds for the loop (the master and the oracle's solves); then the best controller so
         far with the bounds proven so far.
-    baselines : bool
-        Also compute the given controller's and the best observation-blind controller's
-        certified worst cases.
+    baselines : bool or iterable of str
+        Which baselines to measure at the same budget (each with its certified worst case):
+        ``"given"``, ``"blind"``, ``"harden"``, ``"paynt"`` (:mod:`misdirect.defence.
+        robust_baselines`); True for all, False for none. One that cannot be computed (PAYNT
+        missing, costs that share no unit with protection) is in ``skipped_baselines``.
     max_rounds : int, optional
         Rounds at most (default 1000 for the exact master, 50 for the gradient master).
 
@@ -548,11 +434,9 @@ def robust_controller(
             f"must be a whole number of at least 1, got {restarts!r}", field="restarts"
         )
     if min_goal is not None:
-        if not (randomized and objective == "decoy"):
+        if objective != "decoy":
             raise ProblemError(
-                "a floor on the nominal Pr(goal) needs the randomized master and the decoy "
-                "objective",
-                field="min_goal",
+                "a floor on the nominal Pr(goal) needs the decoy objective", field="min_goal"
             )
         if not (math.isfinite(min_goal) and 0 <= min_goal <= 1):
             raise ProblemError(f"must be a probability in [0, 1], got {min_goal}", field="min_goal")
@@ -562,7 +446,7 @@ def robust_controller(
     sense = 1.0 if objective == "decoy" else -1.0
     gradient: GradientMaster | None = None
     if randomized:
-        target, worth = _target_and_worth(problem, objective)
+        target, worth = target_and_worth(problem, objective)
         given = problem.controller
         goal = goal_states(problem)
         gradient = GradientMaster(
@@ -595,12 +479,17 @@ def robust_controller(
                 field="memory",
             )
         evaluator = _Evaluator(problem, objective, memory)
+        floor = (
+            None
+            if min_goal is None
+            else _Floor(_Evaluator(problem, "goal", memory), problem.identity(), min_goal)
+        )
         rounds_cap = 1000 if max_rounds is None else max_rounds
     deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
     rounds: list[RobustRound] = []
     # ((shortfall below the floor, sense * bound, tie-break), controller, worst)
-    best: tuple[tuple[float, float, float], Controller, _Worst] | None = None
+    best: tuple[tuple[float, float, float], Controller, Worst] | None = None
     master_bound = -math.inf  # sense * the master's value: a bound from below in sense terms
     stop = "time limit"
     notes: list[str] = []
@@ -626,7 +515,7 @@ def robust_controller(
         short, tie = nominal_rank(controller)
         return short, worst_over_k(controller), tie
 
-    def certified_rank(controller: Controller, held: _Worst) -> tuple[float, float, float]:
+    def certified_rank(controller: Controller, held: Worst) -> tuple[float, float, float]:
         """How the loop keeps its best: the shortfall, the certified bound, and (gradient
         master) the tie-break."""
         if gradient is None:
@@ -641,7 +530,7 @@ def robust_controller(
             if mu is None or deadline.expired():
                 continue
             incumbent = controller_of(mu, memory, n_obs, n_actions)
-            held = _oracle(problem, incumbent, objective, budget, deadline.remaining())
+            held = oracle(problem, incumbent, objective, budget, deadline.remaining())
             score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
                 best = (score, incumbent, held)
@@ -655,16 +544,23 @@ def robust_controller(
             controller, looked, iterations = answer.controller, answer.candidates, answer.iterations
             exact = sense * answer.value  # already the project's exact evaluation over K
         else:
-            value, action, update, looked, finished = _master(
-                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline
+            found = _master(
+                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline, floor
             )
-            if not finished or not math.isfinite(value):
+            value, action, update, looked = found.value, found.action, found.update, found.looked
+            if found.finished and min_goal is not None and not math.isfinite(value):
+                raise ProblemError(
+                    f"no deterministic controller with {memory} node(s) has a nominal Pr(goal) "
+                    f"of at least {min_goal:g} (the highest is {found.top_goal:.6f})",
+                    field="min_goal",
+                )
+            if not found.finished or not math.isfinite(value):
                 break
             controller = memoryless_controller(problem, action, update)
             # the master's value re-evaluated exactly on its controller
             exact = worst_over_k(controller)
             master_bound = max(master_bound, min(exact, value))
-        worst = _oracle(problem, controller, objective, budget, deadline.remaining())
+        worst = oracle(problem, controller, objective, budget, deadline.remaining())
         rounds.append(
             RobustRound(
                 k_size=len(alterations),
@@ -728,6 +624,12 @@ def robust_controller(
             "run might be trapped forever under some alteration (then 1 - Pr(non-goal end) is not "
             "Pr(goal))"
         )
+    if gradient is None and min_goal is not None:
+        notes.append(
+            f"floor on the nominal Pr(goal): the exact master searched only the controllers "
+            f"whose nominal Pr(goal) is at least {min_goal:g}; the bounds are on the min-max "
+            "over those"
+        )
     if gradient is not None:
         notes.append(
             "randomized master (gradient, a local search): the worst case reported is the "
@@ -740,7 +642,13 @@ def robust_controller(
             f"no controller found meets the floor: nominal Pr(goal) {nominal_goal:.6f} < "
             f"{min_goal:g} (the one returned falls short the least)"
         )
-    refs = _baselines(problem, objective, budget, deadline, min_goal) if baselines else ()
+    kinds = KINDS if baselines is True else () if baselines is False else tuple(baselines)
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise ProblemError(
+            f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
+        )
+    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
     master_side = lower_out if objective == "decoy" else upper_out
     return RobustResult(
         problem=problem.title,
@@ -767,6 +675,7 @@ def robust_controller(
         nominal_goal=nominal_goal,
         min_goal=min_goal,
         certified=worst.certified,
+        skipped_baselines=skipped,
     )
 
 
@@ -779,83 +688,11 @@ def _embedded(mu: np.ndarray, n_obs: int, memory: int) -> np.ndarray:
     return table.reshape(-1)
 
 
-def blind_controllers(problem: Problem) -> list[Controller]:
-    """One memoryless controller per action, playing it whatever it reads: no alteration can
-    change what it does."""
-    n_obs = problem.pomdp.n_observations
-    zeros = np.zeros((1, n_obs), dtype=np.int64)
-    return [
-        memoryless_controller(problem, np.full((1, n_obs), a, dtype=np.int64), zeros)
-        for a in range(problem.pomdp.n_actions)
-    ]
-
-
-def _shortfall(problem: Problem, controller: Controller, min_goal: float | None) -> float:
-    """How far the nominal Pr(goal) of ``controller`` falls short of the floor (0 if none)."""
-    if min_goal is None:
-        return 0.0
-    goal = objective_value(replace(problem, controller=controller), "goal", problem.identity())
-    return max(min_goal - goal, 0.0)
-
-
-def best_blind(problem: Problem, objective: str, min_goal: float | None = None) -> Controller:
-    """The observation-blind controller with the best nominal value (= its worst case); among
-    equals, the best in the other objective (decoy: the highest Pr(goal)). With a floor on
-    Pr(goal), one meeting it first (or the one falling short the least)."""
-    sense = 1.0 if objective == "decoy" else -1.0
-    other = "goal" if objective == "decoy" else "decoy"
-
-    def key(controller: Controller) -> tuple[float, float, float]:
-        candidate = replace(problem, controller=controller)
-        value = sense * objective_value(candidate, objective, problem.identity())
-        short = round(_shortfall(problem, controller, min_goal), 12)
-        return (
-            short,
-            round(value, 12),
-            -sense * objective_value(candidate, other, problem.identity()),
-        )
-
-    return min(blind_controllers(problem), key=key)
-
-
-def _baselines(
-    problem: Problem,
-    objective: str,
-    budget: float,
-    deadline: Deadline,
-    min_goal: float | None = None,
-) -> tuple[Baseline, ...]:
-    blind = best_blind(problem, objective, min_goal)
-    out = []
-    for name, controller in (
-        ("given controller", problem.controller),
-        ("observation-blind", blind),
-    ):
-        worst = _oracle(problem, controller, objective, budget, None)
-        nominal = objective_value(
-            replace(problem, controller=controller), objective, problem.identity()
-        )
-        out.append(
-            Baseline(
-                name=name,
-                controller=controller,
-                nominal=nominal,
-                worst_case=worst.value,
-                bound=worst.bound,
-                certified=worst.certified,
-                alteration=worst.changes,
-                nominal_goal=objective_value(
-                    replace(problem, controller=controller), "goal", problem.identity()
-                ),
-            )
-        )
-    return tuple(out)
-
-
 __all__ = [
     "Baseline",
     "RobustResult",
     "RobustRound",
+    "Skipped",
     "blind_controllers",
     "can_trap",
     "goal_states",

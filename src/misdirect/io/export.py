@@ -47,7 +47,7 @@ def _rows(problem: Problem):
             )
 
 
-def _drn_action(name: str, fallback: str) -> str:
+def drn_action(name: str, fallback: str) -> str:
     """DRN reads an action name up to the end of its line, and splits it at white space."""
     ok = name and name.isprintable() and not any(c.isspace() or c in "[]{}" for c in name)
     return name if ok else fallback
@@ -58,7 +58,7 @@ def export_notes(problem: Problem, to: str) -> list[str]:
     PRISM identifiers (PRISM) or not single words (DRN) become ``a<k>``, and names with
     control characters appear escaped in the comments."""
     pomdp = problem.pomdp
-    rename = _identifier if to == "prism" else _drn_action
+    rename = _identifier if to == "prism" else drn_action
     renamed = [
         f"{name!r} -> {label}"
         for k, name in enumerate(pomdp.actions)
@@ -80,7 +80,7 @@ def drn_text(problem: Problem) -> str:
     """Storm's explicit DRN format (``@type: POMDP``); observation ids follow ours. An action
     name DRN cannot hold (white space, brackets, control characters) is written ``a<k>``."""
     pomdp = problem.pomdp
-    actions = [_drn_action(name, f"a{k}") for k, name in enumerate(pomdp.actions)]
+    actions = [drn_action(name, f"a{k}") for k, name in enumerate(pomdp.actions)]
     names = {"states": list(pomdp.states), "observations": list(pomdp.observations)}
     lines = [
         "// Exported by misdirect",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import logging
 import math
 import multiprocessing
@@ -26,6 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from misdirect.core.model import Controller, Problem
 from misdirect.errors import MisdirectError, ProblemError
 from misdirect.io.files import check_input_file, read_text_file
 from misdirect.io.paynt_model import paynt_prism_text
@@ -176,6 +180,49 @@ def synthesize(
             "may help)"
         )
     return Synthesis(document, value, prop.strip(), memory, time.monotonic() - started)
+
+
+@dataclass(frozen=True)
+class ProblemSynthesis:
+    """PAYNT's controller of a problem's world, read back as ours."""
+
+    controller: Controller
+    synthesis: Synthesis
+    undefined: int  # (node, reading) entries PAYNT left null, filled with a placeholder
+
+
+def synthesize_problem(
+    problem: Problem, goal: np.ndarray, *, memory: int = 1, timeout: float = 60.0
+) -> ProblemSynthesis:
+    """PAYNT's controller with ``memory`` nodes maximising Pr(reach ``goal``) on ``problem``'s
+    world, for any problem: the world is written as DRN (observation ids are ours) with the
+    label ``goal`` on the states of ``goal``, and PAYNT's columns and action labels are
+    renamed to ours before the controller is read back by the project's PAYNT reader."""
+    from misdirect.io.export import drn_action, drn_text
+    from misdirect.io.paynt import read_paynt_controller
+
+    pomdp = problem.pomdp
+    lines = []
+    for line in drn_text(problem).splitlines():
+        if line.startswith("state ") and goal[int(line.split()[1])]:
+            line += " goal"
+        lines.append(line)
+    drn_names = {drn_action(name, f"a{k}"): name for k, name in enumerate(pomdp.actions)}
+    with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
+        model = Path(folder) / "world.drn"
+        model.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        found = synthesize(model, 'Pmax=? [F "goal"]', memory=memory, timeout=timeout)
+        document = dict(found.document)
+        document["observation_labels"] = [
+            pomdp.observations[int(label)] for label in document["observation_labels"]
+        ]
+        document["action_labels"] = [
+            drn_names.get(str(label), str(label)) for label in document["action_labels"]
+        ]
+        written = Path(folder) / "paynt.fsc.json"
+        written.write_text(json.dumps(document), encoding="utf-8")
+        read = read_paynt_controller(written, pomdp)
+    return ProblemSynthesis(read.controller, found, int(np.count_nonzero(read.undefined)))
 
 
 SEARCH_SHARE = 0.9  # of the time left after the build, PAYNT's search gets this much

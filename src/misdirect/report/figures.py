@@ -747,3 +747,68 @@ def tradeoff_figure(curves: Sequence[Any], path: Path, *, title: str = "") -> Pa
     finally:
         plt.close(fig)
     return path
+
+
+ROBUST_STYLES = {  # label -> (marker, colour); labels outside it cycle through tab10
+    "given controller": ("s", "tab:red"),
+    "observation-blind": ("^", "0.4"),
+    "harden": ("D", "tab:orange"),
+    "PAYNT nominal": ("P", "tab:purple"),
+    "robust, max-min Pr(goal)": ("o", "tab:blue"),
+    "robust, min-max Pr(decoy), Pr(goal) ≥ 0.9": ("*", "tab:green"),
+    "robust randomized (2 nodes), Pr(goal) ≥ 0.9": ("X", "tab:cyan"),
+}
+
+
+def robust_tradeoff_figure(
+    points: Sequence[dict[str, Any]], path: Path, *, title: str = ""
+) -> Path:
+    """Nominal Pr(goal) against certified worst-case Pr(decoy), one panel per attacker
+    budget: what robustness costs in nominal performance (docs/robust.md). ``points`` are
+    dicts with ``budget``, ``label``, ``nominal_goal``, ``worst_decoy`` and ``certified`` (a
+    certified point is filled, any other hollow). Lower right is better. The worst case is on
+    a log scale (linear below 0.01), and each label is drawn a little smaller than the one
+    before, so controllers with the same numbers show as nested markers. Written to ``path``
+    (its suffix picks the format)."""
+    budgets = sorted({float(p["budget"]) for p in points})
+    labels = list(dict.fromkeys(str(p["label"]) for p in points))
+    columns = min(3, len(budgets))
+    rows = -(-len(budgets) // columns)
+    fig, axes = plt.subplots(
+        rows, columns, figsize=(3.6 * columns + 0.4, 3.2 * rows + 0.8), squeeze=False
+    )
+    handles: dict[str, Line2D] = {}
+    for ax, budget in zip(axes.flat, budgets, strict=False):
+        for k, label in enumerate(labels):
+            marker, colour = ROBUST_STYLES.get(label, ("o", SENSOR_COLOURS[k % 10]))
+            for p in points:
+                if float(p["budget"]) != budget or p["label"] != label:
+                    continue
+                face = colour if p["certified"] else "white"
+                (handle,) = ax.plot(
+                    p["nominal_goal"], p["worst_decoy"], marker, color=colour,
+                    markerfacecolor=face, markersize=max(14 - 1.3 * k, 4), alpha=0.85,
+                    linestyle="none",
+                )  # fmt: skip
+                handles.setdefault(label, handle)
+        ax.set_yscale("symlog", linthresh=0.01)
+        ax.set_ylim(-0.001, 1.5)
+        ax.set_title(f"budget {budget:g}")
+        ax.set_xlabel("nominal Pr(goal)")
+        ax.set_ylabel("certified worst-case Pr(decoy)")
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(budgets) :]:
+        ax.set_visible(False)
+    fig.legend(
+        [handles[label] for label in labels if label in handles],
+        [label for label in labels if label in handles],
+        loc="lower center", ncol=min(3, len(handles)), fontsize="small",
+    )  # fmt: skip
+    fig.suptitle(title or "robustness against nominal performance")
+    fig.tight_layout(rect=(0, 0.06 + 0.03 * ((len(handles) + 2) // 3), 1, 1))
+    path = Path(path)
+    try:  # atomic, as every picture
+        write_output(path, lambda staged: fig.savefig(staged, dpi=150, bbox_inches="tight"))
+    finally:
+        plt.close(fig)
+    return path
