@@ -134,6 +134,11 @@ class KeptBasis:
             self.usable = False
             return
         self.base_values = self.base_inverse @ self.base_r
+        self._inverse_t = np.ascontiguousarray(self.base_inverse.T)
+        # q @ base inverse, row by row as policies pick them (each row once a node: a
+        # Woodbury round then gathers its capacitance instead of multiplying it out)
+        self._times_inverse = np.empty((self.groups.size, o.size))
+        self._have_times_inverse = np.zeros(self.groups.size, dtype=bool)
 
     def bound(self, free: Sequence[int], cap: float, deadline: Deadline | None = None) -> float:
         """The proven bound of the per-state relaxation with the ``free`` choices free (their
@@ -171,25 +176,40 @@ class KeptBasis:
     def _reduced(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Policy iteration on the reduced MDP among the ``allowed`` reduced rows, from the
         base chain's rows (always allowed: unaltered): (values on O, the chosen local row per
-        state of O), or None where it does not settle."""
+        state of O), or None where it does not settle. Only the rows of states with a choice
+        (two allowed rows or more) are scored: every other state keeps its one row."""
         policy = self.base_local.copy()
         policy = self._proper(policy, allowed)
+        owner = self.group_owner
+        choices = np.bincount(owner, weights=allowed, minlength=self.o_states.size)
+        rows = np.flatnonzero(allowed & (choices[owner] > 1))
+        if not rows.size:
+            values = self._evaluate(policy)
+            return None if values is None else (values, policy)
+        q_rows, r_rows, owners = self.q[rows], self.r[rows], owner[rows]
+        ranked = np.lexsort((np.arange(rows.size), owners))  # rows grouped by state
+        starts = np.flatnonzero(np.concatenate([[True], owners[ranked][1:] != owners[ranked][:-1]]))
+        states = owners[ranked][starts]
+        at = np.full(self.groups.size, -1, dtype=np.int64)
+        at[rows] = np.arange(rows.size)
         for _ in range(MAX_ROUNDS):
             values = self._evaluate(policy)
             if values is None:
                 return None
-            score = np.where(allowed, self.r + self.q @ values, -np.inf)
-            ranked = np.lexsort((-score, self.group_owner))
-            best = ranked[self._state_start]
+            score = r_rows + q_rows @ values
+            order = np.lexsort((-score, owners))
+            best = order[starts]
+            current = score[at[policy[states]]]
             room = tolerance.IMPROVE * np.maximum(
                 np.abs(score[best]), np.abs(values).max(initial=0.0)
             )
-            switch = score[best] > score[policy] + room
+            switch = score[best] > current + room
             if not switch.any():
                 return values, policy
             # a round that strands a state (no strict gain does, in exact arithmetic) makes
             # the next solve singular or its values no probabilities: the whole chain decides
-            policy = np.where(switch, best, policy)
+            policy = policy.copy()
+            policy[states[switch]] = rows[best[switch]]
         return None
 
     def _reaching(self, policy: np.ndarray) -> np.ndarray:
@@ -202,6 +222,8 @@ class KeptBasis:
         """``policy`` with every state that cannot reach the target under it switched to an
         allowed row one step closer to it (breadth-first), as
         :meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proper` does."""
+        if not self.base_stopped.any() and (policy == self.base_local).all():
+            return policy  # the base chain reaches the target from every state of O
         reaching = self._reaching(policy)
         if reaching.all():
             return policy
@@ -252,23 +274,44 @@ class KeptBasis:
             differs = differs | held | self.base_stopped
         changed = np.flatnonzero(differs)
         inverse = self.base_inverse
-        if base_solution is None or changed.size:
-            # the base inverse applied to rhs with the base's own entries at unchanged rows
-            base_solution = inverse @ rhs
         if not changed.size:
-            return base_solution
-        rows = self.q[policy[changed]]
+            return inverse @ rhs if base_solution is None else base_solution
+        # columns of the base inverse at the changed states (rows of its transpose: a gather
+        # of contiguous rows, not a strided one)
+        columns = self._inverse_t[changed].T
+        step = None
+        if base_solution is None:
+            base_solution = inverse @ rhs
+            at_changed = base_solution[changed]
+        else:
+            # rhs differs from the base rows' only at the changed rows (unchanged rows are the
+            # base's, and a state the base stops has no row into the target)
+            step = rhs[changed] - self.base_r[changed]
+            at_changed = base_solution[changed] + inverse[np.ix_(changed, changed)] @ step
+        # Woodbury with delta = base_q[c] - q'[c] (rows of (I - q') - (I - q)), where
+        # base_q @ inverse = inverse - I and q' @ inverse is gathered (:meth:`_times`)
+        moved = self._times(policy[changed])
         if held is not None:
-            rows[held[changed]] = 0.0
-        delta = self.base_q[changed] - rows  # rows of (I - q') - (I - q)
-        columns = inverse[:, changed]
-        capacitance = np.eye(changed.size) + delta @ columns
+            moved[held[changed]] = 0.0
+        capacitance = inverse[np.ix_(changed, changed)] - moved[:, changed]
+        right = at_changed - rhs[changed] - moved @ rhs
         try:
-            correction = np.linalg.solve(capacitance, delta @ base_solution)
+            correction = np.linalg.solve(capacitance, right)
         except np.linalg.LinAlgError:
             return None
-        solved: np.ndarray = base_solution - columns @ correction
+        solved: np.ndarray = base_solution + columns @ (
+            -correction if step is None else step - correction
+        )
         return solved
+
+    def _times(self, rows: np.ndarray) -> np.ndarray:
+        """``q[rows] @ base_inverse`` (a copy), each row multiplied once a node."""
+        missing = np.unique(rows[~self._have_times_inverse[rows]])
+        if missing.size:
+            self._times_inverse[missing] = self.q[missing] @ self.base_inverse
+            self._have_times_inverse[missing] = True
+        taken: np.ndarray = self._times_inverse[rows]
+        return taken
 
     def solve_chain(
         self, policy: np.ndarray, free: np.ndarray, rhs: np.ndarray
