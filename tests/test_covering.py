@@ -73,6 +73,11 @@ def test_the_covering_bound_holds_against_enumeration(case):
     assert found.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, found.bound, truth)
     # a refinement of the relaxation with every sensor free (one union: every group)
     assert found.bound <= relaxation_bound(problem, budget) + 1e-12
+    # every union split (twice over): still above the truth, never above the cover itself
+    refined = covering_bound(relax, groups, scale.cap(budget), refine_above=0.0, refine_depth=2)
+    assert refined is not None
+    assert refined.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, refined.bound, truth)
+    assert refined.bound <= found.bound
     # a node: the first choice fixed to its first alteration, the budget left for the rest
     first = instance.space.choices[0]
     if first.size > 1 and first.costs[1] <= scale.cap(budget):
@@ -82,6 +87,32 @@ def test_the_covering_bound_holds_against_enumeration(case):
         assert node is not None
         truth = brute_force(problem, budget, {0: 1}, instance.space)
         assert node.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, node.bound, truth)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_refined_unions_hold_against_enumeration_on_a_larger_problem(seed):
+    """Groups of several choices, so each union splits into halves and again: with unequal
+    costs, a sub-union is every maximal set of halves whose cheapest options fit; the refined
+    bound still lies above the best alteration (enumerated), and below the cover's own."""
+    rng = np.random.default_rng(100 + seed)
+    budget = float(rng.choice([1.0, 2.0, 3.0]))
+    for attempt in range(100):
+        problem = random_problem(
+            50 * seed + attempt, states=10, actions=3, observations=6, nodes=3, budget=3.0
+        )
+        instance = prepare(problem, budget)
+        if len(instance.space.choices) >= 4:
+            break
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    cap = instance.space.scale.cap(budget)
+    choices = list(range(len(instance.space.choices)))
+    groups = stratified_groups(choices, 2)
+    found = covering_bound(relax, groups, cap)
+    refined = covering_bound(relax, groups, cap, refine_above=0.0, refine_depth=3)
+    assert found is not None and refined is not None
+    truth = brute_force(problem, budget)
+    assert refined.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, refined.bound, truth)
+    assert refined.bound <= found.bound
 
 
 def test_a_choice_left_out_of_every_group_is_refused():

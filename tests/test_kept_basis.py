@@ -5,8 +5,12 @@ a bound through only where the rigorous check holds."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from misdirect.core.attack import prepare
 from misdirect.core.blas import one_blas_thread
@@ -83,3 +87,83 @@ def test_an_offset_only_proposes():
     )
     assert lazy == pytest.approx(honest, rel=1e-9)
     assert lazy >= values[start]
+
+
+def _union_sets(n_sensors: int, n_groups: int, budget: int) -> list[list[int]]:
+    """Every union of ``budget`` of the ``n_groups`` round-robin groups of the sensors."""
+    groups = [list(range(j, n_sensors, n_groups)) for j in range(n_groups)]
+    return [
+        sorted(i for g in chosen for i in groups[g])
+        for chosen in itertools.combinations(range(n_groups), budget)
+    ]
+
+
+def test_solve_chain_matches_a_direct_solve():
+    """The proof's solves on the kept basis (states of E and O held at 0, the policy off the
+    base chain in O) against a sparse LU of ``I - P[F, F]`` on the whole chain."""
+    problem = sensor_grid(12, 16, goal="inside")
+    instance = prepare(problem, 3.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    cap = instance.space.scale.cap(3.0)
+    rng = np.random.default_rng(11)
+    transitions = relax.chain.transitions.tocsr()
+    checked = 0
+    with one_blas_thread():
+        for fixed, undecided in (({}, range(16)), ({0: 1, 1: 0}, range(2, 16))):
+            basis = KeptBasis(relax, fixed, undecided)
+            for free_set in _union_sets(16, 8, 3)[:6]:
+                free_set = [i for i in free_set if i not in fixed]
+                allowed = relax.allowed_groups(relax.free_options(free_set, cap, fixed))
+                penalty = np.where(allowed, 0.0, -np.inf)
+                values, policy = relax.mdp.optimise(relax.best_groups(penalty)[0], penalty)
+                positive = basis.in_kept & (values > 0) & (values < 1)
+                for held_share in (0.0, 0.05, 0.3):
+                    free = positive & (rng.random(positive.size) >= held_share)
+                    rhs = np.where(free, rng.random(free.size), 0.0)
+                    x = basis.solve_chain(policy, free, rhs)
+                    assert x is not None
+                    inner = np.flatnonzero(free)
+                    block = transitions[policy[inner]][:, inner]
+                    system = (sp.identity(inner.size) - block).tocsc()
+                    expected = spla.spsolve(system, rhs[inner])
+                    assert x[inner] == pytest.approx(expected, rel=1e-8, abs=1e-10)
+                    assert (x[~free] == 0).all()
+                    checked += 1
+    assert checked == 36
+
+
+def test_later_attempts_on_the_kept_basis():
+    """Unions of a turn-back grid whose proof's first offset fails (ties: the later attempts
+    and the double-double refinement run): proven on the kept basis, the same bound as the
+    proof that solves those attempts on the whole chain, and as the relaxation solved on the
+    whole chain; and the kept basis took those solves (no whole-chain LU)."""
+    problem = sensor_grid(12, 16, goal="inside")
+    instance = prepare(problem, 3.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    cap = instance.space.scale.cap(3.0)
+    held_solves = []
+    later = 0
+    with one_blas_thread():
+        basis = KeptBasis(relax, {}, range(16))
+        kept_solve = basis.solve_chain
+
+        def counted(policy, free, rhs):
+            found = kept_solve(policy, free, rhs)
+            held_solves.append(found is not None)
+            return found
+
+        basis.solve_chain = counted  # type: ignore[method-assign]
+        for free in _union_sets(16, 8, 3)[:12]:
+            before = len(held_solves)
+            kept = basis.bound(free, cap)
+            if len(held_solves) > before:
+                later += 1
+            basis.solve_chain = lambda *args: None  # type: ignore[method-assign]
+            on_whole = basis.bound(free, cap)  # the later attempts on the whole chain
+            basis.solve_chain = counted  # type: ignore[method-assign]
+            whole = _relaxation(relax, free, cap, {}, None)
+            assert kept == pytest.approx(on_whole, rel=1e-7), free
+            assert kept == pytest.approx(whole, rel=1e-7), free
+            assert kept < 1.0
+    assert later >= 3  # the later attempts ran ...
+    assert all(held_solves)  # ... each solve on the kept basis

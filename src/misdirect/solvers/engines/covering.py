@@ -43,6 +43,7 @@ KEPT_FROM = 4  # unions from which a cover solves them on a kept basis (engines/
 MAX_GROUPS = 24  # groups a cover splits the undecided sensors into, at most
 COVER_SHARE = 0.25  # a node's cover may take this share of the search's time left
 UNLIMITED_UNIONS = 200  # ... and without a time limit, this many unions
+REFINE_DEPTH = 1  # times a union above a cover's threshold is split (covering_bound)
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,8 @@ class CoverBound:
 
     bound: float
     unions: list[tuple[tuple[int, ...], float]]
+    refined: int = 0  # unions above the cover's threshold, split into halves (their bound: the
+    # smaller of their own and their halves' cover)
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,8 @@ def covering_bound(
     fixed: Mapping[int, int] | None = None,
     deadline: Deadline | None = None,
     give_up_at: float = np.inf,
+    refine_above: float = np.inf,
+    refine_depth: int = REFINE_DEPTH,
 ) -> CoverBound | None:
     """The covering bound of the node that fixes choice ``i`` to option ``fixed[i]`` (choice
     indices of the alteration space) with the budget left as ``cap`` (a
@@ -153,7 +158,8 @@ def covering_bound(
     in one of them); None where the cover would take more than
     :data:`MAX_UNIONS` unions, or once a union's bound reaches ``give_up_at`` (a bound the
     caller has already: the cover could not beat it; the unions go strongest groups first, so
-    such a union tends to come early). Raises
+    such a union tends to come early). A union whose bound lies above ``refine_above`` is
+    refined (:func:`_refined`), at most ``refine_depth`` times over. Raises
     :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once ``deadline`` has passed."""
     fixed = dict(fixed or {})
     first, cost = relax.first_option, relax.option_cost
@@ -170,31 +176,82 @@ def covering_bound(
     ]
     if loose:  # left out, it would count as unaltered: the bound would not hold
         raise ValueError(f"choices {loose[:5]} are undecided and in no group")
-    # a group's cheapest affordable option; a group with none never joins a completion
-    cheapest = []
-    for group in groups:
+
+    def cheapest_of(group: Sequence[int]) -> float:
+        """The group's cheapest affordable option (inf: it never joins a completion)."""
         costs = [float(cost[first[i] + affordable(i)].min()) for i in group if affordable(i).size]
-        cheapest.append(min(costs, default=np.inf))
-    sets = maximal_group_sets(cheapest, lambda total: bool(scale.fits(total, cap)))
+        return min(costs, default=np.inf)
+
+    def fits(total: float) -> bool:
+        return bool(scale.fits(total, cap))
+
+    cheapest = [cheapest_of(group) for group in groups]
+    sets = maximal_group_sets(cheapest, fits)
     if len(sets) > MAX_UNIONS:
         return None
     unions = []
+    refined = 0
     with one_blas_thread():
         basis = None
         if len(sets) >= KEPT_FROM:  # its cost (a node's solves) is repaid over a few unions
             basis = KeptBasis(relax, fixed, sorted(grouped))
             basis = basis if basis.usable else None
-        for chosen in sets:
-            free = [i for j in chosen for i in groups[j]]
+
+        def solve(free: list[int]) -> float:
             if basis is not None:
-                bound = basis.bound(free, cap, deadline)
-            else:
-                bound = _relaxation(relax, free, cap, fixed, deadline)
+                return basis.bound(free, cap, deadline)
+            return _relaxation(relax, free, cap, fixed, deadline)
+
+        for chosen in sets:
+            members = [groups[j] for j in chosen]
+            bound = solve([i for group in members for i in group])
+            if bound > refine_above:
+                refined += 1
+                bound = _refined(
+                    members, bound, solve, cheapest_of, fits, refine_above, refine_depth
+                )
             if bound >= give_up_at:
                 return None
             unions.append((chosen, bound))
     unions.sort(key=lambda item: -item[1])
-    return CoverBound(max((b for _, b in unions), default=-np.inf), unions)
+    return CoverBound(max((b for _, b in unions), default=-np.inf), unions, refined)
+
+
+def _refined(
+    members: Sequence[Sequence[int]],
+    bound: float,
+    solve: Callable[[list[int]], float],
+    cheapest_of: Callable[[Sequence[int]], float],
+    fits: Callable[[float], bool],
+    refine_above: float,
+    depth: int,
+) -> float:
+    """A union's bound refined: its groups (``members``) each split in two (alternately, so
+    each half stays stratified), and the union covered by the maximal sets of halves whose
+    cheapest options fit, as the node is by its groups. A completion inside the union touches
+    halves whose cheapest options its own cost pays for, so it lies inside one of those
+    sub-unions: the largest of their bounds bounds it (and the union's own bound still does,
+    so the smaller of the two). Sub-unions above ``refine_above`` are refined again, ``depth``
+    levels in all. A union whose relaxation policy iteration values below 1 but whose proof
+    fails (a chain that lingers past what doubles resolve) mostly proves on its halves."""
+    if depth <= 0:
+        return bound
+    halves = [half for group in members for half in (group[0::2], group[1::2]) if half]
+    if len(halves) <= len(members):
+        return bound  # single sensors: nothing left to split
+    sets = maximal_group_sets([cheapest_of(half) for half in halves], fits)
+    if len(sets) > MAX_UNIONS:
+        return bound
+    largest = -np.inf
+    for chosen in sets:
+        parts = [halves[j] for j in chosen]
+        found = solve([i for half in parts for i in half])
+        if found > refine_above:
+            found = _refined(parts, found, solve, cheapest_of, fits, refine_above, depth - 1)
+        largest = max(largest, found)
+        if largest >= bound:
+            return bound  # the split does not help
+    return min(bound, largest)
 
 
 def _relaxation(

@@ -19,6 +19,10 @@ bound is proven there, by :meth:`~misdirect.solvers.engines.policy_iteration.Max
 proven_bound`, as every bound of the per-state relaxation is: the reduction only finds the
 values, it proves nothing. Where the reduced policy iteration does not settle (a round that
 would strand a state, a singular solve), the relaxation is solved on the whole chain instead.
+The proof's own solves run on the basis too: its first offset, and where that fails its later
+attempts (the states its check raised held fixed) and its double-double refinement
+(:meth:`KeptBasis.solve_chain`): a union's proof then takes no whole-chain LU unless it merges
+an end component.
 
 The dense algebra runs on one BLAS thread (:func:`~misdirect.core.blas.one_blas_thread`, taken
 by the cover that calls it): these matrices are a few hundred wide, and OpenBLAS's threads
@@ -41,6 +45,9 @@ from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_ROUNDS = 64  # rounds of the reduced policy iteration before the whole chain takes over
 MAX_KEPT_ENTRIES = 20_000_000  # H (states outside O x states of O) kept at most this large
+# states outside O that a proof's solve holds fixed, at most (each one more column of the LU's
+# solves: beyond this the whole chain's LU is cheaper)
+MAX_HELD_OUTSIDE = 256
 
 
 class KeptBasis:
@@ -86,6 +93,10 @@ class KeptBasis:
         self.e_states = np.flatnonzero(outside & reaches)
         self.position = np.full(n, -1, dtype=np.int64)
         self.position[self.o_states] = np.arange(self.o_states.size)
+        self.e_position = np.full(n, -1, dtype=np.int64)
+        self.e_position[self.e_states] = np.arange(self.e_states.size)
+        self.in_kept = np.zeros(n, dtype=bool)  # E and O: the states a kept solve covers
+        self.in_kept[self.e_states] = self.in_kept[self.o_states] = True
         self.reduced = self.fallbacks = 0  # relaxations solved on the basis, and without it
         self.usable = self.e_states.size * max(self.o_states.size, 1) <= MAX_KEPT_ENTRIES
         if not self.usable:
@@ -107,12 +118,14 @@ class KeptBasis:
         self.group_owner = self.position[chain.group_state[self.groups]]
         counts = np.bincount(self.group_owner, minlength=o.size)
         self._state_start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        local = np.full(chain.group_state.size, -1, dtype=np.int64)
-        local[self.groups] = np.arange(self.groups.size)
-        self.base_local = local[self.base_policy[o]]
+        self.local = np.full(chain.group_state.size, -1, dtype=np.int64)
+        self.local[self.groups] = np.arange(self.groups.size)
+        self.base_local = self.local[self.base_policy[o]]
+        self.e_rows = base[e].tocsr()  # the base chain's rows of E, every column
         # the base chain on O, inverted once: a policy differing from it in a few states is
         # solved by Woodbury (states it cannot lead to the target are stopped: worth 0)
         reaching = self._reaching(self.base_local)
+        self.base_stopped = ~reaching
         self.base_q = np.where(reaching[:, None], self.q[self.base_local], 0.0)
         self.base_r = np.where(reaching, self.r[self.base_local], 0.0)
         try:
@@ -121,6 +134,11 @@ class KeptBasis:
             self.usable = False
             return
         self.base_values = self.base_inverse @ self.base_r
+        self._inverse_t = np.ascontiguousarray(self.base_inverse.T)
+        # q @ base inverse, row by row as policies pick them (each row once a node: a
+        # Woodbury round then gathers its capacitance instead of multiplying it out)
+        self._times_inverse = np.empty((self.groups.size, o.size))
+        self._have_times_inverse = np.zeros(self.groups.size, dtype=bool)
 
     def bound(self, free: Sequence[int], cap: float, deadline: Deadline | None = None) -> float:
         """The proven bound of the per-state relaxation with the ``free`` choices free (their
@@ -145,32 +163,53 @@ class KeptBasis:
         offset = self.offset_solver(policy_o)
         return float(
             relax.mdp.proven_bound(
-                values, policy, relax.chain.initial, penalty, deadline, offset=offset
+                values,
+                policy,
+                relax.chain.initial,
+                penalty,
+                deadline,
+                offset=offset,
+                chain=self.solve_chain,
             )
         )
 
     def _reduced(self, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Policy iteration on the reduced MDP among the ``allowed`` reduced rows, from the
         base chain's rows (always allowed: unaltered): (values on O, the chosen local row per
-        state of O), or None where it does not settle."""
+        state of O), or None where it does not settle. Only the rows of states with a choice
+        (two allowed rows or more) are scored: every other state keeps its one row."""
         policy = self.base_local.copy()
         policy = self._proper(policy, allowed)
+        owner = self.group_owner
+        choices = np.bincount(owner, weights=allowed, minlength=self.o_states.size)
+        rows = np.flatnonzero(allowed & (choices[owner] > 1))
+        if not rows.size:
+            values = self._evaluate(policy)
+            return None if values is None else (values, policy)
+        q_rows, r_rows, owners = self.q[rows], self.r[rows], owner[rows]
+        ranked = np.lexsort((np.arange(rows.size), owners))  # rows grouped by state
+        starts = np.flatnonzero(np.concatenate([[True], owners[ranked][1:] != owners[ranked][:-1]]))
+        states = owners[ranked][starts]
+        at = np.full(self.groups.size, -1, dtype=np.int64)
+        at[rows] = np.arange(rows.size)
         for _ in range(MAX_ROUNDS):
             values = self._evaluate(policy)
             if values is None:
                 return None
-            score = np.where(allowed, self.r + self.q @ values, -np.inf)
-            ranked = np.lexsort((-score, self.group_owner))
-            best = ranked[self._state_start]
+            score = r_rows + q_rows @ values
+            order = np.lexsort((-score, owners))
+            best = order[starts]
+            current = score[at[policy[states]]]
             room = tolerance.IMPROVE * np.maximum(
                 np.abs(score[best]), np.abs(values).max(initial=0.0)
             )
-            switch = score[best] > score[policy] + room
+            switch = score[best] > current + room
             if not switch.any():
                 return values, policy
             # a round that strands a state (no strict gain does, in exact arithmetic) makes
             # the next solve singular or its values no probabilities: the whole chain decides
-            policy = np.where(switch, best, policy)
+            policy = policy.copy()
+            policy[states[switch]] = rows[best[switch]]
         return None
 
     def _reaching(self, policy: np.ndarray) -> np.ndarray:
@@ -183,6 +222,8 @@ class KeptBasis:
         """``policy`` with every state that cannot reach the target under it switched to an
         allowed row one step closer to it (breadth-first), as
         :meth:`~misdirect.solvers.engines.policy_iteration.MaxReachability.proper` does."""
+        if not self.base_stopped.any() and (policy == self.base_local).all():
+            return policy  # the base chain reaches the target from every state of O
         reaching = self._reaching(policy)
         if reaching.all():
             return policy
@@ -217,26 +258,156 @@ class KeptBasis:
         return clipped
 
     def _solve(
-        self, policy: np.ndarray, rhs: np.ndarray, base_solution: np.ndarray | None = None
+        self,
+        policy: np.ndarray,
+        rhs: np.ndarray,
+        base_solution: np.ndarray | None = None,
+        held: np.ndarray | None = None,
     ) -> np.ndarray | None:
         """``(I - q_policy)⁻¹ rhs`` on O by Woodbury from the base inverse (``base_solution``:
-        the base inverse times the base rows' right-hand side, if at hand)."""
-        changed = np.flatnonzero(policy != self.base_local)
+        the base inverse times the base rows' right-hand side, if at hand). ``held``: states
+        of O whose row is the identity instead (held at ``rhs``), and a state the base chain
+        stops takes its own row wherever ``held`` is given (the exact chain, not the base's
+        stopping rule); ``rhs`` may hold several columns."""
+        differs = policy != self.base_local
+        if held is not None:
+            differs = differs | held | self.base_stopped
+        changed = np.flatnonzero(differs)
         inverse = self.base_inverse
-        if base_solution is None or changed.size:
-            # the base inverse applied to rhs with the base's own entries at unchanged rows
-            base_solution = inverse @ rhs
         if not changed.size:
-            return base_solution
-        delta = self.base_q[changed] - self.q[policy[changed]]  # rows of (I - q') - (I - q)
-        columns = inverse[:, changed]
-        capacitance = np.eye(changed.size) + delta @ columns
+            return inverse @ rhs if base_solution is None else base_solution
+        # columns of the base inverse at the changed states (rows of its transpose: a gather
+        # of contiguous rows, not a strided one)
+        columns = self._inverse_t[changed].T
+        step = None
+        if base_solution is None:
+            base_solution = inverse @ rhs
+            at_changed = base_solution[changed]
+        else:
+            # rhs differs from the base rows' only at the changed rows (unchanged rows are the
+            # base's, and a state the base stops has no row into the target)
+            step = rhs[changed] - self.base_r[changed]
+            at_changed = base_solution[changed] + inverse[np.ix_(changed, changed)] @ step
+        # Woodbury with delta = base_q[c] - q'[c] (rows of (I - q') - (I - q)), where
+        # base_q @ inverse = inverse - I and q' @ inverse is gathered (:meth:`_times`)
+        moved = self._times(policy[changed])
+        if held is not None:
+            moved[held[changed]] = 0.0
+        capacitance = inverse[np.ix_(changed, changed)] - moved[:, changed]
+        right = at_changed - rhs[changed] - moved @ rhs
         try:
-            correction = np.linalg.solve(capacitance, delta @ base_solution)
+            correction = np.linalg.solve(capacitance, right)
         except np.linalg.LinAlgError:
             return None
-        solved: np.ndarray = base_solution - columns @ correction
+        solved: np.ndarray = base_solution + columns @ (
+            -correction if step is None else step - correction
+        )
         return solved
+
+    def _times(self, rows: np.ndarray) -> np.ndarray:
+        """``q[rows] @ base_inverse`` (a copy), each row multiplied once a node."""
+        missing = np.unique(rows[~self._have_times_inverse[rows]])
+        if missing.size:
+            self._times_inverse[missing] = self.q[missing] @ self.base_inverse
+            self._have_times_inverse[missing] = True
+        taken: np.ndarray = self._times_inverse[rows]
+        return taken
+
+    def solve_chain(
+        self, policy: np.ndarray, free: np.ndarray, rhs: np.ndarray
+    ) -> np.ndarray | None:
+        """The proof's solves on the kept basis (:data:`~misdirect.solvers.engines.
+        policy_iteration.ChainSolve`): ``x`` with ``x = P x + rhs`` on the ``free`` states
+        along the whole chain's ``policy``, 0 elsewhere; None where the basis does not cover
+        the system (free states outside E and O, a policy off the base chain outside O, too
+        many states of E held), and the caller solves it on the whole chain.
+
+        The states of E and O that are not free are held at 0: those of O are rows of the
+        reduced Woodbury update (:meth:`_solve`); those of E (``K``, few: a proof holds the
+        states its check raised) change the LU's system by ``D = P[K, E ∪ O]``, solved by
+        Woodbury once more, ``x = y - A⁻¹ E_K (I + D A⁻¹ E_K)⁻¹ D y`` (``A``: the system with
+        only O's states held, ``y = A⁻¹ rhs``), ``|K|`` columns of the LU's solves."""
+        if not self.usable or (free & ~self.in_kept).any():
+            return None
+        e, o = self.e_states, self.o_states
+        if (policy[e] != self.base_policy[e]).any():
+            return None
+        policy_o = self.local[policy[o]]
+        if (policy_o < 0).any():
+            return None
+        held_o = ~free[o]
+        held_e = np.flatnonzero(~free[e])  # positions in E
+        if held_e.size > MAX_HELD_OUTSIDE or (held_e.size and self.lu is None):
+            return None
+        into_e = self.into_e[policy_o]
+        b_e = np.where(free[e], rhs[e], 0.0)
+        b_o = np.where(held_o, 0.0, rhs[o])
+        y = self._apply(policy_o, held_o, into_e, b_e, b_o)
+        if y is None:
+            return None
+        y_e, y_o = y
+        if held_e.size:
+            # D: the held states' rows, over E then O (their rows of the base chain)
+            rows = self.e_rows[held_e].tocoo()
+            at_e, at_o = self.e_position[rows.col], self.position[rows.col]
+            keep = (at_e >= 0) | (at_o >= 0)
+            row, data = rows.row[keep], rows.data[keep]
+            column = np.where(at_e[keep] >= 0, at_e[keep], e.size + at_o[keep])
+            d_y = np.bincount(
+                row, weights=data * np.concatenate([y_e, y_o])[column], minlength=held_e.size
+            )
+            units = np.zeros((e.size, held_e.size))
+            units[held_e, np.arange(held_e.size)] = 1.0
+            needed = np.unique(column)
+            z = self._apply(
+                policy_o, held_o, into_e, units, np.zeros((o.size, held_e.size)), needed
+            )
+            if z is None:
+                return None
+            z_needed = np.empty((e.size + o.size, held_e.size))
+            z_needed[needed] = z[0]
+            d = sp.csr_matrix((data, (row, column)), shape=(held_e.size, e.size + o.size))
+            capacitance = np.eye(held_e.size) + d @ z_needed
+            try:
+                w = np.linalg.solve(capacitance, d_y)
+            except np.linalg.LinAlgError:
+                return None
+            shift_e = np.zeros(e.size)
+            shift_e[held_e] = w
+            z_w = self._apply(policy_o, held_o, into_e, shift_e, np.zeros(o.size))
+            if z_w is None:
+                return None
+            y_e, y_o = y_e - z_w[0], y_o - z_w[1]
+        x = np.zeros(free.size)
+        x[e], x[o] = y_e, y_o
+        x[~free] = 0.0
+        return x if np.isfinite(x).all() else None
+
+    def _apply(
+        self,
+        policy_o: np.ndarray,
+        held_o: np.ndarray,
+        into_e: sp.csr_matrix,
+        c_e: np.ndarray,
+        c_o: np.ndarray,
+        rows: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``A⁻¹ c`` for the chain along ``policy_o`` on O (the states of ``held_o`` held at
+        0), the base chain on E: ``x_E = L c_E + H x_O`` with ``L`` the LU's solve, and
+        ``(I - q) x_O = c_O + P_OE L c_E``; (x_E, x_O), or with ``rows`` (positions in E, then
+        |E| + positions in O) only those of x, stacked, in the first array (and x_O)."""
+        solved_e = self.lu.solve(c_e) if self.lu is not None else np.zeros_like(c_e)
+        rhs_o = c_o + into_e @ solved_e
+        rhs_o[held_o] = 0.0
+        x_o = self._solve(policy_o, rhs_o, held=held_o)
+        if x_o is None:
+            return None
+        if rows is None:
+            return solved_e + self.first_entry @ x_o, x_o
+        n_e = self.e_states.size
+        on_e, on_o = rows[rows < n_e], rows[rows >= n_e] - n_e
+        picked = np.concatenate([solved_e[on_e] + self.first_entry[on_e] @ x_o, x_o[on_o]])
+        return picked, x_o
 
     def offset_solver(self, policy_o: np.ndarray) -> Callable[[np.ndarray], np.ndarray | None]:
         """What the proof's first offset asks for, on the kept basis: the expected sum of a

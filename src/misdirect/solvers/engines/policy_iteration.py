@@ -46,6 +46,12 @@ EXTENDED_REFINE = 2  # refinement rounds (one solve each) of the double-double v
 EXTENDED_SWITCHES = 3  # policy improvements in double-double, at most
 PROOF_TIGHTEN = 2  # Bellman steps applied to a proven pre-fixed point (each one is one too)
 
+# A faster solve of a proof's systems (e.g. on a kept basis, :mod:`misdirect.solvers.engines.
+# kept_basis`): ``(policy, free, rhs)`` -> ``x`` with ``x = P_policy x + rhs`` on the ``free``
+# states and 0 elsewhere, or None where the caller solves it on the whole chain. It only
+# proposes values: every bound is proven by the check.
+ChainSolve = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray | None]
+
 
 class MaxReachability:
     """An MDP given by its choices: choice ``g`` belongs to state ``owner[g]`` and moves by
@@ -246,6 +252,7 @@ class MaxReachability:
         deadline: Deadline | None = None,
         *,
         offset: Callable[[np.ndarray], np.ndarray | None] | None = None,
+        chain: ChainSolve | None = None,
     ) -> float:
         """A proven upper bound at ``state`` on the optimum among the choices whose ``penalty``
         is 0, from the values and policy :meth:`optimise` returned; the largest target value
@@ -253,7 +260,8 @@ class MaxReachability:
         offset (the expected sum of a cost along ``policy``'s chain, at least the one summed
         until it leaves the states of positive value), e.g. on a kept basis
         (:mod:`misdirect.solvers.engines.kept_basis`); it only proposes ``u``, the check
-        decides.
+        decides. ``chain``: a faster solve of the later attempts' systems (:data:`ChainSolve`),
+        used where no end component is merged.
 
         The optimum is the least fixed point of the Bellman operator ``T`` (target states fixed
         at their value, values capped at the largest one: no value of the chain exceeds it),
@@ -283,7 +291,7 @@ class MaxReachability:
         positive = ~target & (values > 0) & (values < top)
         bellman = self._upper(values, allowed, target, fixed, top)
         found = self._proven_double(
-            values, bellman, policy, state, allowed, positive, deadline, offset
+            values, bellman, policy, state, allowed, positive, deadline, offset, chain
         )
         bound = top if found is None else min(found, top)
         # far above the values (a chain absorbed after 10^8 steps: the check's own rounding,
@@ -295,7 +303,7 @@ class MaxReachability:
                 deadline.check()
             components = self._tied_components(values, bellman, allowed, positive)
             extended = self._proven_extended(
-                values, policy, state, allowed, positive, components, deadline
+                values, policy, state, allowed, positive, components, deadline, chain
             )
             if extended is not None:
                 bound = min(bound, extended)
@@ -326,6 +334,7 @@ class MaxReachability:
         positive: np.ndarray,
         deadline: Deadline | None,
         offset: Callable[[np.ndarray], np.ndarray | None] | None = None,
+        chain: ChainSolve | None = None,
     ) -> float | None:
         """:meth:`proven_bound` in double precision: the bound, or None."""
         target = self.target
@@ -349,7 +358,9 @@ class MaxReachability:
                 if collected is not None:
                     u = np.where(positive, values + np.maximum(collected, cost), values)
             if u is None:
-                u = self._settle(policy, positive, values, cost, components, offset=attempt == 0)
+                u = self._settle(
+                    policy, positive, values, cost, components, offset=attempt == 0, chain=chain
+                )
             if u is None:
                 continue
             u = np.minimum(u, top)
@@ -370,7 +381,9 @@ class MaxReachability:
                         u, _ = _flatten(u, np.zeros_like(u), components)
                         raised |= _touched(components, raised)
                 if round_ + 1 < PROOF_ROUNDS:  # the others follow the raised states
-                    settled = self._settle(policy, positive & ~raised, u, cost, components)
+                    settled = self._settle(
+                        policy, positive & ~raised, u, cost, components, chain=chain
+                    )
                     if settled is not None:
                         u = np.minimum(settled, top)
         return None
@@ -384,6 +397,7 @@ class MaxReachability:
         positive: np.ndarray,
         components: np.ndarray,
         deadline: Deadline | None,
+        chain: ChainSolve | None = None,
     ) -> float | None:
         """:meth:`proven_bound` with ``u`` a double-double ``hi + lo``: policy iteration's
         values refined on the policy's chain (end components as one state), residuals
@@ -401,7 +415,9 @@ class MaxReachability:
         policy = policy.copy()
         prefer = np.zeros(positive.size, dtype=bool)
         inside = components >= 0
-        if not self._refine(policy, positive, hi, lo, floor, components, EXTENDED_REFINE):
+        if not self._refine(
+            policy, positive, hi, lo, floor, components, EXTENDED_REFINE, chain=chain
+        ):
             return None
         for _ in range(EXTENDED_SWITCHES):
             if deadline is not None:
@@ -414,7 +430,15 @@ class MaxReachability:
             preferred = (prefer & ~_touched(components, switch)) | (switch & inside)
             new_hi, new_lo = _flatten(hi, lo, components)
             refined = self._refine(
-                tried, positive, new_hi, new_lo, floor, components, EXTENDED_REFINE, preferred
+                tried,
+                positive,
+                new_hi,
+                new_lo,
+                floor,
+                components,
+                EXTENDED_REFINE,
+                preferred,
+                chain=chain,
             )
             # an improvement raises every value; a fall means a solve that went wrong (a
             # chain so close to closing that the switch closed it): keep the last policy
@@ -432,7 +456,7 @@ class MaxReachability:
             if attempt:
                 cost = cost * PROOF_GROWTH
             if not self._refine(
-                policy, positive, hi, lo, cost, components, EXTENDED_REFINE, prefer
+                policy, positive, hi, lo, cost, components, EXTENDED_REFINE, prefer, chain=chain
             ):
                 return None
             raised = np.zeros(positive.size, dtype=bool)
@@ -450,7 +474,9 @@ class MaxReachability:
                     if deadline is not None:
                         deadline.check()
                     free = positive & ~raised
-                    self._refine(policy, free, hi, lo, cost, components, EXTENDED_REFINE, prefer)
+                    self._refine(
+                        policy, free, hi, lo, cost, components, EXTENDED_REFINE, prefer, chain=chain
+                    )
         return None
 
     def _excess(self) -> tuple[np.ndarray, np.ndarray]:
@@ -486,13 +512,31 @@ class MaxReachability:
         components: np.ndarray,
         rounds: int,
         prefer: np.ndarray | None = None,
+        *,
+        chain: ChainSolve | None = None,
     ) -> bool:
         """Refine ``hi + lo`` in place on the ``free`` states towards ``u = P u + cost`` along
         ``policy`` (end components as one state, :meth:`_quotient`), the others fixed:
-        residuals in double-double, corrections solved in double. False if a solve fails."""
+        residuals in double-double, corrections solved in double (by ``chain`` where no end
+        component is merged and it covers the system). False if a solve fails."""
         inner = np.flatnonzero(free)
         if not inner.size:
             return True
+        if chain is not None and not _merges(components, inner):
+            rows = self.transitions[policy[inner]].tocsr()
+            for done in range(rounds):
+                r, _ = residual.residual(rows, hi, lo, inner, cost[inner])
+                full = np.zeros(free.size)
+                full[inner] = r
+                correction = chain(policy, free, full)
+                if correction is None:
+                    if done:  # the rest on the whole chain
+                        break
+                    return self._refine(policy, free, hi, lo, cost, components, rounds, prefer)
+                hi[inner], lo[inner] = residual.add(hi[inner], lo[inner], correction[inner])
+            else:
+                return True
+            rounds -= done
         node, reps, rows, block, labels = self._quotient_chain(
             policy, free, inner, components, prefer
         )
@@ -600,17 +644,29 @@ class MaxReachability:
         components: np.ndarray | None,
         *,
         offset: bool = False,
+        chain: ChainSolve | None = None,
     ) -> np.ndarray | None:
         """``u`` with its ``free`` states solved again: each the expected sum of ``cost``
         along ``policy``'s chain until it leaves them, plus ``u`` where it leaves to (the
         chain leaves surely: every free state reaches the target). With ``offset`` the solve
         is for the sum of ``cost`` alone, added to ``u`` (which keeps policy iteration's
         values as they are). The states of one end component (``components``) are one
-        state, whose row is that of a member the policy leads out of it. None if the solve
+        state, whose row is that of a member the policy leads out of it. ``chain`` solves
+        it where no component is merged (and it covers the system). None if the solve
         fails."""
         inner = np.flatnonzero(free)
         if not inner.size:
             return u
+        if chain is not None and not _merges(components, inner):
+            reward = cost if offset else (self.transitions @ np.where(free, 0.0, u))[policy] + cost
+            found = chain(policy, free, np.where(free, reward, 0.0))
+            if found is not None and np.isfinite(found[inner]).all():
+                settled = u.copy()
+                if offset:
+                    settled[inner] = u[inner] + np.maximum(found[inner], cost[inner])
+                else:
+                    settled[inner] = found[inner]
+                return settled
         node, reps, rows, block, labels = self._quotient_chain(policy, free, inner, components)
         reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
         solved = _solved_or_none(block, reward, labels)
@@ -768,6 +824,12 @@ def _flatten(
     hi, lo = hi.copy(), lo.copy()
     hi[inside], lo[inside] = hi[top_of[label]], lo[top_of[label]]
     return hi, lo
+
+
+def _merges(components: np.ndarray | None, inner: np.ndarray) -> bool:
+    """Whether a solve on the states ``inner`` merges an end component (:meth:`MaxReachability.
+    _quotient`): then only the whole chain's solve takes it."""
+    return components is not None and bool((components[inner] >= 0).any())
 
 
 def _touched(components: np.ndarray, raised: np.ndarray) -> np.ndarray:
