@@ -42,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/stealth_speed.py --out $(BENCH_OUT)
 	$(BIN)/python bench/robust.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth.py --out $(BENCH_OUT)
+	$(BIN)/python bench/stealth_automaton.py --out $(BENCH_OUT)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

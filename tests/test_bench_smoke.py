@@ -314,3 +314,53 @@ def test_robust_benchmark_reduced_mode(tmp_path):
     assert plain["certified"] and plain["worst_case"] < 0.719924  # SPEC §3, budget 1
     assert (tmp_path / "robust_tradeoff.png").stat().st_size > 0
     assert (tmp_path / "robust_exact.csv").exists()
+
+
+def test_bench_stealth_automaton_quick_mode(tmp_path):
+    """bench/stealth_automaton.py --quick (no timing asserted): both curves certified; unaltered,
+    every reading follows a real move, so the automaton never fires (Pr(alarm) 0, the same
+    value); at budget 1 the monitored optimum is brute force's over every alteration of the
+    monitored problem, and no more than the unmonitored one."""
+    import misdirect
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from stealth_automaton import implausible_twice
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "stealth_automaton.py"),
+            "--quick",
+            "--out",
+            tmp_path,
+        ],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )
+    document = json.loads((tmp_path / "stealth_automaton.json").read_text())
+    rows = {(r["monitor"], r["budget"]): r for r in document["rows"]}
+    assert all(r["status"] == "optimal" for r in rows.values())
+    watched_key = "implausible-twice"
+    assert rows[(watched_key, 0.0)]["alarm"] == 0.0
+    assert rows[(watched_key, 0.0)]["value"] == pytest.approx(rows[("", 0.0)]["value"], abs=1e-9)
+    assert rows[(watched_key, 1.0)]["value"] <= rows[("", 1.0)]["value"] + 1e-9
+    from misdirect.core.monitor import with_monitor
+    from misdirect.scenarios import sensor_grid
+
+    problem = sensor_grid(8, 8, goal="inside")
+    watched = with_monitor(problem, implausible_twice(problem))
+    from misdirect.errors import ProblemError
+
+    brute = 0.0
+    names = problem.pomdp.observations
+    for name, target in ((n, t) for n in names for t in names if t != n):
+        try:
+            alpha = problem.alteration({name: target})
+        except ProblemError:  # an unalterable reading (protected)
+            continue
+        if problem.alteration_cost(alpha) <= 1.0 + 1e-9:
+            brute = max(brute, misdirect.evaluate(watched, alpha).probability)
+    assert rows[(watched_key, 1.0)]["value"] == pytest.approx(brute, abs=1e-9)

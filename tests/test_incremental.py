@@ -416,7 +416,7 @@ def test_auto_searches_what_its_enumeration_left_unproven_without_enumerating_it
     space = prepare(problem, 3).space
     small = space.count_within(1, 10**9)
     monkeypatch.setattr(
-        schedule, "enumeration_fits", lambda count, needed, deadline, *, limit: count <= small
+        schedule, "enumeration_fits", lambda count, needed, deadline, **_: count <= small
     )
     _runs_out_of_time_from(monkeypatch, 1)  # every run above budget 0 runs out at once
     calls = []

@@ -519,3 +519,91 @@ def test_the_schema_describes_the_monitor():
     spec = schema["$defs"]["MonitorSpec"]
     assert {"consistency", "states", "initial", "alarm", "transitions"} <= set(spec["properties"])
     assert spec["additionalProperties"] is False
+
+
+def test_auto_searches_first_where_the_enumeration_is_mostly_bases(monkeypatch):
+    """Auto gives branch-and-bound the first try where the low-rank enumeration would be
+    mostly base solves (issue 52's speed: the monitored grid's budget 4 is 3,956 bases); the
+    constants are lowered so that budget 2 of the monitored grid counts as such. The curve is
+    the one-by-one exhaustive enumeration's, and budget 1 brute force's on the reference
+    product."""
+    from misdirect.solvers import auto, schedule
+
+    monkeypatch.setattr(auto, "BASES_SAMPLED_FROM", 2)
+    monkeypatch.setattr(schedule, "BASES_FIRST_SECONDS", 0.0)
+    problem = paper_grid(5)
+    watched = with_monitor(problem, consistency_monitor(problem))
+    notes: list[str] = []
+    budgets = [0.0, 1.0, 2.0]
+    result = misdirect.solve(
+        watched,
+        budgets=budgets,
+        method="auto",
+        progress=lambda d, t, **info: notes.append(info.get("note") or ""),
+    )
+    # searched first, the enumeration kept for what the search leaves open
+    assert any("mostly base solves" in n and "after the search" in n for n in notes)
+    oracle = misdirect.solve(watched, budgets=budgets, method="exhaustive")
+    for mine, best in zip(result.curve, oracle.curve, strict=True):
+        assert str(mine.status) == "optimal"
+        assert mine.probability == pytest.approx(best.probability, abs=1e-12)
+    step, m0 = consistency_step(problem)
+    brute = max(reference(problem, alpha, step, m0)[0] for alpha in affordable(problem, 1.0))
+    assert result.curve[1].probability == pytest.approx(brute, abs=1e-10)
+
+
+# -- the consistency monitor along the controller's runs ----------------------------------------
+
+
+def _same_values_along_and_full(problem, alterations):
+    """The monitor built along the controller (the default) against the full one (every
+    action played on a reading, in any node): the same value and Pr(alarm) under each
+    alteration, and no support the full monitor lacks."""
+    along = consistency_monitor(problem)
+    full = consistency_monitor(problem, along_controller=False)
+    assert set(along.supports) <= set(full.supports)
+    short, long = with_monitor(problem, along), with_monitor(problem, full)
+    for alpha in alterations:
+        mine, theirs = misdirect.evaluate(short, alpha), misdirect.evaluate(long, alpha)
+        assert mine.probability == pytest.approx(theirs.probability, abs=1e-12)
+        assert (mine.alarm_probability or 0.0) == pytest.approx(
+            theirs.alarm_probability or 0.0, abs=1e-12
+        )
+    return along, full
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_consistency_along_the_controller_equals_the_full_monitor(seed):
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    step, m0 = consistency_step(problem)
+    along, _ = _same_values_along_and_full(problem, affordable(problem, problem.budget))
+    # and the reference product (supports as frozensets) once more, at the optimum
+    watched = with_monitor(problem, along)
+    best = max(reference(problem, a, step, m0)[0] for a in affordable(problem, problem.budget))
+    result = misdirect.solve(watched, budgets=[problem.budget], method="exhaustive")
+    assert result.probability == pytest.approx(best, abs=1e-10)
+
+
+def test_consistency_along_the_controller_on_a_sensor_network():
+    """sensor_grid(8, 6): the full monitor has thousands of supports, the controller's runs
+    reach a few hundred; every single-sensor alteration gets the same value and alarm."""
+    from misdirect.scenarios import sensor_grid
+
+    problem = sensor_grid(8, 6)
+    sensors = [o for o in problem.pomdp.observations if o.startswith("s")]
+    alterations = [{}] + [{o: t} for o in sensors[:3] for t in ("b", sensors[-1]) if t != o]
+    along, full = _same_values_along_and_full(problem, alterations)
+    assert 10 * along.n_states < full.n_states
+
+
+def test_a_consistency_monitor_folds_into_its_own_controller_only():
+    import copy
+    from dataclasses import replace
+
+    problem = paper_grid(5)
+    monitor = consistency_monitor(problem)
+    changed = replace(problem, controller=copy.copy(problem.controller))  # another, alike
+    with pytest.raises(ProblemError, match="another controller"):
+        with_monitor(changed, monitor)
+    # the full monitor is exact for any node, so it folds into any controller over its names
+    assert consistency_monitor(problem, along_controller=False).controller is None

@@ -270,13 +270,21 @@ def _preview(names: Iterable[str], limit: int = 8) -> str:
 @dataclass(frozen=True, eq=False, repr=False)
 class ConsistencyMonitor(Monitor):
     """The robot's plausibility check; ``supports[m]`` is the set of world states state ``m``
-    predicts (the robot could be in, before its next reading), as sorted indices."""
+    predicts (the robot could be in, before its next reading), as sorted indices.
+    ``controller``: the controller whose runs it was built along (its table is exact on every
+    (support, reading, action) those runs reach, and raises the alarm elsewhere), or None
+    (built over every action played on a reading: exact for any node)."""
 
     supports: tuple[tuple[int, ...], ...] = ()
+    controller: Controller | None = None
 
 
 def consistency_monitor(
-    problem: Problem, *, max_states: int = DEFAULT_MAX_STATES, field: str = "monitor"
+    problem: Problem,
+    *,
+    max_states: int = DEFAULT_MAX_STATES,
+    field: str = "monitor",
+    along_controller: bool = True,
 ) -> ConsistencyMonitor:
     """The robot's own plausibility check: an alarm when a reading is impossible.
 
@@ -287,14 +295,22 @@ def consistency_monitor(
     ``post(Q, a) = {s' : P(s, a, s') > 0 for some s ∈ Q}``; where ``Q`` is empty, no state the
     robot could be in emits ``o``, and the alarm is raised.
 
-    Built over the supports reachable from ``{s0}`` under every reading and every action the
-    controller may play on it; more than ``max_states`` supports raise a
-    :class:`~misdirect.errors.ProblemError` naming the cap.
+    Built over the supports reachable from ``{s0}`` along the controller's runs under every
+    reading: from each reachable pair of a memory node and a support, on every reading, the
+    actions that node plays (``along_controller``, the default), which are all the product
+    with the controller (:func:`with_monitor`) ever reads, so folding it in gives the same
+    product as the full monitor; the entries no run reaches raise the alarm, and the monitor
+    folds into this controller only. Without ``along_controller``: under every action the
+    controller plays on a reading in any node (exact for any node, and far larger: on
+    ``sensor_grid(8, 6)`` 4,555 supports against 178, docs/benchmarks.md). More than
+    ``max_states`` supports raise a :class:`~misdirect.errors.ProblemError` naming the cap.
     """
     pomdp, controller = problem.pomdp, problem.controller
     n_s, n_o, n_a = pomdp.n_states, pomdp.n_observations, pomdp.n_actions
     if max_states < 1:
         raise ProblemError(f"must be at least 1, got {max_states}", field=_at(field, "max_states"))
+    if along_controller:
+        return _consistency_along(problem, max_states, field)
     # the actions the controller may play on each reading (in some node)
     played = np.zeros((n_o, n_a), dtype=bool)
     owner, action, _, _ = controller.move_entries(controller.move.T.ravel())
@@ -341,14 +357,7 @@ def consistency_monitor(
             k = known.get(after)
             if k is None:
                 if len(supports) >= max_states:
-                    raise ProblemError(
-                        f"the consistency monitor needs more than {max_states:,} belief "
-                        f"supports (the cap) on {pomdp.n_states:,} states; raise the cap "
-                        "(monitor: {consistency: {max_states: N}} in the problem file, "
-                        "consistency_monitor(problem, max_states=N)) or give a smaller "
-                        "monitor",
-                        field=_at(field, "max_states"),
-                    )
+                    raise _cap_error(max_states, pomdp.n_states, field)
                 k = known[after] = len(supports)
                 supports.append(after)
             found[i] = k
@@ -377,6 +386,129 @@ def consistency_monitor(
         observations=pomdp.observations,
         actions=pomdp.actions,
         supports=tuple(supports),
+    )
+
+
+def _consistency_along(problem: Problem, max_states: int, field: str) -> ConsistencyMonitor:
+    """:func:`consistency_monitor` along the controller's runs: breadth-first over pairs
+    (memory node, support) from ``(n0, {s0})``, a level at a time with array operations; each
+    (support, reading, action) a pair plays is followed once."""
+    pomdp, controller = problem.pomdp, problem.controller
+    n_s, n_o, n_a = pomdp.n_states, pomdp.n_observations, pomdp.n_actions
+    transitions = pomdp.transitions.tocsr()
+    indptr, indices = transitions.indptr.astype(np.int64), transitions.indices.astype(np.int64)
+    observation_of = pomdp.observation_of.astype(np.int64)
+    supports: list[tuple[int, ...]] = [(pomdp.initial_state,)]
+    known = {supports[0]: 0}
+    followed: dict[int, int] = {}  # (support * |Ω| + reading) * |A| + action -> next (-1: alarm)
+    pairs = {controller.initial_node * max_states: 0}  # node * max_states + support
+    level_node = np.array([controller.initial_node], dtype=np.int64)
+    level_support = np.array([0], dtype=np.int64)
+    readings = np.arange(n_o, dtype=np.int64)
+    while level_node.size:
+        owner, action, next_node, _ = controller.entries(
+            np.repeat(level_node, n_o), np.tile(readings, level_node.size)
+        )
+        support = level_support[owner // n_o]
+        reading = owner % n_o
+        key = (support * n_o + reading) * n_a + action
+        new = np.unique(key)
+        new = new[[k not in followed for k in new.tolist()]] if followed else new
+        model = (indptr, indices, observation_of, n_o, n_a)
+        _follow(new, supports, known, followed, max_states, field, n_s, model)
+        after = np.fromiter((followed[k] for k in key.tolist()), dtype=np.int64, count=key.size)
+        live = after >= 0
+        next_pairs = np.unique(next_node[live] * max_states + after[live])
+        fresh = [k for k in next_pairs.tolist() if k not in pairs]
+        for k in fresh:
+            pairs[k] = len(pairs)
+        fresh_array = np.array(fresh, dtype=np.int64)
+        level_node, level_support = np.divmod(fresh_array, max_states)
+    n_m = len(supports)
+    check_memory(
+        float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
+        f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
+        field=_at(field, "max_states"),
+    )
+    table = np.full((n_m + 1, n_o, n_a), n_m, dtype=np.int32)  # unreached: the alarm
+    if followed:
+        keys = np.fromiter(followed.keys(), dtype=np.int64, count=len(followed))
+        nexts = np.fromiter(followed.values(), dtype=np.int64, count=len(followed))
+        rest, a = np.divmod(keys, n_a)
+        m, o = np.divmod(rest, n_o)
+        table[m, o, a] = np.where(nexts < 0, n_m, nexts)
+    alarm = np.zeros(n_m + 1, dtype=bool)
+    alarm[n_m] = True
+    return ConsistencyMonitor(
+        name="consistency",
+        states=(*(f"b{k}" for k in range(n_m)), ALARM),
+        initial=0,
+        alarm=alarm,
+        next_state=table,
+        observations=pomdp.observations,
+        actions=pomdp.actions,
+        supports=tuple(supports),
+        controller=controller,
+    )
+
+
+def _follow(
+    keys: np.ndarray,
+    supports: list[tuple[int, ...]],
+    known: dict[tuple[int, ...], int],
+    followed: dict[int, int],
+    max_states: int,
+    field: str,
+    n_s: int,
+    model: tuple[np.ndarray, np.ndarray, np.ndarray, int, int],
+) -> None:
+    """Follow each (support, reading, action) of ``keys`` once: its next support's number
+    (new supports appended, in the order of ``keys``) or -1 (alarm), into ``followed``."""
+    indptr, indices, observation_of, n_o, n_a = model
+    if not keys.size:
+        return
+    rest, action = np.divmod(keys, n_a)
+    support, reading = np.divmod(rest, n_o)
+    members = [supports[k] for k in support.tolist()]
+    lengths = np.fromiter((len(p) for p in members), dtype=np.int64, count=len(members))
+    group = np.repeat(np.arange(keys.size, dtype=np.int64), lengths)
+    state = np.fromiter(
+        itertools.chain.from_iterable(members), dtype=np.int64, count=int(lengths.sum())
+    )
+    keep = observation_of[state] == reading[group]  # Q = {s in P : O(s) = o}
+    group, state = group[keep], state[keep]
+    emitted = np.bincount(group, minlength=keys.size) > 0  # Q is not empty
+    row_of = action[group] * n_s + state
+    starts, counts = indptr[row_of], indptr[row_of + 1] - indptr[row_of]
+    at = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
+    found = np.unique(np.repeat(group, counts) * n_s + indices[at])
+    owners, targets = np.divmod(found, n_s)
+    cut = np.searchsorted(owners, np.arange(keys.size), side="left")
+    end = np.searchsorted(owners, np.arange(keys.size), side="right")
+    listed = targets.tolist()
+    spans = zip(keys.tolist(), emitted.tolist(), cut.tolist(), end.tolist(), strict=True)
+    for key, some, lo, hi in spans:
+        if not some:  # no state of the support emits the reading: the alarm
+            followed[key] = -1
+            continue
+        after = tuple(listed[lo:hi])  # empty where no state moves: every reading then alarms
+        k = known.get(after)
+        if k is None:
+            if len(supports) >= max_states:
+                raise _cap_error(max_states, n_s, field)
+            k = known[after] = len(supports)
+            supports.append(after)
+        followed[key] = k
+
+
+def _cap_error(max_states: int, n_s: int, field: str) -> ProblemError:
+    return ProblemError(
+        f"the consistency monitor needs more than {max_states:,} belief "
+        f"supports (the cap) on {n_s:,} states; raise the cap "
+        "(monitor: {consistency: {max_states: N}} in the problem file, "
+        "consistency_monitor(problem, max_states=N)) or give a smaller "
+        "monitor",
+        field=_at(field, "max_states"),
     )
 
 
@@ -449,6 +581,13 @@ def fold_monitor(problem: Problem, monitor: Monitor) -> Problem:
         raise ProblemError(
             "the monitor reads other observations or actions than the problem's; build it "
             "over the problem's (Monitor.from_transitions(observations=..., actions=...))",
+            field="monitor",
+        )
+    built_for = getattr(monitor, "controller", None)
+    if built_for is not None and built_for is not controller:
+        raise ProblemError(
+            "the consistency monitor was built along another controller's runs; build it for "
+            "this problem (consistency_monitor(problem))",
             field="monitor",
         )
     if watched:

@@ -49,7 +49,11 @@ from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.certification import ExactValues, exact_values
 from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
-from misdirect.solvers.engines.lowrank import MAX_ALTERATIONS, NotApplicableError
+from misdirect.solvers.engines.lowrank import (
+    MAX_ALTERATIONS,
+    LowRankEnumeration,
+    NotApplicableError,
+)
 from misdirect.solvers.exhaustive import MAX_EVALUATIONS, ExhaustiveSolver
 from misdirect.solvers.incremental import IncrementalSolver
 from misdirect.solvers.milp.solver import MilpSolver
@@ -62,6 +66,7 @@ INCREMENTAL_LIMIT = MAX_ALTERATIONS  # the most the low-rank enumeration is give
 EXHAUSTIVE_LIMIT = MAX_EVALUATIONS  # the most auto gives the exhaustive enumeration
 KNAPSACK_STATES = 2  # observations owning at most this many live states: knapsack-like
 NODE_LIMIT = 5_000  # branch-and-bound nodes per budget before the MILP takes over
+BASES_SAMPLED_FROM = 64  # base solves from which auto costs them before enumerating
 TINY_CHAIN = 1_000  # product states below which branch-and-bound keeps going (no MILP)
 UNLIMITED_NODES = 10**9
 
@@ -73,13 +78,14 @@ class _Facts:
     problem: Problem
     instance: AttackInstance
     count: int  # alterations within the top budget (INCREMENTAL_LIMIT + 1: more)
+    top: float = 0.0  # the top budget
     reasons: list[str] = field(default_factory=list)
 
     @classmethod
     def measure(cls, problem: Problem, budgets: Sequence[float]) -> _Facts:
         instance = prepare(problem, max(budgets))
         count = instance.space.count_within(max(budgets), INCREMENTAL_LIMIT)
-        facts = cls(problem, instance, count)
+        facts = cls(problem, instance, count, max(budgets))
         if instance.left_out:
             facts.reasons.append(
                 f"{instance.left_out:,} options left out (each moves the robot as no "
@@ -129,6 +135,27 @@ class _Facts:
             if time.perf_counter() - began > schedule.SAMPLE_SECONDS:
                 break
         return (time.perf_counter() - began) / taken
+
+    @cached_property
+    def _enumeration(self) -> LowRankEnumeration:
+        return LowRankEnumeration(self.instance, threads=1, max_evaluations=INCREMENTAL_LIMIT)
+
+    def bases_s(self, budget: float) -> float:
+        """About the seconds the low-rank enumeration at ``budget`` spends on base solves
+        (:func:`schedule.bases_seconds`); 0 below ``BASES_SAMPLED_FROM`` bases, where the
+        enumeration's own pace decides (and one exact evaluation is not worth measuring)."""
+        if not self.instance.space.choices:
+            return 0.0
+        bases = self._enumeration.bases_within(budget)
+        if bases < BASES_SAMPLED_FROM:
+            return 0.0
+        return schedule.bases_seconds(bases, self.evaluation_s)
+
+    def enumeration_s(self, budget: float, count: int) -> tuple[float, float]:
+        """About the seconds the low-rank enumeration of ``count`` alterations at ``budget``
+        takes, and those of them spent on base solves."""
+        bases = self.bases_s(budget)
+        return schedule.enumeration_seconds(count) + bases, bases
 
     @cached_property
     def largest_observation(self) -> int:
@@ -192,11 +219,27 @@ class _Enumeration(_Stage):
     method = "incremental"
 
     def applies(self, facts: _Facts, deadline: Deadline) -> bool:
-        needed = self.estimate_s(facts)
-        return schedule.enumeration_fits(facts.count, needed, deadline, limit=INCREMENTAL_LIMIT)
+        if facts.count > INCREMENTAL_LIMIT:
+            return False
+        needed, bases = facts.enumeration_s(facts.top, facts.count)
+        fits = schedule.enumeration_fits(
+            facts.count,
+            needed,
+            deadline,
+            limit=INCREMENTAL_LIMIT,
+            bases_s=bases,
+            search_sees_budget=not facts.cycling,
+        )
+        if not fits and not facts.cycling and schedule.mostly_bases(needed, bases):
+            facts.reasons.append(
+                f"their enumeration is mostly base solves (at least {bases:.3g} s)"
+            )
+        return fits
 
     def estimate_s(self, facts: _Facts) -> float:
-        return schedule.enumeration_seconds(facts.count)
+        if facts.count > INCREMENTAL_LIMIT:
+            return schedule.enumeration_seconds(facts.count)
+        return facts.enumeration_s(facts.top, facts.count)[0]
 
     def handovers(self, facts: _Facts, deadline: Deadline) -> list[_Handover]:
         # a budget the enumeration stops before (its measured rate says it will not fit)
@@ -319,8 +362,11 @@ class _Search(_Stage):
         later = _Enumeration(self.auto)
         limit = INCREMENTAL_LIMIT
         enumerating = later.estimate_s(facts)
+        bases = facts.count <= limit and schedule.mostly_bases(
+            enumerating, facts.enumeration_s(facts.top, facts.count)[1]
+        )
         search_s = schedule.search_before_enumerating(
-            facts.count, enumerating, deadline, limit=limit
+            facts.count, enumerating, deadline, limit=limit, bases=bases
         )
         if search_s is not None:
             # the enumeration would likely finish, but not soon: the search goes first (it
@@ -514,19 +560,28 @@ class AutoSolver:
         enumeration = _Enumeration(self)
         limit = INCREMENTAL_LIMIT
 
-        def takes(count: int) -> str | None:
-            needed = schedule.enumeration_seconds(count)
-            fits = schedule.enumeration_fits(count, needed, deadline, limit=INCREMENTAL_LIMIT)
+        def takes(budget: float, count: int) -> str | None:
+            if count > limit:
+                return None
+            needed, bases = facts.enumeration_s(budget, count)
+            fits = schedule.enumeration_fits(
+                count,
+                needed,
+                deadline,
+                limit=limit,
+                bases_s=bases,
+                search_sees_budget=not facts.cycling,
+            )
             return "" if fits else None
 
-        if takes(facts.count) is not None:
+        if takes(facts.top, facts.count) is not None:
             return None
         space = facts.instance.space
         ordered = sorted(budgets)
-        small = [b for b in ordered if takes(space.count_within(b, limit)) is not None]
+        small = [b for b in ordered if takes(b, space.count_within(b, limit)) is not None]
         if not small:
             return None
-        why = takes(space.count_within(small[-1], limit))
+        why = takes(small[-1], space.count_within(small[-1], limit))
         first = enumeration.run(facts.problem, small, deadline, progress, None)
         note = f"auto: budgets up to {small[-1]:g} enumerated, the rest searched"
         reason = f"{facts.reason}; budgets up to {small[-1]:g}: {why}" if why else facts.reason

@@ -13,10 +13,10 @@ evaluated exactly; a hill climb improves the previous budget's answer before eac
 Pruning and the proven bound are the shared bookkeeping of
 :mod:`misdirect.solvers.engines.incumbent`.
 
-Where this search does not certify a budget of a large chain without end components, the
-segment search (:mod:`misdirect.solvers.engines.segment_search`) takes it over from its
-incumbent; the two bounds are both proven, and the smaller one is reported. How time is
-shared between them is :mod:`misdirect.solvers.schedule`'s.
+Where this search does not certify a budget of a large chain without end components (and
+without a monitor), the segment search (:mod:`misdirect.solvers.engines.segment_search`)
+takes it over from its incumbent; the two bounds are both proven, and the smaller one is
+reported. How time is shared between them is :mod:`misdirect.solvers.schedule`'s.
 
 Budgets go smallest first, except where the curve levels off: once two budgets in a row are
 certified at the same value, the largest budget is solved next. If it is certified at that
@@ -178,10 +178,16 @@ class BranchAndBoundSolver:
             instance,
             relax,
             policy=relax.best_groups(relax.live_groups.astype(np.float64))[0],
-            # the segment search backs a budget up on large chains
-            # with a pool, every budget goes to the (distributed) segment search
+            # the segment search backs a budget up on large chains, not on monitored ones (their
+            # product states are many copies of few world states: on the paper grid with the
+            # consistency monitor the per-state search certifies budget 4 in a few seconds,
+            # the segment search took 30 s; docs/benchmarks.md, "Stealth"); with a pool,
+            # every budget goes to the (distributed) segment search
             segment_backs_up=accept is None
-            and (instance.chain.n_states >= SEGMENT_MIN_STATES or self.options.pool is not None),
+            and (
+                (instance.chain.n_states >= SEGMENT_MIN_STATES and not problem.monitor)
+                or self.options.pool is not None
+            ),
             max_budget=max(budgets),
             accept=accept,
             caught=caught,

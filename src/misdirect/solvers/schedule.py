@@ -22,6 +22,7 @@ BLIND_SEARCH_SHARE = 0.9  # a staged enumeration's share where the search's boun
 # the budget (end components): there the search seldom proves what the enumeration would
 UNLIMITED_FIRST = 10.0  # with no time limit: enumerate first what takes at most this long,
 UNLIMITED_SEARCH = 0.2  # else search first for this share of the enumeration's time
+BASES_FIRST_SECONDS = 1.0  # an enumeration mostly of base solves, longer than this: search first
 EVALUATION_SURE = 2.0  # seconds of one-by-one exact evaluation auto always spends enumerating
 SAMPLE_EVALUATIONS = 8  # alterations auto evaluates to measure what one evaluation costs ...
 SAMPLE_SECONDS = 0.2  # ... stopping once this long is spent (after the first)
@@ -113,26 +114,57 @@ def fair_share(deadline: Deadline, *, search_sees_budget: bool = True) -> float:
     return (ENUMERATION_FIRST if search_sees_budget else BLIND_SEARCH_SHARE) * left
 
 
-def enumeration_fits(count: int, needed: float, deadline: Deadline, *, limit: int) -> bool:
+def bases_seconds(bases: int, per_base: float) -> float:
+    """About how long an enumeration's ``bases`` base solves take, at ``per_base`` seconds
+    each (one exact evaluation of the chain, as auto measures it: a base factorises the same
+    chain and solves more columns, so this is a lower bound); nothing for a single base."""
+    return bases * per_base if bases > 1 else 0.0
+
+
+def mostly_bases(needed: float, bases_s: float) -> bool:
+    """Whether an enumeration of about ``needed`` seconds, ``bases_s`` of them base solves,
+    is mostly bases and not quick (over ``BASES_FIRST_SECONDS``). A base solve costs about
+    what a search node does (both solve the chain), so such an enumeration is a search that
+    cannot prune: the search gets the first try. On the paper grid with the consistency
+    monitor, budget 4's 97,119 alterations are 3,956 bases (35 s) where branch-and-bound
+    certifies in about 200 nodes (docs/benchmarks.md, "Stealth")."""
+    return bases_s > BASES_FIRST_SECONDS and 2 * bases_s > needed
+
+
+def enumeration_fits(
+    count: int,
+    needed: float,
+    deadline: Deadline,
+    *,
+    limit: int,
+    bases_s: float = 0.0,
+    search_sees_budget: bool = True,
+) -> bool:
     """Whether auto enumerates ``count`` alterations (at most ``limit``; about ``needed``
-    seconds) with low-rank updates before anything else: always up to ``INCREMENTAL_SURE``,
-    else when they take at most the fair share of the time left."""
+    seconds, ``bases_s`` of them base solves) with low-rank updates before anything else:
+    not when they are :func:`mostly_bases` and the search's bound sees the budget; else
+    always up to ``INCREMENTAL_SURE``, and beyond when they take at most the fair share of
+    the time left."""
+    if search_sees_budget and mostly_bases(needed, bases_s):
+        return False
     return count <= INCREMENTAL_SURE or (count <= limit and needed <= fair_share(deadline))
 
 
 def search_before_enumerating(
-    count: int, needed: float, deadline: Deadline, *, limit: int
+    count: int, needed: float, deadline: Deadline, *, limit: int, bases: bool = False
 ) -> float | None:
     """Seconds for the search before enumerating ``count`` alterations (about ``needed``
     seconds), or None if they are not to be enumerated: within a limit, what the enumeration
     leaves of the time (if it needs under ``ENUMERATION_RESERVE`` of it), at least
     ``SEARCH_FIRST`` of it; without one, ``UNLIMITED_SEARCH`` of the enumeration's time, so a
-    search that certifies at once saves it, at worst costing that."""
+    search that certifies at once saves it, at worst costing that; all of it where the
+    enumeration is :func:`mostly_bases` (``bases``: its estimate is a lower bound, and each
+    base costs about a search node)."""
     if count > limit:
         return None
     left = deadline.remaining()
     if left is None:
-        return UNLIMITED_SEARCH * needed
+        return needed if bases else UNLIMITED_SEARCH * needed
     if needed > ENUMERATION_RESERVE * left:
         return None
     return max(left - needed / ENUMERATION_RESERVE, SEARCH_FIRST * left)
