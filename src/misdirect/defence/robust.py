@@ -62,6 +62,7 @@ from misdirect.defence.robust_gradient import (
     GradientMaster,
     better,
     controller_of,
+    embedded,
     mu_of,
 )
 from misdirect.defence.robust_oracle import (
@@ -80,6 +81,9 @@ OBJECTIVES = ("decoy", "goal")
 MAX_CANDIDATES = 5_000_000  # controllers the exact master enumerates at most
 _BATCH = 2048  # candidates solved at once (each a dense product chain)
 GRADIENT_ROUNDS = 50  # rounds of the gradient master at most, by default
+SEED_CANDIDATES = 100_000  # one-node classes up to this size: the exact master's answer seeds
+# the randomized one (the paper's grid: 65,536)
+SEED_SHARE = 0.5  # of the time left, the exact one-node seed may take at most this share
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,27 @@ class RobustRound:
             "candidates": self.candidates,
             "iterations": self.iterations,
             "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class Seed:
+    """A controller of the class the randomized master started from, with its certified
+    worst case: the answer is never worse (the seed is the loop's incumbent)."""
+
+    name: str
+    worst_case: float
+    bound: float
+    certified: bool
+    note: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "worst_case": self.worst_case,
+            "bound": self.bound,
+            "certified": self.certified,
+            "note": self.note,
         }
 
 
@@ -145,6 +170,7 @@ class RobustResult:
     min_goal: float | None = None  # the floor asked for on the nominal Pr(goal)
     certified: bool = False  # the oracle proved ``worst_case`` for ``controller``
     skipped_baselines: tuple[Skipped, ...] = ()  # baselines not computed, with the reason
+    seeds: tuple[Seed, ...] = ()  # the randomized master's seeds (empty for the exact master)
 
     @property
     def gap(self) -> float | None:
@@ -182,6 +208,7 @@ class RobustResult:
             "rounds": [r.to_dict() for r in self.rounds],
             "baselines": [b.to_dict() for b in self.baselines],
             "skipped_baselines": [b.to_dict() for b in self.skipped_baselines],
+            "seeds": [b.to_dict() for b in self.seeds],
             "controller": controller_dict(self.controller),
             "time_s": self.time_s,
             "stop_reason": self.stop_reason,
@@ -447,17 +474,12 @@ def robust_controller(
     gradient: GradientMaster | None = None
     if randomized:
         target, worth = target_and_worth(problem, objective)
-        given = problem.controller
         goal = goal_states(problem)
         gradient = GradientMaster(
             ChainModel(pomdp, target, worth, memory),
             sense,
             restarts=restarts,
             seed=seed,
-            given=mu_of(given, n_obs, n_actions) if given.n_nodes == memory else None,
-            blind=_embedded(
-                mu_of(best_blind(problem, objective, min_goal), n_obs, n_actions), n_obs, memory
-            ),
             floor=None
             if min_goal is None
             else (
@@ -523,14 +545,28 @@ def robust_controller(
         short, tie = nominal_rank(controller)
         return short, sense * held.bound, tie
 
+    kinds = KINDS if baselines is True else () if baselines is False else tuple(baselines)
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise ProblemError(
+            f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
+        )
+    # the baselines run outside the time limit (harden and PAYNT have their own); measured
+    # first, so that the randomized master can start from their controllers
+    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
+    seeds: list[Seed] = []
     if gradient is not None:
-        # the baselines in the class are the incumbents the rounds must beat: the answer is
-        # then never worse than they are (certified), even when the time runs out
-        for mu in (gradient.blind, gradient.given):
-            if mu is None or deadline.expired():
-                continue
+        # the seeds (controllers of the class: the baselines, the exact one-node answer) are
+        # the incumbents the rounds must beat: the answer is then never worse than any of
+        # them (certified), even when the time runs out
+        for name, given_controller, note in _seed_controllers(
+            problem, objective, budget, memory, min_goal, refs, deadline
+        ):
+            mu = embedded(mu_of(given_controller, n_obs, n_actions), n_obs, n_actions, memory)
             incumbent = controller_of(mu, memory, n_obs, n_actions)
             held = oracle(problem, incumbent, objective, budget, deadline.remaining())
+            seeds.append(Seed(name, held.value, held.bound, held.certified, note))
+            gradient.seeds.append(mu)
             score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
                 best = (score, incumbent, held)
@@ -642,13 +678,6 @@ def robust_controller(
             f"no controller found meets the floor: nominal Pr(goal) {nominal_goal:.6f} < "
             f"{min_goal:g} (the one returned falls short the least)"
         )
-    kinds = KINDS if baselines is True else () if baselines is False else tuple(baselines)
-    unknown = sorted(set(kinds) - set(KINDS))
-    if unknown:
-        raise ProblemError(
-            f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
-        )
-    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
     master_side = lower_out if objective == "decoy" else upper_out
     return RobustResult(
         problem=problem.title,
@@ -676,22 +705,57 @@ def robust_controller(
         min_goal=min_goal,
         certified=worst.certified,
         skipped_baselines=skipped,
+        seeds=tuple(seeds),
     )
 
 
-def _embedded(mu: np.ndarray, n_obs: int, memory: int) -> np.ndarray:
-    """A one-node controller's flat μ as a ``memory``-node one that stays in node 0 (the
-    other nodes, never entered, play the same)."""
-    one = mu.reshape(n_obs, -1)  # (|Ω|, |A|)
-    table = np.zeros((memory, n_obs, one.shape[1], memory))
-    table[:, :, :, 0] = one[None, :, :]
-    return table.reshape(-1)
+def _seed_controllers(
+    problem: Problem,
+    objective: str,
+    budget: float,
+    memory: int,
+    min_goal: float | None,
+    refs: tuple[Baseline, ...],
+    deadline: Deadline,
+) -> list[tuple[str, Controller, str | None]]:
+    """The deterministic controllers the randomized master starts from, each with at most
+    ``memory`` nodes: the given one, the best observation-blind one, PAYNT's nominal one
+    (when measured), and the exact master's one-node answer when that class has at most
+    :data:`SEED_CANDIDATES` controllers (within a share of the time left)."""
+    out: list[tuple[str, Controller, str | None]] = []
+    if problem.controller.n_nodes <= memory:
+        out.append(("given controller", problem.controller, None))
+    out.append(("observation-blind", best_blind(problem, objective, min_goal), None))
+    out += [("PAYNT nominal", b.controller, b.note) for b in refs if b.kind == "paynt"]
+    out = [entry for entry in out if entry[1].n_nodes <= memory]
+    count = problem.pomdp.n_actions ** int(_receivable(problem, budget).sum())
+    if count > SEED_CANDIDATES:
+        return out
+    remaining = deadline.remaining()
+    if remaining is not None and remaining * SEED_SHARE < 1e-3:
+        return out
+    try:
+        exact = robust_controller(
+            problem,
+            budget,
+            memory=1,
+            objective=objective,
+            min_goal=min_goal,
+            time_limit=None if remaining is None else remaining * SEED_SHARE,
+            baselines=False,
+        )
+    except ProblemError:  # no one-node controller meets the floor, or no time for one
+        return out
+    note = f"{count:,} one-node controllers, {exact.stop_reason}, {exact.time_s:.1f} s"
+    out.append(("exact one-node", exact.controller, note))
+    return out
 
 
 __all__ = [
     "Baseline",
     "RobustResult",
     "RobustRound",
+    "Seed",
     "Skipped",
     "blind_controllers",
     "can_trap",
