@@ -395,6 +395,7 @@ def robust_controller(
     time_limit: float | None = None,
     baselines: bool | Iterable[str] = True,
     max_rounds: int | None = None,
+    exact_seed: bool = True,
 ) -> RobustResult:
     """The controller with ``memory`` nodes that holds up best against every alteration
     within ``budget``, by constraint generation: a master over the class against a finite set
@@ -439,6 +440,10 @@ def robust_controller(
         missing, costs that share no unit with protection) is in ``skipped_baselines``.
     max_rounds : int, optional
         Rounds at most (default 1000 for the exact master, 50 for the gradient master).
+    exact_seed : bool
+        The gradient master only: seed it with the exact master's one-node answer where the
+        one-node class has at most :data:`SEED_CANDIDATES` controllers (False: the cheap seeds
+        only, the given, blind and PAYNT controllers).
 
     Returns
     -------
@@ -560,7 +565,7 @@ def robust_controller(
         # the incumbents the rounds must beat: the answer is then never worse than any of
         # them (certified), even when the time runs out
         for name, given_controller, note in _seed_controllers(
-            problem, objective, budget, memory, min_goal, refs, deadline
+            problem, objective, budget, memory, min_goal, refs, deadline, exact_seed
         ):
             mu = embedded(mu_of(given_controller, n_obs, n_actions), n_obs, n_actions, memory)
             incumbent = controller_of(mu, memory, n_obs, n_actions)
@@ -717,6 +722,7 @@ def _seed_controllers(
     min_goal: float | None,
     refs: tuple[Baseline, ...],
     deadline: Deadline,
+    exact_seed: bool = True,
 ) -> list[tuple[str, Controller, str | None]]:
     """The deterministic controllers the randomized master starts from, each with at most
     ``memory`` nodes: the given one, the best observation-blind one, PAYNT's nominal one
@@ -728,6 +734,8 @@ def _seed_controllers(
     out.append(("observation-blind", best_blind(problem, objective, min_goal), None))
     out += [("PAYNT nominal", b.controller, b.note) for b in refs if b.kind == "paynt"]
     out = [entry for entry in out if entry[1].n_nodes <= memory]
+    if not exact_seed:
+        return out
     count = problem.pomdp.n_actions ** int(_receivable(problem, budget).sum())
     if count > SEED_CANDIDATES:
         return out
