@@ -314,6 +314,22 @@ class _Floor:
     min_goal: float
 
 
+class _Cache:
+    """What the exact master learnt of each candidate in earlier rounds (``K`` only grows):
+    the largest ``sense * value`` over the members it was solved against (a lower bound on
+    its max over ``K``; ``inf`` below the floor), which members (a bit per member, the first
+    64), and whether the floor was checked. A candidate already known worse than the
+    incumbent is cut without a solve; one solved against a member is not solved again."""
+
+    BITS = 64
+
+    def __init__(self, total: int) -> None:
+        self.lower = np.full(total, -math.inf)
+        self.done = np.zeros(total, dtype=np.uint64)
+        self.floor_checked = np.zeros(total, dtype=bool)
+        self.top_goal = -math.inf
+
+
 class _MasterAnswer(NamedTuple):
     value: float  # sense * the best max over K (inf: no candidate, e.g. none meets the floor)
     action: np.ndarray
@@ -333,6 +349,7 @@ def _master(
     sense: float,
     deadline: Deadline,
     floor: _Floor | None = None,
+    cache: _Cache | None = None,
 ) -> _MasterAnswer:
     """min over the class of max over ``alterations`` of ``sense * value`` (sense = 1 for
     decoy, -1 for goal); with ``floor``, over the controllers whose nominal Pr(goal) meets it
@@ -344,8 +361,9 @@ def _master(
     best_action = np.zeros((k, n_obs), dtype=np.int64)
     best_update = np.zeros((k, n_obs), dtype=np.int64)
     looked = 0
-    top_goal = -math.inf
-    order = list(reversed(alterations))  # the newest attack cuts most candidates off first
+    top_goal = -math.inf if cache is None else cache.top_goal
+    # the newest attack cuts most candidates off first
+    order = list(reversed(list(enumerate(alterations))))
     for begin in range(0, total, _BATCH):
         if deadline.expired():
             return _MasterAnswer(best, best_action, best_update, looked, False, top_goal)
@@ -360,22 +378,40 @@ def _master(
         flat_action[:, cells], flat_update[:, cells] = np.divmod(digits, k)
         action: np.ndarray = flat_action.reshape(-1, k, n_obs)
         update: np.ndarray = flat_update.reshape(-1, k, n_obs)
-        worst = np.full(index.size, -math.inf)
-        alive = np.arange(index.size)
+        worst = np.full(index.size, -math.inf) if cache is None else cache.lower[index].copy()
+        alive = np.arange(index.size)[worst < best + tolerance.PRUNE]
         if floor is not None:
-            goal = floor.evaluator.values(action, update, floor.identity)
-            top_goal = max(top_goal, float(goal.max()))
-            alive = alive[goal >= floor.min_goal - tolerance.slack(floor.min_goal)]
-        for alpha in order:
+            need = alive if cache is None else alive[~cache.floor_checked[index[alive]]]
+            if need.size:
+                goal = floor.evaluator.values(action[need], update[need], floor.identity)
+                top_goal = max(top_goal, float(goal.max()))
+                short = need[goal < floor.min_goal - tolerance.slack(floor.min_goal)]
+                worst[short] = math.inf
+                if cache is not None:
+                    cache.floor_checked[index[need]] = True
+                    cache.lower[index[short]] = math.inf
+                alive = alive[worst[alive] < math.inf]
+        for j, alpha in order:
             if alive.size == 0:
                 break
-            v = sense * evaluator.values(action[alive], update[alive], alpha)
-            worst[alive] = np.maximum(worst[alive], v)
+            todo = alive
+            if cache is not None and j < _Cache.BITS:
+                bit = np.uint64(1 << j)
+                todo = alive[(cache.done[index[alive]] & bit) == 0]
+            if todo.size:
+                v = sense * evaluator.values(action[todo], update[todo], alpha)
+                worst[todo] = np.maximum(worst[todo], v)
+                if cache is not None:
+                    cache.lower[index[todo]] = worst[todo]
+                    if j < _Cache.BITS:
+                        cache.done[index[todo]] |= bit
             alive = alive[worst[alive] < best + tolerance.PRUNE]  # near-ties stay
         if alive.size:
             i = alive[np.argmin(worst[alive])]
             if worst[i] < best:
                 best, best_action, best_update = float(worst[i]), action[i], update[i]
+    if cache is not None:
+        cache.top_goal = top_goal
     return _MasterAnswer(best, best_action, best_update, looked, True, top_goal)
 
 
@@ -512,6 +548,7 @@ def robust_controller(
             else _Floor(_Evaluator(problem, "goal", memory), problem.identity(), min_goal)
         )
         rounds_cap = 1000 if max_rounds is None else max_rounds
+        cache = _Cache(count)
     deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
     rounds: list[RobustRound] = []
@@ -586,7 +623,16 @@ def robust_controller(
             exact = sense * answer.value  # already the project's exact evaluation over K
         else:
             found = _master(
-                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline, floor
+                evaluator,
+                cells,
+                n_actions,
+                memory,
+                n_obs,
+                alterations,
+                sense,
+                deadline,
+                floor,
+                cache,
             )
             value, action, update, looked = found.value, found.action, found.update, found.looked
             if found.finished and min_goal is not None and not math.isfinite(value):
