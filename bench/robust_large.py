@@ -1,6 +1,6 @@
 """Robust controllers (issue 54) beyond the paper's grid: a drone model and a turn-back grid.
 
-    python bench/robust_large.py [--out bench/results] [--quick] [--time-limit 1800]
+    python bench/robust_large.py [--out bench/results] [--quick] [--time-limit 600]
 
 Per case, ``robust_controller(problem, B, memory=k, randomized=True, objective="decoy",
 min_goal=q, baselines=("given", "blind"))`` (4 starts a round, seed 0): the certified
@@ -19,7 +19,8 @@ controller that goes nowhere never reaches the decoy).
 * **turn-back**: ``sensor_grid(8, 8, goal="inside")`` (the robot may turn back; its given
   controller has 4 nodes), budget 1, 4 nodes, floor 0.7.
 
-Target (issue 54): a certified worst case within 30 minutes, below the nominal controller's.
+Target (issue 54): a certified worst case within 30 minutes, below the nominal controller's
+(each run gets 600 s by default).
 ``--quick`` (the smoke test, a few seconds): smaller instances, one start, one round. Writes
 robust_large.json, .csv and .md under --out; wall and CPU seconds (the machine may be shared).
 """
@@ -36,7 +37,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-TIME_LIMIT = 1800.0
+TIME_LIMIT = 600.0  # each run's limit (the results committed: this)
+TARGET = 1800.0  # issue 54: a certified worst case within 30 minutes
 
 
 def failing(problem: Any) -> Any:
@@ -139,7 +141,7 @@ def run(
         "blind": blind.worst_case,
         "blind_goal": blind.nominal_goal,
         "below_given": below,
-        "pass": bool(below and meets and seconds <= TIME_LIMIT),
+        "pass": bool(below and meets and seconds <= TARGET),
         "rounds": len(result.rounds),
         "k_size": result.k_size,
         "stop_reason": result.stop_reason,
