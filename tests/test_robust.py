@@ -509,6 +509,14 @@ def test_cli_randomized_writes_a_controller_that_loads_back(tmp_path):
         assert final["value"] == pytest.approx(robust["worst_case"], abs=1e-9)
         loaded = runner.invoke(app, ["evaluate", str(path), "--controller", str(out), "--json"])
         assert json.loads(loaded.output)["value"] == pytest.approx(robust["nominal"], abs=1e-9)
+    shown = runner.invoke(
+        app,
+        ["controller", "robust", str(path), "--budget", "1", "--memory", "2", "--randomized",
+         "--restarts", "1", "--baselines", "none", "-o", str(tmp_path / "s.yaml")],
+    )  # fmt: skip
+    assert shown.exit_code == 0, shown.output
+    assert "seed observation-blind: worst case" in shown.output
+    assert "seed exact one-node: worst case" in shown.output
     bad = runner.invoke(
         app,
         ["controller", "robust", str(path), "--budget", "1", "--min-goal", "0.5",
