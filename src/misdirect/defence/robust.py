@@ -608,7 +608,8 @@ def robust_controller(
             incumbent = controller_of(mu, memory, n_obs, n_actions)
             held = oracle(problem, incumbent, objective, budget, deadline.remaining())
             seeds.append(Seed(name, held.value, held.bound, held.certified, note))
-            gradient.seeds.append(mu)
+            if not any(np.array_equal(mu, other) for other in gradient.seeds):
+                gradient.seeds.append(mu)  # one start per distinct controller
             score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
                 best = (score, incumbent, held)
