@@ -457,7 +457,11 @@ def robust_controller(
         bound, ``master_bound`` is None).
     restarts : int
         The gradient master's starts per round (the previous round's answer, the uniform
-        controller, the given one when it has ``memory`` nodes, then seeded random ones).
+        controller, each distinct seed, then seeded random ones; at least the fixed ones).
+        The seeds (``seeds`` in the result) are deterministic controllers of the class,
+        certified before the first round and kept as incumbents: the given one (at most
+        ``memory`` nodes), the best observation-blind one, PAYNT's nominal one (when that
+        baseline is measured) and, with ``exact_seed``, the exact one-node answer.
     seed : int
         The gradient master's seed (its random starts).
     min_goal : float, optional
