@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/enumeration_kernel.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth_speed.py --out $(BENCH_OUT)
 	$(BIN)/python bench/robust.py --out $(BENCH_OUT)
+	$(BIN)/python bench/robust_large.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth_automaton.py --out $(BENCH_OUT)
 

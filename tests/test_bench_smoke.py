@@ -364,3 +364,31 @@ def test_bench_stealth_automaton_quick_mode(tmp_path):
         if problem.alteration_cost(alpha) <= 1.0 + 1e-9:
             brute = max(brute, misdirect.evaluate(watched, alpha).probability)
     assert rows[(watched_key, 1.0)]["value"] == pytest.approx(brute, abs=1e-9)
+
+
+def test_robust_large_benchmark_reduced_mode(tmp_path):
+    """bench/robust_large.py --quick: one randomized round on a small drone and a small
+    turn-back grid; each answer certified, never worse than the baselines it was seeded with,
+    and the table written."""
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "robust_large.py"),
+            "--quick",
+            "--out",
+            str(tmp_path),
+        ],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )
+    document = json.loads((tmp_path / "robust_large.json").read_text())
+    assert [r["case"] for r in document["rows"]] == ["drone", "turn-back"]
+    for row in document["rows"]:
+        assert row["certified"] and row["meets_floor"]
+        # the blind controller is always a seed: the answer is no worse than any seed
+        assert row["worst_case"] <= row["blind"] + 1e-9
+        assert "observation-blind" in {s["name"] for s in row["seeds"]}
+        for seed in row["seeds"]:
+            assert row["worst_case"] <= seed["worst_case"] + 1e-9
+    assert "| drone |" in (tmp_path / "robust_large.md").read_text()

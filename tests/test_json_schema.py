@@ -453,3 +453,17 @@ def test_controller_robust_follows_the_schema(tmp_path):
     assert document["written"] == [str(output)] and output.exists()
     assert robust["lower_bound"] <= robust["upper_bound"]
     assert robust["optimal"] == (robust["gap"] == 0)
+
+
+def test_controller_robust_randomized_seeds_follow_the_schema(tmp_path):
+    """`controller robust --randomized --json`: the seeds it started from (issue 54), each with
+    its certified worst case, none better than the controller written."""
+    output = tmp_path / "robust.fsc.json"
+    document = run(
+        "controller", "robust", str(EXAMPLES / "trap.yaml"), "--budget", "1", "--randomized",
+        "--restarts", "1", "--baselines", "none", "-o", str(output),
+    )  # fmt: skip
+    seeds = document["robust"]["seeds"]
+    assert "observation-blind" in {s["name"] for s in seeds}
+    for seed in seeds:
+        assert document["robust"]["worst_case"] <= seed["worst_case"] + 1e-9

@@ -509,6 +509,14 @@ def test_cli_randomized_writes_a_controller_that_loads_back(tmp_path):
         assert final["value"] == pytest.approx(robust["worst_case"], abs=1e-9)
         loaded = runner.invoke(app, ["evaluate", str(path), "--controller", str(out), "--json"])
         assert json.loads(loaded.output)["value"] == pytest.approx(robust["nominal"], abs=1e-9)
+    shown = runner.invoke(
+        app,
+        ["controller", "robust", str(path), "--budget", "1", "--memory", "2", "--randomized",
+         "--restarts", "1", "--baselines", "none", "-o", str(tmp_path / "s.yaml")],
+    )  # fmt: skip
+    assert shown.exit_code == 0, shown.output
+    assert "seed observation-blind: worst case" in shown.output
+    assert "seed exact one-node: worst case" in shown.output
     bad = runner.invoke(
         app,
         ["controller", "robust", str(path), "--budget", "1", "--min-goal", "0.5",
@@ -618,3 +626,45 @@ def test_paynt_baseline_skipped_without_paynt(monkeypatch):
     assert result.baselines == ()
     (skipped,) = result.skipped_baselines
     assert skipped.kind == "paynt" and "needs paynt" in skipped.reason
+
+
+@pytest.mark.parametrize("objective", ["decoy", "goal"])
+@pytest.mark.parametrize("seed", range(3))
+def test_gradient_master_no_worse_than_its_seeds(seed, objective):
+    """The randomized answer's certified worst case is no worse than that of any controller
+    it was seeded with, each computed independently: the exact one-node min-max by brute force
+    over every (controller, alteration) pair, the given and blind ones by misdirect.solve on
+    that controller (decoy) or brute force over the alterations (goal)."""
+    problem = three_ends_problem(seed, 1.0)
+    result = misdirect.robust_controller(
+        problem, 1.0, memory=2, objective=objective, randomized=True, restarts=1, seed=seed,
+        baselines=("given", "blind"), max_rounds=1,
+    )  # fmt: skip
+    names = {s.name for s in result.seeds}
+    assert {"given controller", "observation-blind", "exact one-node"} <= names
+    assert all(s.certified for s in result.seeds)
+    alphas = list(alterations_within(problem, 1.0))
+
+    def worst(controller: Controller) -> float:
+        chosen = replace(problem, controller=controller)
+        if objective == "decoy":
+            return misdirect.solve(chosen, budgets=[1.0]).curve[-1].probability
+        return min(goal_probability(chosen, a) for a in alphas)
+
+    chosen = replace(problem, controller=result.controller)
+    if objective == "decoy":
+        answer = max(decoy_probability(chosen, a) for a in alphas)
+    else:
+        answer = min(goal_probability(chosen, a) for a in alphas)
+    assert result.worst_case == pytest.approx(answer, abs=1e-9)
+    expected = [worst(b.controller) for b in result.baselines]  # given, blind
+    expected.append(brute_minmax(problem, 1.0, objective))  # the exact one-node answer
+    for value in expected:
+        if objective == "decoy":
+            assert answer <= value + 1e-9
+        else:
+            assert answer >= value - 1e-9
+    # the seeds' reported worst cases are those values (the one-node answer's: the min-max)
+    reported = sorted(s.worst_case for s in result.seeds)
+    for value in expected:
+        assert min(abs(r - value) for r in reported) <= 1e-9

@@ -508,5 +508,10 @@ def _print_robust(result: RobustResult) -> None:
             *result.notes,
             *(f"baseline {b.name}: {b.note}" for b in result.baselines if b.note),
             *(f"baseline {b.kind} skipped: {b.reason}" for b in result.skipped_baselines),
+            *(
+                f"seed {s.name}: worst case {s.worst_case:.6f}"
+                f"{'' if s.certified else ' (not certified)'}{f' ({s.note})' if s.note else ''}"
+                for s in result.seeds
+            ),
         ]
     )

@@ -62,6 +62,7 @@ from misdirect.defence.robust_gradient import (
     GradientMaster,
     better,
     controller_of,
+    embedded,
     mu_of,
 )
 from misdirect.defence.robust_oracle import (
@@ -80,6 +81,9 @@ OBJECTIVES = ("decoy", "goal")
 MAX_CANDIDATES = 5_000_000  # controllers the exact master enumerates at most
 _BATCH = 2048  # candidates solved at once (each a dense product chain)
 GRADIENT_ROUNDS = 50  # rounds of the gradient master at most, by default
+SEED_CANDIDATES = 100_000  # one-node classes up to this size: the exact master's answer seeds
+# the randomized one (the paper's grid: 65,536)
+SEED_SHARE = 0.5  # of the time left, the exact one-node seed may take at most this share
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,27 @@ class RobustRound:
             "candidates": self.candidates,
             "iterations": self.iterations,
             "time_s": self.time_s,
+        }
+
+
+@dataclass(frozen=True)
+class Seed:
+    """A controller of the class the randomized master started from, with its certified
+    worst case: the answer is never worse (the seed is the loop's incumbent)."""
+
+    name: str
+    worst_case: float
+    bound: float
+    certified: bool
+    note: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "worst_case": self.worst_case,
+            "bound": self.bound,
+            "certified": self.certified,
+            "note": self.note,
         }
 
 
@@ -145,6 +170,7 @@ class RobustResult:
     min_goal: float | None = None  # the floor asked for on the nominal Pr(goal)
     certified: bool = False  # the oracle proved ``worst_case`` for ``controller``
     skipped_baselines: tuple[Skipped, ...] = ()  # baselines not computed, with the reason
+    seeds: tuple[Seed, ...] = ()  # the randomized master's seeds (empty for the exact master)
 
     @property
     def gap(self) -> float | None:
@@ -182,6 +208,7 @@ class RobustResult:
             "rounds": [r.to_dict() for r in self.rounds],
             "baselines": [b.to_dict() for b in self.baselines],
             "skipped_baselines": [b.to_dict() for b in self.skipped_baselines],
+            "seeds": [b.to_dict() for b in self.seeds],
             "controller": controller_dict(self.controller),
             "time_s": self.time_s,
             "stop_reason": self.stop_reason,
@@ -287,6 +314,22 @@ class _Floor:
     min_goal: float
 
 
+class _Cache:
+    """What the exact master learnt of each candidate in earlier rounds (``K`` only grows):
+    the largest ``sense * value`` over the members it was solved against (a lower bound on
+    its max over ``K``; ``inf`` below the floor), which members (a bit per member, the first
+    64), and whether the floor was checked. A candidate already known worse than the
+    incumbent is cut without a solve; one solved against a member is not solved again."""
+
+    BITS = 64
+
+    def __init__(self, total: int) -> None:
+        self.lower = np.full(total, -math.inf)
+        self.done = np.zeros(total, dtype=np.uint64)
+        self.floor_checked = np.zeros(total, dtype=bool)
+        self.top_goal = -math.inf
+
+
 class _MasterAnswer(NamedTuple):
     value: float  # sense * the best max over K (inf: no candidate, e.g. none meets the floor)
     action: np.ndarray
@@ -306,6 +349,7 @@ def _master(
     sense: float,
     deadline: Deadline,
     floor: _Floor | None = None,
+    cache: _Cache | None = None,
 ) -> _MasterAnswer:
     """min over the class of max over ``alterations`` of ``sense * value`` (sense = 1 for
     decoy, -1 for goal); with ``floor``, over the controllers whose nominal Pr(goal) meets it
@@ -317,8 +361,9 @@ def _master(
     best_action = np.zeros((k, n_obs), dtype=np.int64)
     best_update = np.zeros((k, n_obs), dtype=np.int64)
     looked = 0
-    top_goal = -math.inf
-    order = list(reversed(alterations))  # the newest attack cuts most candidates off first
+    top_goal = -math.inf if cache is None else cache.top_goal
+    # the newest attack cuts most candidates off first
+    order = list(reversed(list(enumerate(alterations))))
     for begin in range(0, total, _BATCH):
         if deadline.expired():
             return _MasterAnswer(best, best_action, best_update, looked, False, top_goal)
@@ -333,22 +378,40 @@ def _master(
         flat_action[:, cells], flat_update[:, cells] = np.divmod(digits, k)
         action: np.ndarray = flat_action.reshape(-1, k, n_obs)
         update: np.ndarray = flat_update.reshape(-1, k, n_obs)
-        worst = np.full(index.size, -math.inf)
-        alive = np.arange(index.size)
+        worst = np.full(index.size, -math.inf) if cache is None else cache.lower[index].copy()
+        alive = np.arange(index.size)[worst < best + tolerance.PRUNE]
         if floor is not None:
-            goal = floor.evaluator.values(action, update, floor.identity)
-            top_goal = max(top_goal, float(goal.max()))
-            alive = alive[goal >= floor.min_goal - tolerance.slack(floor.min_goal)]
-        for alpha in order:
+            need = alive if cache is None else alive[~cache.floor_checked[index[alive]]]
+            if need.size:
+                goal = floor.evaluator.values(action[need], update[need], floor.identity)
+                top_goal = max(top_goal, float(goal.max()))
+                short = need[goal < floor.min_goal - tolerance.slack(floor.min_goal)]
+                worst[short] = math.inf
+                if cache is not None:
+                    cache.floor_checked[index[need]] = True
+                    cache.lower[index[short]] = math.inf
+                alive = alive[worst[alive] < math.inf]
+        for j, alpha in order:
             if alive.size == 0:
                 break
-            v = sense * evaluator.values(action[alive], update[alive], alpha)
-            worst[alive] = np.maximum(worst[alive], v)
+            todo = alive
+            if cache is not None and j < _Cache.BITS:
+                bit = np.uint64(1 << j)
+                todo = alive[(cache.done[index[alive]] & bit) == 0]
+            if todo.size:
+                v = sense * evaluator.values(action[todo], update[todo], alpha)
+                worst[todo] = np.maximum(worst[todo], v)
+                if cache is not None:
+                    cache.lower[index[todo]] = worst[todo]
+                    if j < _Cache.BITS:
+                        cache.done[index[todo]] |= bit
             alive = alive[worst[alive] < best + tolerance.PRUNE]  # near-ties stay
         if alive.size:
             i = alive[np.argmin(worst[alive])]
             if worst[i] < best:
                 best, best_action, best_update = float(worst[i]), action[i], update[i]
+    if cache is not None:
+        cache.top_goal = top_goal
     return _MasterAnswer(best, best_action, best_update, looked, True, top_goal)
 
 
@@ -368,6 +431,7 @@ def robust_controller(
     time_limit: float | None = None,
     baselines: bool | Iterable[str] = True,
     max_rounds: int | None = None,
+    exact_seed: bool = True,
 ) -> RobustResult:
     """The controller with ``memory`` nodes that holds up best against every alteration
     within ``budget``, by constraint generation: a master over the class against a finite set
@@ -393,7 +457,11 @@ def robust_controller(
         bound, ``master_bound`` is None).
     restarts : int
         The gradient master's starts per round (the previous round's answer, the uniform
-        controller, the given one when it has ``memory`` nodes, then seeded random ones).
+        controller, each distinct seed, then seeded random ones; at least the fixed ones).
+        The seeds (``seeds`` in the result) are deterministic controllers of the class,
+        certified before the first round and kept as incumbents: the given one (at most
+        ``memory`` nodes), the best observation-blind one, PAYNT's nominal one (when that
+        baseline is measured) and, with ``exact_seed``, the exact one-node answer.
     seed : int
         The gradient master's seed (its random starts).
     min_goal : float, optional
@@ -412,6 +480,10 @@ def robust_controller(
         missing, costs that share no unit with protection) is in ``skipped_baselines``.
     max_rounds : int, optional
         Rounds at most (default 1000 for the exact master, 50 for the gradient master).
+    exact_seed : bool
+        The gradient master only: seed it with the exact master's one-node answer where the
+        one-node class has at most :data:`SEED_CANDIDATES` controllers (False: the cheap seeds
+        only, the given, blind and PAYNT controllers).
 
     Returns
     -------
@@ -447,17 +519,12 @@ def robust_controller(
     gradient: GradientMaster | None = None
     if randomized:
         target, worth = target_and_worth(problem, objective)
-        given = problem.controller
         goal = goal_states(problem)
         gradient = GradientMaster(
             ChainModel(pomdp, target, worth, memory),
             sense,
             restarts=restarts,
             seed=seed,
-            given=mu_of(given, n_obs, n_actions) if given.n_nodes == memory else None,
-            blind=_embedded(
-                mu_of(best_blind(problem, objective, min_goal), n_obs, n_actions), n_obs, memory
-            ),
             floor=None
             if min_goal is None
             else (
@@ -485,6 +552,7 @@ def robust_controller(
             else _Floor(_Evaluator(problem, "goal", memory), problem.identity(), min_goal)
         )
         rounds_cap = 1000 if max_rounds is None else max_rounds
+        cache = _Cache(count)
     deadline = shared_deadline(time_limit)
     alterations: list[np.ndarray] = [problem.identity()]
     rounds: list[RobustRound] = []
@@ -523,14 +591,29 @@ def robust_controller(
         short, tie = nominal_rank(controller)
         return short, sense * held.bound, tie
 
+    kinds = KINDS if baselines is True else () if baselines is False else tuple(baselines)
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise ProblemError(
+            f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
+        )
+    # the baselines run outside the time limit (harden and PAYNT have their own); measured
+    # first, so that the randomized master can start from their controllers
+    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
+    seeds: list[Seed] = []
     if gradient is not None:
-        # the baselines in the class are the incumbents the rounds must beat: the answer is
-        # then never worse than they are (certified), even when the time runs out
-        for mu in (gradient.blind, gradient.given):
-            if mu is None or deadline.expired():
-                continue
+        # the seeds (controllers of the class: the baselines, the exact one-node answer) are
+        # the incumbents the rounds must beat: the answer is then never worse than any of
+        # them (certified), even when the time runs out
+        for name, given_controller, note in _seed_controllers(
+            problem, objective, budget, memory, min_goal, refs, deadline, exact_seed
+        ):
+            mu = embedded(mu_of(given_controller, n_obs, n_actions), n_obs, n_actions, memory)
             incumbent = controller_of(mu, memory, n_obs, n_actions)
             held = oracle(problem, incumbent, objective, budget, deadline.remaining())
+            seeds.append(Seed(name, held.value, held.bound, held.certified, note))
+            if not any(np.array_equal(mu, other) for other in gradient.seeds):
+                gradient.seeds.append(mu)  # one start per distinct controller
             score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
                 best = (score, incumbent, held)
@@ -545,7 +628,16 @@ def robust_controller(
             exact = sense * answer.value  # already the project's exact evaluation over K
         else:
             found = _master(
-                evaluator, cells, n_actions, memory, n_obs, alterations, sense, deadline, floor
+                evaluator,
+                cells,
+                n_actions,
+                memory,
+                n_obs,
+                alterations,
+                sense,
+                deadline,
+                floor,
+                cache,
             )
             value, action, update, looked = found.value, found.action, found.update, found.looked
             if found.finished and min_goal is not None and not math.isfinite(value):
@@ -642,13 +734,6 @@ def robust_controller(
             f"no controller found meets the floor: nominal Pr(goal) {nominal_goal:.6f} < "
             f"{min_goal:g} (the one returned falls short the least)"
         )
-    kinds = KINDS if baselines is True else () if baselines is False else tuple(baselines)
-    unknown = sorted(set(kinds) - set(KINDS))
-    if unknown:
-        raise ProblemError(
-            f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
-        )
-    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
     master_side = lower_out if objective == "decoy" else upper_out
     return RobustResult(
         problem=problem.title,
@@ -676,22 +761,60 @@ def robust_controller(
         min_goal=min_goal,
         certified=worst.certified,
         skipped_baselines=skipped,
+        seeds=tuple(seeds),
     )
 
 
-def _embedded(mu: np.ndarray, n_obs: int, memory: int) -> np.ndarray:
-    """A one-node controller's flat μ as a ``memory``-node one that stays in node 0 (the
-    other nodes, never entered, play the same)."""
-    one = mu.reshape(n_obs, -1)  # (|Ω|, |A|)
-    table = np.zeros((memory, n_obs, one.shape[1], memory))
-    table[:, :, :, 0] = one[None, :, :]
-    return table.reshape(-1)
+def _seed_controllers(
+    problem: Problem,
+    objective: str,
+    budget: float,
+    memory: int,
+    min_goal: float | None,
+    refs: tuple[Baseline, ...],
+    deadline: Deadline,
+    exact_seed: bool = True,
+) -> list[tuple[str, Controller, str | None]]:
+    """The deterministic controllers the randomized master starts from, each with at most
+    ``memory`` nodes: the given one, the best observation-blind one, PAYNT's nominal one
+    (when measured), and the exact master's one-node answer when that class has at most
+    :data:`SEED_CANDIDATES` controllers (within a share of the time left)."""
+    out: list[tuple[str, Controller, str | None]] = []
+    if problem.controller.n_nodes <= memory:
+        out.append(("given controller", problem.controller, None))
+    out.append(("observation-blind", best_blind(problem, objective, min_goal), None))
+    out += [("PAYNT nominal", b.controller, b.note) for b in refs if b.kind == "paynt"]
+    out = [entry for entry in out if entry[1].n_nodes <= memory]
+    if not exact_seed:
+        return out
+    count = problem.pomdp.n_actions ** int(_receivable(problem, budget).sum())
+    if count > SEED_CANDIDATES:
+        return out
+    remaining = deadline.remaining()
+    if remaining is not None and remaining * SEED_SHARE < 1e-3:
+        return out
+    try:
+        exact = robust_controller(
+            problem,
+            budget,
+            memory=1,
+            objective=objective,
+            min_goal=min_goal,
+            time_limit=None if remaining is None else remaining * SEED_SHARE,
+            baselines=False,
+        )
+    except ProblemError:  # no one-node controller meets the floor, or no time for one
+        return out
+    note = f"{count:,} one-node controllers, {exact.stop_reason}, {exact.time_s:.1f} s"
+    out.append(("exact one-node", exact.controller, note))
+    return out
 
 
 __all__ = [
     "Baseline",
     "RobustResult",
     "RobustRound",
+    "Seed",
     "Skipped",
     "blind_controllers",
     "can_trap",

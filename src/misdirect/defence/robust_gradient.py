@@ -249,6 +249,17 @@ def mu_of(controller: Controller, n_obs: int, n_actions: int) -> np.ndarray:
     return table.reshape(-1)
 
 
+def embedded(mu: np.ndarray, n_obs: int, n_actions: int, memory: int) -> np.ndarray:
+    """A controller's flat μ with ``k' ≤ memory`` nodes as a ``memory``-node one: the extra
+    nodes, never entered, play as the initial node does."""
+    k = math.isqrt(mu.size // (n_obs * n_actions))
+    small = mu.reshape(k, n_obs, n_actions, k)
+    table = np.zeros((memory, n_obs, n_actions, memory))
+    table[:k, :, :, :k] = small
+    table[k:, :, :, :k] = small[0][None]
+    return table.reshape(-1)
+
+
 def logits_of(mu: np.ndarray) -> np.ndarray:
     """Logits within the bounds whose softmax is closest to μ (its largest entries at the
     upper bound, zeros at the lower)."""
@@ -292,16 +303,16 @@ class GradientMaster:
         *,
         restarts: int = 4,
         seed: int = 0,
-        given: np.ndarray | None = None,
-        blind: np.ndarray | None = None,
+        seeds: list[np.ndarray] | None = None,
         floor: tuple[ChainModel, np.ndarray, float] | None = None,
     ) -> None:
         self.model, self.sense = model, sense
         self.shape = (model.k, model.n_obs, model.n_actions * model.k)
         self.restarts = max(int(restarts), 1)
         self.rng = np.random.default_rng(seed)
-        self.given = given  # flat μ of the problem's controller, when it is in the class
-        self.blind = blind  # flat μ of the best observation-blind controller (a baseline)
+        # flat μ of controllers of the class given to start from (the baselines, the exact
+        # one-node answer): each is a candidate as it is, so the answer over K is never worse
+        self.seeds = [] if seeds is None else list(seeds)
         self.warm: np.ndarray | None = None  # the previous round's logits
         # a floor q on the nominal Pr(goal): the goal's chain model, no alteration, and q
         self.floor = floor
@@ -325,18 +336,16 @@ class GradientMaster:
 
     def starts(self) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """(logits, the exact μ started from or None): the previous round's answer, the
-        uniform controller, the given one and the best observation-blind one (when in the
-        class; their exact μ is a candidate too, so the answer is never worse than these
-        baselines over K), then seeded random logits; ``restarts`` in all, or more when the
-        fixed ones are more."""
+        uniform controller, the seeds (their exact μ is a candidate too, so the answer is
+        never worse than a seed over K), then seeded random logits; ``restarts`` in all, or
+        more when the fixed ones are more."""
         size = self.model.size
         out: list[tuple[np.ndarray, np.ndarray | None]] = []
         if self.warm is not None:
             out.append((self.warm, None))
         out.append((np.zeros(size), None))
-        for mu in (self.given, self.blind):
-            if mu is not None:
-                out.append((logits_of(mu), mu))
+        for mu in self.seeds:
+            out.append((logits_of(mu), mu))
         while len(out) < self.restarts:
             out.append((self.rng.normal(0.0, 1.5, size), None))
         return out
