@@ -143,8 +143,11 @@ class _Facts:
     def bases_s(self, budget: float) -> float:
         """About the seconds the low-rank enumeration at ``budget`` spends on base solves
         (:func:`schedule.bases_seconds`); 0 below ``BASES_SAMPLED_FROM`` bases, where the
-        enumeration's own pace decides (and one exact evaluation is not worth measuring)."""
-        if not self.instance.space.choices:
+        enumeration's own pace decides (and one exact evaluation is not worth measuring).
+        Monitored problems only: it was measured there (docs/benchmarks.md, "Stealth"); the
+        hard instances without a monitor were not re-measured with it, so they keep the
+        enumeration's plan as it was."""
+        if not self.instance.space.choices or not self.problem.monitor:
             return 0.0
         bases = self._enumeration.bases_within(budget)
         if bases < BASES_SAMPLED_FROM:
