@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
@@ -626,6 +626,9 @@ def test_a_signal_at_any_moment_is_one_line(moment, case):
     sig, code, words = case
     solve = ["solve", "--scenario", "paper-grid", "--size", "12", "--budget", "0..5", "-q"]
     returncode, stderr = _signalled([COMMAND, *solve], sig, moment)
+    # a signal that came while CPython itself was starting (importing its site module, on a
+    # loaded machine later than 0.05 s) came before any line of misdirect ran: not ours
+    assume(not stderr.startswith("Fatal Python error: init_import_site"))
     # -sig: the signal came as the interpreter shut down, after the answer was printed and
     # the handlers were gone; a shell shows it as the same code (128 + sig)
     assert returncode in (0, code, -sig), stderr
