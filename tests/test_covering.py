@@ -196,3 +196,88 @@ def test_an_open_budget_says_what_holds_its_bound_up(monkeypatch):
         assert stats.trivial_bounds > 0 and open_.upper_bound >= 1 - 1e-6
     else:
         assert stats.weakest_bound == "relaxation"
+
+
+@pytest.fixture
+def proofs_fail(monkeypatch):
+    """Every relaxation's proof falls back to the objective's largest value, as the proof of
+    {0, 11, 15} on the 64-sensor turn-back grid does (a chain that lingers past what doubles
+    resolve): only the exact valuation of a union's alterations can bound it then."""
+    from misdirect.solvers.engines.policy_iteration import MaxReachability
+
+    monkeypatch.setattr(MaxReachability, "proven_bound", lambda self, *a, **k: self.top)
+
+
+@pytest.mark.parametrize("case", range(12))
+def test_unions_whose_proof_fails_are_valued_exactly(case, proofs_fail):
+    """With every proof failed, each union of a cover is small and valued alteration by
+    alteration: the cover is then the best alteration within the budget itself (every one lies
+    inside some union, and each union's best is one of them), brute force's optimum, below
+    the objective's largest value; refined unions too. Also at a node (one choice fixed)."""
+    rng = np.random.default_rng(500 + case)
+    budget = float(rng.choice([1.0, 1.5, 2.0, 3.0]))
+    for seed in range(100 * case, 100 * case + 100):  # two choices, the optimum below the top
+        problem = random_problem(seed, states=8, actions=3, observations=5, nodes=3, budget=3.0)
+        instance = prepare(problem, budget)
+        if len(instance.space.choices) < 2:
+            continue
+        relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+        truth = brute_force(problem, budget)
+        if truth < relax.mdp.top:  # else a failed proof and a bound could not be told apart
+            break
+    assert truth < relax.mdp.top
+    cap = instance.space.scale.cap(budget)
+    choices = list(range(len(instance.space.choices)))
+    for n_groups, above in ((len(choices), np.inf), (2, 0.0)):
+        groups = stratified_groups(choices, n_groups)
+        found = covering_bound(relax, groups, cap, refine_above=above, refine_depth=2)
+        assert found is not None and found.enumerated > 0
+        assert found.bound == pytest.approx(truth, rel=1e-9, abs=1e-12), (seed, found, truth)
+    first = instance.space.choices[0]
+    if first.size > 1 and first.costs[1] <= cap:
+        left = instance.space.scale.remaining(budget, float(first.costs[1]))
+        node = covering_bound(relax, [choices[1:]], instance.space.scale.cap(left), fixed={0: 1})
+        assert node is not None
+        truth = brute_force(problem, budget, {0: 1}, instance.space)
+        assert node.bound == pytest.approx(truth, rel=1e-9, abs=1e-12), (seed, node, truth)
+
+
+def test_a_failed_union_above_the_limit_keeps_the_trivial_bound(proofs_fail, monkeypatch):
+    """Where a union has more alterations than the limit, nothing is enumerated: the failed
+    proof's bound, the objective's largest value, stands (sound, not tight)."""
+    from misdirect.solvers.engines import covering
+
+    monkeypatch.setattr(covering, "MAX_ENUMERATED", 1)  # only the unaltered alteration fits
+    for seed in range(50):
+        problem = random_problem(seed, states=8, actions=3, observations=5, nodes=3, budget=2.0)
+        instance = prepare(problem, 2.0)
+        if len(instance.space.choices) >= 2:
+            break
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    choices = list(range(len(instance.space.choices)))
+    found = covering_bound(relax, [choices], instance.space.scale.cap(2.0))
+    assert found is not None
+    assert found.enumerated == 0 and found.bound == relax.mdp.top
+
+
+def test_a_union_is_enumerated_alteration_by_alteration_by_hand():
+    """Three choices with unit-cost options: the alterations within 1 are the unaltered one and
+    each single option (1 + the options of the three), within 2 also each pair of options of
+    two different choices."""
+    from misdirect.solvers.engines.covering import _alterations
+
+    problem = sensor_grid(8, 8, goal="inside")
+    instance = prepare(problem, 2.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    scale = instance.space.scale
+    sizes = [len(relax.affordable(i, scale.cap(2.0))) for i in range(3)]
+    assert all(relax.option_cost[relax.first_option[i] + 1 :].max() == 1.0 for i in range(1))
+    for budget, expected in (
+        (1.0, 1 + sum(sizes)),
+        (2.0, 1 + sum(sizes) + sum(a * b for a, b in itertools.combinations(sizes, 2))),
+    ):
+        cap = scale.cap(budget)
+        found = _alterations(relax, [0, 1, 2], cap, lambda t, c=cap: scale.fits(t, c), 10_000)
+        assert found is not None and len(found) == expected
+        assert len({tuple(sorted(p.items())) for p in found}) == expected  # each once
+        assert _alterations(relax, [0, 1, 2], cap, lambda t, c=cap: scale.fits(t, c), 3) is None

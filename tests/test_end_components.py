@@ -121,3 +121,42 @@ def test_a_cycle_the_direct_check_cannot_prove_is_proven_collapsed():
     allowed = np.array([True, False, True, True, True, True])
     bound = collapsed_bound(owner, matrix, target, target.astype(float), allowed, 0).bound
     assert bound == pytest.approx(0.25, rel=1e-12) and bound >= 0.25
+
+
+def test_a_collapsed_proof_whose_policy_iteration_does_not_settle_falls_back(monkeypatch):
+    """With no improvement allowed on the collapsed MDP (as where its policy iteration cycles
+    on rounding-level gains), the proof stops instead of running on: no bound, and the
+    reason, which :class:`MaxReachability` reports in ``last_unproven`` (its bound then stays
+    above the optimum: the fallback is sound). Without the limit the same proofs hold."""
+    from misdirect.solvers.engines import end_components
+
+    monkeypatch.setattr(end_components, "COLLAPSED_ROUNDS", 0)
+    stopped = 0
+    for seed in range(30):
+        owner, matrix, target = random_mdp(seed)
+        truth = optimum(owner, matrix, target)
+        allowed = np.ones(owner.size, dtype=bool)
+        fixed = target.astype(float)
+        for state in range(target.size - 2):
+            proof = collapsed_bound(owner, matrix, target, fixed, allowed, state)
+            if proof.bound is None:
+                stopped += 1
+                assert "did not settle" in proof.why
+            else:
+                assert proof.bound >= truth[state] - 1e-15
+    assert stopped > 0  # the first rows were not optimal everywhere: some proofs stopped
+    # through the MDP's proof, forced past its direct checks into the collapsed proof, warm
+    # started from a policy that is not optimal (each MDP's first choices)
+    monkeypatch.setattr(MaxReachability, "_proven_double", lambda self, *a, **k: None)
+    monkeypatch.setattr(MaxReachability, "_proven_extended", lambda self, *a, **k: None)
+    reported = 0
+    for seed in range(30):
+        owner, matrix, target = random_mdp(seed)
+        mdp = MaxReachability(owner, matrix, target)
+        values, _ = mdp.optimise(mdp.first_choices())
+        bound = mdp.proven_bound(values, mdp.first_choices(), 0)
+        assert bound >= min(optimum(owner, matrix, target)[0], 1.0) - 1e-15
+        if values[0] < 1 - 1e-6 and bound >= 1.0:
+            assert "did not settle" in mdp.last_unproven
+            reported += 1
+    assert reported > 0

@@ -44,6 +44,12 @@ MAX_GROUPS = 24  # groups a cover splits the undecided sensors into, at most
 COVER_SHARE = 0.25  # a node's cover may take this share of the search's time left
 UNLIMITED_UNIONS = 200  # ... and without a time limit, this many unions
 REFINE_DEPTH = 1  # times a union above a cover's threshold is split (covering_bound)
+# A union whose proof fails (its bound the objective's largest value: a chain that lingers past
+# what doubles resolve) is valued exactly, alteration by alteration, where it has at most this
+# many within the budget: each is one whole-chain solve (26 ms on the 6,400 states of the
+# 64-sensor turn-back grid), so 1,000 cost about what 100-150 unions' relaxations do. Three
+# sensors with four options each at budget 3 have 125; six have 1,545 (split them first).
+MAX_ENUMERATED = 1_000
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,8 @@ class CoverBound:
     unions: list[tuple[tuple[int, ...], float]]
     refined: int = 0  # unions above the cover's threshold, split into halves (their bound: the
     # smaller of their own and their halves' cover)
+    enumerated: int = 0  # unions (or sub-unions) whose proof failed, valued alteration by
+    # alteration (their bound: the best of those exact values)
 
 
 @dataclass(frozen=True)
@@ -202,25 +210,42 @@ def covering_bound(
                 return basis.bound(free, cap, deadline)
             return _relaxation(relax, free, cap, fixed, deadline)
 
+        top = relax.mdp.top
+        enumerated = 0
+
+        def finish(free: list[int], bound: float) -> float:
+            """A union whose proof failed, valued exactly where it is small (the best of its
+            alterations within the budget: every completion inside it is one of them)."""
+            nonlocal enumerated
+            if bound < top:
+                return bound
+            best = _enumerated(relax, free, cap, fixed, fits, deadline)
+            if best is None:
+                return bound
+            enumerated += 1
+            return min(bound, best)
+
         for chosen in sets:
             members = [groups[j] for j in chosen]
-            bound = solve([i for group in members for i in group])
+            free = [i for group in members for i in group]
+            bound = finish(free, solve(free))
             if bound > refine_above:
                 refined += 1
                 bound = _refined(
-                    members, bound, solve, cheapest_of, fits, refine_above, refine_depth
+                    members, bound, solve, finish, cheapest_of, fits, refine_above, refine_depth
                 )
             if bound >= give_up_at:
                 return None
             unions.append((chosen, bound))
     unions.sort(key=lambda item: -item[1])
-    return CoverBound(max((b for _, b in unions), default=-np.inf), unions, refined)
+    return CoverBound(max((b for _, b in unions), default=-np.inf), unions, refined, enumerated)
 
 
 def _refined(
     members: Sequence[Sequence[int]],
     bound: float,
     solve: Callable[[list[int]], float],
+    finish: Callable[[list[int], float], float],
     cheapest_of: Callable[[Sequence[int]], float],
     fits: Callable[[float], bool],
     refine_above: float,
@@ -232,8 +257,10 @@ def _refined(
     halves whose cheapest options its own cost pays for, so it lies inside one of those
     sub-unions: the largest of their bounds bounds it (and the union's own bound still does,
     so the smaller of the two). Sub-unions above ``refine_above`` are refined again, ``depth``
-    levels in all. A union whose relaxation policy iteration values below 1 but whose proof
-    fails (a chain that lingers past what doubles resolve) mostly proves on its halves."""
+    levels in all; a (sub-)union whose proof fails is first ``finish``ed (valued exactly,
+    alteration by alteration, where it is small: nothing bounds it tighter). A union whose
+    relaxation policy iteration values below 1 but whose proof fails (a chain that lingers
+    past what doubles resolve) mostly proves on its halves."""
     if depth <= 0:
         return bound
     halves = [half for group in members for half in (group[0::2], group[1::2]) if half]
@@ -245,9 +272,12 @@ def _refined(
     largest = -np.inf
     for chosen in sets:
         parts = [halves[j] for j in chosen]
-        found = solve([i for half in parts for i in half])
+        free = [i for half in parts for i in half]
+        found = finish(free, solve(free))
         if found > refine_above:
-            found = _refined(parts, found, solve, cheapest_of, fits, refine_above, depth - 1)
+            found = _refined(
+                parts, found, solve, finish, cheapest_of, fits, refine_above, depth - 1
+            )
         largest = max(largest, found)
         if largest >= bound:
             return bound  # the split does not help
@@ -267,3 +297,67 @@ def _relaxation(
     start = relax.best_groups(np.where(groups, 0.0, -np.inf))[0]
     bound, _, _ = relax.optimise(groups, start, deadline)
     return float(bound)
+
+
+def _alterations(
+    relax: PerStateRelaxation,
+    free: Sequence[int],
+    cap: float,
+    fits: Callable[[float], bool],
+    limit: int,
+) -> list[dict[int, int]] | None:
+    """Every alteration of the ``free`` choices whose options together ``fits`` (choice index
+    to option index, the choices left out unaltered, the empty one included); None where
+    there are more than ``limit``."""
+    options = [
+        (i, [(int(k), float(relax.option_cost[relax.first_option[i] + k])) for k in ks])
+        for i in free
+        if (ks := relax.affordable(i, cap)).size
+    ]
+    found: list[dict[int, int]] = []
+    picks: dict[int, int] = {}
+
+    def grow(j: int, spent: float) -> None:
+        if len(found) > limit:
+            return
+        if j == len(options):
+            found.append(dict(picks))
+            return
+        grow(j + 1, spent)  # this choice unaltered
+        i, own = options[j]
+        for k, c in own:
+            if fits(spent + c):
+                picks[i] = k
+                grow(j + 1, spent + c)
+                del picks[i]
+
+    grow(0, 0.0)
+    return None if len(found) > limit else found
+
+
+def _enumerated(
+    relax: PerStateRelaxation,
+    free: Sequence[int],
+    cap: float,
+    fixed: Mapping[int, int],
+    fits: Callable[[float], bool],
+    deadline: Deadline | None,
+    limit: int | None = None,
+) -> float | None:
+    """The best exact value (least fixed point of its chain) of the alterations of the
+    ``free`` choices within ``cap`` (``fixed`` as fixed, every other choice unaltered); None
+    where there are more than ``limit`` (default :data:`MAX_ENUMERATED`) of them. Every
+    completion of the node that alters only choices in ``free`` is one of them, so it bounds
+    them where the relaxation's proof does not."""
+    combos = _alterations(relax, free, cap, fits, MAX_ENUMERATED if limit is None else limit)
+    if combos is None:
+        return None
+    best = -np.inf
+    for picks in combos:
+        if deadline is not None:
+            deadline.check()
+        options = relax.free_options((), cap, {**fixed, **picks})
+        penalty = np.where(relax.allowed_groups(options), 0.0, -np.inf)
+        policy = relax.best_groups(penalty)[0]
+        best = max(best, float(relax.evaluate(policy)[relax.chain.initial]))
+    return best

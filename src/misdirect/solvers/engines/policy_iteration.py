@@ -627,6 +627,11 @@ class MaxReachability:
             return False
         return bool((self._upper(u, allowed, self.target, fixed, top) <= u).all())
 
+    @property
+    def top(self) -> float:
+        """The objective's largest value: the trivial bound, where a proof falls back to."""
+        return self._operator(0.0)[2]
+
     def _operator(self, penalty: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, float]:
         """The Bellman operator's data: allowed choices, target values, the cap."""
         target = self.target

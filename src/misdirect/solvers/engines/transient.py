@@ -241,12 +241,16 @@ class TransientPolicyIteration:
         enough: float = np.inf,
         deadline: Deadline | None = None,
         base: LinearSolver | None = None,
+        max_rounds: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray, LinearSolver, bool]:
         """(values, policy, its factorisation, whether optimal), from ``policy`` (default:
         first rows; ``base``: its factorisation, if at hand). Stops early at a policy worth
         more than ``enough`` at ``start``: the optimum is above it too (each improvement only
-        raises the values). Raises :class:`DeadlineExpiredError` once ``deadline`` has
-        passed."""
+        raises the values). With ``max_rounds``, stops (not optimal) after that many
+        improvements, or at once where an improvement returns to a policy it had left: gains
+        at rounding level that cycle, each round a solve, forever (seen on a collapsed MDP of
+        the 64-sensor turn-back grid: five policies in turn for minutes). Raises
+        :class:`DeadlineExpiredError` once ``deadline`` has passed."""
         lu: LinearSolver | None
         if policy is not None and base is not None and self.stop_row is None:
             lu = base  # the policy's own factorisation (no stop rows: it stays as it is)
@@ -254,6 +258,8 @@ class TransientPolicyIteration:
             policy = self.proper(self.first_rows() if policy is None else policy)
             lu = base = self.factorise(policy)
         base_policy = policy
+        seen = {policy.tobytes()}
+        rounds = 0
         while True:
             if deadline is not None:
                 deadline.check()
@@ -276,6 +282,12 @@ class TransientPolicyIteration:
             if not switch.any():
                 return values, policy, lu, True
             policy = np.where(switch, best, policy)
+            if max_rounds is not None:
+                rounds += 1
+                key = policy.tobytes()
+                if rounds > max_rounds or key in seen:
+                    return values, policy, lu, False
+                seen.add(key)
             lu = self.updated(base, base_policy, policy)
             if lu is None:
                 lu = base = self.factorise(policy)
