@@ -326,19 +326,11 @@ def consistency_monitor(
         # new supports numbered in the order (support, reading, action), as one at a time would
         last = len(supports)
         level = supports[first:last]
-        lengths = np.fromiter((len(p) for p in level), dtype=np.int64, count=len(level))
-        owner = np.repeat(np.arange(len(level), dtype=np.int64), lengths)
-        state = np.fromiter(
-            itertools.chain.from_iterable(level), dtype=np.int64, count=int(lengths.sum())
-        )
+        owner, state = _members(level)
         reading = pomdp.observation_of[state].astype(np.int64)
         which, action = np.nonzero(played[reading])  # (state of the level, action) pairs
         group = (owner[which] * n_o + reading[which]) * n_a + action
-        row_of = action * n_s + state[which]
-        starts, counts = indptr[row_of], indptr[row_of + 1] - indptr[row_of]
-        at = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
-        pairs = np.unique(np.repeat(group, counts) * n_s + indices[at])
-        keys, targets = np.divmod(pairs, n_s)
+        keys, targets = _successors(indptr, indices, group, action * n_s + state[which], n_s)
         groups = np.unique(group)  # every (support, reading, action), successors or none
         cut = np.searchsorted(keys, groups, side="left")
         end = np.searchsorted(keys, groups, side="right")
@@ -353,40 +345,18 @@ def consistency_monitor(
         listed = targets.tolist()
         found = np.empty(groups.size, dtype=np.int64)
         for i, (lo, hi) in enumerate(zip(cut.tolist(), end.tolist(), strict=True)):
-            after = tuple(listed[lo:hi])
-            k = known.get(after)
-            if k is None:
-                if len(supports) >= max_states:
-                    raise _cap_error(max_states, pomdp.n_states, field)
-                k = known[after] = len(supports)
-                supports.append(after)
-            found[i] = k
+            found[i] = _number(tuple(listed[lo:hi]), supports, known, max_states, n_s, field)
         g_rest, g_action = np.divmod(groups, n_a)
         g_owner, g_reading = np.divmod(g_rest, n_o)
         table[g_owner, g_reading, g_action] = found
         rows.append(table)
         first = last
     n_m = len(supports)
-    check_memory(
-        float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
-        f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
-        field=_at(field, "max_states"),
-    )
+    _check_table(n_m, n_o, n_a, field)
     table = np.concatenate(rows).astype(np.int32)
     table[table < 0] = n_m  # the alarm state
     table = np.concatenate([table, np.full((1, n_o, n_a), n_m, dtype=np.int32)])
-    alarm = np.zeros(n_m + 1, dtype=bool)
-    alarm[n_m] = True
-    return ConsistencyMonitor(
-        name="consistency",
-        states=(*(f"b{k}" for k in range(n_m)), ALARM),
-        initial=0,
-        alarm=alarm,
-        next_state=table,
-        observations=pomdp.observations,
-        actions=pomdp.actions,
-        supports=tuple(supports),
-    )
+    return _monitor(table, supports, problem, None)
 
 
 def _consistency_along(problem: Problem, max_states: int, field: str) -> ConsistencyMonitor:
@@ -425,11 +395,7 @@ def _consistency_along(problem: Problem, max_states: int, field: str) -> Consist
         fresh_array = np.array(fresh, dtype=np.int64)
         level_node, level_support = np.divmod(fresh_array, max_states)
     n_m = len(supports)
-    check_memory(
-        float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
-        f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
-        field=_at(field, "max_states"),
-    )
+    _check_table(n_m, n_o, n_a, field)
     table = np.full((n_m + 1, n_o, n_a), n_m, dtype=np.int32)  # unreached: the alarm
     if followed:
         keys = np.fromiter(followed.keys(), dtype=np.int64, count=len(followed))
@@ -437,6 +403,27 @@ def _consistency_along(problem: Problem, max_states: int, field: str) -> Consist
         rest, a = np.divmod(keys, n_a)
         m, o = np.divmod(rest, n_o)
         table[m, o, a] = np.where(nexts < 0, n_m, nexts)
+    return _monitor(table, supports, problem, controller)
+
+
+def _check_table(n_m: int, n_o: int, n_a: int, field: str) -> None:
+    """A clear error before a monitor's table (and the product's copies of it) outgrows
+    the memory."""
+    check_memory(
+        float(n_m + 1) * n_o * n_a * _TABLE_BYTES * 3,
+        f"the consistency monitor's table ({n_m:,} supports x {n_o:,} readings x {n_a:,} actions)",
+        field=_at(field, "max_states"),
+    )
+
+
+def _monitor(
+    table: np.ndarray,
+    supports: list[tuple[int, ...]],
+    problem: Problem,
+    controller: Controller | None,
+) -> ConsistencyMonitor:
+    """The consistency monitor of ``table`` (supports, then the alarm state, last)."""
+    n_m = len(supports)
     alarm = np.zeros(n_m + 1, dtype=bool)
     alarm[n_m] = True
     return ConsistencyMonitor(
@@ -445,11 +432,51 @@ def _consistency_along(problem: Problem, max_states: int, field: str) -> Consist
         initial=0,
         alarm=alarm,
         next_state=table,
-        observations=pomdp.observations,
-        actions=pomdp.actions,
+        observations=problem.pomdp.observations,
+        actions=problem.pomdp.actions,
         supports=tuple(supports),
         controller=controller,
     )
+
+
+def _members(supports: list[tuple[int, ...]]) -> tuple[np.ndarray, np.ndarray]:
+    """Every state of every support in ``supports``, flat, with the index of its support."""
+    lengths = np.fromiter((len(p) for p in supports), dtype=np.int64, count=len(supports))
+    owner = np.repeat(np.arange(len(supports), dtype=np.int64), lengths)
+    state = np.fromiter(
+        itertools.chain.from_iterable(supports), dtype=np.int64, count=int(lengths.sum())
+    )
+    return owner, state
+
+
+def _successors(
+    indptr: np.ndarray, indices: np.ndarray, group: np.ndarray, row_of: np.ndarray, n_s: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct (group, successor) pairs of the transition rows ``row_of`` (one per
+    entry of ``group``), sorted by group: their groups and their successor states."""
+    starts, counts = indptr[row_of], indptr[row_of + 1] - indptr[row_of]
+    at = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
+    pairs = np.unique(np.repeat(group, counts) * n_s + indices[at])
+    return np.divmod(pairs, n_s)
+
+
+def _number(
+    after: tuple[int, ...],
+    supports: list[tuple[int, ...]],
+    known: dict[tuple[int, ...], int],
+    max_states: int,
+    n_s: int,
+    field: str,
+) -> int:
+    """The number of support ``after``, a new one appended (past ``max_states``: the cap's
+    error)."""
+    k = known.get(after)
+    if k is None:
+        if len(supports) >= max_states:
+            raise _cap_error(max_states, n_s, field)
+        k = known[after] = len(supports)
+        supports.append(after)
+    return k
 
 
 def _follow(
@@ -469,20 +496,11 @@ def _follow(
         return
     rest, action = np.divmod(keys, n_a)
     support, reading = np.divmod(rest, n_o)
-    members = [supports[k] for k in support.tolist()]
-    lengths = np.fromiter((len(p) for p in members), dtype=np.int64, count=len(members))
-    group = np.repeat(np.arange(keys.size, dtype=np.int64), lengths)
-    state = np.fromiter(
-        itertools.chain.from_iterable(members), dtype=np.int64, count=int(lengths.sum())
-    )
+    group, state = _members([supports[k] for k in support.tolist()])
     keep = observation_of[state] == reading[group]  # Q = {s in P : O(s) = o}
     group, state = group[keep], state[keep]
     emitted = np.bincount(group, minlength=keys.size) > 0  # Q is not empty
-    row_of = action[group] * n_s + state
-    starts, counts = indptr[row_of], indptr[row_of + 1] - indptr[row_of]
-    at = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
-    found = np.unique(np.repeat(group, counts) * n_s + indices[at])
-    owners, targets = np.divmod(found, n_s)
+    owners, targets = _successors(indptr, indices, group, action[group] * n_s + state, n_s)
     cut = np.searchsorted(owners, np.arange(keys.size), side="left")
     end = np.searchsorted(owners, np.arange(keys.size), side="right")
     listed = targets.tolist()
@@ -491,14 +509,8 @@ def _follow(
         if not some:  # no state of the support emits the reading: the alarm
             followed[key] = -1
             continue
-        after = tuple(listed[lo:hi])  # empty where no state moves: every reading then alarms
-        k = known.get(after)
-        if k is None:
-            if len(supports) >= max_states:
-                raise _cap_error(max_states, n_s, field)
-            k = known[after] = len(supports)
-            supports.append(after)
-        followed[key] = k
+        # empty where no state moves: every reading then alarms
+        followed[key] = _number(tuple(listed[lo:hi]), supports, known, max_states, n_s, field)
 
 
 def _cap_error(max_states: int, n_s: int, field: str) -> ProblemError:
