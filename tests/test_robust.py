@@ -81,71 +81,44 @@ def worst_decoy(problem: Problem, budget: float) -> float:
 def absorbed_problem(seed: int, budget: float) -> Problem:
     """Three working states reading a, b, c, a goal and a decoy (both reading end), two
     actions; every move ends the run with probability at least 0.1, so no run is trapped."""
-    rng = np.random.default_rng(seed)
-    states = ("s0", "s1", "s2", "goal", "decoy")
-    action, source, target, probability = [], [], [], []
-    for a in range(2):
-        for s in range(3):
-            row = rng.dirichlet(np.ones(5))
-            row[3:] += 0.1
-            row /= row.sum()
-            for t in range(5):
-                action.append(a)
-                source.append(s)
-                target.append(t)
-                probability.append(row[t])
-    pomdp = Pomdp.from_triplets(
-        states=states,
-        actions=("x", "y"),
-        observations=("a", "b", "c", "end"),
-        initial_state=0,
-        observation_of=np.array([0, 1, 2, 3, 3]),
-        action=np.array(action),
-        source=np.array(source),
-        target=np.array(target),
-        probability=np.array(probability),
-        absorbing=np.array([False, False, False, True, True]),
-    )
-    controller = Controller(
-        nodes=("m",), initial_node=0, action=np.array([[0, 1, 0, 0]]), update=np.zeros((1, 4))
-    )
-    return Problem(
-        pomdp=pomdp,
-        controller=controller,
-        cost=CostModel(n_observations=4),
-        decoy=np.array([False, False, False, False, True]),
-        budget=budget,
-        name=f"absorbed {seed}",
-    )
+    return _ended_problem(seed, budget, ("goal", "decoy"), f"absorbed {seed}")
 
 
 def three_ends_problem(seed: int, budget: float) -> Problem:
     """As :func:`absorbed_problem`, with a third end, a crash that is neither goal nor decoy:
     staying away from the decoy no longer means reaching the goal, so a floor on Pr(goal)
     can cost worst-case Pr(decoy)."""
+    return _ended_problem(seed, budget, ("goal", "decoy", "crash"), f"three ends {seed}")
+
+
+def _ended_problem(seed: int, budget: float, ends: tuple[str, ...], name: str) -> Problem:
+    """Three working states reading a, b, c, then the absorbing ``ends`` (reading end; the one
+    named decoy is the decoy); from each working state and action a random row, each end
+    raised by 0.1."""
     rng = np.random.default_rng(seed)
+    n = 3 + len(ends)
     action, source, target, probability = [], [], [], []
     for a in range(2):
         for s in range(3):
-            row = rng.dirichlet(np.ones(6))
+            row = rng.dirichlet(np.ones(n))
             row[3:] += 0.1
             row /= row.sum()
-            for t in range(6):
+            for t in range(n):
                 action.append(a)
                 source.append(s)
                 target.append(t)
                 probability.append(row[t])
     pomdp = Pomdp.from_triplets(
-        states=("s0", "s1", "s2", "goal", "decoy", "crash"),
+        states=("s0", "s1", "s2", *ends),
         actions=("x", "y"),
         observations=("a", "b", "c", "end"),
         initial_state=0,
-        observation_of=np.array([0, 1, 2, 3, 3, 3]),
+        observation_of=np.array([0, 1, 2] + [3] * len(ends)),
         action=np.array(action),
         source=np.array(source),
         target=np.array(target),
         probability=np.array(probability),
-        absorbing=np.array([False] * 3 + [True] * 3),
+        absorbing=np.array([False] * 3 + [True] * len(ends)),
     )
     controller = Controller(
         nodes=("m",), initial_node=0, action=np.array([[0, 1, 0, 0]]), update=np.zeros((1, 4))
@@ -154,9 +127,9 @@ def three_ends_problem(seed: int, budget: float) -> Problem:
         pomdp=pomdp,
         controller=controller,
         cost=CostModel(n_observations=4),
-        decoy=np.array([False] * 4 + [True, False]),
+        decoy=np.array([False] * 3 + [end == "decoy" for end in ends]),
         budget=budget,
-        name=f"three ends {seed}",
+        name=name,
     )
 
 
