@@ -53,41 +53,26 @@ def cases(quick: bool) -> list[tuple[str, str, Callable[[], Any], float, int, fl
     """(name, what to type, the problem, budget, memory, floor)."""
     from misdirect.scenarios import drone, sensor_grid
 
-    if quick:
-        return [
-            (
-                "drone",
-                "drone(5, agents=2, rows=1), decoy = pad and crashes",
-                lambda: failing(drone(5, agents=2, rows=1)),
-                1.0,
-                1,
-                0.5,
-            ),
-            (
-                "turn-back",
-                'sensor_grid(6, 4, goal="inside")',
-                lambda: sensor_grid(6, 4, goal="inside"),
-                1.0,
-                2,
-                0.5,
-            ),
-        ]
+    # (drone size, floor), (grid size, sensors, nodes, floor): quick, then full
+    (d, d_floor), (g, k, nodes, g_floor) = (
+        ((5, 0.5), (6, 4, 2, 0.5)) if quick else ((6, 0.95), (8, 8, 4, 0.7))
+    )
     return [
         (
             "drone",
-            "drone(6, agents=2, rows=1), decoy = pad and crashes",
-            lambda: failing(drone(6, agents=2, rows=1)),
+            f"drone({d}, agents=2, rows=1), decoy = pad and crashes",
+            lambda: failing(drone(d, agents=2, rows=1)),
             1.0,
             1,
-            0.95,
+            d_floor,
         ),
         (
             "turn-back",
-            'sensor_grid(8, 8, goal="inside")',
-            lambda: sensor_grid(8, 8, goal="inside"),
+            f'sensor_grid({g}, {k}, goal="inside")',
+            lambda: sensor_grid(g, k, goal="inside"),
             1.0,
-            4,
-            0.7,
+            nodes,
+            g_floor,
         ),
     ]
 
