@@ -742,11 +742,7 @@ def tradeoff_figure(curves: Sequence[Any], path: Path, *, title: str = "") -> Pa
     ax.legend(loc="upper left", fontsize="small")
     fig.tight_layout()
     path = Path(path)
-    try:  # atomic, as every picture
-        write_output(path, lambda staged: fig.savefig(staged, dpi=150, bbox_inches="tight"))
-    finally:
-        plt.close(fig)
-    return path
+    return save(fig, path, (path.suffix,))[0]
 
 
 ROBUST_STYLES = {  # label -> (marker, colour); labels outside it cycle through tab10
@@ -807,8 +803,4 @@ def robust_tradeoff_figure(
     fig.suptitle(title or "robustness against nominal performance")
     fig.tight_layout(rect=(0, 0.06 + 0.03 * ((len(handles) + 2) // 3), 1, 1))
     path = Path(path)
-    try:  # atomic, as every picture
-        write_output(path, lambda staged: fig.savefig(staged, dpi=150, bbox_inches="tight"))
-    finally:
-        plt.close(fig)
-    return path
+    return save(fig, path, (path.suffix,))[0]
