@@ -662,27 +662,22 @@ class MaxReachability:
         inner = np.flatnonzero(free)
         if not inner.size:
             return u
+
+        def settled(solved: np.ndarray) -> np.ndarray:
+            """``u`` with the inner states' solution ``solved`` (one per inner state) in."""
+            out = u.copy()
+            out[inner] = u[inner] + np.maximum(solved, cost[inner]) if offset else solved
+            return out
+
         if chain is not None and not _merges(components, inner):
             reward = cost if offset else (self.transitions @ np.where(free, 0.0, u))[policy] + cost
             found = chain(policy, free, np.where(free, reward, 0.0))
             if found is not None and np.isfinite(found[inner]).all():
-                settled = u.copy()
-                if offset:
-                    settled[inner] = u[inner] + np.maximum(found[inner], cost[inner])
-                else:
-                    settled[inner] = found[inner]
-                return settled
+                return settled(found[inner])
         node, reps, rows, block, labels = self._quotient_chain(policy, free, inner, components)
         reward = cost[reps] if offset else rows @ np.where(free, 0.0, u) + cost[reps]
         solved = _solved_or_none(block, reward, labels)
-        if solved is None:
-            return None
-        settled = u.copy()
-        if offset:
-            settled[inner] = u[inner] + np.maximum(solved[node], cost[inner])
-        else:
-            settled[inner] = solved[node]
-        return settled
+        return None if solved is None else settled(solved[node])
 
     def _quotient_chain(
         self,
