@@ -662,6 +662,7 @@ COUNT_WORDS = {
     "pruned": "nodes pruned by their bound {:,}",
     "covers": "nodes covered (bounded by sensor groups) {:,}",
     "cover_unions": "relaxations solved for the covers {:,}",
+    "cover_refined": "cover unions refined (above the incumbent) {:,}",
     "cover_pruned": "nodes pruned by a cover {:,}",
     "covers_given_up": "covers given up {:,}",
 }
@@ -669,6 +670,7 @@ COUNT_WORDS = {
 QUIET_WHEN_NONE = {
     "covers",
     "cover_unions",
+    "cover_refined",
     "cover_pruned",
     "covers_given_up",
     "collapsed_proofs",

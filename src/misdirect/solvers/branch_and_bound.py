@@ -520,6 +520,7 @@ class _Search(IncumbentSearch):
         self.node_seconds = 0.0  # the last node bound's time
         self.union_seconds: float | None = None  # a cover's time per union, once measured
         self.covers = self.cover_unions = self.cover_pruned = self.covers_given_up = 0
+        self.cover_refined = 0
         self.root_cover_bound: float | None = None
         self.evaluations_before = relax.evaluations
         self.caught: Callable[[Picks], bool] | None = None  # max_alarm (_caught)
@@ -646,13 +647,30 @@ class _Search(IncumbentSearch):
         if groups is None:
             return None
         began = time.perf_counter()
-        found = covering_bound(relax, groups, node.remaining, fixed, deadline, give_up_at=bound)
+        # a union above the incumbent cannot prune: its halves might (the refinement also
+        # resolves the unions whose proof fails, which would otherwise give the cover up)
+        refine_above = self.best_value if self.best_value >= 0 else np.inf
+        try:
+            found = covering_bound(
+                relax,
+                groups,
+                node.remaining,
+                fixed,
+                rule.deadline(deadline),
+                give_up_at=bound,
+                refine_above=refine_above,
+            )
+        except DeadlineExpiredError:  # the cover's own time: the node keeps its own bound
+            if deadline is not None:
+                deadline.check()  # ... unless the search's time is up too
+            found = None
         if found is None:
             self.covers_given_up += 1
             return None
-        self.union_seconds = (time.perf_counter() - began) / max(len(found.unions), 1)
+        self.union_seconds = (time.perf_counter() - began) / max(found.solved, 1)
         self.covers += 1
-        self.cover_unions += len(found.unions)
+        self.cover_unions += found.solved
+        self.cover_refined += found.refined
         if self.root_cover_bound is None and level == 0:
             self.root_cover_bound = found.bound
         return found.bound
@@ -689,6 +707,7 @@ class _Search(IncumbentSearch):
             collapsed_proven=proofs[3],
             covers=self.covers,
             cover_unions=self.cover_unions,
+            cover_refined=self.cover_refined,
             cover_pruned=self.cover_pruned,
             covers_given_up=self.covers_given_up,
             root_cover_bound=self.root_cover_bound,

@@ -79,13 +79,15 @@ class BranchAndBoundStats(MethodStats):
     trivial_bounds: int = 0
     collapsed_proofs: int = 0
     collapsed_proven: int = 0
-    # covering bounds (solvers/engines/covering.py): nodes covered, the unions' relaxations
-    # solved for them, nodes the cover pruned where the per-state bound did not, covers given
-    # up, and the root's
+    # covering bounds (solvers/engines/covering.py): nodes covered, the relaxations solved for
+    # them (unions and their refinements), unions refined (above the incumbent), nodes the
+    # cover pruned where the per-state bound did not, covers given up, and the root's
     covers: int = 0
     cover_unions: int = 0
+    cover_refined: int = 0
     cover_pruned: int = 0
-    covers_given_up: int = 0  # covers stopped at a union no better than the per-state bound
+    covers_given_up: int = 0  # covers stopped at a union no better than the per-state bound,
+    # or out of their share of the time
     root_cover_bound: float | None = None
     # an open budget's: what holds its bound up, "relaxation", "proof" or "time" (None: closed)
     weakest_bound: str | None = None

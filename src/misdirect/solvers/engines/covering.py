@@ -63,6 +63,7 @@ class CoverBound:
     # smaller of their own and their halves' cover)
     enumerated: int = 0  # unions (or sub-unions) whose proof failed, valued alteration by
     # alteration (their bound: the best of those exact values)
+    solved: int = 0  # relaxations solved: the unions and the sub-unions of their refinements
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,15 @@ class CoverRule:
         """Whether a node with ``remaining`` budget left is covered, ``covered_at`` being the
         budget left at the last cover on its path (inf: none)."""
         return remaining < covered_at
+
+    def deadline(self, deadline: Deadline | None) -> Deadline | None:
+        """One cover's own time: its share of the search's time left (a cover refines the
+        unions above the incumbent, so its unions do not bound its time); None without a
+        limit."""
+        if deadline is None:
+            return None
+        left = deadline.remaining()
+        return deadline.within(None if left is None else self.share * left)
 
     def unions_allowed(self, seconds_left: float | None, seconds_per_union: float) -> int:
         """How many unions a cover may solve: its share of the time left, at about
@@ -205,7 +215,11 @@ def covering_bound(
             basis = KeptBasis(relax, fixed, sorted(grouped))
             basis = basis if basis.usable else None
 
+        solved = 0
+
         def solve(free: list[int]) -> float:
+            nonlocal solved
+            solved += 1
             if basis is not None:
                 return basis.bound(free, cap, deadline)
             return _relaxation(relax, free, cap, fixed, deadline)
@@ -238,7 +252,8 @@ def covering_bound(
                 return None
             unions.append((chosen, bound))
     unions.sort(key=lambda item: -item[1])
-    return CoverBound(max((b for _, b in unions), default=-np.inf), unions, refined, enumerated)
+    best = max((b for _, b in unions), default=-np.inf)
+    return CoverBound(best, unions, refined, enumerated, solved)
 
 
 def _refined(
