@@ -140,7 +140,8 @@ class BranchAndBoundSolver:
         self.max_nodes = max_nodes
 
     def workers(self) -> int:
-        """Threads of the segment search: ``threads``, else both cores."""
+        """Threads of the segment search and processes of a cover: ``threads``, else both
+        cores."""
         return thread_count(self.options.threads)
 
     def solve(
@@ -250,7 +251,7 @@ class BranchAndBoundSolver:
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
         search.caught = curve.caught
         if CoverRule.applies(bool(curve.instance.cycling.any())):
-            search.cover_with(CoverRule(), _strengths(curve))
+            search.cover_with(CoverRule(workers=self.workers()), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
         if picks is not None and relax.fits(picks, budget):
             search.incumbent.offer_exact(picks)
@@ -659,6 +660,7 @@ class _Search(IncumbentSearch):
                 rule.deadline(deadline),
                 give_up_at=bound,
                 refine_above=refine_above,
+                workers=rule.workers,
             )
         except DeadlineExpiredError:  # the cover's own time: the node keeps its own bound
             if deadline is not None:

@@ -28,13 +28,16 @@ budget left, so fewer, smaller unions.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from misdirect.core.blas import one_blas_thread
 from misdirect.solvers.deadline import Deadline
+from misdirect.solvers.engines.forked import Claims, forked_map
 from misdirect.solvers.engines.kept_basis import KeptBasis
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
@@ -50,6 +53,7 @@ REFINE_DEPTH = 1  # times a union above a cover's threshold is split (covering_b
 # 64-sensor turn-back grid), so 1,000 cost about what 100-150 unions' relaxations do. Three
 # sensors with four options each at budget 3 have 125; six have 1,545 (split them first).
 MAX_ENUMERATED = 1_000
+FORK_FROM = 16  # unions a forked worker takes at least (each costs a fork's few milliseconds)
 
 
 @dataclass(frozen=True)
@@ -72,6 +76,7 @@ class CoverRule:
 
     share: float = COVER_SHARE
     unlimited_unions: int = UNLIMITED_UNIONS
+    workers: int = 1  # processes a cover's unions are shared among (forked: see forked.py)
 
     @staticmethod
     def applies(cycling: bool) -> bool:
@@ -168,6 +173,7 @@ def covering_bound(
     give_up_at: float = np.inf,
     refine_above: float = np.inf,
     refine_depth: int = REFINE_DEPTH,
+    workers: int = 1,
 ) -> CoverBound | None:
     """The covering bound of the node that fixes choice ``i`` to option ``fixed[i]`` (choice
     indices of the alteration space) with the budget left as ``cap`` (a
@@ -177,7 +183,9 @@ def covering_bound(
     :data:`MAX_UNIONS` unions, or once a union's bound reaches ``give_up_at`` (a bound the
     caller has already: the cover could not beat it; the unions go strongest groups first, so
     such a union tends to come early). A union whose bound lies above ``refine_above`` is
-    refined (:func:`_refined`), at most ``refine_depth`` times over. Raises
+    refined (:func:`_refined`), at most ``refine_depth`` times over. With ``workers`` > 1
+    the unions are shared among forked copies of this process
+    (:func:`~misdirect.solvers.engines.forked.forked_map`; the same bound). Raises
     :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once ``deadline`` has passed."""
     fixed = dict(fixed or {})
     first, cost = relax.first_option, relax.option_cost
@@ -207,8 +215,6 @@ def covering_bound(
     sets = maximal_group_sets(cheapest, fits)
     if len(sets) > MAX_UNIONS:
         return None
-    unions = []
-    refined = 0
     with one_blas_thread():
         basis = None
         if len(sets) >= KEPT_FROM:  # its cost (a node's solves) is repaid over a few unions
@@ -239,21 +245,98 @@ def covering_bound(
             enumerated += 1
             return min(bound, best)
 
-        for chosen in sets:
-            members = [groups[j] for j in chosen]
-            free = [i for group in members for i in group]
-            bound = finish(free, solve(free))
-            if bound > refine_above:
-                refined += 1
-                bound = _refined(
-                    members, bound, solve, finish, cheapest_of, fits, refine_above, refine_depth
-                )
-            if bound >= give_up_at:
-                return None
-            unions.append((chosen, bound))
-    unions.sort(key=lambda item: -item[1])
+        workers = max(1, min(workers, len(sets) // FORK_FROM))
+        claims = Claims(len(sets), workers)
+
+        def piece(_: int) -> _Piece:
+            """The unions this worker claims, until one reaches ``give_up_at`` (then no worker
+            claims another)."""
+            before = _counts(relax, basis)
+            solved_before, enumerated_before = solved, enumerated
+            unions = []
+            refined = 0
+            for index in claims:
+                chosen = sets[index]
+                members = [groups[j] for j in chosen]
+                free = [i for group in members for i in group]
+                bound = finish(free, solve(free))
+                if bound > refine_above:
+                    refined += 1
+                    bound = _refined(
+                        members, bound, solve, finish, cheapest_of, fits, refine_above, refine_depth
+                    )
+                unions.append((chosen, bound))
+                if bound >= give_up_at:
+                    claims.stop()
+                    break
+            spent = _counts(relax, basis) - before
+            return _Piece(
+                unions,
+                refined,
+                enumerated - enumerated_before,
+                solved - solved_before,
+                spent,
+                os.getpid(),
+            )
+
+        pieces = forked_map(piece, workers, deadline)
+    for found in pieces:
+        if found.pid != os.getpid():  # a child's counts, spent in its copies of the objects
+            _add_counts(relax, basis, found.spent)
+    unions = sorted(
+        (u for found in pieces for u in found.unions), key=lambda item: (-item[1], item[0])
+    )
     best = max((b for _, b in unions), default=-np.inf)
-    return CoverBound(best, unions, refined, enumerated, solved)
+    if best >= give_up_at:
+        return None
+    return CoverBound(
+        best,
+        unions,
+        sum(found.refined for found in pieces),
+        sum(found.enumerated for found in pieces),
+        sum(found.solved for found in pieces),
+    )
+
+
+class _Piece(NamedTuple):
+    """What one worker's share of a cover found: its unions with their bounds, and counts."""
+
+    unions: list[tuple[tuple[int, ...], float]]
+    refined: int
+    enumerated: int
+    solved: int
+    spent: np.ndarray  # :func:`_counts` it added
+    pid: int  # the process it ran in
+
+
+def _counts(relax: PerStateRelaxation, basis: KeptBasis | None) -> np.ndarray:
+    """The counters a cover adds to: the relaxation's evaluations and proofs, the basis's."""
+    mdp = relax.mdp
+    kept = (0, 0) if basis is None else (basis.reduced, basis.fallbacks)
+    return np.array(
+        [
+            mdp.evaluations,
+            mdp.proofs,
+            mdp.trivial_proofs,
+            mdp.collapsed_proofs,
+            mdp.collapsed_proven,
+            *kept,
+        ],
+        dtype=np.int64,
+    )
+
+
+def _add_counts(relax: PerStateRelaxation, basis: KeptBasis | None, spent: np.ndarray) -> None:
+    """Add a forked worker's counts (:func:`_counts`) to this process's objects."""
+    mdp = relax.mdp
+    mdp.evaluations += int(spent[0])
+    mdp.proofs += int(spent[1])
+    mdp.trivial_proofs += int(spent[2])
+    mdp.collapsed_proofs += int(spent[3])
+    mdp.collapsed_proven += int(spent[4])
+    if basis is not None:
+        basis.reduced += int(spent[5])
+        basis.fallbacks += int(spent[6])
 
 
 def _refined(
