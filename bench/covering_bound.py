@@ -36,6 +36,9 @@ from misdirect.solvers.engines.per_state import PerStateRelaxation, relaxation_b
 # (budget 1's optimum is the strongest single alteration: with unit costs each fits it)
 CASES = [("turn-back n=40 k=64", (40, 64), [1, 2, 3], 16, {2: 0.682159, 3: 0.792177})]
 QUICK = [("turn-back n=12 k=16", (12, 16), [1, 2], 4, {})]
+# (label, grid, budget, groups): a root cover in one process and in two
+WORKERS = [("turn-back n=40 k=64", (40, 64), 2, 16)]
+QUICK_WORKERS = [("turn-back n=12 k=16", (12, 16), 2, 12)]
 # (label, grid, budget, time limit): branch-and-bound with covers and without
 SEARCHES = [
     ("turn-back n=10 k=12", (10, 12), 2, 60.0),
@@ -105,6 +108,65 @@ def run_case(
             }
         )
     return rows
+
+
+def worker_rows(label, grid, budget, n_groups, repeats: int = 2) -> list[dict]:
+    """The root cover of one budget with its unions in one process and shared among two
+    forked ones (``workers``), alternated ``repeats`` times in this process: wall and CPU
+    seconds (the children's CPU counted once they are reaped)."""
+    problem = sensor_grid(*grid, goal="inside")
+    instance = prepare(problem, budget)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    strength = strengths(problem, instance.space)
+    groups = stratified_groups(range(len(instance.space.choices)), n_groups, strength)
+    cap = instance.space.scale.cap(budget)
+    rows = []
+    for _ in range(repeats):
+        for workers in (1, 2):
+            began, cpu = time.perf_counter(), _cpu()
+            found = covering_bound(relax, groups, cap, refine_depth=0, workers=workers)
+            wall = time.perf_counter() - began
+            time.sleep(0.5)  # the children reaped, so that their CPU is counted
+            assert found is not None
+            rows.append(
+                {
+                    "label": label,
+                    "budget": budget,
+                    "groups": n_groups,
+                    "workers": workers,
+                    "unions": len(found.unions),
+                    "bound": found.bound,
+                    "wall_s": wall,
+                    "cpu_s": _cpu() - cpu,
+                }
+            )
+    return rows
+
+
+def _cpu() -> float:
+    """CPU seconds of this process and of its reaped children."""
+    import resource
+
+    own, children = (
+        resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+    )
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def worker_markdown(rows: list[dict]) -> str:
+    lines = [
+        "",
+        "## A cover's unions in one process and in two (same process, alternated)",
+        "",
+        "| chain | budget | groups | unions | workers | bound | wall (s) | CPU (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['label']} | {r['budget']} | {r['groups']} | {r['unions']} | {r['workers']} "
+            f"| {r['bound']:.6f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def search_rows(label, grid, budget, limit) -> list[dict]:
@@ -195,10 +257,11 @@ def main() -> None:
     rows = [r for case in cases for r in run_case(*case, args.refine_depth, args.budgets)]
     searches = [] if args.no_search else QUICK_SEARCHES if args.quick else SEARCHES
     found = [r for case in searches for r in search_rows(*case)]
+    shared = [r for case in (QUICK_WORKERS if args.quick else WORKERS) for r in worker_rows(*case)]
     (args.out / "covering_bound.json").write_text(
-        json.dumps({"root": rows, "search": found}, indent=1)
+        json.dumps({"root": rows, "search": found, "workers": shared}, indent=1)
     )
-    text = markdown(rows) + search_markdown(found)
+    text = markdown(rows) + search_markdown(found) + worker_markdown(shared)
     (args.out / "covering_bound.md").write_text(text)
     print(text)
 

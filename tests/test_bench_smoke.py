@@ -191,7 +191,8 @@ def test_covering_benchmark_reduced_mode(tmp_path):
     """bench/covering_bound.py --quick: on the 12x12 turn-back grid the root's covering bound
     lies between the budget-1 optimum (the strongest single alteration, with unit costs) and
     the relaxation with every sensor free, at every budget; its search rows, with covers and
-    without, agree where both certify, and each bound lies above its value."""
+    without, agree where both certify, and each bound lies above its value; a cover in one
+    process and in two agree."""
     subprocess.run(
         [
             sys.executable,
@@ -217,6 +218,13 @@ def test_covering_benchmark_reduced_mode(tmp_path):
         assert row["covering_bound"] <= row["all_free_bound"] + 1e-12
     assert rows[0]["covering_bound"] >= rows[0]["optimum"] * (1 - 1e-9)
     assert rows[1]["covering_bound"] >= rows[0]["covering_bound"] * (1 - 1e-9)  # more budget
+    # the root cover in one process and shared among two: the same bound (each union proven
+    # in either; a rounding apart at most), and it is budget 2's root cover above
+    shared = document["workers"]
+    assert sorted({r["workers"] for r in shared}) == [1, 2]
+    for r in shared:
+        assert r["bound"] == pytest.approx(shared[0]["bound"], rel=1e-12)
+        assert r["unions"] == shared[0]["unions"] > 32  # enough for two workers
 
 
 def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
