@@ -236,8 +236,8 @@ def solve(
     threads: Annotated[
         int | None,
         typer.Option(
-            help="Threads of the MILP solver (SCIP: its concurrent mode if > 1) and of the "
-            "incremental enumeration (default 2)."
+            help="Threads of the MILP solver (SCIP: its concurrent mode if > 1), of the "
+            "incremental enumeration and of branch-and-bound's searches and covers (default 2)."
         ),
     ] = None,
     mip_gap: Annotated[
