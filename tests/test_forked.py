@@ -43,6 +43,14 @@ def test_without_fork_every_piece_runs_here_in_order(monkeypatch):
 
 
 @needs_fork
+def test_no_fork_where_the_copies_would_not_fit_the_memory(monkeypatch):
+    monkeypatch.setattr(forked, "memory_limit", lambda: (1, "available"))  # one byte
+    assert forked_map(lambda k: os.getpid(), 2) == [os.getpid()] * 2
+    monkeypatch.setattr(forked, "memory_limit", lambda: (None, "available"))  # unknown
+    assert len(set(forked_map(lambda k: os.getpid(), 2))) == 2
+
+
+@needs_fork
 def test_a_childs_exception_is_raised_here_as_itself():
     def work(k: int) -> int:
         if k == 1:

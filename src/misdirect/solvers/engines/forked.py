@@ -27,6 +27,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
+from misdirect.core.memory import memory_limit
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 
 T = TypeVar("T")
@@ -76,12 +77,13 @@ class Claims:
 
 def forked_map(work: Callable[[int], T], pieces: int, deadline: Deadline | None = None) -> list[T]:
     """``[work(0), ..., work(pieces - 1)]``: piece 0 here, the others each in a forked child
-    (all here, in order, where :func:`can_fork` says no). ``work`` must not depend on what
+    (all here, in order, where :func:`can_fork` says no or the copies would not fit the
+    memory available). ``work`` must not depend on what
     another piece changes: a child's changes to this process's objects are lost, only its
     answer (pickled) comes back. A child's exception is raised here (as itself where it
     pickles, else as a RuntimeError with its traceback); :class:`DeadlineExpiredError` once
     ``deadline`` has passed, the children killed."""
-    if pieces <= 1 or not can_fork():
+    if pieces <= 1 or not can_fork() or not _room_for(pieces - 1):
         return [work(k) for k in range(pieces)]
     children: dict[int, tuple[int, int]] = {}  # piece: (pid, read end)
     here = [0]
@@ -102,6 +104,23 @@ def forked_map(work: Callable[[int], T], pieces: int, deadline: Deadline | None 
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGKILL)  # gone already where it answered: harmless
             threading.Thread(target=_reap, args=(pid,), daemon=True).start()
+
+
+def _room_for(children: int) -> bool:
+    """Whether ``children`` copies of this process fit the memory limit (what is available,
+    or the user's ``--memory-limit``, which this process counts against too). A copy shares
+    its pages until it writes them, but the interpreter writes to every object it touches
+    (reference counts), so a child is costed at this process's whole resident size."""
+    limit, source = memory_limit()
+    if limit is None:
+        return True
+    try:
+        with open("/proc/self/statm", encoding="ascii") as statm:
+            resident = int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return True
+    copies = children if source == "available" else children + 1
+    return copies * resident <= limit
 
 
 def _fork(work: Callable[[int], Any], k: int) -> tuple[int, int]:
