@@ -11,9 +11,11 @@ import pytest
 
 from misdirect import decoy_probability, solve
 from misdirect.core.attack import prepare
+from misdirect.core.memory import available_cores
 from misdirect.scenarios import random_problem
 from misdirect.scenarios.sensor_grid import sensor_grid
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
+from misdirect.solvers.engines import covering
 from misdirect.solvers.engines.covering import (
     CoverRule,
     covering_bound,
@@ -151,6 +153,29 @@ def test_branch_and_bound_with_covers_finds_the_optimum(case, covers_everywhere)
     """Every answer of a search that prunes by covers is the brute force's optimum, and its
     bound lies above it, on random problems whose controllers loop, with unequal costs."""
     problem, answers = _search_case(case)
+    for answer in answers:
+        truth = brute_force(problem, answer.budget)
+        assert answer.status == Status.OPTIMAL
+        assert answer.solver_probability == pytest.approx(truth, rel=1e-9, abs=1e-12)
+        assert answer.upper_bound >= truth - 1e-9 * max(truth, 1e-300)
+
+
+@pytest.mark.parametrize("case", range(0, SEARCH_CASES, 4))
+def test_covers_shared_among_forked_workers_find_the_optimum(case, covers_everywhere, monkeypatch):
+    """The same with every cover's unions shared among two forked workers (from one union a
+    worker): still the brute force's optimum, bounds above it."""
+    monkeypatch.setattr(covering, "FORK_FROM", 1)
+    shared = []
+    real = covering.forked_map
+
+    def counted(work, pieces, deadline=None):
+        shared.append(pieces)
+        return real(work, pieces, deadline)
+
+    monkeypatch.setattr(covering, "forked_map", counted)
+    problem, answers = _search_case(case)
+    if sum(a.stats.covers for a in answers):
+        assert max(shared) == min(2, available_cores())  # not vacuous: covers were shared
     for answer in answers:
         truth = brute_force(problem, answer.budget)
         assert answer.status == Status.OPTIMAL
