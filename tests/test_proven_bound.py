@@ -216,5 +216,10 @@ def test_bound_is_as_tight_as_policy_iteration_on_grids():
     inside = sensor_grid(12, 8, goal="inside", budget=2)  # turns back: end components
     for problem in (paper_grid(5), sensor_grid(16, 12, budget=2), inside):
         bound, value = _root(problem)
-        assert bound >= value
+        # the proof is of the model, whose rows sum to 1; policy iteration solves the rows as
+        # doubles, which on the turn-back grid sum to 1 + 2^-54 inside its end components
+        # (0.8 + 0.2), and a run lingering there some 300 steps adds that up to about 2e-14
+        # (solved in long double: 0.99973190821938133 where the double-double proof gives
+        # 0.99973190821936410, every row it checks holding within its rounding)
+        assert bound >= value * (1 - 1e-13)
         assert bound - value <= 1e-9 * value, problem.name

@@ -278,7 +278,15 @@ class MaxReachability:
         policy's chain (:meth:`_tied_components`). ``u`` is accepted only when the check
         ``T u <= u`` holds, each row's product bounded above with its rounding; else the
         offset grows and it tries again. Raises :class:`DeadlineExpiredError` once
-        ``deadline`` has passed."""
+        ``deadline`` has passed.
+
+        The order of the attempts: the first offset (no end components); where it fails or
+        lies far above the values, the proof in double-double (:meth:`_proven_extended`);
+        only where that too is far, the later offsets (with end components, growing). On the
+        64-sensor turn-back grid's covers the later offsets never proved what the first did
+        not (200 unions: 188 proven by the first, 12 by the double-double after the later
+        offsets had failed, a third of the time), and elsewhere the order changed no bound
+        (docs/benchmarks.md, "The proofs' order")."""
         target = self.target
         allowed, fixed, top = self._operator(penalty)
         if top <= 0.0 or not target.any():
@@ -290,15 +298,20 @@ class MaxReachability:
         values = np.clip(np.where(target, fixed, values), 0.0, top)
         positive = ~target & (values > 0) & (values < top)
         bellman = self._upper(values, allowed, target, fixed, top)
+
+        def far(bound: float) -> bool:
+            return bool(
+                bound - values[state]
+                > tolerance.PROOF_EXTENDED * max(values[state], tolerance.SMALLEST)
+            )
+
         found = self._proven_double(
             values, bellman, policy, state, allowed, positive, deadline, offset, chain
         )
         bound = top if found is None else min(found, top)
         # far above the values (a chain absorbed after 10^8 steps: the check's own rounding,
         # 10^-16 a step, adds up): again with the values and the check in double-double
-        if bound - values[state] > tolerance.PROOF_EXTENDED * max(
-            values[state], tolerance.SMALLEST
-        ):
+        if far(bound):
             if deadline is not None:
                 deadline.check()
             components = self._tied_components(values, bellman, allowed, positive)
@@ -307,6 +320,21 @@ class MaxReachability:
             )
             if extended is not None:
                 bound = min(bound, extended)
+            if far(bound):  # the later offsets, in double, with the same tied components
+                found = self._proven_double(
+                    values,
+                    bellman,
+                    policy,
+                    state,
+                    allowed,
+                    positive,
+                    deadline,
+                    offset,
+                    chain,
+                    later=components,
+                )
+                if found is not None:
+                    bound = min(bound, found)
         if bound - values[state] > tolerance.PROOF_COLLAPSE * max(
             values[state], tolerance.SMALLEST
         ):
@@ -335,21 +363,20 @@ class MaxReachability:
         deadline: Deadline | None,
         offset: Callable[[np.ndarray], np.ndarray | None] | None = None,
         chain: ChainSolve | None = None,
+        later: np.ndarray | None = None,
     ) -> float | None:
-        """:meth:`proven_bound` in double precision: the bound, or None."""
+        """:meth:`proven_bound` in double precision, its first offset (without end
+        components): the bound, or None; with ``later`` (the tied components), its later
+        offsets instead (with them, growing)."""
         target = self.target
         _, fixed, top = self._operator(0.0)
         defect = np.maximum(bellman - values, 0.0)
         cost = np.where(positive, 2 * defect + tolerance.PROOF_OFFSET * top, 0.0)
-        # first without end components (cheap: one solve), then with them, growing
-        components: np.ndarray | None = None
-        internal: np.ndarray | None = None
-        for attempt in range(PROOF_TRIES + 1):
+        components: np.ndarray | None = later
+        internal = None if later is None else self._internal(later)
+        for attempt in range(1, PROOF_TRIES + 1) if later is not None else range(1):
             if deadline is not None:
                 deadline.check()
-            if attempt == 1:
-                components = self._tied_components(values, bellman, allowed, positive)
-                internal = self._internal(components)
             if attempt >= 2:
                 cost = cost * PROOF_GROWTH
             u = None
