@@ -8,6 +8,7 @@ numbers, and δ = 0 on the reference's own graph (a caught move reachable at all
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -97,6 +98,80 @@ def test_incremental_with_the_alarm_enumerated(monkeypatch):
     )
     for delta, result in zip(DELTAS, curves, strict=True):
         _check(result, best[delta], valued, delta, "incremental")
+
+
+def _search_space(watched, budget):
+    """The per-state relaxation branch-and-bound searches on, for ``watched`` under a δ."""
+    from misdirect.core.attack import prepare
+    from misdirect.solvers.engines.alarm import alarm_constraint
+    from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+    constraint = alarm_constraint(watched, 0.05)
+    decoy = constraint.decoy_problem
+    instance = prepare(decoy, budget)
+    return constraint, PerStateRelaxation(decoy, instance.space, instance.chain, instance.cycling)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 4, 33])
+def test_alarm_floor_of_every_prefix_lies_below_every_completion(seed):
+    """branch-and-bound prunes a prefix whose decided states alone raise the alarm above δ
+    (``_caught``, its floors computed on the part of the chain the start reaches and shared
+    by every budget and δ): per prefix of every assignment of the search, against the
+    reference alarm of each of its completions (whatever they cost), with one floor table
+    shared by the three δ as a trade-off curve shares it."""
+    from misdirect.solvers import branch_and_bound
+
+    rng = np.random.default_rng(seed)
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, rng, 3)
+    watched = with_monitor(problem, monitor)
+    _, relax = _search_space(watched, problem.budget)
+    sizes = [relax.first_option[i + 1] - relax.first_option[i] for i in relax.order]
+    assert int(np.prod(sizes)) <= 5_000, "too many assignments for the brute force"
+    alarms = {
+        picks: reference(problem, relax.alteration(picks), step, "m0")[1]
+        for picks in itertools.product(*(range(k) for k in sizes))
+    }
+    floors: dict = {}
+    checked_prefixes = 0
+    for delta in (0.0, 0.05, 0.2):
+        caught = branch_and_bound._caught(relax, delta, floors)
+        for depth in range(len(sizes) + 1):
+            for prefix in itertools.product(*(range(k) for k in sizes[:depth])):
+                lowest = min(a for picks, a in alarms.items() if picks[:depth] == prefix)
+                if caught(prefix):
+                    assert lowest > (0.0 if delta == 0.0 else delta), (prefix, delta)
+                reached, floor = floors[prefix]
+                if reached:  # a run of every completion reaches the alarm
+                    assert lowest > 0.0, prefix
+                if floor is not None:
+                    assert floor <= lowest + 1e-12, (prefix, floor, lowest)
+                checked_prefixes += 1
+    assert checked_prefixes > 3
+
+
+@pytest.mark.parametrize("seed", [0, 33])
+def test_branch_and_bound_tradeoff_curve_against_brute_force(seed):
+    """One trade-off curve by branch-and-bound (the δ share the alarm floors), every budget
+    up to the problem's and every δ: the brute-force optimum, certified."""
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    budgets = sorted({problem.budget / 2, problem.budget})
+    deltas = (0.0, 0.02, 0.05, 0.2, 1.0)
+    curves = misdirect.solve_tradeoff(watched, deltas, budgets=budgets, method="branch-and-bound")
+    for budget in budgets:
+        best, valued = _brute_force(problem, step, "m0", budget, deltas)
+        for delta, result in zip(deltas, curves, strict=True):
+            (point,) = [p for p in result.curve if p.budget == budget]
+            if best[delta] is None:
+                assert str(point.status) == "infeasible", (budget, delta)
+                continue
+            assert str(point.status) == "optimal", (budget, delta)
+            assert point.probability == pytest.approx(best[delta], abs=1e-9), (budget, delta)
+            value, alarm = valued[np.asarray(point.alteration_array).tobytes()]
+            assert value == pytest.approx(point.probability, abs=1e-9)
+            assert alarm <= delta + 1e-12
 
 
 def test_auto_hands_open_budgets_on(monkeypatch):

@@ -38,6 +38,7 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
+from misdirect.core.blas import one_blas_thread
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import OptionError
@@ -172,7 +173,9 @@ class BranchAndBoundSolver:
         accept = None if constraint is None else _feasibility(constraint, relax)
         # a node whose fixed picks already raise the alarm too often is pruned
         caught = (
-            None if constraint is None or constraint.trivial else _caught(relax, constraint.limit)
+            None
+            if constraint is None or constraint.trivial
+            else _caught(relax, constraint.limit, _floors(constraint, relax))
         )
         curve = _Curve(
             instance,
@@ -274,7 +277,11 @@ class BranchAndBoundSolver:
             stage = f"branch-and-bound, budget {budget:g}"
             report(progress, step.done, step.total, stage=stage, detail=search.describe())
 
-        answer = search.run(limit, tick)
+        # its dense solves are small (the dense path of chains of at most a few hundred
+        # states, e.g. ``_caught``'s): OpenBLAS's threads stalled one of 189 states for 0.1 s
+        # on the shared 2-core machine, against 1 ms on one (docs/benchmarks.md, "Stealth")
+        with one_blas_thread():
+            answer = search.run(limit, tick)
         # how the per-state search stopped: finished, its node limit, or its time
         answer = replace(answer, stop_reason=StopReason.of(answer.status, deadline.cancelled))
         if not schedule.segment_has_time(deadline):
@@ -385,7 +392,9 @@ def _feasibility(
     return verdict
 
 
-def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
+def _caught(
+    relax: PerStateRelaxation, limit: float, floors: dict[Picks, tuple[bool, float | None]]
+) -> Callable[[Picks], bool]:
     """Under ``max_alarm`` (δ = ``limit``): whether the picks fixed so far (a prefix of
     ``relax.order``) already raise the alarm with probability above δ, whatever the free
     choices take. The states whose rows the prefix decides (one group each: its options'
@@ -393,40 +402,85 @@ def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
     the run (scoring 0); a run of it that reaches the sink is a run of every completion, so
     its Pr(sink) is a lower bound on every completion's Pr(alarm). δ = 0: the sink reachable
     in its graph; δ > 0: its value less its proven error above δ. Then the subtree holds no
-    feasible alteration."""
+    feasible alteration.
+
+    ``floors`` keeps, per prefix, whether its chain reaches the sink and its proven floor
+    (None until a δ > 0 asks for it): they depend on neither the budget nor δ, and the same
+    prefixes come back at every budget and every δ of a curve."""
     chain = relax.chain
     problem = relax.problem
     assert problem.alarm_state is not None
     sink = chain.world_state == problem.alarm_state
     stop = chain.target  # the decoys and the sink (the decoy problem's stopping states)
     n = chain.n_states
+    rows = chain.transitions.tocoo()  # every group's row, once: a node masks them
+    row_owner = chain.group_state[rows.row]
+    row_kept = ~stop[row_owner]
 
-    def caught(picks: Picks) -> bool:
+    def floor(picks: Picks, value: bool) -> tuple[bool, float | None]:
         options = np.zeros(relax.option_cost.size, dtype=bool)
         for i, k in zip(relax.order, picks, strict=False):
             options[relax.first_option[i] + k] = True
-        groups = np.flatnonzero(relax.allowed_groups(options))
-        groups = groups[~stop[chain.group_state[groups]]]
-        owner = chain.group_state[groups]
-        rows = chain.transitions[groups].tocoo()
-        graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
-        reached = bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
-        if limit == 0.0 or not reached:  # exact; an unreachable sink bounds nothing
-            return reached
-        ended = np.ones(n, dtype=bool)  # undecided and stopping states: a self-loop each
+        decided = relax.allowed_groups(options)[rows.row] & row_kept
+        owner, col, data = row_owner[decided], rows.col[decided], rows.data[decided]
+        graph = sp.csr_matrix((np.ones(owner.size), (owner, col)), shape=(n, n))
+        seen = reachable_from(graph, np.array([chain.initial]))
+        if not (seen & sink).any():
+            return False, 0.0  # an unreachable sink bounds nothing
+        if not value:
+            return True, None  # reachable: exactly what δ = 0 asks
+        # the chain on the states the start reaches (closed under its moves: the same values
+        # there), numbered in place: a node's decided part is often a small share of the
+        # chain, and the solve costs by its size
+        place = np.full(n, -1, dtype=np.int64)
+        kept = np.flatnonzero(seen)
+        place[kept] = np.arange(kept.size)
+        inside = seen[owner]
+        ended = seen.copy()  # undecided and stopping states: a self-loop each
         ended[owner] = False
-        loops = np.flatnonzero(ended)
+        loops = place[np.flatnonzero(ended)]
         matrix = sp.csr_matrix(
             (
-                np.concatenate([rows.data, np.ones(loops.size)]),
-                (np.concatenate([owner[rows.row], loops]), np.concatenate([rows.col, loops])),
+                np.concatenate([data[inside], np.ones(loops.size)]),
+                (
+                    np.concatenate([place[owner[inside]], loops]),
+                    np.concatenate([place[col[inside]], loops]),
+                ),
             ),
-            shape=(n, n),
+            shape=(kept.size, kept.size),
         )
-        found = reach_probability_bounded(matrix, sink, chain.initial)
-        return bool(found.value - found.error > limit)
+        found = reach_probability_bounded(matrix, sink[kept], int(place[chain.initial]))
+        return True, float(found.value - found.error)
+
+    def caught(picks: Picks) -> bool:
+        known = floors.get(picks)
+        if known is None or (known[1] is None and limit > 0.0):
+            known = floors[picks] = floor(picks, limit > 0.0)
+        reached, lowest = known
+        if limit == 0.0 or not reached:
+            return reached
+        assert lowest is not None
+        return lowest > limit
 
     return caught
+
+
+def _floors(
+    constraint: AlarmConstraint, relax: PerStateRelaxation
+) -> dict[Picks, tuple[bool, float | None]]:
+    """The alarm floors of :func:`_caught`, shared by every budget of this solve and every δ
+    of a trade-off curve (the constraint's memo), per alteration space and order (a prefix's
+    picks index both)."""
+    space = relax.space
+    key = (
+        "caught floors",
+        tuple(relax.order),
+        relax.option_cost.tobytes(),
+        tuple((c.observation, c.targets.tobytes()) for c in space.choices),
+    )
+    floors = constraint.memo.setdefault(key, {})
+    assert isinstance(floors, dict)
+    return floors
 
 
 def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
