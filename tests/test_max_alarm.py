@@ -174,6 +174,85 @@ def test_branch_and_bound_tradeoff_curve_against_brute_force(seed):
             assert alarm <= delta + 1e-12
 
 
+# random problems whose monitored chain has no end component among its live states (the
+# Lagrangian bound is built only there) and some choice to search
+NO_END_COMPONENTS = (0, 1, 2, 10, 13)
+
+
+@pytest.mark.parametrize("seed", NO_END_COMPONENTS)
+def test_lagrangian_bound_lies_above_every_subtrees_constrained_optimum(seed):
+    """The Lagrangian node bound (engines.lagrangian) at every prefix of the search, two
+    budgets and several δ, for each λ alone and for a few together: at least
+    the best reference value among the prefix's completions within the budget whose
+    reference alarm is at most δ."""
+    from misdirect.solvers.engines.lagrangian import lagrangian_bound
+
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    _, relax = _search_space(watched, problem.budget)
+    cycling = np.zeros(relax.chain.n_states, dtype=bool)  # NO_END_COMPONENTS
+    sizes = [relax.first_option[i + 1] - relax.first_option[i] for i in relax.order]
+    scored = {
+        picks: reference(problem, relax.alteration(picks), step, "m0")
+        for picks in itertools.product(*(range(k) for k in sizes))
+    }
+    alarms = [alarm for _, alarm in scored.values()]
+    # fixed ones, and where the constraint cuts through these alarms (they may all lie high)
+    deltas = (0.0, 0.05, 0.2, *np.quantile(alarms, [0.25, 0.5]).tolist())
+    start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
+    tighter = checked = 0
+    for budget in sorted({problem.budget / 2, problem.budget}):
+        cap = relax.space.scale.cap(budget)
+        for delta in deltas:
+            bounds = [
+                lagrangian_bound(relax, cycling, delta, lambdas)
+                for lambdas in ((0.0,), (0.5,), (3.0,), (100.0,), (0.5, 3.0, 100.0))
+            ]
+            for depth in range(len(sizes) + 1):
+                for prefix in itertools.product(*(range(k) for k in sizes[:depth])):
+                    if relax.cost(prefix) > cap:
+                        continue
+                    feasible = [
+                        value
+                        for picks, (value, alarm) in scored.items()
+                        if picks[:depth] == prefix and relax.fits(picks, budget) and alarm <= delta
+                    ]
+                    if not feasible:
+                        continue
+                    allowed = relax.allowed_groups(
+                        relax.allowed_options(prefix, cap - relax.cost(prefix))
+                    )
+                    own, _, policy = relax.optimise(allowed, start.copy())
+                    for lagrangian in bounds:
+                        assert lagrangian is not None
+                        found = lagrangian.bound(allowed, policy)
+                        assert found >= max(feasible) - 1e-10, (budget, delta, prefix, found)
+                        tighter += found < own - 1e-9
+                        checked += 1
+    assert checked > 0
+    if seed == 1:  # the largest space: the bound is below the relaxation's own somewhere
+        assert tighter > 0
+
+
+@pytest.mark.parametrize("seed", NO_END_COMPONENTS)
+def test_branch_and_bound_with_the_lagrangian_bound_against_brute_force(seed, monkeypatch):
+    """branch-and-bound with the Lagrangian node bound switched on: the brute-force optimum
+    at every δ, certified."""
+    from misdirect.solvers import branch_and_bound
+
+    monkeypatch.setattr(branch_and_bound, "LAGRANGE_MULTIPLIERS", (0.5, 100.0))
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    best, valued = _brute_force(problem, step, "m0", problem.budget, DELTAS)
+    for delta in DELTAS:
+        result = misdirect.solve(
+            watched, budgets=[problem.budget], method="branch-and-bound", max_alarm=delta
+        )
+        _check(result, best[delta], valued, delta, "branch-and-bound, Lagrangian")
+
+
 def test_auto_hands_open_budgets_on(monkeypatch):
     """auto's constrained search stopped after one node: the enumeration takes the budget
     over, and the answer is still the brute-force optimum, certified."""

@@ -49,6 +49,7 @@ from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
 from misdirect.solvers.engines.covering import CoverRule, covering_bound
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
+from misdirect.solvers.engines.lagrangian import LagrangianBound, lagrangian_bound
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
@@ -60,6 +61,10 @@ from misdirect.solvers.status import Status, StopReason
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
+# max_alarm: the multipliers λ of the Lagrangian node bound (engines.lagrangian); empty: off.
+# Measured on the paper grid under the consistency monitor, (100.0,) pruned 41 % of the nodes
+# at δ = 0 and the curves still took longer (docs/benchmarks.md, "Stealth")
+LAGRANGE_MULTIPLIERS: tuple[float, ...] = ()
 # a union's relaxation on a kept basis, against a node bound on the whole chain (about 0.3 on
 # the 64-sensor turn-back grid, bench/results/covering): the first cover's estimate
 KEPT_BASIS_SHARE = 0.5
@@ -87,6 +92,8 @@ class _Curve:
     accept: Callable[[Picks], Verdict] | None = None
     # max_alarm: whether a node's fixed picks raise the alarm above δ whatever the rest
     caught: Callable[[Picks], bool] | None = None
+    # max_alarm: the Lagrangian node bound (engines.lagrangian), where LAGRANGE_MULTIPLIERS asks
+    lagrangian: LagrangianBound | None = None
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -194,6 +201,9 @@ class BranchAndBoundSolver:
             max_budget=max(budgets),
             accept=accept,
             caught=caught,
+            lagrangian=None
+            if constraint is None or caught is None or not LAGRANGE_MULTIPLIERS
+            else lagrangian_bound(relax, instance.cycling, constraint.limit, LAGRANGE_MULTIPLIERS),
         )
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
@@ -252,6 +262,7 @@ class BranchAndBoundSolver:
         nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
         search.caught = curve.caught
+        search.lagrangian = curve.lagrangian
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -578,6 +589,8 @@ class _Search(IncumbentSearch):
         self.evaluations_before = relax.evaluations
         self.caught: Callable[[Picks], bool] | None = None  # max_alarm (_caught)
         self.caught_pruned = 0
+        self.lagrangian: LagrangianBound | None = None  # max_alarm, off by default
+        self.lagrangian_pruned = 0
         mdp = relax.mdp
         self.proofs_before = (
             mdp.proofs,
@@ -650,6 +663,11 @@ class _Search(IncumbentSearch):
         self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))
         if self.incumbent.prune(bound):
             return
+        if self.lagrangian is not None and self.best_value >= 0:
+            bound = min(bound, self.lagrangian.bound(allowed, policy, deadline))
+            if self.incumbent.prune(bound):
+                self.lagrangian_pruned += 1
+                return
         covered_at = node.covered_at
         rule = self.cover_rule
         if rule is not None and rule.due(node.remaining, node.covered_at):
