@@ -30,7 +30,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -65,6 +65,9 @@ SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many co
 # Measured on the paper grid under the consistency monitor, (100.0,) pruned 41 % of the nodes
 # at δ = 0 and the curves still took longer (docs/benchmarks.md, "Stealth")
 LAGRANGE_MULTIPLIERS: tuple[float, ...] = ()
+# node relaxations kept for the other budgets and δ of a curve (a policy and two numbers each:
+# about 11 kB on the 1,367-state monitored paper grid)
+KNOWN_NODES = 20_000
 # a union's relaxation on a kept basis, against a node bound on the whole chain (about 0.3 on
 # the 64-sensor turn-back grid, bench/results/covering): the first cover's estimate
 KEPT_BASIS_SHARE = 0.5
@@ -94,6 +97,9 @@ class _Curve:
     caught: Callable[[Picks], bool] | None = None
     # max_alarm: the Lagrangian node bound (engines.lagrangian), where LAGRANGE_MULTIPLIERS asks
     lagrangian: LagrangianBound | None = None
+    # the node relaxations solved (``_Search._relaxed``): every budget's, and under max_alarm
+    # every δ's of a trade-off curve (the constraint's memo)
+    known: dict[bytes, tuple[float, float, np.ndarray]] = field(default_factory=dict)
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -205,6 +211,8 @@ class BranchAndBoundSolver:
             if constraint is None or caught is None or not LAGRANGE_MULTIPLIERS
             else lagrangian_bound(relax, instance.cycling, constraint.limit, LAGRANGE_MULTIPLIERS),
         )
+        if constraint is not None:  # every δ of a trade-off curve bounds the same nodes
+            curve.known = _memo(constraint, relax, "node relaxations")
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
             if picks is not None:
@@ -263,6 +271,7 @@ class BranchAndBoundSolver:
         search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
         search.caught = curve.caught
         search.lagrangian = curve.lagrangian
+        search.known = curve.known
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -480,18 +489,23 @@ def _floors(
     constraint: AlarmConstraint, relax: PerStateRelaxation
 ) -> dict[Picks, tuple[bool, float | None]]:
     """The alarm floors of :func:`_caught`, shared by every budget of this solve and every δ
-    of a trade-off curve (the constraint's memo), per alteration space and order (a prefix's
-    picks index both)."""
+    of a trade-off curve."""
+    return _memo(constraint, relax, "caught floors")
+
+
+def _memo(constraint: AlarmConstraint, relax: PerStateRelaxation, name: str) -> dict[Any, Any]:
+    """A table ``name`` in the constraint's memo, which every δ of a trade-off curve shares,
+    per alteration space and order (a prefix's picks and a node's groups index both)."""
     space = relax.space
     key = (
-        "caught floors",
+        name,
         tuple(relax.order),
         relax.option_cost.tobytes(),
         tuple((c.observation, c.targets.tobytes()) for c in space.choices),
     )
-    floors = constraint.memo.setdefault(key, {})
-    assert isinstance(floors, dict)
-    return floors
+    table = constraint.memo.setdefault(key, {})
+    assert isinstance(table, dict)
+    return table
 
 
 def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
@@ -591,6 +605,9 @@ class _Search(IncumbentSearch):
         self.caught_pruned = 0
         self.lagrangian: LagrangianBound | None = None  # max_alarm, off by default
         self.lagrangian_pruned = 0
+        # relaxations solved, by their allowed groups (``_relaxed``), shared along the curve
+        self.known: dict[bytes, tuple[float, float, np.ndarray]] | None = None
+        self.reused = 0
         mdp = relax.mdp
         self.proofs_before = (
             mdp.proofs,
@@ -649,15 +666,13 @@ class _Search(IncumbentSearch):
             self.caught_pruned += 1  # no completion is feasible: nothing to bound
             return
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
-        began = time.perf_counter()
-        bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)
-        self.node_seconds = time.perf_counter() - began
+        bound, value, policy = self._relaxed(allowed, node.policy, deadline)
         if self.root_bound is None:
             self.root_bound, self.root_policy = bound, policy
         level = len(node.picks)
         if level == len(relax.order):  # every observation fixed: the relaxation is the chain
             # its value, not the bound above it (the two differ by the rounding proven away)
-            self.incumbent.offer(node.picks, float(values[relax.chain.initial]))
+            self.incumbent.offer(node.picks, value)
             return
         usage = relax.usage(policy)
         self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))
@@ -685,6 +700,27 @@ class _Search(IncumbentSearch):
             remaining = node.remaining - float(costs[k])
             child = _Node((*node.picks, int(k)), remaining, bound, policy, covered_at)
             self.stack.append(child)
+
+    def _relaxed(
+        self, allowed: np.ndarray, policy: np.ndarray, deadline: Deadline | None
+    ) -> tuple[float, float, np.ndarray]:
+        """The relaxation over the groups ``allowed``: its proven bound, its value at the start
+        and its policy, from ``policy``. The relaxation is the allowed groups' alone, and the
+        same groups come back at other budgets (a node whose remaining budget affords the same
+        options) and at every δ of a trade-off curve: ``known`` keeps them (any proven bound of
+        it is one, whatever policy iteration started from)."""
+        key = np.packbits(allowed).tobytes()
+        found = None if self.known is None else self.known.get(key)
+        if found is not None:
+            self.reused += 1
+            return found
+        began = time.perf_counter()
+        bound, values, chosen = self.relax.optimise(allowed, policy.copy(), deadline)
+        self.node_seconds = time.perf_counter() - began
+        found = (bound, float(values[self.relax.chain.initial]), chosen)
+        if self.known is not None and len(self.known) < KNOWN_NODES:
+            self.known[key] = found
+        return found
 
     def _cover(
         self, node: _Node, rule: CoverRule, bound: float, deadline: Deadline | None
