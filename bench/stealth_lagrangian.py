@@ -1,8 +1,8 @@
 """Does the Lagrangian node bound pay on the monitored paper grid? (issue 52)
 
-    python bench/stealth_lagrangian.py --out DIR [--lambdas 100] [--rounds 2]
+    python bench/stealth_lagrangian.py --out DIR [--lambdas 100] [--rounds 2] [--top 4]
 
-branch-and-bound alone, budgets 0..4 under the consistency monitor, for each δ of
+branch-and-bound alone, budgets 0..4 (``--top``) under the consistency monitor, for each δ of
 ``--max-alarm 0,0.01,0.05,0.1``, without and with the Lagrangian node bound
 (:mod:`misdirect.solvers.engines.lagrangian`, λ from ``--lambdas``), alternating in one
 process, ``rounds`` times: nodes per budget (the same search but for the extra pruning),
@@ -33,7 +33,7 @@ from misdirect.solvers.engines.alarm import alarm_constraint
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 DELTAS = (0.0, 0.01, 0.05, 0.1)
-BUDGETS = [0, 1, 2, 3, 4]
+BUDGETS = [0, 1, 2, 3, 4]  # --top sets the largest
 ROOT_GRID = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
 
 
@@ -105,7 +105,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--lambdas", type=float, nargs="+", default=[100.0])
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--top", type=int, default=4, help="largest budget (default 4)")
     args = parser.parse_args()
+    BUDGETS[:] = range(args.top + 1)
     args.out.mkdir(parents=True, exist_ok=True)
     grid = paper_grid(5)
     watched = with_monitor(grid, consistency_monitor(grid))
@@ -123,7 +125,7 @@ def main() -> None:
     lines = [
         "# Lagrangian node bound on the monitored paper grid",
         "",
-        f"Machine: {platform.platform()}. branch-and-bound, budgets 0..4; λ = "
+        f"Machine: {platform.platform()}. branch-and-bound, budgets 0..{args.top}; λ = "
         f"{', '.join(f'{lam:g}' for lam in args.lambdas)}.",
         "",
         "| δ | Lagrangian | nodes per budget | nodes | bounds | wall s | CPU s | certified |",
