@@ -100,6 +100,8 @@ class _Curve:
     # the node relaxations solved (``_Search._relaxed``): every budget's, and under max_alarm
     # every δ's of a trade-off curve (the constraint's memo)
     known: dict[bytes, tuple[float, float, np.ndarray]] = field(default_factory=dict)
+    # exact values of complete assignments (the incumbents' roundings), likewise shared
+    values: dict[Picks, float] = field(default_factory=dict)
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -213,6 +215,7 @@ class BranchAndBoundSolver:
         )
         if constraint is not None:  # every δ of a trade-off curve bounds the same nodes
             curve.known = _memo(constraint, relax, "node relaxations")
+            curve.values = _memo(constraint, relax, "exact values")
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
             if picks is not None:
@@ -268,7 +271,9 @@ class BranchAndBoundSolver:
         relax, budget = curve.relax, step.budget
         # with a pool, the per-state search bounds its root only: the pool takes the rest
         nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
-        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
+        search = _Search(
+            relax, budget, nodes, curve.incumbent, curve.policy, curve.accept, values=curve.values
+        )
         search.caught = curve.caught
         search.lagrangian = curve.lagrangian
         search.known = curve.known
@@ -584,9 +589,15 @@ class _Search(IncumbentSearch):
         seed: tuple[Picks, float] | None,
         policy: np.ndarray,
         accept: Callable[[Picks], Verdict] | None = None,
+        *,
+        values: dict[Picks, float] | None = None,
     ):
+        """``values``: exact values of complete assignments, shared along the curve
+        (:class:`Incumbent`)."""
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget, accept=accept)
+        self.incumbent = Incumbent(
+            relax, (0,) * len(relax.order), budget, accept=accept, values=values
+        )
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy
