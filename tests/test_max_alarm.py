@@ -150,10 +150,15 @@ def test_alarm_floor_of_every_prefix_lies_below_every_completion(seed):
     assert checked_prefixes > 3
 
 
-@pytest.mark.parametrize("seed", [0, 33])
-def test_branch_and_bound_tradeoff_curve_against_brute_force(seed):
-    """One trade-off curve by branch-and-bound (the δ share the alarm floors), every budget
-    up to the problem's and every δ: the brute-force optimum, certified."""
+@pytest.mark.parametrize(("seed", "kept"), [(0, True), (33, True), (33, False)])
+def test_branch_and_bound_tradeoff_curve_against_brute_force(seed, kept, monkeypatch):
+    """One trade-off curve by branch-and-bound (the δ share the alarm floors, the node
+    relaxations and the exact values; ``kept`` False: no node relaxation kept), two budgets
+    and every δ: the brute-force optimum, certified."""
+    from misdirect.solvers import branch_and_bound
+
+    if not kept:
+        monkeypatch.setattr(branch_and_bound, "KNOWN_BYTES", 0)
     problem = random_problem(seed, randomized=seed % 2 == 1)
     monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
     watched = with_monitor(problem, monitor)

@@ -65,9 +65,10 @@ SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many co
 # Measured on the paper grid under the consistency monitor, (100.0,) pruned 41 % of the nodes
 # at δ = 0 and the curves still took longer (docs/benchmarks.md, "Stealth")
 LAGRANGE_MULTIPLIERS: tuple[float, ...] = ()
-# node relaxations kept for the other budgets and δ of a curve (a policy and two numbers each:
-# about 11 kB on the 1,367-state monitored paper grid)
-KNOWN_NODES = 20_000
+# node relaxations kept for the other budgets and δ of a curve, at most this many bytes of
+# policies (one group per product state: 11 kB each on the 1,367-state monitored paper grid,
+# so about 6,000 of them; a chain of 10^6 states keeps 8)
+KNOWN_BYTES = 64 * 2**20
 # a union's relaxation on a kept basis, against a node bound on the whole chain (about 0.3 on
 # the 64-sensor turn-back grid, bench/results/covering): the first cover's estimate
 KEPT_BASIS_SHARE = 0.5
@@ -718,8 +719,9 @@ class _Search(IncumbentSearch):
         """The relaxation over the groups ``allowed``: its proven bound, its value at the start
         and its policy, from ``policy``. The relaxation is the allowed groups' alone, and the
         same groups come back at other budgets (a node whose remaining budget affords the same
-        options) and at every δ of a trade-off curve: ``known`` keeps them (any proven bound of
-        it is one, whatever policy iteration started from)."""
+        options) and at every δ of a trade-off curve: ``known`` keeps them, up to
+        :data:`KNOWN_BYTES` (any proven bound of it is one, whatever policy iteration started
+        from)."""
         key = np.packbits(allowed).tobytes()
         found = None if self.known is None else self.known.get(key)
         if found is not None:
@@ -729,7 +731,7 @@ class _Search(IncumbentSearch):
         bound, values, chosen = self.relax.optimise(allowed, policy.copy(), deadline)
         self.node_seconds = time.perf_counter() - began
         found = (bound, float(values[self.relax.chain.initial]), chosen)
-        if self.known is not None and len(self.known) < KNOWN_NODES:
+        if self.known is not None and (len(self.known) + 1) * chosen.nbytes <= KNOWN_BYTES:
             self.known[key] = found
         return found
 
