@@ -300,6 +300,37 @@ def test_bench_stealth_reduced_mode(tmp_path):
     assert (tmp_path / "stealth_tradeoff.png").stat().st_size > 0
 
 
+def test_bench_stealth_lagrangian_reduced_mode(tmp_path):
+    """bench/stealth_lagrangian.py at budgets 0..1, one round (no timing asserted): with the
+    Lagrangian node bound and without, every curve certified at the same values (δ = 0 at
+    budget 1: 0.089186, as bench/stealth.py), and no root bound above the relaxation's."""
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bench" / "stealth_lagrangian.py"),
+            "--out",
+            str(tmp_path),
+            "--top",
+            "1",
+            "--rounds",
+            "1",
+        ],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )
+    document = json.loads((tmp_path / "stealth_lagrangian.json").read_text())
+    runs = document["runs"]
+    assert len(runs) == 8 and all(run["certified"] for run in runs)
+    for off, on in zip(runs[::2], runs[1::2], strict=True):
+        assert off["lambdas"] == [] and on["lambdas"] == [100.0]
+        assert on["values"] == pytest.approx(off["values"], abs=1e-9)
+    assert runs[0]["values"][1] == pytest.approx(0.089186, abs=1e-6)
+    for root in document["roots"]:
+        assert root["lagrangian"] <= root["relaxation"] + 1e-9
+    assert (tmp_path / "stealth_lagrangian.md").exists()
+
+
 def test_robust_benchmark_reduced_mode(tmp_path):
     """bench/robust.py --quick: the exact master at budget 0 and one randomized round at
     budget 1, the baselines, the table and the trade-off figure."""

@@ -8,6 +8,7 @@ numbers, and δ = 0 on the reference's own graph (a caught move reachable at all
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -97,6 +98,164 @@ def test_incremental_with_the_alarm_enumerated(monkeypatch):
     )
     for delta, result in zip(DELTAS, curves, strict=True):
         _check(result, best[delta], valued, delta, "incremental")
+
+
+def _search_space(watched, budget):
+    """The per-state relaxation branch-and-bound searches on, for ``watched`` under a δ."""
+    from misdirect.core.attack import prepare
+    from misdirect.solvers.engines.alarm import alarm_constraint
+    from misdirect.solvers.engines.per_state import PerStateRelaxation
+
+    constraint = alarm_constraint(watched, 0.05)
+    decoy = constraint.decoy_problem
+    instance = prepare(decoy, budget)
+    return constraint, PerStateRelaxation(decoy, instance.space, instance.chain, instance.cycling)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 4, 33])
+def test_alarm_floor_of_every_prefix_lies_below_every_completion(seed):
+    """branch-and-bound prunes a prefix whose decided states alone raise the alarm above δ
+    (``_caught``, its floors computed on the part of the chain the start reaches and shared
+    by every budget and δ): per prefix of every assignment of the search, against the
+    reference alarm of each of its completions (whatever they cost), with one floor table
+    shared by the three δ as a trade-off curve shares it."""
+    from misdirect.solvers import branch_and_bound
+
+    rng = np.random.default_rng(seed)
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, rng, 3)
+    watched = with_monitor(problem, monitor)
+    _, relax = _search_space(watched, problem.budget)
+    sizes = [relax.first_option[i + 1] - relax.first_option[i] for i in relax.order]
+    assert int(np.prod(sizes)) <= 5_000, "too many assignments for the brute force"
+    alarms = {
+        picks: reference(problem, relax.alteration(picks), step, "m0")[1]
+        for picks in itertools.product(*(range(k) for k in sizes))
+    }
+    floors: dict = {}
+    checked_prefixes = 0
+    for delta in (0.0, 0.05, 0.2):
+        caught = branch_and_bound._caught(relax, delta, floors)
+        for depth in range(len(sizes) + 1):
+            for prefix in itertools.product(*(range(k) for k in sizes[:depth])):
+                lowest = min(a for picks, a in alarms.items() if picks[:depth] == prefix)
+                if caught(prefix):
+                    assert lowest > (0.0 if delta == 0.0 else delta), (prefix, delta)
+                reached, floor = floors[prefix]
+                if reached:  # a run of every completion reaches the alarm
+                    assert lowest > 0.0, prefix
+                if floor is not None:
+                    assert floor <= lowest + 1e-12, (prefix, floor, lowest)
+                checked_prefixes += 1
+    assert checked_prefixes > 3
+
+
+@pytest.mark.parametrize(("seed", "kept"), [(0, True), (33, True), (33, False)])
+def test_branch_and_bound_tradeoff_curve_against_brute_force(seed, kept, monkeypatch):
+    """One trade-off curve by branch-and-bound (the δ share the alarm floors, the node
+    relaxations and the exact values; ``kept`` False: no node relaxation kept), two budgets
+    and every δ: the brute-force optimum, certified."""
+    from misdirect.solvers import branch_and_bound
+
+    if not kept:
+        monkeypatch.setattr(branch_and_bound, "KNOWN_BYTES", 0)
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    budgets = sorted({problem.budget / 2, problem.budget})
+    deltas = (0.0, 0.02, 0.05, 0.2, 1.0)
+    curves = misdirect.solve_tradeoff(watched, deltas, budgets=budgets, method="branch-and-bound")
+    for budget in budgets:
+        best, valued = _brute_force(problem, step, "m0", budget, deltas)
+        for delta, result in zip(deltas, curves, strict=True):
+            (point,) = [p for p in result.curve if p.budget == budget]
+            if best[delta] is None:
+                assert str(point.status) == "infeasible", (budget, delta)
+                continue
+            assert str(point.status) == "optimal", (budget, delta)
+            assert point.probability == pytest.approx(best[delta], abs=1e-9), (budget, delta)
+            value, alarm = valued[np.asarray(point.alteration_array).tobytes()]
+            assert value == pytest.approx(point.probability, abs=1e-9)
+            assert alarm <= delta + 1e-12
+
+
+# random problems whose monitored chain has no end component among its live states (the
+# Lagrangian bound is built only there) and some choice to search
+NO_END_COMPONENTS = (0, 1, 2, 10, 13)
+
+
+@pytest.mark.parametrize("seed", NO_END_COMPONENTS)
+def test_lagrangian_bound_lies_above_every_subtrees_constrained_optimum(seed):
+    """The Lagrangian node bound (engines.lagrangian) at every prefix of the search, two
+    budgets and several δ, for each λ alone and for a few together: at least
+    the best reference value among the prefix's completions within the budget whose
+    reference alarm is at most δ."""
+    from misdirect.solvers.engines.lagrangian import lagrangian_bound
+
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    _, relax = _search_space(watched, problem.budget)
+    cycling = np.zeros(relax.chain.n_states, dtype=bool)  # NO_END_COMPONENTS
+    sizes = [relax.first_option[i + 1] - relax.first_option[i] for i in relax.order]
+    scored = {
+        picks: reference(problem, relax.alteration(picks), step, "m0")
+        for picks in itertools.product(*(range(k) for k in sizes))
+    }
+    alarms = [alarm for _, alarm in scored.values()]
+    # fixed ones, and where the constraint cuts through these alarms (they may all lie high)
+    deltas = (0.0, 0.05, 0.2, *np.quantile(alarms, [0.25, 0.5]).tolist())
+    start = relax.best_groups(relax.live_groups.astype(np.float64))[0]
+    tighter = checked = 0
+    for budget in sorted({problem.budget / 2, problem.budget}):
+        cap = relax.space.scale.cap(budget)
+        for delta in deltas:
+            bounds = [
+                lagrangian_bound(relax, cycling, delta, lambdas)
+                for lambdas in ((0.0,), (0.5,), (3.0,), (100.0,), (0.5, 3.0, 100.0))
+            ]
+            for depth in range(len(sizes) + 1):
+                for prefix in itertools.product(*(range(k) for k in sizes[:depth])):
+                    if relax.cost(prefix) > cap:
+                        continue
+                    feasible = [
+                        value
+                        for picks, (value, alarm) in scored.items()
+                        if picks[:depth] == prefix and relax.fits(picks, budget) and alarm <= delta
+                    ]
+                    if not feasible:
+                        continue
+                    allowed = relax.allowed_groups(
+                        relax.allowed_options(prefix, cap - relax.cost(prefix))
+                    )
+                    own, _, policy = relax.optimise(allowed, start.copy())
+                    for lagrangian in bounds:
+                        assert lagrangian is not None
+                        found = lagrangian.bound(allowed, policy)
+                        assert found >= max(feasible) - 1e-10, (budget, delta, prefix, found)
+                        tighter += found < own - 1e-9
+                        checked += 1
+    assert checked > 0
+    if seed == 1:  # the largest space: the bound is below the relaxation's own somewhere
+        assert tighter > 0
+
+
+@pytest.mark.parametrize("seed", NO_END_COMPONENTS)
+def test_branch_and_bound_with_the_lagrangian_bound_against_brute_force(seed, monkeypatch):
+    """branch-and-bound with the Lagrangian node bound switched on: the brute-force optimum
+    at every δ, certified."""
+    from misdirect.solvers import branch_and_bound
+
+    monkeypatch.setattr(branch_and_bound, "LAGRANGE_MULTIPLIERS", (0.5, 100.0))
+    problem = random_problem(seed, randomized=seed % 2 == 1)
+    monitor, step = _random_monitor(problem, np.random.default_rng(seed), 3)
+    watched = with_monitor(problem, monitor)
+    best, valued = _brute_force(problem, step, "m0", problem.budget, DELTAS)
+    for delta in DELTAS:
+        result = misdirect.solve(
+            watched, budgets=[problem.budget], method="branch-and-bound", max_alarm=delta
+        )
+        _check(result, best[delta], valued, delta, "branch-and-bound, Lagrangian")
 
 
 def test_auto_hands_open_budgets_on(monkeypatch):

@@ -30,7 +30,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,6 +38,7 @@ import scipy.sparse.linalg as spla
 
 from misdirect.core import tolerance
 from misdirect.core.attack import AttackInstance, prepare
+from misdirect.core.blas import one_blas_thread
 from misdirect.core.model import AlterationArray, Problem, reachable_from
 from misdirect.core.reachability import reach_probability_bounded
 from misdirect.errors import OptionError
@@ -48,6 +49,7 @@ from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines.alarm import AlarmConstraint, Verdict, alarm_constraint
 from misdirect.solvers.engines.covering import CoverRule, covering_bound
 from misdirect.solvers.engines.incumbent import Incumbent, IncumbentSearch, Picks
+from misdirect.solvers.engines.lagrangian import LagrangianBound, lagrangian_bound
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 from misdirect.solvers.engines.segment_relaxation import SegmentRelaxation
 from misdirect.solvers.engines.segment_search import SegmentSearch
@@ -59,6 +61,14 @@ from misdirect.solvers.status import Status, StopReason
 GREEDY_TRIES = 8  # local search: candidates evaluated exactly per step
 SEGMENT_MIN_STATES = 1_000  # from this many product states, the segment search backs this one up
 SEGMENT_ENUMERATE_AT = 300_000  # it enumerates a node with at most this many completions
+# max_alarm: the multipliers λ of the Lagrangian node bound (engines.lagrangian); empty: off.
+# Measured on the paper grid under the consistency monitor, (100.0,) pruned 41 % of the nodes
+# at δ = 0 and the curves still took longer (docs/benchmarks.md, "Stealth")
+LAGRANGE_MULTIPLIERS: tuple[float, ...] = ()
+# node relaxations kept for the other budgets and δ of a curve, at most this many bytes of
+# policies (one group per product state: 11 kB each on the 1,367-state monitored paper grid,
+# so about 6,000 of them; a chain of 10^6 states keeps 8)
+KNOWN_BYTES = 64 * 2**20
 # a union's relaxation on a kept basis, against a node bound on the whole chain (about 0.3 on
 # the 64-sensor turn-back grid, bench/results/covering): the first cover's estimate
 KEPT_BASIS_SHARE = 0.5
@@ -86,6 +96,13 @@ class _Curve:
     accept: Callable[[Picks], Verdict] | None = None
     # max_alarm: whether a node's fixed picks raise the alarm above δ whatever the rest
     caught: Callable[[Picks], bool] | None = None
+    # max_alarm: the Lagrangian node bound (engines.lagrangian), where LAGRANGE_MULTIPLIERS asks
+    lagrangian: LagrangianBound | None = None
+    # the node relaxations solved (``_Search._relaxed``): every budget's, and under max_alarm
+    # every δ's of a trade-off curve (the constraint's memo)
+    known: dict[bytes, tuple[float, float, np.ndarray]] = field(default_factory=dict)
+    # exact values of complete assignments (the incumbents' roundings), likewise shared
+    values: dict[Picks, float] = field(default_factory=dict)
 
     def note_segment_root(self, bound: float | None, budget: float) -> None:
         """Keep a segment search's root bound if it holds at every budget: the segment MDP at
@@ -173,7 +190,9 @@ class BranchAndBoundSolver:
         accept = None if constraint is None else _feasibility(constraint, relax)
         # a node whose fixed picks already raise the alarm too often is pruned
         caught = (
-            None if constraint is None or constraint.trivial else _caught(relax, constraint.limit)
+            None
+            if constraint is None or constraint.trivial
+            else _caught(relax, constraint.limit, _floors(constraint, relax))
         )
         curve = _Curve(
             instance,
@@ -192,7 +211,13 @@ class BranchAndBoundSolver:
             max_budget=max(budgets),
             accept=accept,
             caught=caught,
+            lagrangian=None
+            if constraint is None or caught is None or not LAGRANGE_MULTIPLIERS
+            else lagrangian_bound(relax, instance.cycling, constraint.limit, LAGRANGE_MULTIPLIERS),
         )
+        if constraint is not None:  # every δ of a trade-off curve bounds the same nodes
+            curve.known = _memo(constraint, relax, "node relaxations")
+            curve.values = _memo(constraint, relax, "exact values")
         if below is not None and below.alteration is not None:
             picks = relax.picks_of(below.alteration)  # feasible at every larger budget
             if picks is not None:
@@ -248,8 +273,12 @@ class BranchAndBoundSolver:
         relax, budget = curve.relax, step.budget
         # with a pool, the per-state search bounds its root only: the pool takes the rest
         nodes = 1 if self.options.pool is not None and curve.accept is None else self.max_nodes
-        search = _Search(relax, budget, nodes, curve.incumbent, curve.policy, curve.accept)
+        search = _Search(
+            relax, budget, nodes, curve.incumbent, curve.policy, curve.accept, values=curve.values
+        )
         search.caught = curve.caught
+        search.lagrangian = curve.lagrangian
+        search.known = curve.known
         if CoverRule.applies(bool(curve.instance.cycling.any())):
             search.cover_with(CoverRule(workers=self.workers()), _strengths(curve))
         picks = None if step.seed is None else relax.picks_of(step.seed)
@@ -275,7 +304,11 @@ class BranchAndBoundSolver:
             stage = f"branch-and-bound, budget {budget:g}"
             report(progress, step.done, step.total, stage=stage, detail=search.describe())
 
-        answer = search.run(limit, tick)
+        # its dense solves are small (the dense path of chains of at most a few hundred
+        # states, e.g. ``_caught``'s): OpenBLAS's threads stalled one of 189 states for 0.1 s
+        # on the shared 2-core machine, against 1 ms on one (docs/benchmarks.md, "Stealth")
+        with one_blas_thread():
+            answer = search.run(limit, tick)
         # how the per-state search stopped: finished, its node limit, or its time
         answer = replace(answer, stop_reason=StopReason.of(answer.status, deadline.cancelled))
         if not schedule.segment_has_time(deadline):
@@ -386,7 +419,9 @@ def _feasibility(
     return verdict
 
 
-def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
+def _caught(
+    relax: PerStateRelaxation, limit: float, floors: dict[Picks, tuple[bool, float | None]]
+) -> Callable[[Picks], bool]:
     """Under ``max_alarm`` (δ = ``limit``): whether the picks fixed so far (a prefix of
     ``relax.order``) already raise the alarm with probability above δ, whatever the free
     choices take. The states whose rows the prefix decides (one group each: its options'
@@ -394,40 +429,90 @@ def _caught(relax: PerStateRelaxation, limit: float) -> Callable[[Picks], bool]:
     the run (scoring 0); a run of it that reaches the sink is a run of every completion, so
     its Pr(sink) is a lower bound on every completion's Pr(alarm). δ = 0: the sink reachable
     in its graph; δ > 0: its value less its proven error above δ. Then the subtree holds no
-    feasible alteration."""
+    feasible alteration.
+
+    ``floors`` keeps, per prefix, whether its chain reaches the sink and its proven floor
+    (None until a δ > 0 asks for it): they depend on neither the budget nor δ, and the same
+    prefixes come back at every budget and every δ of a curve."""
     chain = relax.chain
     problem = relax.problem
     assert problem.alarm_state is not None
     sink = chain.world_state == problem.alarm_state
     stop = chain.target  # the decoys and the sink (the decoy problem's stopping states)
     n = chain.n_states
+    rows = chain.transitions.tocoo()  # every group's row, once: a node masks them
+    row_owner = chain.group_state[rows.row]
+    row_kept = ~stop[row_owner]
 
-    def caught(picks: Picks) -> bool:
+    def floor(picks: Picks, value: bool) -> tuple[bool, float | None]:
         options = np.zeros(relax.option_cost.size, dtype=bool)
         for i, k in zip(relax.order, picks, strict=False):
             options[relax.first_option[i] + k] = True
-        groups = np.flatnonzero(relax.allowed_groups(options))
-        groups = groups[~stop[chain.group_state[groups]]]
-        owner = chain.group_state[groups]
-        rows = chain.transitions[groups].tocoo()
-        graph = sp.csr_matrix((np.ones(rows.nnz), (owner[rows.row], rows.col)), shape=(n, n))
-        reached = bool((reachable_from(graph, np.array([chain.initial])) & sink).any())
-        if limit == 0.0 or not reached:  # exact; an unreachable sink bounds nothing
-            return reached
-        ended = np.ones(n, dtype=bool)  # undecided and stopping states: a self-loop each
+        decided = relax.allowed_groups(options)[rows.row] & row_kept
+        owner, col, data = row_owner[decided], rows.col[decided], rows.data[decided]
+        graph = sp.csr_matrix((np.ones(owner.size), (owner, col)), shape=(n, n))
+        seen = reachable_from(graph, np.array([chain.initial]))
+        if not (seen & sink).any():
+            return False, 0.0  # an unreachable sink bounds nothing
+        if not value:
+            return True, None  # reachable: exactly what δ = 0 asks
+        # the chain on the states the start reaches (closed under its moves: the same values
+        # there), numbered in place: a node's decided part is often a small share of the
+        # chain, and the solve costs by its size
+        place = np.full(n, -1, dtype=np.int64)
+        kept = np.flatnonzero(seen)
+        place[kept] = np.arange(kept.size)
+        inside = seen[owner]
+        ended = seen.copy()  # undecided and stopping states: a self-loop each
         ended[owner] = False
-        loops = np.flatnonzero(ended)
+        loops = place[np.flatnonzero(ended)]
         matrix = sp.csr_matrix(
             (
-                np.concatenate([rows.data, np.ones(loops.size)]),
-                (np.concatenate([owner[rows.row], loops]), np.concatenate([rows.col, loops])),
+                np.concatenate([data[inside], np.ones(loops.size)]),
+                (
+                    np.concatenate([place[owner[inside]], loops]),
+                    np.concatenate([place[col[inside]], loops]),
+                ),
             ),
-            shape=(n, n),
+            shape=(kept.size, kept.size),
         )
-        found = reach_probability_bounded(matrix, sink, chain.initial)
-        return bool(found.value - found.error > limit)
+        found = reach_probability_bounded(matrix, sink[kept], int(place[chain.initial]))
+        return True, float(found.value - found.error)
+
+    def caught(picks: Picks) -> bool:
+        known = floors.get(picks)
+        if known is None or (known[1] is None and limit > 0.0):
+            known = floors[picks] = floor(picks, limit > 0.0)
+        reached, lowest = known
+        if limit == 0.0 or not reached:
+            return reached
+        assert lowest is not None
+        return lowest > limit
 
     return caught
+
+
+def _floors(
+    constraint: AlarmConstraint, relax: PerStateRelaxation
+) -> dict[Picks, tuple[bool, float | None]]:
+    """The alarm floors of :func:`_caught`, shared by every budget of this solve and every δ
+    of a trade-off curve."""
+    return _memo(constraint, relax, "caught floors")
+
+
+def _memo(constraint: AlarmConstraint, relax: PerStateRelaxation, name: str) -> dict[Any, Any]:
+    """A table ``name`` in the constraint's memo, which every δ of a trade-off curve shares,
+    per alteration space and order (a prefix's picks and a node's groups index both)."""
+    space = relax.space
+    key = (
+        name,
+        tuple(relax.order),
+        relax.option_cost.tobytes(),
+        tuple((c.observation, c.targets.tobytes()) for c in space.choices),
+    )
+    table = constraint.memo.setdefault(key, {})
+    assert isinstance(table, dict)
+    return table
 
 
 def _none_feasible(answer: Solution, search: _Search, relax: PerStateRelaxation) -> Solution:
@@ -506,9 +591,15 @@ class _Search(IncumbentSearch):
         seed: tuple[Picks, float] | None,
         policy: np.ndarray,
         accept: Callable[[Picks], Verdict] | None = None,
+        *,
+        values: dict[Picks, float] | None = None,
     ):
+        """``values``: exact values of complete assignments, shared along the curve
+        (:class:`Incumbent`)."""
         self.relax, self.budget, self.max_nodes = relax, budget, max_nodes
-        self.incumbent = Incumbent(relax, (0,) * len(relax.order), budget, accept=accept)
+        self.incumbent = Incumbent(
+            relax, (0,) * len(relax.order), budget, accept=accept, values=values
+        )
         if seed is not None:  # the smaller budget's answer stays feasible
             self.incumbent.offer(*seed)
         self.root_policy = policy
@@ -526,6 +617,11 @@ class _Search(IncumbentSearch):
         self.evaluations_before = relax.evaluations
         self.caught: Callable[[Picks], bool] | None = None  # max_alarm (_caught)
         self.caught_pruned = 0
+        self.lagrangian: LagrangianBound | None = None  # max_alarm, off by default
+        self.lagrangian_pruned = 0
+        # relaxations solved, by their allowed groups (``_relaxed``), shared along the curve
+        self.known: dict[bytes, tuple[float, float, np.ndarray]] | None = None
+        self.reused = 0
         mdp = relax.mdp
         self.proofs_before = (
             mdp.proofs,
@@ -584,20 +680,23 @@ class _Search(IncumbentSearch):
             self.caught_pruned += 1  # no completion is feasible: nothing to bound
             return
         allowed = relax.allowed_groups(relax.allowed_options(node.picks, node.remaining))
-        began = time.perf_counter()
-        bound, values, policy = relax.optimise(allowed, node.policy.copy(), deadline)
-        self.node_seconds = time.perf_counter() - began
+        bound, value, policy = self._relaxed(allowed, node.policy, deadline)
         if self.root_bound is None:
             self.root_bound, self.root_policy = bound, policy
         level = len(node.picks)
         if level == len(relax.order):  # every observation fixed: the relaxation is the chain
             # its value, not the bound above it (the two differ by the rounding proven away)
-            self.incumbent.offer(node.picks, float(values[relax.chain.initial]))
+            self.incumbent.offer(node.picks, value)
             return
         usage = relax.usage(policy)
         self.incumbent.offer_exact(self._round(node.picks, node.remaining, usage))
         if self.incumbent.prune(bound):
             return
+        if self.lagrangian is not None and self.best_value >= 0:
+            bound = min(bound, self.lagrangian.bound(allowed, policy, deadline))
+            if self.incumbent.prune(bound):
+                self.lagrangian_pruned += 1
+                return
         covered_at = node.covered_at
         rule = self.cover_rule
         if rule is not None and rule.due(node.remaining, node.covered_at):
@@ -615,6 +714,28 @@ class _Search(IncumbentSearch):
             remaining = node.remaining - float(costs[k])
             child = _Node((*node.picks, int(k)), remaining, bound, policy, covered_at)
             self.stack.append(child)
+
+    def _relaxed(
+        self, allowed: np.ndarray, policy: np.ndarray, deadline: Deadline | None
+    ) -> tuple[float, float, np.ndarray]:
+        """The relaxation over the groups ``allowed``: its proven bound, its value at the start
+        and its policy, from ``policy``. The relaxation is the allowed groups' alone, and the
+        same groups come back at other budgets (a node whose remaining budget affords the same
+        options) and at every δ of a trade-off curve: ``known`` keeps them, up to
+        :data:`KNOWN_BYTES` (any proven bound of it is one, whatever policy iteration started
+        from)."""
+        key = np.packbits(allowed).tobytes()
+        found = None if self.known is None else self.known.get(key)
+        if found is not None:
+            self.reused += 1
+            return found
+        began = time.perf_counter()
+        bound, values, chosen = self.relax.optimise(allowed, policy.copy(), deadline)
+        self.node_seconds = time.perf_counter() - began
+        found = (bound, float(values[self.relax.chain.initial]), chosen)
+        if self.known is not None and (len(self.known) + 1) * chosen.nbytes <= KNOWN_BYTES:
+            self.known[key] = found
+        return found
 
     def _cover(
         self, node: _Node, rule: CoverRule, bound: float, deadline: Deadline | None

@@ -39,7 +39,11 @@ class Incumbent:
         order_ties: bool = False,
         lock: threading.RLock | threading.Condition | None = None,
         accept: Callable[[Picks], Verdict] | None = None,
+        values: dict[Picks, float] | None = None,
     ):
+        """``values``: exact values of complete assignments already computed, shared with the
+        searches of the other budgets of a curve (the same relaxation, so the same picks):
+        the rounded policies of their nodes come back."""
         self.relax = relax
         self.budget = budget  # offers over it are refused: searches may reach them by rounding
         self.order_ties = order_ties
@@ -53,7 +57,7 @@ class Incumbent:
         # a value attained elsewhere (another worker's incumbent): pruning is against the
         # larger of it and ours, so that it stays global when a search is split up
         self.floor = -np.inf
-        self._values: dict[Picks, float] = {}
+        self._values: dict[Picks, float] = {} if values is None else values
         # max_alarm: only alterations proven feasible are kept; the best value of one whose
         # verdict is undecided stays in the proven bound
         self.accept = accept
