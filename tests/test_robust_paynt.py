@@ -22,6 +22,7 @@ from misdirect.defence.robust_oracle import goal_states, objective_value
 from misdirect.defence.robust_paynt import combined_problem, replicated
 from misdirect.io.problem_file import write_problem
 from misdirect.scenarios import random_problem
+from result_schema import checked
 from test_robust import absorbed_problem
 
 runner = CliRunner()
@@ -194,7 +195,7 @@ def test_cli_paynt_master_writes_a_controller_that_loads_back(tmp_path):
         ],
     )  # fmt: skip
     assert run.exit_code == 0, run.output
-    robust = json.loads(run.output)["robust"]
+    robust = checked(run.output)["robust"]  # the result schema knows the PAYNT master
     assert robust["master"] == "paynt" and robust["master_bound"] is None
     solved = runner.invoke(
         app, ["solve", str(path), "--controller", str(fsc), "--budget", "1", "--json"]
@@ -204,3 +205,25 @@ def test_cli_paynt_master_writes_a_controller_that_loads_back(tmp_path):
     if robust["certified"]:
         assert final["status"] == "optimal"
         assert final["value"] == pytest.approx(robust["worst_case"], abs=1e-9)
+
+
+def test_single_changes_warm_start_is_within_the_budget():
+    """K's warm start for the PAYNT master: alterations within the budget, one reading each,
+    every reading the objective can depend on with every affordable target; none past the
+    limit."""
+    problem = small_problem(4)
+    warm = robust_paynt.single_changes(problem, 2.0)
+    identity = problem.identity()
+    assert warm
+    for alpha in warm:
+        assert np.count_nonzero(alpha != identity) == 1
+        assert problem.alteration_cost(alpha) <= 2.0 + 1e-9
+    changed = {(int(o), int(a[o])) for a in warm for o in np.flatnonzero(a != identity)}
+    expected = {
+        (int(o), t)
+        for o in problem.relevant_observations
+        for t in range(problem.pomdp.n_observations)
+        if t != o and problem.cost.row(int(o))[t] <= 2.0
+    }
+    assert changed == expected
+    assert robust_paynt.single_changes(problem, 2.0, limit=len(warm) - 1) == []

@@ -77,7 +77,7 @@ from misdirect.defence.robust_oracle import (
     oracle,
     target_and_worth,
 )
-from misdirect.defence.robust_paynt import PayntMaster
+from misdirect.defence.robust_paynt import PayntMaster, single_changes
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
 
@@ -582,13 +582,21 @@ def robust_controller(
         rounds_cap = 1000 if max_rounds is None else max_rounds
         cache = _Cache(count)
     deadline = shared_deadline(time_limit)
+    notes: list[str] = []
     alterations: list[np.ndarray] = [problem.identity()]
+    if isinstance(search, PayntMaster) and search.warm:
+        # PAYNT meets many members at once (one copy each): K starts with every single change
+        warm = single_changes(problem, budget)
+        alterations += warm
+        if warm:
+            notes.append(
+                f"PAYNT master: K started with the {len(warm)} single changes within the budget"
+            )
     rounds: list[RobustRound] = []
     # ((shortfall below the floor, sense * bound, tie-break), controller, worst)
     best: tuple[tuple[float, float, float], Controller, Worst] | None = None
     master_bound = -math.inf  # sense * the master's value: a bound from below in sense terms
     stop = "time limit"
-    notes: list[str] = []
 
     def worst_over_k(controller: Controller) -> float:
         candidate = replace(problem, controller=controller)
@@ -702,7 +710,13 @@ def robust_controller(
         if search is None and best[0][1] - master_bound <= tolerance.CERTIFY and best[2].certified:
             stop = "bounds met"
             break
-        if any(np.array_equal(worst.alteration, a) for a in alterations):
+        known = any(np.array_equal(worst.alteration, a) for a in alterations)
+        if known and isinstance(search, PayntMaster) and search.moved:
+            # the same K, other weights: PAYNT's next syntheses answer another average
+            if deadline.expired():
+                break
+            continue
+        if known:
             stop = (
                 "the oracle's attack is already in K: the controller's worst case is its value "
                 "over K (a local optimum of the master, no bound)"

@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from misdirect.core import tolerance
 from misdirect.core.model import Controller, Pomdp, Problem
 from misdirect.defence.robust_gradient import ExactWorst, MasterAnswer, better
 from misdirect.defence.robust_oracle import goal_states, objective_value, target_and_worth
@@ -46,6 +47,8 @@ PAYNT_SECONDS = 30.0  # one synthesis at most (PAYNT's model build included): PA
 MIN_SECONDS = 2.0  # a synthesis is not started with less time than this left
 STEP = 2.0  # multiplicative weights: the best member's weight shrinks by e^-STEP a round
 WEIGHT_FLOOR = 0.01  # no member's weight falls below this share of a uniform weight
+WARM_MEMBERS = 64  # K starts with every single change within budget when there are at most
+# this many (the combined POMDP has a copy of the world per member)
 
 
 def combined_problem(
@@ -123,6 +126,27 @@ def replicated(
     return np.concatenate([[bool(mask[initial_state])], tiled])
 
 
+def single_changes(problem: Problem, budget: float, limit: int = WARM_MEMBERS) -> list[np.ndarray]:
+    """Every alteration changing one reading the objective can depend on into another, within
+    ``budget``; none when there are more than ``limit`` (a warm start of ``K``: each is an
+    alteration within the budget, so every bound stays valid)."""
+    out: list[np.ndarray] = []
+    identity = problem.identity()
+    for o in problem.relevant_observations.tolist():
+        if int(o) in problem.cost.protected:
+            continue
+        row = problem.cost.row(int(o))
+        for t in np.flatnonzero(row <= budget + tolerance.FEASIBILITY).tolist():
+            if t == o:
+                continue
+            alpha = identity.copy()
+            alpha[o] = t
+            out.append(alpha)
+            if len(out) > limit:
+                return []
+    return out
+
+
 def paynt_available() -> bool:
     """Whether PAYNT can be imported (the ``misdirect[paynt]`` extra)."""
     try:
@@ -158,6 +182,7 @@ class PayntMaster:
         *,
         syntheses: int = SYNTHESES,
         seconds: float = PAYNT_SECONDS,
+        warm: bool = True,
     ) -> None:
         if not paynt_available():
             from misdirect.io.paynt_synthesis import NEEDS_PAYNT
@@ -172,10 +197,11 @@ class PayntMaster:
         self.problem, self.objective, self.memory = problem, objective, memory
         self.sense = 1.0 if objective == "decoy" else -1.0
         self.min_goal = min_goal
-        self.syntheses, self.seconds = syntheses, seconds
+        self.syntheses, self.seconds, self.warm = syntheses, seconds, warm
         self.weights = np.ones(1)
         self.history: list[Synthesized] = []
         self.failures: list[str] = []  # PAYNT's reasons, when a synthesis found nothing
+        self.moved = False  # the last call moved the weights: another call asks PAYNT anew
 
     def _weights_for(self, size: int) -> np.ndarray:
         w = self.weights
@@ -218,6 +244,7 @@ class PayntMaster:
         best: tuple[tuple[float, float, float], Controller] | None = None
         looked = 0
         w = self._weights_for(copies)
+        start = w.copy()
         for turn in range(self.syntheses):
             left = deadline.remaining()
             if left is not None and left < MIN_SECONDS:
@@ -262,6 +289,7 @@ class PayntMaster:
                 break
             w = moved
         self.weights = w
+        self.moved = not np.array_equal(w, start)
         if best is None:
             return None
         return MasterAnswer(
@@ -284,4 +312,4 @@ def _reweighted(w: np.ndarray, loss: np.ndarray) -> np.ndarray:
     return out / out.sum()
 
 
-__all__ = ["PayntMaster", "combined_problem", "paynt_available", "replicated"]
+__all__ = ["PayntMaster", "combined_problem", "paynt_available", "replicated", "single_changes"]
