@@ -485,7 +485,8 @@ def robust_controller(
         robust_baselines`); True for all, False for none. One that cannot be computed (PAYNT
         missing, costs that share no unit with protection) is in ``skipped_baselines``.
     max_rounds : int, optional
-        Rounds at most (default 1000 for the exact master, 50 for the gradient master).
+        Rounds at most (default 1000 for the exact master, 50 for the gradient and PAYNT
+        masters).
     exact_seed : bool
         The gradient and PAYNT masters: seed them with the exact master's one-node answer where
         the one-node class has at most :data:`SEED_CANDIDATES` controllers (False: the cheap
