@@ -224,7 +224,8 @@ class PayntMaster:
         j = next((i for i, a in enumerate(alterations) if np.array_equal(a, identity)), None)
         if j is None:
             return [('Pmax=? [F "goal"]', ())]
-        floor = f'P>={self.min_goal * float(w[j])!r} [F "nominal_goal"]'
+        # fixed-point: Storm's property parser is not asked to read an exponent
+        floor = f'P>={self.min_goal * float(w[j]):.15f} [F "nominal_goal"]'
         return [(plain, (floor,)), ('Pmax=? [F "goal"]', ())]
 
     def solve(
@@ -260,12 +261,15 @@ class PayntMaster:
             )
             found = None
             for prop, constraints in self._properties(alterations, w):
+                now = deadline.remaining()  # a fallback gets what the first try left
+                if now is not None and now < MIN_SECONDS:
+                    break
                 try:
                     found = synthesize_problem(
                         world,
                         replicated(goal, s0, copies),
                         memory=self.memory,
-                        timeout=max(share, MIN_SECONDS),
+                        timeout=max(share if now is None else min(share, now), MIN_SECONDS),
                         prop=prop,
                         labels=labels,
                         constraints=constraints,
