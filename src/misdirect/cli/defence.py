@@ -339,6 +339,12 @@ class RobustObjective(StrEnum):
     goal = "goal"
 
 
+class RobustMaster(StrEnum):
+    exact = "exact"
+    gradient = "gradient"
+    paynt = "paynt"
+
+
 @problem_input
 def controller_robust(
     source: ProblemSource,
@@ -371,6 +377,16 @@ def controller_robust(
             "by exact enumeration.",
         ),
     ] = False,
+    master: Annotated[
+        RobustMaster | None,
+        typer.Option(
+            "--master",
+            help="The master: exact (deterministic, enumeration; the default), gradient "
+            "(randomized; what --randomized picks) or paynt (deterministic controllers "
+            "synthesized by PAYNT against the alterations found, reweighted toward the worst "
+            "case; needs PAYNT). gradient and paynt prove no bound; the worst case is certified.",
+        ),
+    ] = None,
     min_goal: Annotated[
         float | None,
         typer.Option(
@@ -410,6 +426,12 @@ def controller_robust(
     from misdirect.io.problem_file import controller_to_document, problem_document_text
 
     check_output_path(output)
+    if randomized and master not in (None, RobustMaster.gradient):
+        raise ProblemError(
+            f"--randomized is the gradient master; --master {master.value} searches "
+            "deterministic controllers",
+            field="--master",
+        )
     check_range("--memory", memory, 1, 8)
     check_range("--restarts", restarts, 1, 1000)
     if min_goal is not None:
@@ -426,6 +448,7 @@ def controller_robust(
         memory=memory,
         objective=objective.value,
         randomized=randomized,
+        master=None if master is None else master.value,
         restarts=restarts,
         seed=seed,
         min_goal=min_goal,
@@ -492,8 +515,12 @@ def _print_robust(result: RobustResult) -> None:
         else f"min-max in [{result.lower:.6f}, {result.upper:.6f}] (gap {result.gap:.2g})"
     )
     status = "optimal" if result.optimal else "not proven optimal"
-    if result.master == "gradient":
-        status = "randomized (gradient master: worst case certified, optimality not claimed)"
+    if result.master in ("gradient", "paynt"):
+        status = (
+            "randomized (gradient master: worst case certified, optimality not claimed)"
+            if result.master == "gradient"
+            else "PAYNT master (worst case certified, optimality not claimed)"
+        )
         bounds = (
             f"best certified {'upper' if result.objective == 'decoy' else 'lower'} bound "
             f"{result.upper if result.objective == 'decoy' else result.lower}"

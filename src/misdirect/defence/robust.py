@@ -29,8 +29,11 @@ Bounds, with ``V*`` the min–max (``"decoy"``) or max–min (``"goal"``) over t
 
 With ``randomized=True`` the master is :class:`~misdirect.defence.robust_gradient.
 GradientMaster` instead: randomized controllers with ``memory`` nodes, a local search by exact
-adjoint gradients. It proves no bound (``master_bound`` is None, no gap); the oracle's side
-(the certified worst case of the controller returned) holds as above.
+adjoint gradients. With ``master="paynt"`` it is :class:`~misdirect.defence.robust_paynt.
+PayntMaster`: PAYNT on one POMDP whose hidden first step picks the member of ``K`` (the
+average), tightened toward the worst case by multiplicative weights. Neither proves a bound
+(``master_bound`` is None, no gap); the oracle's side (the certified worst case of the
+controller returned) holds as above.
 
 Every value reported is re-evaluated through :func:`misdirect.core.evaluate.decoy_value` (the
 project's exact evaluation); the master's own batched solves only rank candidates.
@@ -74,10 +77,12 @@ from misdirect.defence.robust_oracle import (
     oracle,
     target_and_worth,
 )
+from misdirect.defence.robust_paynt import PayntMaster, single_changes
 from misdirect.errors import ProblemError
 from misdirect.solvers.deadline import Deadline
 
 OBJECTIVES = ("decoy", "goal")
+MASTERS = ("exact", "gradient", "paynt")
 MAX_CANDIDATES = 5_000_000  # controllers the exact master enumerates at most
 _BATCH = 2048  # candidates solved at once (each a dense product chain)
 GRADIENT_ROUNDS = 50  # rounds of the gradient master at most, by default
@@ -162,8 +167,8 @@ class RobustResult:
     time_s: float
     stop_reason: str
     notes: tuple[str, ...] = ()
-    master: str = "exact"  # "exact" (enumeration) or "gradient" (randomized, no bound)
-    master_bound: float | None = None  # the master's side of the bounds (None: gradient)
+    master: str = "exact"  # "exact" (enumeration), "gradient" or "paynt" (no bound)
+    master_bound: float | None = None  # the master's side of the bounds (None: not exact)
     seed: int | None = None  # the gradient master's seed
     restarts: int | None = None  # the gradient master's starts per round
     nominal_goal: float | None = None  # Pr(goal) with no alteration
@@ -432,6 +437,7 @@ def robust_controller(
     baselines: bool | Iterable[str] = True,
     max_rounds: int | None = None,
     exact_seed: bool = True,
+    master: str | None = None,
 ) -> RobustResult:
     """The controller with ``memory`` nodes that holds up best against every alteration
     within ``budget``, by constraint generation: a master over the class against a finite set
@@ -479,11 +485,19 @@ def robust_controller(
         robust_baselines`); True for all, False for none. One that cannot be computed (PAYNT
         missing, costs that share no unit with protection) is in ``skipped_baselines``.
     max_rounds : int, optional
-        Rounds at most (default 1000 for the exact master, 50 for the gradient master).
+        Rounds at most (default 1000 for the exact master, 50 for the gradient and PAYNT
+        masters).
     exact_seed : bool
-        The gradient master only: seed it with the exact master's one-node answer where the
-        one-node class has at most :data:`SEED_CANDIDATES` controllers (False: the cheap seeds
-        only, the given, blind and PAYNT controllers).
+        The gradient and PAYNT masters: seed them with the exact master's one-node answer where
+        the one-node class has at most :data:`SEED_CANDIDATES` controllers (False: the cheap
+        seeds only, the given, blind and PAYNT controllers).
+    master : {"exact", "gradient", "paynt"}, optional
+        The master (default: ``"gradient"`` with ``randomized``, else ``"exact"``).
+        ``"paynt"``: PAYNT synthesizes deterministic ``memory``-node controllers on one POMDP
+        whose hidden first step picks the member of ``K`` (their weighted average), the
+        weights moved toward the members it fares worst against between a few syntheses
+        (:mod:`misdirect.defence.robust_paynt`); like the gradient master it proves no bound,
+        its seeds are incumbents. Needs PAYNT (a ProblemError otherwise).
 
     Returns
     -------
@@ -512,12 +526,26 @@ def robust_controller(
             )
         if not (math.isfinite(min_goal) and 0 <= min_goal <= 1):
             raise ProblemError(f"must be a probability in [0, 1], got {min_goal}", field="min_goal")
+    if master is None:
+        master = "gradient" if randomized else "exact"
+    if master not in MASTERS:
+        raise ProblemError(f"must be one of {', '.join(MASTERS)}, got {master!r}", field="master")
+    if randomized and master != "gradient":
+        raise ProblemError(
+            f"randomized controllers are the gradient master's; the {master} master searches "
+            "deterministic ones",
+            field="master",
+        )
     budget = attacker_budget(problem, budget)
     pomdp = problem.pomdp
     n_obs, n_actions = pomdp.n_observations, pomdp.n_actions
     sense = 1.0 if objective == "decoy" else -1.0
     gradient: GradientMaster | None = None
-    if randomized:
+    search: GradientMaster | PayntMaster | None = None  # a master without a bound
+    if master == "paynt":
+        search = PayntMaster(problem, objective, memory, min_goal)
+        rounds_cap = GRADIENT_ROUNDS if max_rounds is None else max_rounds
+    elif master == "gradient":
         target, worth = target_and_worth(problem, objective)
         goal = goal_states(problem)
         gradient = GradientMaster(
@@ -533,6 +561,7 @@ def robust_controller(
                 min_goal,
             ),
         )
+        search = gradient
         rounds_cap = GRADIENT_ROUNDS if max_rounds is None else max_rounds
     else:
         receivable = _receivable(problem, budget)
@@ -554,13 +583,21 @@ def robust_controller(
         rounds_cap = 1000 if max_rounds is None else max_rounds
         cache = _Cache(count)
     deadline = shared_deadline(time_limit)
+    notes: list[str] = []
     alterations: list[np.ndarray] = [problem.identity()]
+    if isinstance(search, PayntMaster) and search.warm:
+        # PAYNT meets many members at once (one copy each): K starts with every single change
+        warm = single_changes(problem, budget)
+        alterations += warm
+        if warm:
+            notes.append(
+                f"PAYNT master: K started with the {len(warm)} single changes within the budget"
+            )
     rounds: list[RobustRound] = []
     # ((shortfall below the floor, sense * bound, tie-break), controller, worst)
     best: tuple[tuple[float, float, float], Controller, Worst] | None = None
     master_bound = -math.inf  # sense * the master's value: a bound from below in sense terms
     stop = "time limit"
-    notes: list[str] = []
 
     def worst_over_k(controller: Controller) -> float:
         candidate = replace(problem, controller=controller)
@@ -584,9 +621,9 @@ def robust_controller(
         return short, worst_over_k(controller), tie
 
     def certified_rank(controller: Controller, held: Worst) -> tuple[float, float, float]:
-        """How the loop keeps its best: the shortfall, the certified bound, and (gradient
-        master) the tie-break."""
-        if gradient is None:
+        """How the loop keeps its best: the shortfall, the certified bound, and (a master
+        without a bound) the tie-break."""
+        if search is None:
             return 0.0, sense * held.bound, 0.0
         short, tie = nominal_rank(controller)
         return short, sense * held.bound, tie
@@ -601,7 +638,7 @@ def robust_controller(
     # first, so that the randomized master can start from their controllers
     refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
     seeds: list[Seed] = []
-    if gradient is not None:
+    if search is not None:
         # the seeds (controllers of the class: the baselines, the exact one-node answer) are
         # the incumbents the rounds must beat: the answer is then never worse than any of
         # them (certified), even when the time runs out
@@ -612,7 +649,9 @@ def robust_controller(
             incumbent = controller_of(mu, memory, n_obs, n_actions)
             held = oracle(problem, incumbent, objective, budget, deadline.remaining())
             seeds.append(Seed(name, held.value, held.bound, held.certified, note))
-            if not any(np.array_equal(mu, other) for other in gradient.seeds):
+            if gradient is not None and not any(
+                np.array_equal(mu, other) for other in gradient.seeds
+            ):
                 gradient.seeds.append(mu)  # one start per distinct controller
             score = certified_rank(incumbent, held)
             if held.certified and (best is None or better(score, best[0])):
@@ -620,8 +659,8 @@ def robust_controller(
     for _ in range(rounds_cap):
         round_began = time.perf_counter()
         iterations = 0
-        if gradient is not None:
-            answer = gradient.solve(alterations, deadline, ranked)
+        if search is not None:
+            answer = search.solve(alterations, deadline, ranked)
             if answer is None:
                 break
             controller, looked, iterations = answer.controller, answer.candidates, answer.iterations
@@ -669,18 +708,20 @@ def robust_controller(
         score = certified_rank(controller, worst)
         if best is None or better(score, best[0]):
             best = (score, controller, worst)
-        if (
-            gradient is None
-            and best[0][1] - master_bound <= tolerance.CERTIFY
-            and best[2].certified
-        ):
+        if search is None and best[0][1] - master_bound <= tolerance.CERTIFY and best[2].certified:
             stop = "bounds met"
             break
-        if any(np.array_equal(worst.alteration, a) for a in alterations):
+        known = any(np.array_equal(worst.alteration, a) for a in alterations)
+        if known and isinstance(search, PayntMaster) and search.moved:
+            # the same K, other weights: PAYNT's next syntheses answer another average
+            if deadline.expired():
+                break
+            continue
+        if known:
             stop = (
                 "the oracle's attack is already in K: the controller's worst case is its value "
                 "over K (a local optimum of the master, no bound)"
-                if gradient is not None and worst.certified
+                if search is not None and worst.certified
                 else "the oracle's attack is already in K (its solve was not certified)"
             )
             break
@@ -689,6 +730,9 @@ def robust_controller(
             break
     else:
         stop = "round limit"
+    failures = [] if not isinstance(search, PayntMaster) else search.failures
+    if best is None and failures:
+        raise ProblemError(f"PAYNT gave no controller: {failures[-1]}", field="master")
     if best is None:
         raise ProblemError(
             "the time limit ran out before the master's first controller; give more time",
@@ -697,7 +741,7 @@ def robust_controller(
     _, controller, worst = best
     candidate = replace(problem, controller=controller)
     proven = [r.certified for r in rounds]
-    lower_sense = master_bound if gradient is None else -math.inf  # sense-terms lower bound
+    lower_sense = master_bound if search is None else -math.inf  # sense-terms lower bound
     upper_sense = best[0][1] if worst.certified or any(proven) else math.inf
     if objective == "decoy":
         lower, upper = lower_sense, upper_sense
@@ -716,7 +760,7 @@ def robust_controller(
             "run might be trapped forever under some alteration (then 1 - Pr(non-goal end) is not "
             "Pr(goal))"
         )
-    if gradient is None and min_goal is not None:
+    if search is None and min_goal is not None:
         notes.append(
             f"floor on the nominal Pr(goal): the exact master searched only the controllers "
             f"whose nominal Pr(goal) is at least {min_goal:g}; the bounds are on the min-max "
@@ -728,6 +772,17 @@ def robust_controller(
             "oracle's certified answer for this controller; no bound on the best controller of "
             "the class, and no gap, is claimed"
         )
+    if isinstance(search, PayntMaster):
+        notes.append(
+            "PAYNT master (deterministic controllers synthesized on one POMDP whose hidden "
+            "first step picks the member of K, reweighted toward the worst case): the worst "
+            "case reported is the oracle's certified answer for this controller; no bound on "
+            "the best controller of the class, and no gap, is claimed"
+        )
+        if failures:
+            notes.append(
+                f"PAYNT found no controller {len(failures)} time(s); the last: {failures[-1]}"
+            )
     nominal_goal = objective_value(candidate, "goal", problem.identity())
     if min_goal is not None and nominal_goal < min_goal - tolerance.slack(min_goal):
         notes.append(
@@ -753,8 +808,8 @@ def robust_controller(
         time_s=time.perf_counter() - began,
         stop_reason=stop,
         notes=tuple(notes),
-        master="exact" if gradient is None else "gradient",
-        master_bound=None if gradient is not None else master_side,
+        master=master,
+        master_bound=None if search is not None else master_side,
         seed=seed if gradient is not None else None,
         restarts=restarts if gradient is not None else None,
         nominal_goal=nominal_goal,

@@ -22,7 +22,7 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -121,9 +121,14 @@ def synthesize(
     constants: str | None = None,
     memory: int = 1,
     timeout: float = 60.0,
+    constraints: tuple[str, ...] = (),
 ) -> Synthesis:
     """Run PAYNT on a POMDP (a PRISM program or a DRN file, as PAYNT reads both) for one
     property and ``memory`` nodes per observation.
+
+    ``constraints`` are bounded properties (``P>=0.9 [F "goal"]``) every controller PAYNT
+    returns must satisfy besides optimizing ``prop`` (PAYNT's specification: constraints, then
+    one optimizing property).
 
     ``timeout`` bounds the whole call, not PAYNT's search alone: building the model (which
     neither Storm nor PAYNT can interrupt, and which PAYNT's timer does not stop) runs with
@@ -147,14 +152,24 @@ def synthesize(
     else:
         check_nesting(strip_comments(text), field="MODEL", what=str(model))
     check_nesting(prop, field="prop", what="the property")
+    for constraint in constraints:
+        check_nesting(constraint, field="constraints", what="the constraint")
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         sketch, props = Path(folder) / model.name, Path(folder) / "sketch.props"
         sketch.write_text(text, encoding="utf-8")
-        props.write_text(prop.strip() + "\n", encoding="utf-8")
+        lines = [c.strip() for c in constraints] + [prop.strip()]
+        props.write_text("\n".join(lines) + "\n", encoding="utf-8")
         # Storm's parser may still crash on the file: it reads it in a child process
         run_isolated(
-            _check_sketch, str(sketch), drn, prop, str(model), name=str(model), field="MODEL"
+            _check_sketch,
+            str(sketch),
+            drn,
+            prop,
+            str(model),
+            constraints,
+            name=str(model),
+            field="MODEL",
         )
         job = _Job(str(sketch), str(props), memory, drn, deadline=started + timeout)
         kind, payload = _run_bounded(job)
@@ -192,27 +207,42 @@ class ProblemSynthesis:
 
 
 def synthesize_problem(
-    problem: Problem, goal: np.ndarray, *, memory: int = 1, timeout: float = 60.0
+    problem: Problem,
+    goal: np.ndarray,
+    *,
+    memory: int = 1,
+    timeout: float = 60.0,
+    prop: str = 'Pmax=? [F "goal"]',
+    labels: Mapping[str, np.ndarray] | None = None,
+    constraints: tuple[str, ...] = (),
 ) -> ProblemSynthesis:
     """PAYNT's controller with ``memory`` nodes maximising Pr(reach ``goal``) on ``problem``'s
-    world, for any problem: the world is written as DRN (observation ids are ours) with the
-    label ``goal`` on the states of ``goal``, and PAYNT's columns and action labels are
-    renamed to ours before the controller is read back by the project's PAYNT reader."""
+    world (or optimizing ``prop`` subject to ``constraints``), for any problem: the world is
+    written as DRN (observation ids are ours) with the label ``goal`` on the states of ``goal``
+    (``decoy`` on the decoys, and each of ``labels`` on its states), and PAYNT's columns and
+    action labels are renamed to ours before the controller is read back by the project's
+    PAYNT reader. An observation no state emits has no column in PAYNT's controller: it is
+    read back as never met (null), so the reader fills it with its placeholder."""
     from misdirect.io.export import drn_action, drn_text
     from misdirect.io.paynt import read_paynt_controller
 
     pomdp = problem.pomdp
+    marks = {"goal": np.asarray(goal, dtype=bool)}
+    marks.update({name: np.asarray(mask, dtype=bool) for name, mask in (labels or {}).items()})
     lines = []
     for line in drn_text(problem).splitlines():
-        if line.startswith("state ") and goal[int(line.split()[1])]:
-            line += " goal"
+        if line.startswith("state "):
+            state = int(line.split()[1])
+            line += "".join(f" {name}" for name, mask in marks.items() if mask[state])
         lines.append(line)
     drn_names = {drn_action(name, f"a{k}"): name for k, name in enumerate(pomdp.actions)}
     with tempfile.TemporaryDirectory(prefix="misdirect-paynt-") as folder:
         model = Path(folder) / "world.drn"
         model.write_text("\n".join(lines) + "\n", encoding="utf-8")
-        found = synthesize(model, 'Pmax=? [F "goal"]', memory=memory, timeout=timeout)
-        document = dict(found.document)
+        found = synthesize(
+            model, prop, memory=memory, timeout=timeout, constraints=tuple(constraints)
+        )
+        document = _with_every_observation(dict(found.document), pomdp.n_observations)
         document["observation_labels"] = [
             pomdp.observations[int(label)] for label in document["observation_labels"]
         ]
@@ -223,6 +253,31 @@ def synthesize_problem(
         written.write_text(json.dumps(document), encoding="utf-8")
         read = read_paynt_controller(written, pomdp)
     return ProblemSynthesis(read.controller, found, int(np.count_nonzero(read.undefined)))
+
+
+def _with_every_observation(document: dict[str, Any], n_observations: int) -> dict[str, Any]:
+    """PAYNT's controller with a column for every observation id (one no state of the DRN
+    model emits gets null entries: PAYNT never meets it; an alteration may make the robot),
+    and an action wherever PAYNT gave a next node but left the action out."""
+    actions, updates = document.get("action_function"), document.get("update_function")
+    if isinstance(actions, list) and isinstance(updates, list):
+        # PAYNT leaves the action of a (node, reading) out where no action changes its value
+        # (and may keep the node update there): any action then does, the first is played
+        for row_a, row_u in zip(actions, updates, strict=False):
+            for k in range(min(len(row_a), len(row_u))):
+                if row_a[k] is None and row_u[k] is not None:
+                    row_a[k] = 0
+    present = {int(label) for label in document.get("observation_labels", [])}
+    missing = [o for o in range(n_observations) if o not in present]
+    if not missing:
+        return document
+    document["observation_labels"] = [*document["observation_labels"], *map(str, missing)]
+    for key in ("action_function", "update_function", "transitions"):
+        if isinstance(document.get(key), list):
+            document[key] = [[*row, *([None] * len(missing))] for row in document[key]]
+    if "num_observations" in document:
+        document["num_observations"] = len(document["observation_labels"])
+    return document
 
 
 SEARCH_SHARE = 0.9  # of the time left after the build, PAYNT's search gets this much
@@ -334,8 +389,10 @@ def is_drn(text: str) -> bool:
     return False
 
 
-def _check_sketch(sketch: str, drn: bool, prop: str, model: str) -> None:
-    """Storm reads the program (not a DRN model: PAYNT does) and the property against it."""
+def _check_sketch(
+    sketch: str, drn: bool, prop: str, model: str, constraints: tuple[str, ...] = ()
+) -> None:
+    """Storm reads the program (not a DRN model: PAYNT does) and the properties against it."""
     import stormpy
 
     stormpy.developer.set_log_level(stormpy.developer.LogLevel.OFF)
@@ -348,6 +405,22 @@ def _check_sketch(sketch: str, drn: bool, prop: str, model: str) -> None:
                 f"Storm cannot read it: {' '.join(str(error).split())}", source=model
             ) from None
     _check_property(stormpy, program, prop)
+    for constraint in constraints:
+        _check_constraint(stormpy, program, constraint)
+
+
+def _check_constraint(stormpy, program, constraint: str) -> None:
+    """One bounded property (``P>=0.9 [F "goal"]``): a constraint of PAYNT's specification."""
+    try:
+        properties = stormpy.parse_properties(constraint, program)
+    except Exception as error:
+        message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))
+        raise ProblemError(f"Storm cannot parse it: {message}", field="constraints") from None
+    if len(properties) != 1 or not properties[0].get_raw_formula().has_bound:
+        raise ProblemError(
+            f'expected one property with a bound, e.g. P>=0.9 [F "goal"], got {constraint!r}',
+            field="constraints",
+        )
 
 
 def _check_property(stormpy, program, prop: str) -> None:
