@@ -40,8 +40,10 @@ bench: $(STAMP)
 	$(BIN)/python bench/covering_bound.py --out $(BENCH_OUT)
 	$(BIN)/python bench/enumeration_kernel.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth_speed.py --out $(BENCH_OUT)
+	$(BIN)/python bench/stealth_lagrangian.py --out $(BENCH_OUT)
 	$(BIN)/python bench/robust.py --out $(BENCH_OUT)
 	$(BIN)/python bench/robust_large.py --out $(BENCH_OUT)
+	$(BIN)/python bench/robust_paynt.py --out $(BENCH_OUT) --runs floor
 	$(BIN)/python bench/stealth.py --out $(BENCH_OUT)
 	$(BIN)/python bench/stealth_automaton.py --out $(BENCH_OUT)
 
