@@ -80,6 +80,12 @@ def test_the_covering_bound_holds_against_enumeration(case):
     assert refined is not None
     assert refined.bound >= truth - 1e-9 * max(truth, 1e-300), (seed, refined.bound, truth)
     assert refined.bound <= found.bound
+    assert not found.given_up and found.solved >= len(found.unions)
+    # a bound the caller has already, at or below the first union's: the cover stops there,
+    # given up (no bound), and says what it spent
+    stopped = covering_bound(relax, groups, scale.cap(budget), give_up_at=-1.0)
+    assert stopped is not None and stopped.given_up
+    assert len(stopped.unions) == 1 and stopped.solved == 1
     # a node: the first choice fixed to its first alteration, the budget left for the rest
     first = instance.space.choices[0]
     if first.size > 1 and first.costs[1] <= scale.cap(budget):

@@ -69,8 +69,10 @@ LAGRANGE_MULTIPLIERS: tuple[float, ...] = ()
 # policies (one group per product state: 11 kB each on the 1,367-state monitored paper grid,
 # so about 6,000 of them; a chain of 10^6 states keeps 8)
 KNOWN_BYTES = 64 * 2**20
-# a union's relaxation on a kept basis, against a node bound on the whole chain (about 0.3 on
-# the 64-sensor turn-back grid, bench/results/covering): the first cover's estimate
+# a union's relaxation on a kept basis, against a node bound on the whole chain: the first
+# cover's estimate, on the safe side (0.027 on the 64-sensor turn-back grid, 27 ms against
+# 1.0 s; above 1 on a 12x12 one, whose whole chain solves in a few ms); every later cover of
+# the search uses what the last one measured
 KEPT_BASIS_SHARE = 0.5
 
 
@@ -787,10 +789,14 @@ class _Search(IncumbentSearch):
             if deadline is not None:
                 deadline.check()  # ... unless the search's time is up too
             found = None
-        if found is None:
+        if found is not None and found.solved:
+            # what a union costs here (the first cover's estimate is a node bound's share,
+            # which on a large chain is 20 times too much: bench/results/covering), measured
+            # even where the cover gave up, so that the next cover's groups fit its time
+            self.union_seconds = (time.perf_counter() - began) / found.solved
+        if found is None or found.given_up:
             self.covers_given_up += 1
             return None
-        self.union_seconds = (time.perf_counter() - began) / max(found.solved, 1)
         self.covers += 1
         self.cover_unions += found.solved
         self.cover_refined += found.refined

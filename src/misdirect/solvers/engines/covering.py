@@ -68,6 +68,8 @@ class CoverBound:
     enumerated: int = 0  # unions (or sub-unions) whose proof failed, valued alteration by
     # alteration (their bound: the best of those exact values)
     solved: int = 0  # relaxations solved: the unions and the sub-unions of their refinements
+    given_up: bool = False  # stopped at a union that reached ``give_up_at``: no bound (the
+    # counts say what it cost, so a search can size its next cover)
 
 
 @dataclass(frozen=True)
@@ -179,11 +181,12 @@ def covering_bound(
     indices of the alteration space) with the budget left as ``cap`` (a
     :meth:`~misdirect.core.tolerance.CostScale.cap`, less what the fixed options spent), the
     undecided choices split into ``groups`` (every undecided choice with an affordable option
-    in one of them); None where the cover would take more than
-    :data:`MAX_UNIONS` unions, or once a union's bound reaches ``give_up_at`` (a bound the
-    caller has already: the cover could not beat it; the unions go strongest groups first, so
-    such a union tends to come early). A union whose bound lies above ``refine_above`` is
-    refined (:func:`_refined`), at most ``refine_depth`` times over. With ``workers`` > 1
+    in one of them); None where the cover would take more than :data:`MAX_UNIONS` unions.
+    It stops once a union's bound reaches ``give_up_at`` (a bound the caller has already: the
+    cover could not beat it; the unions go strongest groups first, so such a union tends to
+    come early), marked ``given_up``: no bound, only what it cost. A union whose bound lies
+    above ``refine_above`` is refined (:func:`_refined`), at most ``refine_depth`` times over.
+    With ``workers`` > 1
     the unions are shared among forked copies of this process
     (:func:`~misdirect.solvers.engines.forked.forked_map`; the same bound). Raises
     :class:`~misdirect.solvers.deadline.DeadlineExpiredError` once ``deadline`` has passed."""
@@ -287,14 +290,13 @@ def covering_bound(
         (u for found in pieces for u in found.unions), key=lambda item: (-item[1], item[0])
     )
     best = max((b for _, b in unions), default=-np.inf)
-    if best >= give_up_at:
-        return None
     return CoverBound(
         best,
         unions,
         sum(found.refined for found in pieces),
         sum(found.enumerated for found in pieces),
         sum(found.solved for found in pieces),
+        given_up=best >= give_up_at,
     )
 
 
