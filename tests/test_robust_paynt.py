@@ -5,7 +5,6 @@ the master's controller re-evaluates, on the original problem, to the worst case
 
 from __future__ import annotations
 
-import itertools
 import json
 from dataclasses import replace
 
@@ -23,25 +22,9 @@ from misdirect.defence.robust_paynt import combined_problem, replicated
 from misdirect.io.problem_file import write_problem
 from misdirect.scenarios import random_problem
 from result_schema import checked
-from test_robust import absorbed_problem
+from test_robust import absorbed_problem, alterations_within
 
 runner = CliRunner()
-
-
-def alterations_within(problem: Problem, budget: float) -> list[np.ndarray]:
-    """Every alteration the costs allow within ``budget`` (initial observation fixed)."""
-    n = problem.pomdp.n_observations
-    o_init = problem.pomdp.initial_observation
-    choices = []
-    for o in range(n):
-        row = problem.cost.row(o)
-        choices.append([o] if o == o_init else [t for t in range(n) if np.isfinite(row[t])])
-    out = []
-    for picked in itertools.product(*choices):
-        cost = sum(problem.cost.row(o)[t] for o, t in enumerate(picked) if t != o)
-        if cost <= budget + 1e-9:
-            out.append(np.array(picked))
-    return out
 
 
 def two_alterations(problem: Problem, seed: int) -> list[np.ndarray]:

@@ -409,13 +409,19 @@ def _check_sketch(
         _check_constraint(stormpy, program, constraint)
 
 
-def _check_constraint(stormpy, program, constraint: str) -> None:
-    """One bounded property (``P>=0.9 [F "goal"]``): a constraint of PAYNT's specification."""
+def _parsed(stormpy, text: str, program, field: str) -> list:
+    """Storm's properties of ``text``, or a ProblemError in ``field`` with Storm's message
+    (its exception's name left out)."""
     try:
-        properties = stormpy.parse_properties(constraint, program)
+        return list(stormpy.parse_properties(text, program))
     except Exception as error:
         message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))
-        raise ProblemError(f"Storm cannot parse it: {message}", field="constraints") from None
+        raise ProblemError(f"Storm cannot parse it: {message}", field=field) from None
+
+
+def _check_constraint(stormpy, program, constraint: str) -> None:
+    """One bounded property (``P>=0.9 [F "goal"]``): a constraint of PAYNT's specification."""
+    properties = _parsed(stormpy, constraint, program, "constraints")
     if len(properties) != 1 or not properties[0].get_raw_formula().has_bound:
         raise ProblemError(
             f'expected one property with a bound, e.g. P>=0.9 [F "goal"], got {constraint!r}',
@@ -425,12 +431,8 @@ def _check_constraint(stormpy, program, constraint: str) -> None:
 
 def _check_property(stormpy, program, prop: str) -> None:
     """One optimizing property (``Pmax=? [F "goal"]``), as PAYNT needs for a controller's value."""
-    try:
-        # a DRN model has no program: its labels are checked when PAYNT reads the model
-        properties = stormpy.parse_properties(prop, program)
-    except Exception as error:
-        message = re.sub(r"^\w+Exception: ", "", " ".join(str(error).split()))
-        raise ProblemError(f"Storm cannot parse it: {message}", field="prop") from None
+    # a DRN model has no program: its labels are checked when PAYNT reads the model
+    properties = _parsed(stormpy, prop, program, "prop")
     if len(properties) != 1:
         raise ProblemError(f"expected one property, got {len(properties)}", field="prop")
     formula = properties[0].get_raw_formula()
