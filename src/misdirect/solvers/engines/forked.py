@@ -78,11 +78,11 @@ class Claims:
 def forked_map(work: Callable[[int], T], pieces: int, deadline: Deadline | None = None) -> list[T]:
     """``[work(0), ..., work(pieces - 1)]``: piece 0 here, the others each in a forked child
     (all here, in order, where :func:`can_fork` says no or the copies would not fit the
-    memory available). ``work`` must not depend on what
-    another piece changes: a child's changes to this process's objects are lost, only its
-    answer (pickled) comes back. A child's exception is raised here (as itself where it
-    pickles, else as a RuntimeError with its traceback); :class:`DeadlineExpiredError` once
-    ``deadline`` has passed, the children killed."""
+    memory available). ``work`` must not depend on what another piece changes: a child's
+    changes to this process's objects are lost, only its answer (pickled) comes back. A
+    child's exception is raised here (as itself where it pickles, else as a RuntimeError with
+    its traceback); :class:`DeadlineExpiredError` once ``deadline`` has passed, the children
+    killed."""
     if pieces <= 1 or not can_fork() or not _room_for(pieces - 1):
         return [work(k) for k in range(pieces)]
     children: dict[int, tuple[int, int]] = {}  # piece: (pid, read end)
