@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -641,3 +642,33 @@ def test_gradient_master_no_worse_than_its_seeds(seed, objective):
     reported = sorted(s.worst_case for s in result.seeds)
     for value in expected:
         assert min(abs(r - value) for r in reported) <= 1e-9
+
+
+def test_the_baselines_run_within_a_quarter_of_the_time_limit(monkeypatch):
+    """Each baseline's oracle gets a share of a quarter of the time limit (the shares adding
+    up to at most that quarter), harden its search within its share; without a limit, none."""
+    from misdirect.defence import robust_baselines
+
+    given: list[float | None] = []
+    ends: list[float] = []  # when each oracle's share runs out
+    real = robust_baselines.oracle
+
+    def recording(problem, controller, objective, budget, seconds):
+        given.append(seconds)
+        if seconds is not None:
+            ends.append(time.perf_counter() + seconds)
+        return real(problem, controller, objective, budget, seconds)
+
+    monkeypatch.setattr(robust_baselines, "oracle", recording)
+    problem = absorbed_problem(3, 1.0)
+    limit = 40.0
+    quarter = robust_baselines.BASELINES_SHARE * limit
+    began = time.perf_counter()
+    misdirect.robust_controller(problem, 1.0, time_limit=limit, baselines=["given", "blind"])
+    assert len(given) == 2 and all(s is not None for s in given)
+    assert given[0] == pytest.approx(quarter / 2, rel=0.05)  # an even share of the quarter
+    assert given[1] >= given[0] * 0.95  # ... and what the first left rolls over
+    assert max(ends) <= began + quarter + 0.5  # none outlasts the quarter
+    given.clear()
+    misdirect.robust_controller(problem, 1.0, baselines=["given", "blind"])
+    assert given == [None, None]

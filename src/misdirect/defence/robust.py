@@ -634,9 +634,11 @@ def robust_controller(
         raise ProblemError(
             f"unknown baseline {unknown[0]!r}: choose from {', '.join(KINDS)}", field="baselines"
         )
-    # the baselines run outside the time limit (harden and PAYNT have their own); measured
+    # the baselines take at most a quarter of the time limit (BASELINES_SHARE); measured
     # first, so that the randomized master can start from their controllers
-    refs, skipped = measure_baselines(problem, objective, budget, memory, min_goal, kinds)
+    refs, skipped = measure_baselines(
+        problem, objective, budget, memory, min_goal, kinds, deadline=deadline
+    )
     seeds: list[Seed] = []
     if search is not None:
         # the seeds (controllers of the class: the baselines, the exact one-node answer) are

@@ -18,6 +18,7 @@ A baseline that cannot be computed is skipped with its reason, never guessed.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -34,10 +35,12 @@ from misdirect.defence.robust_oracle import (
     oracle,
 )
 from misdirect.errors import MisdirectError, ProblemError
+from misdirect.solvers.deadline import Deadline
 
 KINDS = ("given", "blind", "harden", "paynt")
 HARDEN_SECONDS = 120.0  # harden's search for the protection baseline
 PAYNT_SECONDS = 60.0  # PAYNT's synthesis of the nominal baseline, model build included
+BASELINES_SHARE = 0.25  # of a robust run's time limit: every baseline together, at most
 
 
 @dataclass(frozen=True)
@@ -128,11 +131,13 @@ def measured(
     controller: Controller,
     objective: str,
     budget: float,
+    seconds: float | None = None,
     **extra: Any,
 ) -> Baseline:
     """``controller``'s certified worst case at ``budget`` on ``problem`` (which may have
-    sensors protected), with its nominal values."""
-    worst = oracle(problem, controller, objective, budget, None)
+    sensors protected), with its nominal values; its oracle's solve within ``seconds``
+    (cut short: the best attack found and its bound, not certified)."""
+    worst = oracle(problem, controller, objective, budget, seconds)
     candidate = replace(problem, controller=controller)
     return Baseline(
         name=name,
@@ -157,8 +162,12 @@ def harden_budget(problem: Problem, budget: float) -> float | None:
     return float(math.floor(budget / cost.default + tolerance.FEASIBILITY))
 
 
-def hardened(problem: Problem, objective: str, budget: float) -> Baseline | Skipped:
-    """The given controller under ``harden``'s protection at the matching budget."""
+def hardened(
+    problem: Problem, objective: str, budget: float, seconds: float | None = None
+) -> Baseline | Skipped:
+    """The given controller under ``harden``'s protection at the matching budget: harden's
+    search and the oracle's solve within ``seconds`` together (harden at most
+    :data:`HARDEN_SECONDS`)."""
     from misdirect.defence.attack import protect
     from misdirect.defence.hardening import harden
 
@@ -171,7 +180,10 @@ def hardened(problem: Problem, objective: str, budget: float) -> Baseline | Skip
         )
     # harden minimises the attacker's optimum; for goal, the attacker of Pr(non-goal end)
     target = problem if objective == "decoy" else goal_attack_problem(problem)
-    plan = harden(target, protect_budget=d, budget=budget, time_limit=HARDEN_SECONDS)
+    searching = HARDEN_SECONDS if seconds is None else min(HARDEN_SECONDS, seconds / 2)
+    began = time.perf_counter()
+    plan = harden(target, protect_budget=d, budget=budget, time_limit=searching)
+    left = None if seconds is None else max(seconds - (time.perf_counter() - began), 0.0)
     names = problem.pomdp.observations
     chosen = [names.index(name) for name in plan.protection]
     note = f"harden at D = {d:g} (one per sensor), {plan.status}"
@@ -182,21 +194,23 @@ def hardened(problem: Problem, objective: str, budget: float) -> Baseline | Skip
         problem.controller,
         objective,
         budget,
+        left,
         protection=tuple(plan.protection),
         note=note,
     )
 
 
 def paynt_nominal(
-    problem: Problem, objective: str, budget: float, memory: int
+    problem: Problem, objective: str, budget: float, memory: int, seconds: float | None = None
 ) -> Baseline | Skipped:
-    """PAYNT's controller maximising the nominal Pr(goal), ``memory`` nodes."""
+    """PAYNT's controller maximising the nominal Pr(goal), ``memory`` nodes: PAYNT and the
+    oracle's solve within ``seconds`` together (PAYNT at most :data:`PAYNT_SECONDS`)."""
+    synthesis = PAYNT_SECONDS if seconds is None else min(PAYNT_SECONDS, seconds / 2)
+    began = time.perf_counter()
     try:
         from misdirect.io.paynt_synthesis import synthesize_problem
 
-        found = synthesize_problem(
-            problem, goal_states(problem), memory=memory, timeout=PAYNT_SECONDS
-        )
+        found = synthesize_problem(problem, goal_states(problem), memory=memory, timeout=synthesis)
     except (ProblemError, MisdirectError) as error:
         return Skipped("paynt", str(error))
     note = f"PAYNT, Pmax=? [F goal], {memory} node(s), {found.synthesis.seconds:.1f} s"
@@ -205,8 +219,9 @@ def paynt_nominal(
             f"; {found.undefined} (node, reading) entries PAYNT left undefined play the first "
             "action and stay"
         )
+    left = None if seconds is None else max(seconds - (time.perf_counter() - began), 0.0)
     return measured(
-        "PAYNT nominal", "paynt", problem, found.controller, objective, budget, note=note
+        "PAYNT nominal", "paynt", problem, found.controller, objective, budget, left, note=note
     )
 
 
@@ -217,21 +232,45 @@ def baselines(
     memory: int,
     min_goal: float | None = None,
     kinds: Iterable[str] = KINDS,
+    deadline: Deadline | None = None,
 ) -> tuple[tuple[Baseline, ...], tuple[Skipped, ...]]:
-    """The baselines of ``kinds`` (in the order of :data:`KINDS`), and those skipped."""
-    wanted = set(kinds)
+    """The baselines of ``kinds`` (in the order of :data:`KINDS`), and those skipped; with a
+    ``deadline``, all of them within :data:`BASELINES_SHARE` of its time left, each within an
+    even share of what is left of that (a baseline cut short is reported not certified)."""
+    wanted = [kind for kind in KINDS if kind in set(kinds)]
+    left = None if deadline is None else deadline.remaining()
+    end = None if left is None else time.perf_counter() + BASELINES_SHARE * left
+
+    def seconds(kind: str) -> float | None:
+        """This baseline's share: what is left of the baselines' time, over those to go."""
+        if end is None:
+            return None
+        return max(end - time.perf_counter(), 0.0) / (len(wanted) - wanted.index(kind))
+
     out: list[Baseline] = []
     skipped: list[Skipped] = []
     if "given" in wanted:
         out.append(
-            measured("given controller", "given", problem, problem.controller, objective, budget)
+            measured(
+                "given controller",
+                "given",
+                problem,
+                problem.controller,
+                objective,
+                budget,
+                seconds("given"),
+            )
         )
     if "blind" in wanted:
         blind = best_blind(problem, objective, min_goal)
-        out.append(measured("observation-blind", "blind", problem, blind, objective, budget))
+        out.append(
+            measured(
+                "observation-blind", "blind", problem, blind, objective, budget, seconds("blind")
+            )
+        )
     for kind, make in (
-        ("harden", lambda: hardened(problem, objective, budget)),
-        ("paynt", lambda: paynt_nominal(problem, objective, budget, memory)),
+        ("harden", lambda: hardened(problem, objective, budget, seconds("harden"))),
+        ("paynt", lambda: paynt_nominal(problem, objective, budget, memory, seconds("paynt"))),
     ):
         if kind not in wanted:
             continue
