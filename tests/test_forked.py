@@ -139,3 +139,47 @@ def test_a_cover_shared_among_processes_is_the_cover_in_one(monkeypatch, budget)
     assert two.bound == pytest.approx(one.bound, rel=1e-12)
     assert (two.solved, two.refined, two.enumerated) == (one.solved, one.refined, one.enumerated)
     assert proofs[2] == proofs[1] == one.solved
+
+
+@needs_fork
+def test_a_worker_dies_with_its_parent(tmp_path):
+    """A parent killed outright (SIGKILL: no cleanup runs) takes its forked workers with it."""
+    import signal
+    import subprocess
+    import sys
+
+    pid_file = tmp_path / "worker.pid"
+    script = f"""
+import os, time
+from misdirect.solvers.engines.forked import forked_map
+def work(k):
+    if k == 1:
+        open({str(pid_file)!r}, "w").write(str(os.getpid()))
+    time.sleep(60)
+    return k
+forked_map(work, 2)
+"""
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        for _ in range(200):  # the worker has started once it wrote its pid
+            if pid_file.exists() and pid_file.read_text():
+                break
+            time.sleep(0.05)
+        worker = int(pid_file.read_text())
+        os.kill(worker, 0)  # alive
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+    for _ in range(100):
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            return
+        try:
+            with open(f"/proc/{worker}/stat") as stat:  # a zombie (not reaped yet): gone
+                if stat.read().split()[2] == "Z":
+                    return
+        except FileNotFoundError:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"worker {worker} outlived its parent")

@@ -32,6 +32,7 @@ from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 
 T = TypeVar("T")
 POLL_S = 0.05  # how often the parent, waiting for its children, looks at its deadline
+PR_SET_PDEATHSIG = 1  # prctl's option: the signal a child gets when its parent dies
 FORK_ENV = "MISDIRECT_FORK"  # "0": never fork (every piece runs in this process)
 
 
@@ -125,6 +126,7 @@ def _room_for(children: int) -> bool:
 
 def _fork(work: Callable[[int], Any], k: int) -> tuple[int, int]:
     reader, writer = os.pipe()
+    parent = os.getpid()
     sys.stdout.flush()
     sys.stderr.flush()
     with warnings.catch_warnings():  # Python 3.12 warns of fork beside threads: see the module
@@ -134,6 +136,7 @@ def _fork(work: Callable[[int], Any], k: int) -> tuple[int, int]:
         code = 0
         try:
             os.close(reader)
+            _die_with_parent(parent)
             # Ctrl-C reaches the whole process group: the parent handles it and kills this
             signal.signal(signal.SIGINT, signal.SIG_IGN)
             _answer(writer, work, k)
@@ -143,6 +146,19 @@ def _fork(work: Callable[[int], Any], k: int) -> tuple[int, int]:
             os._exit(code)
     os.close(writer)
     return pid, reader
+
+
+def _die_with_parent(parent: int) -> None:
+    """In the child: be killed with the parent (Linux's ``PR_SET_PDEATHSIG``), so that a
+    parent killed outright (SIGKILL, SIGTERM) leaves no worker computing for nobody; and
+    leave at once where the parent died before that was set."""
+    with contextlib.suppress(Exception):  # not Linux's libc: the child ends with its pieces
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _answer(writer: int, work: Callable[[int], Any], k: int) -> None:
