@@ -17,6 +17,7 @@ from misdirect.scenarios.sensor_grid import sensor_grid
 from misdirect.solvers.branch_and_bound import BranchAndBoundSolver
 from misdirect.solvers.engines import covering
 from misdirect.solvers.engines.covering import (
+    CoverBound,
     CoverRule,
     covering_bound,
     maximal_group_sets,
@@ -320,3 +321,40 @@ def test_a_union_is_enumerated_alteration_by_alteration_by_hand():
         assert found is not None and len(found) == expected
         assert len({tuple(sorted(p.items())) for p in found}) == expected  # each once
         assert _alterations(relax, [0, 1, 2], cap, lambda t, c=cap: scale.fits(t, c), 3) is None
+
+
+def test_a_cover_given_up_is_tried_again_with_finer_groups(monkeypatch):
+    """The first cover of a search sizes its groups by a guess; where it gives up, what it
+    measured sizes a second try at the same node, with more groups (the guess here made
+    too slow on purpose, and the first cover made to give up: the second try's groups must
+    be finer, and its bound is the root's, between the optimum and 0.9 as above)."""
+    import misdirect.solvers.branch_and_bound as bb
+
+    calls: list[int] = []
+    real = bb.covering_bound
+
+    def first_gives_up(relax, groups, cap, fixed, deadline, **options):
+        calls.append(len(groups))
+        found = real(relax, groups, cap, fixed, deadline, **options)
+        if len(calls) == 1:  # given up at once, one cheap union solved
+            return CoverBound(found.bound, found.unions[:1], solved=1, given_up=True)
+        return found
+
+    allowed: list[int] = []
+    unions_allowed = CoverRule.unions_allowed
+
+    def guessed_slow_at_first(rule, seconds_left, seconds_per_union):
+        # the first guess affords 4 unions: coarse groups; then the measured time decides
+        allowed.append(4 if not allowed else unions_allowed(rule, seconds_left, seconds_per_union))
+        return allowed[-1]
+
+    monkeypatch.setattr(bb, "covering_bound", first_gives_up)
+    monkeypatch.setattr(CoverRule, "unions_allowed", guessed_slow_at_first)
+    problem = sensor_grid(10, 12, goal="inside")
+    answer = BranchAndBoundSolver(SolveOptions(time_limit=60), max_nodes=1).solve(problem, [2.0])
+    stats = answer[0].stats
+    assert len(calls) == 2 and calls[1] > calls[0]
+    assert stats.covers_given_up == 1 and stats.covers == 1
+    optimum = solve(problem, method="incremental", budgets=[2.0]).curve[0]
+    assert stats.root_cover_bound is not None
+    assert optimum.probability <= stats.root_cover_bound < 0.9

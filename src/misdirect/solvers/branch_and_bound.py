@@ -74,6 +74,9 @@ KNOWN_BYTES = 64 * 2**20
 # 1.0 s; above 1 on a 12x12 one, whose whole chain solves in a few ms); every later cover of
 # the search uses what the last one measured
 KEPT_BASIS_SHARE = 0.5
+# a cover given up is tried once more at the same node where the time per union it measured
+# pays for finer groups (smaller unions: fewer of them at the largest value)
+COVER_TRIES = 2
 
 
 @dataclass
@@ -743,7 +746,8 @@ class _Search(IncumbentSearch):
         self, node: _Node, rule: CoverRule, bound: float, deadline: Deadline | None
     ) -> float | None:
         """``node``'s covering bound, where ``rule`` finds groups the time left pays for and
-        it comes out below ``bound`` (the node's per-state bound)."""
+        it comes out below ``bound`` (the node's per-state bound). A cover given up is tried
+        again (:data:`COVER_TRIES` in all) where what it measured pays for finer groups."""
         relax = self.relax
         assert self.strength is not None
         level = len(node.picks)
@@ -756,27 +760,47 @@ class _Search(IncumbentSearch):
             if affordable.size:
                 cheapest[i] = float(relax.option_cost[relax.first_option[i] + affordable].min())
         scale = relax.space.scale
-        seconds_left = None if deadline is None else deadline.remaining()
-        per_union = self.union_seconds
-        if per_union is None:  # not measured yet: a node bound's, less what a kept basis saves
-            per_union = self.node_seconds * KEPT_BASIS_SHARE
-        allowed = rule.unions_allowed(seconds_left, per_union)
-        groups = rule.groups(
-            list(cheapest),
-            self.strength,
-            cheapest,
-            lambda total: bool(scale.fits(total, node.remaining)),
-            allowed,
-        )
-        if groups is None:
-            return None
+        tried: list[list[int]] | None = None
+        for _ in range(COVER_TRIES):
+            seconds_left = None if deadline is None else deadline.remaining()
+            per_union = self.union_seconds
+            if per_union is None:  # not measured yet: a node bound's, less a kept basis's
+                per_union = self.node_seconds * KEPT_BASIS_SHARE
+            groups = rule.groups(
+                list(cheapest),
+                self.strength,
+                cheapest,
+                lambda total: bool(scale.fits(total, node.remaining)),
+                rule.unions_allowed(seconds_left, per_union),
+            )
+            if groups is None or (tried is not None and len(groups) <= len(tried)):
+                return None  # no groups, or none finer than those of the cover given up
+            found = self._cover_with(node, groups, fixed, bound, rule, deadline)
+            if found is not None:
+                if self.root_cover_bound is None and level == 0:
+                    self.root_cover_bound = found
+                return found
+            tried = groups
+        return None
+
+    def _cover_with(
+        self,
+        node: _Node,
+        groups: list[list[int]],
+        fixed: dict[int, int],
+        bound: float,
+        rule: CoverRule,
+        deadline: Deadline | None,
+    ) -> float | None:
+        """One cover of ``node`` by ``groups``: its bound, or None where it gave up (a union
+        as high as ``bound``) or ran out of its share of the time."""
         began = time.perf_counter()
         # a union above the incumbent cannot prune: its halves might (the refinement also
         # resolves the unions whose proof fails, which would otherwise give the cover up)
         refine_above = self.best_value if self.best_value >= 0 else np.inf
         try:
             found = covering_bound(
-                relax,
+                self.relax,
                 groups,
                 node.remaining,
                 fixed,
@@ -800,8 +824,6 @@ class _Search(IncumbentSearch):
         self.covers += 1
         self.cover_unions += found.solved
         self.cover_refined += found.refined
-        if self.root_cover_bound is None and level == 0:
-            self.root_cover_bound = found.bound
         return found.bound
 
     def _round(self, picks: Picks, remaining: float, usage: np.ndarray) -> Picks:
