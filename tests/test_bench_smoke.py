@@ -12,24 +12,32 @@ import pytest
 ROOT = Path(__file__).parent.parent
 
 
-def test_milp_benchmark_reduced_mode(tmp_path):
+def run_bench(script: str, *args: str | os.PathLike, with_src: bool = False) -> None:
+    """Run ``bench/script`` with ``args`` in a fresh interpreter; a non-zero exit fails the
+    test. ``with_src``: the package from this tree's ``src`` (for benches that import it
+    before they could find an installed copy)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")} if with_src else None
     subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "milp_scaling.py"),
-            "--sizes",
-            "5",
-            "--paper-sizes",
-            "5,7",
-            "--paper-solve-sizes",
-            "",
-            "--budgets",
-            "0..1",
-            "--out",
-            str(tmp_path),
-        ],
+        [sys.executable, str(ROOT / "bench" / script), *args],
         check=True,
         capture_output=True,
+        env=env,
+    )
+
+
+def test_milp_benchmark_reduced_mode(tmp_path):
+    run_bench(
+        "milp_scaling.py",
+        "--sizes",
+        "5",
+        "--paper-sizes",
+        "5,7",
+        "--paper-solve-sizes",
+        "",
+        "--budgets",
+        "0..1",
+        "--out",
+        str(tmp_path),
     )
     rows = list(csv.DictReader((tmp_path / "milp_scaling.csv").open()))
     compact = [r for r in rows if r["formulation"] == "compact"]
@@ -59,11 +67,7 @@ def test_milp_benchmark_reduced_mode(tmp_path):
 
 def test_speed_benchmark_reduced_mode(tmp_path):
     """bench/speed.py --quick: small sizes, every goal row present, values checked, no timing."""
-    subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "speed.py"), "--quick", "--out", str(tmp_path)],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("speed.py", "--quick", "--out", str(tmp_path))
     report = json.loads((tmp_path / "speed.json").read_text())
     assert [g["goal"] for g in report["goals"]] == [
         "G1",
@@ -98,17 +102,7 @@ def test_hard_instances_benchmark_reduced_mode(tmp_path):
     """Small sensor networks, certified by auto and by both MILP backends, and small chains
     with cycles (a turn-back grid, a drone): every row must certify, and the values must agree
     across methods and time limits (no timing asserted)."""
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "hard_instances.py"),
-            "--quick",
-            "--out",
-            str(tmp_path),
-        ],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("hard_instances.py", "--quick", "--out", str(tmp_path))
     payload = json.loads((tmp_path / "hard_instances.json").read_text())
     goals = ["H1", "H2", "H3", "H4", "C1", "C2", "C3", "H5", "H5 at 20 s"]
     assert [goal["goal"] for goal in payload["goals"]] == goals
@@ -143,15 +137,10 @@ def test_hard_instances_benchmark_reduced_mode(tmp_path):
 def test_compare_trees_finds_a_tree_equal_to_itself(tmp_path):
     """The before/after bench on one tree against itself: every case gives the same answers."""
     src = ROOT / "src"
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "compare_trees.py"),
-            "--quick",
-            *("--before", str(src), "--after", str(src), "--out", str(tmp_path)),
-        ],
-        check=True,
-        capture_output=True,
+    run_bench(
+        "compare_trees.py",
+        "--quick",
+        *("--before", str(src), "--after", str(src), "--out", str(tmp_path)),
     )
     rows = json.loads((tmp_path / "compare_trees.json").read_text())
     assert {row["kind"] for row in rows} == {"hard", "grid", "enumeration", "drones"}
@@ -163,17 +152,7 @@ def test_proofs_benchmark_reduced_mode(tmp_path):
     """bench/proofs_on_cycles.py --quick: it runs, and on the 12x12 turn-back grid every
     proof holds (the bound within 1e-6 of policy iteration's value) with the collapsed proof
     as with the direct check; the search's rows are certified or carry a bound."""
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "proofs_on_cycles.py"),
-            "--quick",
-            "--out",
-            str(tmp_path),
-        ],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("proofs_on_cycles.py", "--quick", "--out", str(tmp_path))
     document = json.loads((tmp_path / "proofs_on_cycles.json").read_text())
     (case,) = document["samples"]
     assert case["samples"] > 0 and case["new_fails"] <= case["old_fails"]
@@ -193,17 +172,7 @@ def test_covering_benchmark_reduced_mode(tmp_path):
     the relaxation with every sensor free, at every budget; its search rows, with covers and
     without, agree where both certify, and each bound lies above its value; a cover in one
     process and in two agree."""
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "covering_bound.py"),
-            "--quick",
-            "--out",
-            str(tmp_path),
-        ],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("covering_bound.py", "--quick", "--out", str(tmp_path))
     document = json.loads((tmp_path / "covering_bound.json").read_text())
     rows = document["root"]
     assert [r["budget"] for r in rows] == [1, 2]
@@ -235,15 +204,7 @@ def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
     from misdirect.core.attack import prepare
     from misdirect.scenarios.sensor_grid import sensor_grid
 
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "enumeration_kernel.py"),
-            *("--quick", "--out", str(tmp_path)),
-        ],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("enumeration_kernel.py", *("--quick", "--out", str(tmp_path)))
     row = json.loads((tmp_path / "enumeration_kernel.json").read_text())
     problem = sensor_grid(10, 8, goal="inside")
     space = prepare(problem, 2).space
@@ -258,11 +219,7 @@ def test_enumeration_kernel_benchmark_reduced_mode(tmp_path):
 def test_stealth_speed_quick_mode(tmp_path):
     """bench/stealth_speed.py --quick: it runs and writes its three files, and the monitored
     paper grid's budget-0/1 values are the stealthy ones of docs/stealth.md (no timing)."""
-    subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "stealth_speed.py"), "--quick", "--out", tmp_path],
-        check=True,
-        capture_output=True,
-    )
+    run_bench("stealth_speed.py", "--quick", "--out", tmp_path)
     document = json.loads((tmp_path / "stealth_speed.json").read_text())
     grid = next(row for row in document["rows"] if row["goal"] == "T1")
     assert grid["watched"]["values"] == pytest.approx([0.084957, 0.647903], abs=1e-6)
@@ -276,12 +233,7 @@ def test_bench_stealth_reduced_mode(tmp_path):
     budget-1 values against the brute force over its 49 alterations (docs/stealth.md): 0.720
     unmonitored, 0.648 stealthy (caught 0.21), 0.1219 (o2 -> b, caught 0.006) for δ of 0.01
     to 0.1, 0.0892 (o6 -> b, never caught) for δ = 0."""
-    subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "stealth.py"), "--out", str(tmp_path), "--top", "1"],
-        check=True,
-        capture_output=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
-    )
+    run_bench("stealth.py", "--out", str(tmp_path), "--top", "1", with_src=True)
     summary = json.loads((tmp_path / "stealth.json").read_text())
     assert summary["all_optimal"]
     at_one = {(r["case"], r["max_alarm"]): r for r in summary["rows"] if r["budget"] == 1}
@@ -304,20 +256,15 @@ def test_bench_stealth_lagrangian_reduced_mode(tmp_path):
     """bench/stealth_lagrangian.py at budgets 0..1, one round (no timing asserted): with the
     Lagrangian node bound and without, every curve certified at the same values (δ = 0 at
     budget 1: 0.089186, as bench/stealth.py), and no root bound above the relaxation's."""
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "stealth_lagrangian.py"),
-            "--out",
-            str(tmp_path),
-            "--top",
-            "1",
-            "--rounds",
-            "1",
-        ],
-        check=True,
-        capture_output=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    run_bench(
+        "stealth_lagrangian.py",
+        "--out",
+        str(tmp_path),
+        "--top",
+        "1",
+        "--rounds",
+        "1",
+        with_src=True,
     )
     document = json.loads((tmp_path / "stealth_lagrangian.json").read_text())
     runs = document["runs"]
@@ -334,12 +281,7 @@ def test_bench_stealth_lagrangian_reduced_mode(tmp_path):
 def test_robust_benchmark_reduced_mode(tmp_path):
     """bench/robust.py --quick: the exact master at budget 0 and one randomized round at
     budget 1, the baselines, the table and the trade-off figure."""
-    subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "robust.py"), "--quick", "--out", str(tmp_path)],
-        check=True,
-        capture_output=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
-    )
+    run_bench("robust.py", "--quick", "--out", str(tmp_path), with_src=True)
     document = json.loads((tmp_path / "robust.json").read_text())
     (floor,) = document["exact"]
     assert floor["optimal"] and floor["lower_bound"] == pytest.approx(floor["upper_bound"])
@@ -367,18 +309,7 @@ def test_bench_stealth_automaton_quick_mode(tmp_path):
         from stealth_automaton import implausible_twice
     finally:
         sys.path.remove(str(ROOT / "bench"))
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "stealth_automaton.py"),
-            "--quick",
-            "--out",
-            tmp_path,
-        ],
-        check=True,
-        capture_output=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
-    )
+    run_bench("stealth_automaton.py", "--quick", "--out", tmp_path, with_src=True)
     document = json.loads((tmp_path / "stealth_automaton.json").read_text())
     rows = {(r["monitor"], r["budget"]): r for r in document["rows"]}
     assert all(r["status"] == "optimal" for r in rows.values())
@@ -409,18 +340,7 @@ def test_robust_large_benchmark_reduced_mode(tmp_path):
     """bench/robust_large.py --quick: one randomized round on a small drone and a small
     turn-back grid; each answer certified, never worse than the baselines it was seeded with,
     and the table written."""
-    subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "bench" / "robust_large.py"),
-            "--quick",
-            "--out",
-            str(tmp_path),
-        ],
-        check=True,
-        capture_output=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
-    )
+    run_bench("robust_large.py", "--quick", "--out", str(tmp_path), with_src=True)
     document = json.loads((tmp_path / "robust_large.json").read_text())
     assert [r["case"] for r in document["rows"]] == ["drone", "turn-back"]
     for row in document["rows"]:
