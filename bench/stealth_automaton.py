@@ -1,5 +1,5 @@
-"""Stealth against a user's automaton on turn-back grids (issue 52): the curves with the
-monitor certified as far as the unmonitored ones are.
+"""Stealth against a user's automaton on turn-back grids and a drone (issue 52): the curves
+with the monitor certified as far as the unmonitored ones are.
 
     python bench/stealth_automaton.py --out DIR [--quick] [--time-limit 300]
 
@@ -10,6 +10,11 @@ robot knows it took cannot land it there). It is written as a user would, as tra
 (:meth:`misdirect.core.monitor.Monitor.from_transitions`, checked deterministic and complete);
 its size is (readings x actions x 2) + 2 states, so it suits models with few readings (the
 drone's 1,047 readings and 5 actions would make a table of 10,470 x 1,047 x 5).
+
+The drone gets "cell jump" instead, the check a GPS-spoofing detector makes: every reading
+names the drone's cell, and the alarm is raised when it names a cell more than one step (in
+either coordinate) from the cell the previous reading named. One state per cell, written
+with lists of readings as guards and a catch-all to the alarm.
 
 Per case: each budget's status, value, Pr(alarm) and the wall time of each curve (one
 process, the unmonitored curve first). Writes stealth_automaton.json and .csv under --out.
@@ -30,11 +35,27 @@ import numpy as np
 import misdirect
 from misdirect.core.model import Problem
 from misdirect.core.monitor import Monitor, Transition, with_monitor
-from misdirect.scenarios import sensor_grid
+from misdirect.scenarios import drone, sensor_grid
 
-# (name, sensor_grid arguments, top budget)
-FULL = [("turn-back 8x8, 8 sensors", (8, 8), 2), ("turn-back 12x12, 16 sensors", (12, 16), 2)]
-QUICK = [("turn-back 8x8, 8 sensors", (8, 8), 1)]
+
+def implausible_twice_on(n: int, sensors: int) -> tuple[Problem, Monitor]:
+    problem = sensor_grid(n, sensors, goal="inside")
+    return problem, implausible_twice(problem)
+
+
+def cell_jump_on(n: int, agents: int, rows: int) -> tuple[Problem, Monitor]:
+    problem = drone(n, agents=agents, rows=rows)
+    return problem, cell_jump(problem)
+
+
+# (name, the problem and its monitor, top budget)
+TURN_BACK_8 = ("turn-back 8x8, 8 sensors", lambda: implausible_twice_on(8, 8))
+FULL = [
+    (*TURN_BACK_8, 2),
+    ("turn-back 12x12, 16 sensors", lambda: implausible_twice_on(12, 16), 2),
+    ("drone 7x7, 2 agents, 1 row", lambda: cell_jump_on(7, 2, 1), 3),
+]
+QUICK = [(*TURN_BACK_8, 1)]
 
 
 def implausible_twice(problem: Problem) -> Monitor:
@@ -85,11 +106,44 @@ def implausible_twice(problem: Problem) -> Monitor:
     )
 
 
-def rows(case: str, monitored: bool, result: misdirect.SolveResult, wall: float) -> list[dict]:
+def cell_jump(problem: Problem) -> Monitor:
+    """The drone's automaton of the module docstring: a state per cell the readings name."""
+    observations = problem.pomdp.observations
+    cell_of = {o: o.split(":")[0] for o in observations if ":" in o}  # "(x,y):reading"
+    cells = sorted(set(cell_of.values()))
+    named = {c: [o for o, at in cell_of.items() if at == c] for c in cells}
+
+    def xy(cell: str) -> tuple[int, int]:
+        x, y = cell.strip("()").split(",")
+        return int(x), int(y)
+
+    def near(a: str, b: str) -> bool:
+        (ax, ay), (bx, by) = xy(a), xy(b)
+        return max(abs(ax - bx), abs(ay - by)) <= 1
+
+    transitions = [Transition(state="start", reading=named[c], next=c) for c in cells]
+    transitions.append(Transition(state="start", reading="*", next="start"))  # goal, pad, crash
+    for c in cells:
+        transitions += [Transition(state=c, reading=named[d], next=d) for d in cells if near(c, d)]
+        transitions.append(Transition(state=c, reading="*", next="caught"))
+    return Monitor.from_transitions(
+        states=["start", "caught", *cells],
+        initial="start",
+        alarm=["caught"],
+        transitions=transitions,
+        observations=observations,
+        actions=problem.pomdp.actions,
+        name="cell-jump",
+    )
+
+
+def rows(
+    case: str, monitor: str, monitored: bool, result: misdirect.SolveResult, wall: float
+) -> list[dict]:
     return [
         {
             "case": case,
-            "monitor": "implausible-twice" if monitored else "",
+            "monitor": monitor if monitored else "",
             "budget": p.budget,
             "status": str(p.status),
             "value": p.probability,
@@ -110,10 +164,9 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     table: list[dict[str, Any]] = []
     cases = []
-    for name, (n, sensors), top in QUICK if args.quick else FULL:
-        problem = sensor_grid(n, sensors, goal="inside")
+    for name, build, top in QUICK if args.quick else FULL:
         began = time.perf_counter()
-        monitor = implausible_twice(problem)
+        problem, monitor = build()
         watched = with_monitor(problem, monitor)
         build_s = time.perf_counter() - began
         budgets = list(range(top + 1))
@@ -127,7 +180,7 @@ def main() -> None:
             began = time.perf_counter()
             result = misdirect.solve(subject, budgets=budgets, time_limit=args.time_limit)
             wall = time.perf_counter() - began
-            found = rows(name, key == "watched", result, wall)
+            found = rows(name, monitor.name, key == "watched", result, wall)
             table += found
             summary[f"{key}_wall_s"] = round(wall, 3)
             summary[f"{key}_certified_to"] = max(

@@ -46,7 +46,7 @@ def test_a_chain_of_the_grid_with_its_partial_pivoting_fallback():
     enumeration = LowRankEnumeration(instance)
     chosen = np.zeros(chain.options.size, dtype=bool)
     chosen[enumeration.first_option[:-1]] = True  # every sensor unaltered
-    a = enumeration._inside[selected_groups(chain, live, chain.group_of_option, chosen)]
+    a = enumeration._inside[selected_groups(chain, live, chosen)]
     n = a.shape[0]
     b = np.zeros((n, 100))
     b[np.arange(100) * (n // 100), np.arange(100)] = 1.0

@@ -67,6 +67,79 @@ class Options:
         return cast(np.ndarray, (alteration[self.observation] == self.target).astype(np.float64))
 
 
+# Bytes per entry of OptionGroups' table (one group index)
+OPTION_TABLE_BYTES = 8
+
+
+@dataclass(frozen=True, eq=False)
+class OptionGroups:
+    """The group each option selects in each product state, as a (Q, K) array reads.
+
+    A state's choice reads one observation, so only that observation's options select a group
+    there; a dense (Q, K) table would be almost all -1 (on a drone under a monitor, 74,606
+    states x 24,411 options: 13.6 GiB). This keeps, per state with several groups, the
+    options from the least one it has to the greatest, and answers the two ways the engines
+    index it: ``[rows, k]`` (one option) and ``[rows, lo:hi]`` (a run of options)."""
+
+    n_states: int
+    n_options: int
+    single: np.ndarray  # (Q,) bool: the state has one group, which every option selects
+    first_group: np.ndarray  # (Q,) each state's first group
+    slot: np.ndarray  # (Q,) row of the state in ``table`` (-1 for single-group states)
+    low: np.ndarray  # (Q,) the least option with a group there (0 for single-group states)
+    table: np.ndarray  # (rows of multi-group states, width) group of option low + j, or -1
+
+    @classmethod
+    def of(cls, chain: ChoiceProduct) -> OptionGroups:
+        n_states, n_options = chain.n_states, max(chain.options.size, 1)
+        single = chain.groups_per_state == 1
+        coo = chain.group_options.tocoo()
+        state, option = chain.group_state[coo.row], coo.col.astype(np.int64)
+        low = np.full(n_states, n_options, dtype=np.int64)
+        np.minimum.at(low, state, option)
+        high = np.zeros(n_states, dtype=np.int64)
+        np.maximum.at(high, state, option)
+        low[single] = 0
+        many = np.flatnonzero(~single & (high >= low))
+        width = int((high[many] - low[many]).max()) + 1 if many.size else 0
+        check_memory(
+            float(many.size) * width * OPTION_TABLE_BYTES,
+            f"the table of the options' groups ({many.size:,} states x {width:,} options)",
+        )
+        slot = np.full(n_states, -1, dtype=np.int64)
+        slot[many] = np.arange(many.size)
+        table = np.full((many.size, width), -1, dtype=np.int64)
+        keep = slot[state] >= 0
+        table[slot[state[keep]], option[keep] - low[state[keep]]] = coo.row[keep]
+        return cls(n_states, n_options, single, chain.first_group, slot, low, table)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n_states, self.n_options)
+
+    def __getitem__(self, key: tuple[np.ndarray | slice, int | slice | np.integer]) -> np.ndarray:
+        rows, options = key
+        states = np.arange(self.n_states)[rows]
+        if isinstance(options, slice):
+            columns = np.arange(self.n_options)[options]
+            return self._lookup(states, columns)
+        return self._lookup(states, np.array([int(options)]))[:, 0]
+
+    def _lookup(self, states: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        out = np.full((states.size, columns.size), -1, dtype=np.int64)
+        width = self.table.shape[1]
+        slot = self.slot[states]
+        many = np.flatnonzero(slot >= 0)
+        if many.size and width:
+            local = columns[None, :] - self.low[states[many]][:, None]
+            inside = (local >= 0) & (local < width)
+            found = self.table[slot[many][:, None], np.clip(local, 0, width - 1)]
+            out[many] = np.where(inside, found, -1)
+        one = self.single[states]
+        out[one] = self.first_group[states[one]][:, None]
+        return out
+
+
 @dataclass(frozen=True, eq=False)
 class ChoiceProduct:
     """Product MDP over reachable ``(s, n)``; groups are its choices."""
@@ -94,18 +167,30 @@ class ChoiceProduct:
         return np.bincount(self.group_state, minlength=self.n_states)
 
     @cached_property
-    def group_of_option(self) -> np.ndarray:
-        """(Q, K) group each option selects in each state (its only group if it has one; -1
-        where the state's choice belongs to another observation). Built once per chain: the
-        enumeration, the local search and every node of the segment search read it."""
-        table = np.full((self.n_states, max(self.options.size, 1)), -1, dtype=np.int64)
+    def group_of_option(self) -> OptionGroups:
+        """Group each option selects in each state (its only group if it has one; -1 where
+        the state's choice belongs to another observation), indexed ``[rows, option]`` or
+        ``[rows, lo:hi]`` like a (Q, K) array. Built once per chain: the enumeration, the
+        local search and every node of the segment search read it."""
+        return OptionGroups.of(self)
+
+    def groups_taking(self, chosen: np.ndarray) -> np.ndarray:
+        """(Q,) the group each state takes when the options marked in ``chosen`` (bool, (K,))
+        are taken: a state with one group takes it, another the highest-numbered group that
+        a chosen option selects there (-1 where none does)."""
+        hit = np.flatnonzero(np.asarray(self.group_options @ chosen.astype(np.float64)) > 0.5)
+        picked = np.full(self.n_states, -1, dtype=np.int64)
+        np.maximum.at(picked, self.group_state[hit], hit)
         single = self.groups_per_state == 1
+        picked[single] = self.first_group[single]
+        return picked
+
+    @cached_property
+    def first_group(self) -> np.ndarray:
+        """(Q,) each state's first group."""
         first = np.zeros(self.n_states, dtype=np.int64)
         first[self.group_state[::-1]] = np.arange(self.n_groups)[::-1]
-        table[single] = first[single][:, None]
-        coo = self.group_options.tocoo()
-        table[self.group_state[coo.row], coo.col] = coo.row
-        return table
+        return first
 
     def one_step(self, groups: np.ndarray | None = None) -> np.ndarray:
         """Score collected in one step by each group (all, or ``groups``): the weight of the

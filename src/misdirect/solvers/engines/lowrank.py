@@ -746,7 +746,7 @@ class LowRankEnumeration:
     ) -> _BlockBase:
         chain, live, start = self.instance.chain, self.instance.live, self.start
         group_of_option, first = chain.group_of_option, self.first_option
-        base_groups = selected_groups(chain, live, group_of_option, chosen)
+        base_groups = selected_groups(chain, live, chosen)
         regions = [self.live_index[self.rows_of[self.observations[i]]] for i in inner]
         option_groups = [
             group_of_option[self.rows_of[self.observations[i]], first[i] : first[i + 1]]
@@ -783,7 +783,7 @@ class LowRankEnumeration:
         for i in self.natural_inner:
             unaltered[first[i] : first[i + 1]] = False
             unaltered[first[i]] = True
-        root_groups = selected_groups(chain, live, chain.group_of_option, unaltered)
+        root_groups = selected_groups(chain, live, unaltered)
         states = [self.rows_of[self.observations[i]] for i in self.natural_inner]
         option_groups = [
             chain.group_of_option[region, first[i] : first[i + 1]]
@@ -1222,7 +1222,7 @@ class LowRankEnumeration:
         policy[chain.group_state[::-1]] = np.arange(chain.n_groups)[::-1]
         chosen = np.zeros(chain.options.size, dtype=bool)
         chosen[self.first_option[:-1]] = True
-        policy[live] = selected_groups(chain, live, chain.group_of_option, chosen)
+        policy[live] = selected_groups(chain, live, chosen)
         return policy
 
     def _block_fits(

@@ -721,18 +721,12 @@ def _schur_corrections_numpy(
         out[pick] = np.where(ill, np.nan, out[pick] + np.einsum("ni,ni->n", grad, z))
 
 
-def selected_groups(
-    chain: ChoiceProduct, live: np.ndarray, group_of_option: np.ndarray, chosen: np.ndarray
-) -> np.ndarray:
+def selected_groups(chain: ChoiceProduct, live: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     """Group of every live state when the options in ``chosen`` are taken."""
-    table = group_of_option[np.flatnonzero(live)]
-    picked = np.where(chosen[None, :] & (table >= 0), table, -1).max(axis=1)
-    single = chain.groups_per_state[np.flatnonzero(live)] == 1
-    fallback = group_of_option[np.flatnonzero(live), 0]
-    picked = np.where(single, fallback, picked)
+    picked = chain.groups_taking(chosen)[np.flatnonzero(live)]
     if (picked < 0).any():
         raise AssertionError("a live state has no selected group")
-    return cast(np.ndarray, picked)
+    return picked
 
 
 TRAP_BATCH_ENTRIES = 1_000_000  # numbers of the Woodbury systems solved in one batch
