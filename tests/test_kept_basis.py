@@ -167,3 +167,24 @@ def test_later_attempts_on_the_kept_basis():
             assert kept < 1.0
     assert later >= 3  # the later attempts ran ...
     assert all(held_solves)  # ... each solve on the kept basis
+
+
+def test_a_basis_too_large_to_keep_is_not_built(monkeypatch):
+    """The basis keeps dense arrays over the states of O: the base inverse (O x O), the rows
+    of O's groups on O and their products with it (groups x O, twice), H (E x O). Counting
+    only H let a monitored drone (73,224 states in O) try to allocate 677 GiB. On the 12x12
+    grid (O 228 states, E 340, 912 groups: 545,376 numbers, H alone 77,520) a limit between
+    the two refuses the basis, and the covering bound then solves without it."""
+    from misdirect.solvers.engines import kept_basis
+
+    problem = sensor_grid(12, 16, goal="inside")
+    instance = prepare(problem, 2.0)
+    relax = PerStateRelaxation(problem, instance.space, instance.chain, instance.cycling)
+    basis = KeptBasis(relax, {}, range(16))
+    o, e, g = basis.o_states.size, basis.e_states.size, basis.groups.size
+    kept = o * (e + 2 * g + o)
+    assert basis.usable and e * o < kept
+    monkeypatch.setattr(kept_basis, "MAX_KEPT_ENTRIES", (e * o + kept) // 2)
+    assert not KeptBasis(relax, {}, range(16)).usable
+    monkeypatch.setattr(kept_basis, "MAX_KEPT_ENTRIES", kept)
+    assert KeptBasis(relax, {}, range(16)).usable

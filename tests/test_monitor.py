@@ -273,6 +273,8 @@ def test_random_problems_and_monitors_brute_force(seed):
         report = misdirect.evaluate(watched, alpha)
         assert report.probability == pytest.approx(value, abs=1e-10)
         assert (report.alarm_probability or 0.0) == pytest.approx(alarm, abs=1e-10)
+        # a monitor only takes runs away (auto bounds the monitored optimum by the plain one)
+        assert value <= misdirect.evaluate(problem, alpha).probability + 1e-12
         best = max(best, value)
     for method in ("exhaustive", "auto"):
         result = misdirect.solve(watched, budgets=[budget], method=method)
@@ -553,6 +555,62 @@ def test_auto_searches_first_where_the_enumeration_is_mostly_bases(monkeypatch):
     step, m0 = consistency_step(problem)
     brute = max(reference(problem, alpha, step, m0)[0] for alpha in affordable(problem, 1.0))
     assert result.curve[1].probability == pytest.approx(brute, abs=1e-10)
+
+
+def _cell_jump(problem):
+    """A drone's GPS check: the alarm when a reading names a cell more than one step (in
+    either coordinate) from the cell the previous reading named (readings are "(x,y):...")."""
+    observations = problem.pomdp.observations
+    cell_of = {o: o.split(":")[0] for o in observations if ":" in o}
+    cells = sorted(set(cell_of.values()))
+    named = {c: [o for o, at in cell_of.items() if at == c] for c in cells}
+
+    def near(a, b):
+        (ax, ay), (bx, by) = (tuple(map(int, c.strip("()").split(","))) for c in (a, b))
+        return max(abs(ax - bx), abs(ay - by)) <= 1
+
+    transitions = [Transition(state="start", reading=named[c], next=c) for c in cells]
+    transitions.append(Transition(state="start", reading="*", next="start"))
+    for c in cells:
+        transitions += [Transition(state=c, reading=named[d], next=d) for d in cells if near(c, d)]
+        transitions.append(Transition(state=c, reading="*", next="caught"))
+    return Monitor.from_transitions(
+        states=["start", "caught", *cells],
+        initial="start",
+        alarm=["caught"],
+        transitions=transitions,
+        observations=observations,
+        actions=problem.pomdp.actions,
+    )
+
+
+def test_the_plain_twin_certifies_an_attack_the_monitor_misses():
+    """auto solves a monitored problem's plain twin first. On a small drone under a GPS
+    check, the twin's budget-1 attack, (2,1):E read as (0,0):clear, jumps two cells and is
+    always caught (worth 0 watched); the same behaviour read from a neighbouring cell is
+    not, and is worth the twin's optimum, which bounds every monitored attack. So auto
+    certifies it by the twin's bound alone; the exhaustive enumeration of the monitored
+    problem agrees."""
+    from misdirect.scenarios import drone
+
+    problem = drone(5, agents=1, rows=1)
+    watched = with_monitor(problem, _cell_jump(problem))
+    plain = misdirect.solve(problem, budgets=[1.0])
+    assert str(plain.status) == "optimal"
+    caught = problem.alteration({"(2,1):E": "(0,0):clear"})
+    assert misdirect.evaluate(problem, caught).probability == pytest.approx(plain.probability)
+    assert misdirect.evaluate(watched, caught).probability == 0.0
+    result = misdirect.solve(watched, budgets=[1.0])
+    point = result.curve[-1]
+    assert str(point.status) == "optimal" and point.certified_by == "unmonitored"
+    assert point.probability == pytest.approx(plain.probability, rel=1e-12)
+    assert point.alarm == 0.0
+    ((read, sent),) = point.alteration.items()
+    assert problem.controller.behaviour_class[problem.pomdp.observations.index(sent)] == (
+        problem.controller.behaviour_class[problem.pomdp.observations.index("(0,0):clear")]
+    )
+    oracle = misdirect.solve(watched, budgets=[1.0], method="exhaustive")
+    assert oracle.probability == pytest.approx(point.probability, rel=1e-12)
 
 
 # -- the consistency monitor along the controller's runs ----------------------------------------

@@ -44,7 +44,7 @@ from misdirect.solvers.deadline import Deadline
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 MAX_ROUNDS = 64  # rounds of the reduced policy iteration before the whole chain takes over
-MAX_KEPT_ENTRIES = 20_000_000  # H (states outside O x states of O) kept at most this large
+MAX_KEPT_ENTRIES = 100_000_000  # numbers in the dense arrays a basis keeps (800 MB), at most
 # states outside O that a proof's solve holds fixed, at most (each one more column of the LU's
 # solves: beyond this the whole chain's LU is cheaper)
 MAX_HELD_OUTSIDE = 256
@@ -98,7 +98,13 @@ class KeptBasis:
         self.in_kept = np.zeros(n, dtype=bool)  # E and O: the states a kept solve covers
         self.in_kept[self.e_states] = self.in_kept[self.o_states] = True
         self.reduced = self.fallbacks = 0  # relaxations solved on the basis, and without it
-        self.usable = self.e_states.size * max(self.o_states.size, 1) <= MAX_KEPT_ENTRIES
+        # the reduced rows: every group of a state of O
+        self.groups = np.flatnonzero(in_o[chain.group_state])
+        # the dense arrays kept: H (E x O), the rows on O and their products with the base
+        # inverse (groups x O, twice), the base inverse (O x O)
+        size = max(self.o_states.size, 1)
+        kept = size * (self.e_states.size + 2 * self.groups.size + size)
+        self.usable = kept <= MAX_KEPT_ENTRIES
         if not self.usable:
             return
         e, o = self.e_states, self.o_states
@@ -109,8 +115,6 @@ class KeptBasis:
         rhs[:, o.size] = base[e] @ self.target_value
         solved = self.lu.solve(rhs) if self.lu is not None else rhs
         self.first_entry, self.before = solved[:, : o.size], solved[:, o.size]  # H, h
-        # the reduced rows: every group of a state of O
-        self.groups = np.flatnonzero(in_o[chain.group_state])
         rows = transitions[self.groups]
         self.into_e = rows[:, e].tocsr()
         self.q = rows[:, o].toarray() + self.into_e @ self.first_entry
