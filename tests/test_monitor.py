@@ -607,8 +607,9 @@ def test_the_plain_twin_certifies_an_attack_the_monitor_misses():
     assert point.alarm == 0.0
     ((read, sent),) = point.alteration.items()
     assert read == "(2,1):E"
-    assert problem.controller.behaviour_class[problem.pomdp.observations.index(sent)] == (
-        problem.controller.behaviour_class[problem.pomdp.observations.index("(0,0):clear")]
+    assert (
+        problem.controller.behaviour_class[problem.pomdp.observations.index(sent)]
+        == (problem.controller.behaviour_class[problem.pomdp.observations.index("(0,0):clear")])
     )
     oracle = misdirect.solve(watched, budgets=[1.0], method="exhaustive")
     assert oracle.probability == pytest.approx(point.probability, rel=1e-12)
