@@ -14,7 +14,7 @@ from misdirect.scenarios.sensor_grid import sensor_grid
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
 from misdirect.solvers.engines import covering, forked
 from misdirect.solvers.engines.covering import covering_bound, stratified_groups
-from misdirect.solvers.engines.forked import Claims, can_fork, forked_map
+from misdirect.solvers.engines.forked import Claims, can_fork, forked_call, forked_map
 from misdirect.solvers.engines.per_state import PerStateRelaxation
 
 needs_fork = pytest.mark.skipif(not can_fork(), reason="no fork on this platform")
@@ -73,6 +73,19 @@ def test_a_child_past_the_deadline_is_killed_and_the_deadline_raised():
     with pytest.raises(DeadlineExpiredError):
         forked_map(work, 2, Deadline(0.3))
     assert time.perf_counter() - began < 10  # not the child's 30 s
+
+
+@needs_fork
+def test_one_call_in_a_child_comes_back_or_is_killed_at_the_deadline():
+    """forked_call runs a call that cannot watch a deadline (a sparse LU) in a child when
+    there is a limit, here when there is none; past the limit the child is killed."""
+    assert forked_call(os.getpid, Deadline(30)) != os.getpid()
+    assert forked_call(os.getpid, None) == os.getpid()
+    assert forked_call(os.getpid, Deadline(None)) == os.getpid()
+    began = time.perf_counter()
+    with pytest.raises(DeadlineExpiredError):
+        forked_call(lambda: time.sleep(30), Deadline(0.3))
+    assert time.perf_counter() - began < 10  # not the call's 30 s
 
 
 @needs_fork

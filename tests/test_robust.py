@@ -672,3 +672,49 @@ def test_the_baselines_run_within_a_quarter_of_the_time_limit(monkeypatch):
     given.clear()
     misdirect.robust_controller(problem, 1.0, baselines=["given", "blind"])
     assert given == [None, None]
+
+
+def test_a_search_baseline_with_no_time_left_is_skipped_not_an_error(monkeypatch):
+    """Where the oracles before it used the baselines' whole share (a drone's first oracle
+    ran past its share at --time-limit 60), harden got 0 s and the run stopped with "--time-
+    limit: must be a positive number of seconds, got 0.0". It is now skipped, saying why."""
+    from misdirect.defence import robust_baselines
+
+    real = robust_baselines.oracle
+
+    def overrunning(problem, controller, objective, budget, seconds):
+        found = real(problem, controller, objective, budget, seconds)
+        time.sleep(seconds + 1.0)  # past its share, and past the baselines' end
+        return found
+
+    monkeypatch.setattr(robust_baselines, "oracle", overrunning)
+    problem = absorbed_problem(3, 1.0)
+    result = misdirect.robust_controller(
+        problem, 1.0, time_limit=4.0, baselines=["given", "blind", "harden"]
+    )
+    assert [b.kind for b in result.baselines] == ["given", "blind"]
+    (skipped,) = result.skipped_baselines
+    assert skipped.kind == "harden" and "no time left" in skipped.reason
+
+
+def test_the_gradient_masters_ranking_stops_at_the_deadline():
+    """Past the direct solver's size, the gradient master ranks each candidate in a forked
+    copy killed at its deadline: an exact evaluation there is one sparse LU, which on the
+    drone's 103,000-state chain of a sharp controller ran for more than ten minutes, past a
+    60 s limit. A ranking that would take 60 s here is cut at the 1 s deadline."""
+    from misdirect.defence.robust_gradient import ChainModel, GradientMaster
+    from misdirect.defence.robust_oracle import target_and_worth
+    from misdirect.solvers.deadline import Deadline
+
+    problem = three_ends_problem(0, 1.0)
+    target, worth = target_and_worth(problem, "decoy")
+    model = ChainModel(problem.pomdp, target, worth, 2, direct_limit=0)  # "large"
+    master = GradientMaster(model, -1.0, restarts=1)
+
+    def slow(controller: Controller) -> tuple[float, float, float]:
+        time.sleep(60)
+        return 0.0, 0.0, 0.0
+
+    began = time.perf_counter()
+    assert master.solve([problem.identity()], Deadline(1.0), slow) is None
+    assert time.perf_counter() - began < 15

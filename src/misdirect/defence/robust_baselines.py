@@ -41,6 +41,7 @@ KINDS = ("given", "blind", "harden", "paynt")
 HARDEN_SECONDS = 120.0  # harden's search for the protection baseline
 PAYNT_SECONDS = 60.0  # PAYNT's synthesis of the nominal baseline, model build included
 BASELINES_SHARE = 0.25  # of a robust run's time limit: every baseline together, at most
+MIN_SEARCH_SECONDS = 0.1  # a search baseline (harden, PAYNT) given less than this is skipped
 
 
 @dataclass(frozen=True)
@@ -273,6 +274,16 @@ def baselines(
         ("paynt", lambda: paynt_nominal(problem, objective, budget, memory, seconds("paynt"))),
     ):
         if kind not in wanted:
+            continue
+        share = seconds(kind)
+        if share is not None and share < MIN_SEARCH_SECONDS:  # the ones before took it all
+            skipped.append(
+                Skipped(
+                    kind,
+                    f"no time left for it: the baselines take at most {BASELINES_SHARE:.0%} "
+                    "of --time-limit, and those before it used that share",
+                )
+            )
             continue
         got = make()
         if isinstance(got, Baseline):

@@ -25,7 +25,7 @@ import threading
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 from misdirect.core.memory import memory_limit
 from misdirect.solvers.deadline import Deadline, DeadlineExpiredError
@@ -100,11 +100,35 @@ def forked_map(work: Callable[[int], T], pieces: int, deadline: Deadline | None 
         return [answers[k] for k in range(pieces)]
     finally:
         for pid, reader in children.values():
-            with contextlib.suppress(OSError):
-                os.close(reader)
-            with contextlib.suppress(OSError):
-                os.kill(pid, signal.SIGKILL)  # gone already where it answered: harmless
-            threading.Thread(target=_reap, args=(pid,), daemon=True).start()
+            _end(pid, reader)
+
+
+def forked_call(work: Callable[[], T], deadline: Deadline | None) -> T:
+    """``work()`` in a forked child, killed once ``deadline`` has passed
+    (:class:`DeadlineExpiredError`): for one call that cannot watch a deadline itself (a
+    sparse LU that drowns in fill has no place to stop). Here, unwatched, where there is no
+    limit, no ``fork`` or no room for a copy. Only its answer comes back, as in
+    :func:`forked_map`."""
+    if deadline is None or deadline.remaining() is None or not can_fork() or not _room_for(1):
+        return work()
+    try:
+        pid, reader = _fork(lambda _: work(), 0)
+    except OSError:
+        return work()
+    try:
+        return cast(T, _collect(pid, reader, deadline))
+    finally:
+        _end(pid, reader)
+
+
+def _end(pid: int, reader: int) -> None:
+    """Close a child's pipe, kill it (gone already where it answered: harmless) and reap it
+    in the background."""
+    with contextlib.suppress(OSError):
+        os.close(reader)
+    with contextlib.suppress(OSError):
+        os.kill(pid, signal.SIGKILL)
+    threading.Thread(target=_reap, args=(pid,), daemon=True).start()
 
 
 def _room_for(children: int) -> bool:
