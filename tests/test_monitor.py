@@ -670,3 +670,30 @@ def test_a_consistency_monitor_folds_into_its_own_controller_only():
         with_monitor(changed, monitor)
     # the full monitor is exact for any node, so it folds into any controller over its names
     assert consistency_monitor(problem, along_controller=False).controller is None
+
+
+def test_the_plain_twin_certifies_a_tradeoff_curve_once_solved():
+    """Under --max-alarm the twin's bound holds too (the constrained optimum is at most the
+    stealthy one), and its lifted attack counts where it is proven feasible: on the small
+    drone under the GPS check it is never caught, so every δ's budget 1 is certified by it,
+    at the unmonitored optimum. The twin is solved once for the whole curve."""
+    from misdirect.scenarios import drone
+
+    problem = drone(5, agents=1, rows=1)
+    watched = with_monitor(problem, _cell_jump(problem))
+    plain = misdirect.solve(problem, budgets=[1.0])
+    notes: list[str] = []
+    curves = misdirect.solve_tradeoff(
+        watched,
+        [0.0, 0.5],
+        budgets=[1.0],
+        progress=lambda done, total, **info: notes.append(info.get("note") or ""),
+    )
+    for curve in curves:
+        point = curve.curve[-1]
+        assert str(point.status) == "optimal" and point.certified_by == "unmonitored"
+        assert point.probability == pytest.approx(plain.probability, rel=1e-12)
+        assert point.alarm == 0.0
+    assert sum("without its monitor first" in note for note in notes) == 1
+    oracle = misdirect.solve(watched, budgets=[1.0], method="exhaustive", max_alarm=0.0)
+    assert oracle.probability == pytest.approx(plain.probability, rel=1e-12)

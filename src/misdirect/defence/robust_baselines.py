@@ -281,7 +281,7 @@ def baselines(
                 Skipped(
                     kind,
                     f"no time left for it: the baselines take at most {BASELINES_SHARE:.0%} "
-                    "of --time-limit, and those before it used that share",
+                    "of the time limit, and those before it used that share",
                 )
             )
             continue

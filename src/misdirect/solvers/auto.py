@@ -31,8 +31,10 @@ certified it and why.
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import ClassVar
@@ -72,6 +74,22 @@ UNLIMITED_NODES = 10**9
 UNWATCHED_FIRST = True  # a monitored problem's plain twin first (False: measured without)
 UNWATCHED_PARTS = 4  # a monitored problem's plain twin gets a quarter of the time left
 LIFT_TARGETS = 64  # per altered observation, the twin's answer tries at most this many targets
+
+# the twins solved in this trade-off curve: (id of the plain problem, budgets) -> (it, answers)
+_twins: ContextVar[dict[tuple[int, tuple[float, ...]], tuple[object, list[Solution]]] | None] = (
+    ContextVar("misdirect_twins", default=None)
+)
+
+
+@contextlib.contextmanager
+def twin_scope() -> Iterator[None]:
+    """Within this block (a trade-off curve: one solve per δ), a monitored problem's plain
+    twin is solved once for each list of budgets, and its answers shared by every δ."""
+    token = _twins.set({})
+    try:
+        yield
+    finally:
+        _twins.reset(token)
 
 
 @dataclass
@@ -466,55 +484,12 @@ class AutoSolver:
         deadline: Deadline | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        """A monitored problem (``--stealth``): its plain twin (the same world, controller and
-        alterations without the monitor) first, within a quarter of the time.
-
-        A monitor only takes runs away from the decoy: under any alteration a run is the
-        same with and without it until the alarm, which then ends it with nothing, so the
-        twin's proven bounds bound the monitored optimum too. The twin's chain is smaller
-        and its relaxations tighter (a monitored drone's 74,606 product states against
-        1,689). Where its optimal attacks go unnoticed they meet that bound and are
-        certified at once; the other budgets are searched on the monitored chain, from
-        the twin's attacks, and keep the tighter of the two bounds."""
+        """A monitored problem (``--stealth``): its plain twin first (:meth:`_twin_answers`);
+        the budgets its bound does not certify are searched on the monitored chain, from the
+        twin's attacks, and keep the tighter of the two bounds."""
         deadline = method_deadline(deadline, self.options.time_limit)
-        plain = problem.without_monitor()
-        report(progress, 0, 0, note="auto: the problem without its monitor first (it bounds it)")
-        twin = self._solve(
-            plain,
-            budgets,
-            progress,
-            deadline.within(deadline.share(UNWATCHED_PARTS)),
-            None,
-            may_split=True,
-        )
-        plain_value = ExactValues(plain)
         exact = exact_values(problem)
-        why = (
-            "the problem without its monitor: a monitor only takes runs away from the decoy, "
-            "so its proven bound bounds this one"
-        )
-        answers = []
-        for answer in twin:
-            alteration = np.asarray(answer.alteration, dtype=np.int64)
-            bound = answer.upper_bound
-            if bound is not None and not tolerance.proven(exact(alteration), bound):
-                alteration = _lifted(problem, alteration, answer.budget, exact, deadline)
-            if bound is not None:  # as the front door would: never below its exact value
-                bound = max(bound, plain_value(alteration), exact(alteration))
-            found = Solution(
-                budget=answer.budget,
-                alteration=alteration,
-                solver_probability=exact(alteration),
-                status=Status.FEASIBLE,
-                upper_bound=bound,
-                stats=AutoStats(_answer(answer.stats), why),
-                certified_by="unmonitored",
-                notes={} if bound is None else {"bound_from": why},
-            )
-            # proven by the twin's bound: nothing left to do (else cut, if nothing follows)
-            done = _certified(found)
-            stop = StopReason.FINISHED if done else StopReason.cut(deadline.cancelled)
-            answers.append(replace(found, stop_reason=stop))
+        answers = self._twin_answers(problem, budgets, progress, deadline, None)
         open_at = [j for j, a in enumerate(answers) if not _certified(a)]
         if not open_at or deadline.expired():
             return answers
@@ -531,6 +506,86 @@ class AutoSolver:
             answers[j] = _better(exact, answers[j], second, "the monitored problem searched")
         return answers
 
+    def _twin_answers(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+        deadline: Deadline,
+        constraint: AlarmConstraint | None,
+    ) -> list[Solution]:
+        """Per budget, the answer of the monitored problem's plain twin (the same world,
+        controller and alterations without the monitor, solved within a quarter of the time,
+        once per trade-off curve: :func:`twin_scope`), lifted to the monitored problem
+        (:func:`_lifted`; under ``constraint``, among the alterations it proves feasible),
+        with the twin's proven bound.
+
+        A monitor only takes runs away from the decoy: under any alteration a run is the
+        same with and without it until the alarm, which then ends it with nothing, so the
+        twin's proven bounds bound the monitored optimum too (and the constrained one,
+        which is at most that). The twin's chain is smaller and its relaxations tighter (a
+        monitored drone's 74,606 product states against 1,689). Where its optimal attacks,
+        lifted, go unnoticed, they meet that bound and are certified at once."""
+        plain = problem.without_monitor()
+        memo = _twins.get()
+        key = (id(problem.unwatched), tuple(budgets))
+        if memo is not None and key in memo:
+            twin = memo[key][1]
+        else:
+            note = "auto: the problem without its monitor first (it bounds it)"
+            report(progress, 0, 0, note=note)
+            unconstrained = AutoSolver(
+                replace(self.options, max_alarm=None),
+                enumeration_limit=self.enumeration_limit,
+                node_limit=self.node_limit,
+            )
+            twin = unconstrained._solve(
+                plain,
+                budgets,
+                progress,
+                deadline.within(deadline.share(UNWATCHED_PARTS)),
+                None,
+                may_split=True,
+            )
+            if memo is not None:
+                memo[key] = (problem.unwatched, twin)  # kept alive: its id stays its own
+        plain_value = ExactValues(plain)
+        exact = exact_values(problem)
+
+        def allowed(alteration: np.ndarray) -> bool:
+            return constraint is None or constraint.verdict(alteration) == Verdict.FEASIBLE
+
+        why = (
+            "the problem without its monitor: a monitor only takes runs away from the decoy, "
+            "so its proven bound bounds this one"
+        )
+        answers = []
+        for answer in twin:
+            alteration = np.asarray(answer.alteration, dtype=np.int64)
+            bound = answer.upper_bound
+            if bound is not None and not (
+                allowed(alteration) and tolerance.proven(exact(alteration), bound)
+            ):
+                alteration = _lifted(problem, alteration, answer.budget, exact, deadline, allowed)
+            if bound is not None:  # as the front door would: never below its exact value
+                bound = max(bound, plain_value(alteration), exact(alteration))
+            found = Solution(
+                budget=answer.budget,
+                alteration=alteration,
+                # an alteration the constraint does not allow is no incumbent
+                solver_probability=exact(alteration) if allowed(alteration) else None,
+                status=Status.FEASIBLE,
+                upper_bound=bound,
+                stats=AutoStats(_answer(answer.stats), why),
+                certified_by="unmonitored",
+                notes={} if bound is None else {"bound_from": why},
+            )
+            # proven by the twin's bound: nothing left to do (else cut, if nothing follows)
+            done = _certified(found)
+            stop = StopReason.FINISHED if done else StopReason.cut(deadline.cancelled)
+            answers.append(replace(found, stop_reason=stop))
+        return answers
+
     def _constrained(
         self,
         problem: Problem,
@@ -539,7 +594,10 @@ class AutoSolver:
         deadline: Deadline | None,
         seeds: Sequence[AlterationArray | None] | None,
     ) -> list[Solution]:
-        """Under ``max_alarm``: branch-and-bound under the constraint (its incumbents proven
+        """Under ``max_alarm``: on a monitored problem its plain twin first
+        (:meth:`_twin_answers`: its bound holds under the constraint too, its lifted attacks
+        count where they are proven feasible); then, for the budgets it leaves open,
+        branch-and-bound under the constraint (its incumbents proven
         feasible, subtrees whose fixed picks already raise the alarm too often pruned, no
         segment search: on monitored chains the per-state search alone is the faster), with
         :data:`NODE_LIMIT` nodes a budget; a budget it leaves open goes to the constrained
@@ -548,6 +606,29 @@ class AutoSolver:
         assert self.options.max_alarm is not None
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = alarm_constraint(problem, self.options.max_alarm)
+        if problem.unwatched is None:
+            return self._constrained_search(problem, budgets, progress, deadline, constraint)
+        twin = self._twin_answers(problem, budgets, progress, deadline, constraint)
+        open_at = [j for j, a in enumerate(twin) if not _certified(a)]
+        if not open_at or deadline.expired():
+            return twin
+        left = [budgets[j] for j in open_at]
+        found = self._constrained_search(problem, left, progress, deadline, constraint)
+        exact = exact_values(problem)
+        for j, answer in zip(open_at, found, strict=True):
+            twin[j] = _better_feasible(exact, constraint, twin[j], answer)
+        return twin
+
+    def _constrained_search(
+        self,
+        problem: Problem,
+        budgets: Sequence[float],
+        progress: ProgressCallback | None,
+        deadline: Deadline,
+        constraint: AlarmConstraint,
+    ) -> list[Solution]:
+        """:meth:`_constrained`'s search, for ``budgets``."""
+        assert self.options.max_alarm is not None
         options = SolveOptions(threads=self.options.threads, max_alarm=self.options.max_alarm)
         search = BranchAndBoundSolver(options, max_nodes=self.node_limit)
         why = "branch-and-bound under the constraint"
@@ -736,17 +817,24 @@ def _lifted(
     budget: float,
     exact: ExactValues,
     deadline: Deadline,
+    allowed: Callable[[np.ndarray], bool],
 ) -> AlterationArray:
     """The plain twin's ``alteration`` with its targets traded, one altered observation at a
     time, for others the controller treats alike (the same behaviour class without the
     monitor) but the monitor may not: the twin's chain is the same for all of them, so one
-    that the monitor never catches is worth the twin's value. The best found, within
-    ``budget`` (at most :data:`LIFT_TARGETS` per observation, the cheapest of each class of
-    the monitored controller first)."""
+    that the monitor never catches is worth the twin's value. The best found within
+    ``budget`` (an alteration ``allowed`` accepts before any other; at most
+    :data:`LIFT_TARGETS` targets per observation, the cheapest of each class of the
+    monitored controller first)."""
     assert problem.unwatched is not None
     plain_class = problem.unwatched.controller.behaviour_class
     watched_class = problem.controller.behaviour_class
-    best, value = np.asarray(alteration, dtype=np.int64), exact(alteration)
+
+    def score(candidate: np.ndarray) -> tuple[bool, float]:
+        return allowed(candidate), exact(candidate)
+
+    best = np.asarray(alteration, dtype=np.int64)
+    kept = score(best)
     for o in np.flatnonzero(best != problem.identity()).tolist():
         costs = problem.cost.row(o)
         alike = np.flatnonzero((plain_class == plain_class[best[o]]) & np.isfinite(costs))
@@ -757,8 +845,13 @@ def _lifted(
                 continue
             trial = best.copy()
             trial[o] = target
-            if problem.cost.fits(trial, budget) and tolerance.better(exact(trial), value):
-                best, value = trial, exact(trial)
+            if not problem.cost.fits(trial, budget):
+                continue
+            found = score(trial)
+            if (found[0] and not kept[0]) or (
+                found[0] == kept[0] and tolerance.better(found[1], kept[1])
+            ):
+                best, kept = trial, found
     return best
 
 

@@ -26,6 +26,7 @@ from misdirect.core.notebook import Shown
 from misdirect.core.tables import dataframe, short_float
 from misdirect.errors import OptionError, ProblemError
 from misdirect.solvers import get_solver
+from misdirect.solvers.auto import twin_scope
 from misdirect.solvers.base import ProgressCallback, Solution, report
 from misdirect.solvers.certification import (
     CurvePoint,
@@ -651,7 +652,7 @@ def solve_tradeoff(
     deltas = sorted({float(d) for d in max_alarm})
     if not deltas:
         raise OptionError("no δ to solve for: give at least one", parameter="max_alarm")
-    with shared_preparation(), tradeoff_scope(problem):
+    with shared_preparation(), tradeoff_scope(problem), twin_scope():
         return [solve(problem, max_alarm=delta, **options) for delta in deltas]
 
 
