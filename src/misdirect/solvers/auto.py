@@ -606,7 +606,7 @@ class AutoSolver:
         assert self.options.max_alarm is not None
         deadline = method_deadline(deadline, self.options.time_limit)
         constraint = alarm_constraint(problem, self.options.max_alarm)
-        if problem.unwatched is None:
+        if problem.unwatched is None or not UNWATCHED_FIRST:
             return self._constrained_search(problem, budgets, progress, deadline, constraint)
         twin = self._twin_answers(problem, budgets, progress, deadline, constraint)
         open_at = [j for j, a in enumerate(twin) if not _certified(a)]
