@@ -76,8 +76,9 @@ UNWATCHED_PARTS = 4  # a monitored problem's plain twin gets a quarter of the ti
 LIFT_TARGETS = 64  # per altered observation, the twin's answer tries at most this many targets
 
 # the twins solved in this trade-off curve: (id of the plain problem, budgets) -> (it, answers)
-_twins: ContextVar[dict[tuple[int, tuple[float, ...]], tuple[object, list[Solution]]] | None] = (
-    ContextVar("misdirect_twins", default=None)
+_Twin = list[tuple[Solution, float | None]]  # the plain twin's answers, with their bounds
+_twins: ContextVar[dict[tuple[int, tuple[float, ...]], tuple[object, _Twin]] | None] = ContextVar(
+    "misdirect_twins", default=None
 )
 
 
@@ -526,12 +527,12 @@ class AutoSolver:
         which is at most that). The twin's chain is smaller and its relaxations tighter (a
         monitored drone's 74,606 product states against 1,689). Where its optimal attacks,
         lifted, go unnoticed, they meet that bound and are certified at once."""
-        plain = problem.without_monitor()
         memo = _twins.get()
         key = (id(problem.unwatched), tuple(budgets))
         if memo is not None and key in memo:
             twin = memo[key][1]
         else:
+            plain = problem.without_monitor()
             note = "auto: the problem without its monitor first (it bounds it)"
             report(progress, 0, 0, note=note)
             unconstrained = AutoSolver(
@@ -539,7 +540,7 @@ class AutoSolver:
                 enumeration_limit=self.enumeration_limit,
                 node_limit=self.node_limit,
             )
-            twin = unconstrained._solve(
+            solved = unconstrained._solve(
                 plain,
                 budgets,
                 progress,
@@ -547,9 +548,21 @@ class AutoSolver:
                 None,
                 may_split=True,
             )
+            # each answer with its bound, as the front door would take it: never below its
+            # exact value (an alteration traded for one the controller treats alike has
+            # the same plain chain, so that value holds for it too)
+            plain_value = ExactValues(plain)
+            twin = [
+                (
+                    answer,
+                    None
+                    if answer.upper_bound is None
+                    else max(answer.upper_bound, plain_value(answer.alteration)),
+                )
+                for answer in solved
+            ]
             if memo is not None:
                 memo[key] = (problem.unwatched, twin)  # kept alive: its id stays its own
-        plain_value = ExactValues(plain)
         exact = exact_values(problem)
 
         def allowed(alteration: np.ndarray) -> bool:
@@ -560,15 +573,15 @@ class AutoSolver:
             "so its proven bound bounds this one"
         )
         answers = []
-        for answer in twin:
+        for answer, twin_bound in twin:
             alteration = np.asarray(answer.alteration, dtype=np.int64)
-            bound = answer.upper_bound
+            bound = twin_bound
             if bound is not None and not (
                 allowed(alteration) and tolerance.proven(exact(alteration), bound)
             ):
                 alteration = _lifted(problem, alteration, answer.budget, exact, deadline, allowed)
-            if bound is not None:  # as the front door would: never below its exact value
-                bound = max(bound, plain_value(alteration), exact(alteration))
+            if bound is not None:
+                bound = max(bound, exact(alteration))
             found = Solution(
                 budget=answer.budget,
                 alteration=alteration,
@@ -841,7 +854,9 @@ def _lifted(
         order = alike[np.lexsort((alike, costs[alike]))]
         _, first = np.unique(watched_class[order], return_index=True)
         for target in order[np.sort(first)][:LIFT_TARGETS].tolist():
-            if target == best[o] or deadline.expired():
+            if deadline.expired():
+                return best
+            if target == best[o]:
                 continue
             trial = best.copy()
             trial[o] = target

@@ -1218,8 +1218,7 @@ class LowRankEnumeration:
         """Every product state's group with nothing altered (a state that cannot reach the
         decoy keeps its first group: its value is 0 whatever it takes)."""
         chain, live = self.instance.chain, self.instance.live
-        policy = np.zeros(chain.n_states, dtype=np.int64)
-        policy[chain.group_state[::-1]] = np.arange(chain.n_groups)[::-1]
+        policy = chain.first_group.copy()
         chosen = np.zeros(chain.options.size, dtype=bool)
         chosen[self.first_option[:-1]] = True
         policy[live] = selected_groups(chain, live, chosen)
